@@ -1,0 +1,100 @@
+"""SLAM on the real CARMEN logs (Intel, Freiburg 079): time, throughput, memory and accuracy.
+
+    python benchmarks/slam_logs.py [--data DIR] [--logs intel fr079] [--particles 30 200]
+                                   [--seeds 0 1 2] [--preset laser180]
+
+Each run is a fresh child process so that its peak memory (ru_maxrss) is its own. Prints one
+Markdown row per run and, per log and particle count, the median time and the mean ± std of the
+relations metric over the seeds. The data folder defaults to $OMNITOF_DATA.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+def single_run(log: Path, relations: Path, preset: str, particles: int, seed: int) -> dict:
+    from omnitof.config import load_config
+    from omnitof.eval.relations import evaluate_relations, read_relations
+    from omnitof.io.carmen import read_carmen
+    from omnitof.slam import run_slam
+
+    scans = read_carmen(log).scans
+    cfg = load_config(preset=preset, overrides={"filter": {"particles": particles, "seed": seed}})
+    start = time.perf_counter()
+    result = run_slam(scans, cfg)
+    seconds = time.perf_counter() - start
+    rel = evaluate_relations(result.trajectory, read_relations(relations))
+    odo = evaluate_relations(result.odometry, read_relations(relations))
+    return {
+        "seconds": seconds,
+        "integrated": result.stats["integrated"],
+        "resamplings": result.stats["resamplings"],
+        "particle_scans_per_s": particles * result.stats["integrated"] / seconds,
+        "peak_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "trans_mean": rel.trans_mean,
+        "trans_std": rel.trans_std,
+        "rot_mean": rel.rot_mean,
+        "rot_std": rel.rot_std,
+        "matched": rel.n_matched,
+        "odometry_trans_mean": odo.trans_mean,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=os.environ.get("OMNITOF_DATA"))
+    parser.add_argument("--logs", nargs="+", default=["intel", "fr079"])
+    parser.add_argument("--particles", nargs="+", type=int, default=[30, 200])
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--preset", default="laser180")
+    parser.add_argument("--single", nargs=3, metavar=("LOG", "PARTICLES", "SEED"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.data is None:
+        sys.exit("set OMNITOF_DATA or pass --data: the folder holding intel.clf.bz2 and fr079.clf.bz2")
+    if args.single:
+        name, particles, seed = args.single
+        out = single_run(args.data / f"{name}.clf.bz2", args.data / f"{name}.relations",
+                         args.preset, int(particles), int(seed))
+        print(json.dumps(out))
+        return
+    print(f"preset {args.preset}; {os.cpu_count()} cores; {time.strftime('%Y-%m-%d %H:%M')}")
+    print("| log | particles | seed | wall s | integrated | resamplings | particle-scans/s | peak MiB "
+          "| trans err m (mean ± std) | rot err deg (mean ± std) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    summary = []
+    for name in args.logs:
+        for particles in args.particles:
+            runs = []
+            for seed in args.seeds:
+                cmd = [sys.executable, __file__, "--data", str(args.data), "--preset", args.preset,
+                       "--single", name, str(particles), str(seed)]
+                r = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
+                runs.append(r)
+                print(f"| {name} | {particles} | {seed} | {r['seconds']:.1f} | {r['integrated']} | "
+                      f"{r['resamplings']} | {r['particle_scans_per_s']:.0f} | {r['peak_mib']:.0f} | "
+                      f"{r['trans_mean']:.3f} ± {r['trans_std']:.3f} | {r['rot_mean']:.2f} ± {r['rot_std']:.2f} |",
+                      flush=True)
+            summary.append((name, particles, runs))
+    print()
+    print("| log | particles | median wall s | max peak MiB | trans err m, mean over seeds (min–max) "
+          "| rot err deg, mean over seeds | raw odometry trans err m |")
+    print("|---|---|---|---|---|---|---|")
+    for name, particles, runs in summary:
+        t = [r["trans_mean"] for r in runs]
+        rot = [r["rot_mean"] for r in runs]
+        print(f"| {name} | {particles} | {statistics.median(r['seconds'] for r in runs):.1f} | "
+              f"{max(r['peak_mib'] for r in runs):.0f} | {statistics.mean(t):.3f} ({min(t):.3f}–{max(t):.3f}) | "
+              f"{statistics.mean(rot):.2f} | {runs[0]['odometry_trans_mean']:.3f} |")
+
+
+if __name__ == "__main__":
+    main()

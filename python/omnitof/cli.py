@@ -1,0 +1,160 @@
+"""The `omnitof` command. Subcommands parse arguments and call the library; no logic here.
+
+Errors that come from the user's input (OmnitofError) print one line and exit with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from pathlib import Path
+from typing import Any
+
+from omnitof import __version__
+from omnitof.errors import OmnitofError
+
+
+def _config_from_args(args: argparse.Namespace):
+    from omnitof.config import load_config
+
+    overrides: dict[str, Any] = {"filter": {}}
+    for name in ("particles", "seed", "threads"):
+        value = getattr(args, name, None)
+        if value is not None:
+            overrides["filter"][name] = value
+    return load_config(args.config, preset=args.preset, overrides=overrides)
+
+
+def _progress_bar(total: int, enabled: bool, desc: str):
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="scan", desc=desc, disable=not enabled, dynamic_ncols=True)
+
+
+def _summary_line(stats: dict) -> str:
+    return (
+        f"scans {stats['scans']} (integrated {stats['integrated']}), "
+        f"time {stats['seconds']:.1f} s, particles {stats['particles']}, "
+        f"resamplings {stats['resamplings']}"
+    )
+
+
+def cmd_slam(args: argparse.Namespace) -> int:
+    from omnitof.io.carmen import read_carmen
+    from omnitof.results import write_results
+    from omnitof.slam import run_slam
+
+    cfg = _config_from_args(args)
+    log = read_carmen(args.log, skip_bad_lines=args.skip_bad_lines)
+    scans = log.scans if args.max_scans is None else log.scans.slice(0, args.max_scans)
+    with _progress_bar(len(scans), not args.quiet, "slam") as bar:
+        result = run_slam(scans, cfg, progress=bar.update)
+    extra = {"input": {"log": str(args.log), "bad_lines_skipped": log.bad_lines}}
+    if args.relations is not None:
+        from omnitof.eval.relations import evaluate_relations, read_relations
+
+        rel = evaluate_relations(result.trajectory, read_relations(args.relations))
+        extra["relations"] = rel.to_dict()
+    paths = write_results(args.out, result, cfg, title=f"{Path(args.log).name}", extra=extra)
+    print(_summary_line(result.stats))
+    if args.relations is not None:
+        print(rel.format())
+    print(f"results in {paths['summary'].parent}")
+    return 0
+
+
+def cmd_eval_relations(args: argparse.Namespace) -> int:
+    from omnitof.eval.relations import evaluate_relations, read_relations
+    from omnitof.io.tum import read_tum
+
+    result = evaluate_relations(
+        read_tum(args.trajectory), read_relations(args.relations),
+        time_tolerance=args.tolerance, source=args.trajectory,
+    )
+    print(result.format())
+    return 0
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    from omnitof.config import preset_names
+
+    if args.list:
+        print("\n".join(preset_names()))
+        return 0
+    print(_config_from_args(args).to_yaml(), end="")
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from omnitof.demo import run_demo
+
+    run_demo(args.out, seed=args.seed, particles=args.particles, progress=not args.quiet)
+    return 0
+
+
+def _add_config_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--preset", help="a bundled preset (see `omnitof config --list`)")
+    p.add_argument("--config", type=Path, help="a YAML configuration file (over the preset)")
+    p.add_argument("--particles", type=int, help="number of particles (overrides the configuration)")
+    p.add_argument("--seed", type=int, help="random seed (overrides the configuration)")
+    p.add_argument("--threads", type=int, help="worker threads, 0 = all cores (results do not depend on it)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="omnitof", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"omnitof {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("slam", help="run particle-filter SLAM on a CARMEN log")
+    p.add_argument("log", type=Path, help="CARMEN log (.clf/.log, plain, .gz or .bz2)")
+    p.add_argument("--out", type=Path, required=True, help="results folder")
+    _add_config_options(p)
+    p.add_argument("--relations", type=Path, help="benchmark relations file to score the trajectory with")
+    p.add_argument("--max-scans", type=int, help="process only the first N scans")
+    p.add_argument("--skip-bad-lines", action="store_true", help="skip and count malformed log lines")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_slam)
+
+    p = sub.add_parser("eval", help="evaluate results")
+    esub = p.add_subparsers(dest="eval_command", required=True)
+    e = esub.add_parser("relations", help="Kümmerle et al. 2009 relations metric of a TUM trajectory")
+    e.add_argument("trajectory", type=Path, help="TUM trajectory (timestamps on the log's clock)")
+    e.add_argument("relations", type=Path, help="relations file: t1 t2 x y z roll pitch yaw")
+    e.add_argument("--tolerance", type=float, default=1e-3, help="timestamp match tolerance (s)")
+    e.set_defaults(func=cmd_eval_relations)
+
+    p = sub.add_parser("config", help="print the configuration a run would use")
+    _add_config_options(p)
+    p.add_argument("--list", action="store_true", help="list the bundled presets")
+    p.set_defaults(func=cmd_config)
+
+    p = sub.add_parser("demo", help="simulate a corridor loop, run SLAM, evaluate, write figures")
+    p.add_argument("--out", type=Path, default=Path("results/demo"), help="results folder")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--particles", type=int, default=30)
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_demo)
+    return parser
+
+
+def _format_warning(message, category, filename, lineno, line=None) -> str:
+    # Warnings about the user's data read as one line, without our source location.
+    return f"omnitof: warning: {message}\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    warnings.formatwarning = _format_warning
+    try:
+        return args.func(args)
+    except OmnitofError as err:
+        print(f"omnitof: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("omnitof: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,171 @@
+"""The typed configuration of a SLAM run: YAML in, YAML out, every field documented.
+
+One pydantic model per stage. Angles are in degrees here (the user's edge) and in radians
+everywhere inside. A configuration file may give only some fields; the others keep their
+defaults. Presets live in `omnitof/presets/*.yaml` and are loaded by name.
+"""
+
+from __future__ import annotations
+
+import math
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from omnitof.errors import ConfigError
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class MotionConfig(_Section):
+    """Odometry motion model (Probabilistic Robotics, sample_motion_model_odometry).
+
+    The alphas are variances: rotation noise variance = alpha1·rot² + alpha2·trans², translation
+    noise variance = alpha3·trans² + alpha4·(rot1² + rot2²) (rot in rad, trans in m).
+    """
+
+    alpha1: float = Field(0.05, ge=0, description="rotation variance per squared rotation (rad²/rad²)")
+    alpha2: float = Field(0.01, ge=0, description="rotation variance per squared translation (rad²/m²)")
+    alpha3: float = Field(0.02, ge=0, description="translation variance per squared translation (m²/m²)")
+    alpha4: float = Field(0.01, ge=0, description="translation variance per squared rotation (m²/rad²)")
+
+
+class SensorModelConfig(_Section):
+    """Beam model p(z | m, x) that weighs the particles (Probabilistic Robotics, section 6.3)."""
+
+    z_hit: float = Field(0.8, ge=0, description="weight of the Gaussian hit part")
+    z_short: float = Field(0.05, ge=0, description="weight of the exponential short-reading part")
+    z_max: float = Field(0.05, ge=0, description="weight of the max-reading point mass")
+    z_rand: float = Field(0.1, ge=0, description="weight of the uniform random part")
+    sigma_hit: float = Field(0.1, gt=0, description="standard deviation of the hit part (m)")
+    lambda_short: float = Field(0.5, gt=0, description="rate of the short-reading part (1/m)")
+    max_range: float = Field(15.0, gt=0, description="largest range the model scores (m); longer readings are left out")
+    beam_stride: int = Field(2, ge=1, description="score every n-th beam")
+    likelihood_gain: float = Field(
+        0.1, gt=0, le=1,
+        description="multiplies the scan log-likelihood; below 1 it tempers the overconfidence of independent beams",
+    )
+
+    @model_validator(mode="after")
+    def _weights_sum_to_one(self) -> "SensorModelConfig":
+        total = self.z_hit + self.z_short + self.z_max + self.z_rand
+        if not math.isclose(total, 1.0, abs_tol=1e-6):
+            raise ValueError(f"z_hit + z_short + z_max + z_rand must be 1, got {total:g}")
+        return self
+
+
+class MapConfig(_Section):
+    """Log-odds occupancy grid and its inverse sensor model (paper eq. 8)."""
+
+    resolution: float = Field(0.05, gt=0, le=1, description="cell size (m)")
+    l_occ: float = Field(0.9, gt=0, description="log-odds added to the cell that holds a beam's end point")
+    l_free: float = Field(-0.4, lt=0, description="log-odds added to every cell a beam passes through")
+    l_min: float = Field(-2.0, lt=0, description="lower clamp of a cell's log-odds")
+    l_max: float = Field(3.5, gt=0, description="upper clamp of a cell's log-odds")
+    occupied_threshold: float = Field(
+        0.0, description="log-odds above which a cell is an obstacle for the beam model's ray casting"
+    )
+    max_range: float = Field(20.0, gt=0, description="readings beyond this (m) clear free space only")
+    clear_no_echo: bool = Field(False, description="let no-echo beams clear free space up to max_range")
+
+
+class FilterConfig(_Section):
+    """The Rao-Blackwellized particle filter (paper section IV)."""
+
+    particles: int = Field(30, ge=1, le=100_000, description="number of particles")
+    resample_threshold: float = Field(
+        0.5, gt=0, le=1, description="resample when Neff (eq. 10) falls below this fraction of the particles"
+    )
+    linear_update: float = Field(0.5, ge=0, description="integrate a scan after the robot moved this far (m)")
+    angular_update_deg: float = Field(25.0, ge=0, description="... or turned this much (deg)")
+    seed: int = Field(0, ge=0, lt=2**63, description="seed of every random draw; same seed, same map")
+    threads: int = Field(0, ge=0, description="worker threads; 0 uses every core (results do not depend on it)")
+
+
+class SlamConfig(_Section):
+    """Everything a SLAM run needs besides its data."""
+
+    filter: FilterConfig = FilterConfig()
+    motion: MotionConfig = MotionConfig()
+    sensor_model: SensorModelConfig = SensorModelConfig()
+    map: MapConfig = MapConfig()
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.model_dump(), sort_keys=False)
+
+
+def preset_names() -> list[str]:
+    """Names of the bundled presets."""
+    folder = resources.files("omnitof") / "presets"
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml"))
+
+
+def _merge(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in update.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def _read_yaml(text: str, source: str) -> dict[str, Any]:
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{source}: not valid YAML: {err}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: a configuration must be a mapping of sections")
+    return data
+
+
+def _validate(data: dict[str, Any], source: str) -> SlamConfig:
+    try:
+        return SlamConfig.model_validate(data)
+    except ValidationError as err:
+        problems = []
+        for e in err.errors():
+            field = ".".join(str(p) for p in e["loc"]) or "(top level)"
+            problems.append(f"{field}: {e['msg']}")
+        raise ConfigError(f"{source}: invalid configuration: " + "; ".join(problems)) from None
+
+
+def load_preset(name: str) -> dict[str, Any]:
+    """The raw settings of a bundled preset."""
+    if name not in preset_names():
+        raise ConfigError(f"unknown preset {name!r}; choose one of {', '.join(preset_names())}")
+    text = (resources.files("omnitof") / "presets" / f"{name}.yaml").read_text()
+    return _read_yaml(text, f"preset {name}")
+
+
+def load_config(
+    path: str | Path | None = None,
+    *,
+    preset: str | None = None,
+    overrides: dict[str, Any] | None = None,
+) -> SlamConfig:
+    """Defaults, then the preset, then the file, then explicit overrides (nested dicts)."""
+    data: dict[str, Any] = {}
+    source = "defaults"
+    if preset is not None:
+        data = _merge(data, load_preset(preset))
+        source = f"preset {preset}"
+    if path is not None:
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except OSError as err:
+            raise ConfigError(f"{path}: cannot read configuration: {err.strerror}") from None
+        data = _merge(data, _read_yaml(text, str(path)))
+        source = str(path)
+    if overrides:
+        data = _merge(data, overrides)
+    return _validate(data, source)

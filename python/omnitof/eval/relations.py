@@ -1,0 +1,286 @@
+"""The relation-based SLAM metric of Kümmerle et al. 2009.
+
+R. Kümmerle, B. Steder, C. Dornhege, M. Ruhnke, G. Grisetti, C. Stachniss, A. Kleiner, "On
+measuring the accuracy of SLAM algorithms", Autonomous Robots 27(4):387-407, 2009.
+
+A relations file lists reference relative motions: `t1 t2 x y z roll pitch yaw` means the robot
+pose at time t2 seen from the frame of the robot pose at time t1 (metres, radians) is
+δ_ref = (x, y, yaw). For each relation whose two timestamps are in the evaluated trajectory,
+
+    δ_est = ⊖pose(t1) ⊕ pose(t2)              (geometry.relative)
+    e     = ⊖δ_ref ⊕ δ_est                    (geometry.relative(δ_ref, δ_est))
+    translational error = hypot(e.x, e.y)  [m]
+    rotational error    = |wrap(e.θ)|       [deg]
+
+and the result reports mean and standard deviation of these errors and of their squares.
+
+How this matches the benchmark's own tools (read from their public sources, not copied):
+
+* The authors' `metricEvaluator` (Freiburg, 2009) subtracts the two relative transforms
+  component-wise, (x, y, z, roll, pitch, yaw)_est - (...)_ref with the angle differences
+  normalised, then takes sqrt(dᵀ W d) with weights W = diag(1,1,1,0,0,0) for the translational
+  error and diag(0,0,0,1,1,1) for the rotational one (radians there; the paper tables use
+  degrees). In the plane this equals the definition above exactly: e's translation is
+  R(-θ_ref)(t_est - t_ref), a rotation of t_est - t_ref, so it has the same length, and e.θ =
+  θ_est - θ_ref. Its `-q` option averages the squared errors instead, which is our trans2/rot2.
+* Cartographer's `compute_relations_metrics` uses δ_est ⊕ ⊖δ_ref instead, whose translation
+  t_est - R(θ_est - θ_ref) t_ref differs from ours by a term of the order of the rotational error
+  times |t_ref| (its own source notes the asymmetry). We follow the original evaluator.
+* Both compute the standard deviation with the sample (n - 1) denominator; so does this module
+  (with one matched relation the std is NaN).
+* metricEvaluator takes the SLAM pose nearest in time to each relation timestamp (within 0.1 s,
+  otherwise it shifts it along raw odometry). Here a trajectory pose is used only if its timestamp
+  equals the relation's to within `time_tolerance` (1 ms by default; the benchmark files use the
+  logs' scan ipc timestamps to 1e-5 s); other relations are counted as unmatched.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from omnitof.errors import InputError
+from omnitof.geometry import relative, wrap_angle
+from omnitof.types import Trajectory
+
+ROW_MESSAGE = "relation rows need 8 numbers: t1 t2 x y z roll pitch yaw"
+
+# z, roll and pitch of a planar benchmark are 0 (written as 0.000000); anything larger means a 3D
+# relation that a planar evaluation would silently get wrong.
+_PLANAR_TOLERANCE = 1e-6
+
+
+@dataclass
+class Relations:
+    """Reference relative motions.
+
+    Attributes:
+        t1, t2: (N,) float64 timestamps, seconds (the logs' ipc timestamps for the benchmark).
+        delta: (N, 3) float64 relative poses (x, y, yaw): the pose at t2 in the frame of the pose
+            at t1, metres and radians.
+        source: the file they came from, for messages.
+    """
+
+    t1: np.ndarray
+    t2: np.ndarray
+    delta: np.ndarray
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        self.t1 = np.ascontiguousarray(self.t1, dtype=np.float64).reshape(-1)
+        self.t2 = np.ascontiguousarray(self.t2, dtype=np.float64).reshape(-1)
+        self.delta = np.ascontiguousarray(self.delta, dtype=np.float64).reshape(-1, 3)
+        if not len(self.t1) == len(self.t2) == len(self.delta):
+            raise ValueError("relations need one t1, one t2 and one delta per relation")
+
+    def __len__(self) -> int:
+        return len(self.t1)
+
+
+def read_relations(path: str | Path) -> Relations:
+    """Read a benchmark relations file (`t1 t2 x y z roll pitch yaw` per line, '#' comments).
+
+    Raises:
+        InputError: naming the file and line for a row that is not 8 finite numbers or is not
+            planar (z, roll, pitch not 0); naming the file if it cannot be read or is empty.
+    """
+    try:
+        lines = Path(path).read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read the relations file: {exc}", path) from exc
+    rows = [
+        _parse_relation(text, path, number)
+        for number, text in enumerate((line.strip() for line in lines), start=1)
+        if text and not text.startswith("#")
+    ]
+    if not rows:
+        raise InputError("no relations: the file is empty", path)
+    data = np.asarray(rows)
+    return Relations(t1=data[:, 0], t2=data[:, 1], delta=data[:, [2, 3, 7]], source=str(path))
+
+
+def _parse_relation(text: str, path: str | Path, number: int) -> list[float]:
+    fields = text.split()
+    try:
+        row = [float(v) for v in fields]
+    except ValueError:
+        row = []
+    if len(row) != 8:
+        raise InputError(f"{ROW_MESSAGE} (found {len(fields)} fields)", path, number)
+    if not all(math.isfinite(v) for v in row):
+        raise InputError(f"{ROW_MESSAGE}, all finite (found nan or inf)", path, number)
+    if max(abs(v) for v in row[4:7]) > _PLANAR_TOLERANCE:
+        raise InputError(
+            "z, roll and pitch must be 0: only planar relations are supported", path, number
+        )
+    return row
+
+
+@dataclass(frozen=True)
+class RelationsResult:
+    """Statistics of the relation errors over the matched relations.
+
+    Units: trans_* in metres, trans2_* in m², rot_* in degrees, rot2_* in deg². Standard deviations
+    use the sample (n - 1) denominator, like the benchmark's evaluator; NaN with one relation.
+    `matched` is a (n_relations,) bool mask over the relations as read; `trans_errors` and
+    `rot_errors` hold one value per matched relation, in that order.
+    """
+
+    n_relations: int
+    n_matched: int
+    trans_mean: float
+    trans_std: float
+    trans2_mean: float
+    trans2_std: float
+    rot_mean: float
+    rot_std: float
+    rot2_mean: float
+    rot2_std: float
+    trans_errors: np.ndarray = field(repr=False)
+    rot_errors: np.ndarray = field(repr=False)
+    matched: np.ndarray = field(repr=False)
+    time_tolerance: float = 1e-3
+
+    @property
+    def n_unmatched(self) -> int:
+        return self.n_relations - self.n_matched
+
+    def format(self) -> str:
+        """A short table: counts, then mean and std of each error."""
+        rows = [
+            ("translational [m]", self.trans_mean, self.trans_std),
+            ("translational² [m²]", self.trans2_mean, self.trans2_std),
+            ("rotational [deg]", self.rot_mean, self.rot_std),
+            ("rotational² [deg²]", self.rot2_mean, self.rot2_std),
+        ]
+        lines = [
+            f"relations: {self.n_relations}, matched {self.n_matched}, "
+            f"unmatched {self.n_unmatched}",
+            f"{'error':<22}{'mean':>12}{'std':>12}",
+        ]
+        lines += [f"{name:<22}{mean:>12.6f}{std:>12.6f}" for name, mean, std in rows]
+        return "\n".join(lines)
+
+    def to_dict(self, *, include_errors: bool = False) -> dict[str, Any]:
+        """Plain Python values for YAML/JSON (NaN becomes None); per-relation errors on request."""
+        out: dict[str, Any] = {
+            "n_relations": self.n_relations,
+            "n_matched": self.n_matched,
+            "n_unmatched": self.n_unmatched,
+            "time_tolerance": self.time_tolerance,
+        }
+        for key in ("trans", "trans2", "rot", "rot2"):
+            out[f"{key}_mean"] = _plain(getattr(self, f"{key}_mean"))
+            out[f"{key}_std"] = _plain(getattr(self, f"{key}_std"))
+        if include_errors:
+            out["trans_errors"] = [float(v) for v in self.trans_errors]
+            out["rot_errors"] = [float(v) for v in self.rot_errors]
+        return out
+
+
+def _plain(value: float) -> float | None:
+    return None if math.isnan(value) else float(value)
+
+
+def evaluate_relations(
+    traj: Trajectory,
+    relations: Relations,
+    *,
+    time_tolerance: float = 1e-3,
+    source: str | Path | None = None,
+) -> RelationsResult:
+    """Score `traj` against the reference `relations` (see the module docstring for the metric).
+
+    Args:
+        traj: the estimated trajectory; its timestamps must be on the relations' clock.
+        relations: the reference relative motions.
+        time_tolerance: seconds; a relation end matches the nearest trajectory pose only if their
+            timestamps differ by at most this.
+        source: the trajectory's file, named in error messages.
+
+    Raises:
+        InputError: if no relation has both ends in the trajectory.
+    """
+    if time_tolerance < 0:
+        raise ValueError(f"time_tolerance must be >= 0, got {time_tolerance}")
+    i1, ok1 = _match_times(traj.timestamps, relations.t1, time_tolerance)
+    i2, ok2 = _match_times(traj.timestamps, relations.t2, time_tolerance)
+    matched = ok1 & ok2
+    if not matched.any():
+        raise InputError(_no_match_message(traj, relations, time_tolerance), source)
+    trans, rot = relation_errors(
+        traj.poses[i1[matched]], traj.poses[i2[matched]], relations.delta[matched]
+    )
+    return RelationsResult(
+        n_relations=len(relations),
+        n_matched=int(matched.sum()),
+        trans_mean=_mean(trans),
+        trans_std=_sample_std(trans),
+        trans2_mean=_mean(trans**2),
+        trans2_std=_sample_std(trans**2),
+        rot_mean=_mean(rot),
+        rot_std=_sample_std(rot),
+        rot2_mean=_mean(rot**2),
+        rot2_std=_sample_std(rot**2),
+        trans_errors=trans,
+        rot_errors=rot,
+        matched=matched,
+        time_tolerance=time_tolerance,
+    )
+
+
+def relation_errors(
+    pose1: np.ndarray, pose2: np.ndarray, delta_ref: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-relation (translational error [m], rotational error [deg]) of poses (N, 3) at t1, t2."""
+    delta_est = relative(pose1, pose2)
+    e = relative(delta_ref, delta_est)
+    trans = np.hypot(e[:, 0], e[:, 1])
+    rot = np.degrees(np.abs(wrap_angle(e[:, 2])))
+    return trans, rot
+
+
+def _match_times(
+    timestamps: np.ndarray, query: np.ndarray, tolerance: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per query time: (index of the nearest trajectory timestamp, whether within tolerance)."""
+    n = len(timestamps)
+    if n == 0:
+        return np.zeros(len(query), dtype=np.intp), np.zeros(len(query), dtype=bool)
+    # Sorting makes searchsorted valid even for a trajectory that is not in time order.
+    order = np.argsort(timestamps, kind="stable")
+    ts = timestamps[order]
+    right = np.clip(np.searchsorted(ts, query), 0, n - 1)
+    left = np.clip(right - 1, 0, n - 1)
+    take_left = np.abs(query - ts[left]) < np.abs(query - ts[right])
+    nearest = np.where(take_left, left, right)
+    ok = np.abs(query - ts[nearest]) <= tolerance
+    return order[nearest], ok
+
+
+def _no_match_message(traj: Trajectory, relations: Relations, tolerance: float) -> str:
+    times = np.concatenate([relations.t1, relations.t2])
+    span = f"relations span {times.min():.6f}..{times.max():.6f} s"
+    if len(traj):
+        span += f", trajectory {traj.timestamps.min():.6f}..{traj.timestamps.max():.6f} s"
+    else:
+        span += ", the trajectory is empty"
+    where = f" of {relations.source}" if relations.source else ""
+    return (
+        f"no relation timestamp{where} was found in the trajectory "
+        f"(within {tolerance:g} s; {span}); "
+        "the benchmark relations use the log's ipc timestamps: write the trajectory with those "
+        "(one pose per scan)"
+    )
+
+
+def _mean(values: np.ndarray) -> float:
+    return float(np.mean(values))
+
+
+def _sample_std(values: np.ndarray) -> float:
+    return float(np.std(values, ddof=1)) if len(values) > 1 else math.nan

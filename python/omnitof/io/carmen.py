@@ -1,0 +1,865 @@
+"""Reading CARMEN laser logs (plain, gzip or bzip2) into a ScanSequence.
+
+A CARMEN log holds one message per line; lines starting with '#' are comments. Every message ends
+with `ipc_timestamp ipc_hostname logger_timestamp`, and the *ipc* timestamp is the one kept here:
+the relation files of the Kümmerle et al. SLAM benchmark refer to scans by it.
+
+Messages read (anything else is counted in `CarmenLog.ignored_messages`):
+
+    PARAM name value [ipc_timestamp ipc_hostname logger_timestamp | ipc_hostname timestamp]
+    ODOM x y theta tv rv accel <trailer>
+    FLASER / RLASER n r_1..r_n laser_x laser_y laser_theta odom_x odom_y odom_theta <trailer>
+    ROBOTLASER1 / ROBOTLASER2 laser_type start_angle fov angular_resolution maximum_range
+        accuracy remission_mode n r_1..r_n m rem_1..rem_m laser_x laser_y laser_theta
+        robot_x robot_y robot_theta tv rv forward_safety_dist side_safety_dist turn_axis <trailer>
+    RAWLASER1..4  laser_type start_angle fov angular_resolution maximum_range accuracy
+        remission_mode n r_1..r_n m rem_1..rem_m <trailer>
+
+The front laser is FLASER / ROBOTLASER1 / RAWLASER1, the rear one RLASER / ROBOTLASER2 /
+RAWLASER2. Messages that carry poses (FLASER, ROBOTLASER) are preferred; RAWLASER scans, which
+carry none, are used only when there are no others, with the robot pose interpolated from ODOM.
+
+Units and frames follow omnitof.types: metres, radians, seconds; poses (x, y, theta) with theta
+counter-clockwise from +x; a range of +inf means "no echo".
+"""
+
+from __future__ import annotations
+
+import bz2
+import gzip
+import io
+import math
+import re
+import warnings
+import zlib
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import BinaryIO, Iterator
+
+import numpy as np
+
+from omnitof.errors import ConfigError, InputError
+from omnitof.geometry import relative, wrap_angle
+from omnitof.types import ScanSequence, Trajectory
+
+__all__ = ["CarmenLog", "CarmenWarning", "old_format_angles", "read_carmen", "write_carmen"]
+
+TRAILER = "ipc_timestamp ipc_hostname logger_timestamp"
+
+# CARMEN's own reader assumes 80 m for old-format lasers; it also sits below the SICK no-return
+# codes in the bundled logs (81.83 in intel, 81.91 in fr079).
+DEFAULT_MAX_RANGE = 80.0
+
+# A laser bolted to the robot keeps its offset; CARMEN prints poses to 1e-6, so these tolerances
+# only catch real inconsistencies (a corrected laser pose next to raw odometry, say).
+OFFSET_TOLERANCE_M = 0.01
+OFFSET_TOLERANCE_RAD = math.radians(0.5)
+
+# Beam geometry of new-format messages must not change between the scans of one log.
+GEOMETRY_TOLERANCE = 1e-6
+
+_KINDS = {  # laser side -> (old format, new format with poses, new format without poses)
+    "front": ("FLASER", "ROBOTLASER1", "RAWLASER1"),
+    "rear": ("RLASER", "ROBOTLASER2", "RAWLASER2"),
+}
+_ALL_LASER_KINDS = {"FLASER", "RLASER", "ROBOTLASER1", "ROBOTLASER2"} | {
+    f"RAWLASER{i}" for i in range(1, 5)
+}
+# Message names known from CARMEN's logger; seeing one is what makes a file a CARMEN log.
+_KNOWN_MESSAGES = _ALL_LASER_KINDS | {
+    "PARAM", "ODOM", "SYNC", "TRUEPOS", "NMEA-GGA", "NMEAGGA", "NMEARMC", "GPSNMEA", "SONAR",
+    "BUMPER", "IMU", "VELOCITY", "SCANMARK", "POSITIONLASER", "ROBOTLASER3", "ROBOTLASER4",
+}  # fmt: skip
+_MESSAGE_NAME = re.compile(r"[A-Z][A-Z0-9_-]*\Z")
+_GZIP_MAGIC = b"\x1f\x8b"
+_BZIP2_MAGIC = b"BZh"
+_SNIFF_BYTES = 4096  # how much of the start is checked for binary content
+
+
+class CarmenWarning(UserWarning):
+    """Something in a CARMEN log was accepted but deserves a look (see the message)."""
+
+
+@dataclass
+class CarmenLog:
+    """The content of a CARMEN log that omnitof uses.
+
+    Attributes:
+        scans: the scans of the chosen laser, in file order, with their ipc timestamps.
+        params: PARAM name -> value (the last one wins if a name repeats).
+        odometry: every ODOM message, in file order: ipc timestamps and (x, y, theta).
+        bad_lines: malformed lines skipped (only ever nonzero with skip_bad_lines=True).
+        ignored_messages: message name -> count, for the messages not used (SYNC, TRUEPOS, the
+            other laser, RAWLASER when the same laser also has messages with poses, ...).
+        time_reversals: how many times a scan's timestamp is earlier than the one before it
+            (tolerated up to `max_time_reversal`; see read_carmen).
+    """
+
+    scans: ScanSequence
+    params: dict[str, str]
+    odometry: Trajectory
+    bad_lines: int = 0
+    ignored_messages: dict[str, int] = field(default_factory=dict)
+    time_reversals: int = 0
+
+
+def read_carmen(
+    path: str | Path,
+    *,
+    skip_bad_lines: bool = False,
+    laser: str = "front",
+    fov_deg: float = 180.0,
+    max_time_reversal: float = 1.0,
+) -> CarmenLog:
+    """Read a CARMEN log (plain text, gzip or bzip2, told apart by the file's magic bytes).
+
+    Beam angles. New-format messages state them: beam i is at start_angle + i *
+    angular_resolution. Old-format FLASER/RLASER messages state only the beam count n, so the
+    angles follow CARMEN's own reader (readlog.c, `carmen_string_to_robot_laser_message_orig`):
+    a SICK LMS sweeps the field of view with a beam at *both* ends (181 beams at 1°, 361 at
+    0.5°), and a log with an even count (180, 360) dropped the last one. Hence
+
+        start = -fov/2,  step = fov/n for even n, fov/(n - 1) for odd n,
+
+    i.e. -90°..+89° at 1° for intel's 180 beams and -90°..+89.5° at 0.5° for fr079's 360 beams,
+    not the symmetric -89.5°..+89.5° one might assume. The field of view is the PARAM
+    `laser_front_laser_fov` (`laser_rear_laser_fov`; degrees) when the log has it, else
+    `fov_deg`. (CARMEN itself always starts at -90° and, for beam counts it does not know, uses
+    180°/(n - 1); GMapping's log reader places 180 beams at ±1°..±90° with no beam at 0°; MRPT
+    spreads them evenly over -90°..+90°. The disagreement is at most one step.)
+
+    Sensor pose (ScanSequence.sensor_pose, robot_T_sensor). From the per-message laser and robot
+    poses of FLASER/ROBOTLASER when they differ: the laser pose in the robot's frame in the
+    first scan, which must hold to 1 cm and 0.5° over the log. Otherwise from the PARAMs
+    `robot_frontlaser_offset` (forward), `robot_frontlaser_side_offset` (left) and
+    `robot_frontlaser_angular_offset` (`rearlaser` for the rear laser), taken literally as
+    (x, y, theta); missing ones are 0, except that a rear laser with no angular offset faces
+    backwards at (-offset, -side_offset, pi), as in older CARMEN (its localize module). If both
+    exist and disagree, the messages win and a CarmenWarning says so. ScanSequence.odometry is
+    the robot pose of each scan (odom_x.. or robot_x..; interpolated from ODOM for RAWLASER:
+    linear in x and y, shortest arc in theta).
+
+    No echo. A range >= the maximum range or <= 0 becomes +inf. The maximum is the message's
+    maximum_range in the new format; for FLASER/RLASER it is the PARAM `robot_front_laser_max`
+    (`robot_rear_laser_max`), else `laser_front_laser_max_range`, else 80 m.
+
+    Time order. Scans are kept in file order with their logged timestamps (the benchmark
+    relations refer to them). Equal consecutive timestamps are accepted. A timestamp earlier than
+    the previous one by at most `max_time_reversal` seconds is accepted too, counted in
+    `CarmenLog.time_reversals` and reported once in a CarmenWarning: the Intel log has 631 such
+    steps of up to 0.9 s while its poses run smoothly in file order, so the file order is right
+    and the stamps jitter. Such a sequence breaks ScanSequence's "strictly increasing" promise.
+
+    Args:
+        path: the log file.
+        skip_bad_lines: count malformed lines in `bad_lines` and go on instead of raising.
+        laser: "front" or "rear".
+        fov_deg: field of view of old-format scans, degrees, when no PARAM gives it.
+        max_time_reversal: the largest backwards step of scan timestamps tolerated, seconds
+            (0 to refuse any).
+
+    Raises:
+        InputError: naming the file, and the line where there is one: a malformed line (unless
+            skip_bad_lines), a missing or unreadable file, a file that is not a CARMEN log, no
+            scans of the chosen laser, old- and new-format scans of the same laser, scans with
+            different beam counts or geometry, scan timestamps going backwards by more than
+            max_time_reversal, a laser offset that changes over the log, RAWLASER scans outside
+            the time span of the odometry.
+        ConfigError: for a bad `laser`, `fov_deg` or `max_time_reversal`.
+    """
+    _check_options(laser, fov_deg, max_time_reversal)
+    path = Path(path)
+    ctx = _Context(path, skip_bad_lines)
+    raw = _scan_file(ctx, laser)
+    params = {name: value for name, (value, _) in raw.params.items()}
+    odometry, odom_lines = _parse_odometry(ctx, raw.odom)
+    kind = _choose_kind(ctx, raw, laser)
+    records = _parse_scans(ctx, kind, raw.lasers[kind])
+    scans = _build_sequence(ctx, kind, laser, records, raw.params, odometry, odom_lines, fov_deg)
+    reversals = _check_time_order(ctx, kind, records, max_time_reversal)
+    return CarmenLog(
+        scans=scans,
+        params=params,
+        odometry=odometry,
+        bad_lines=ctx.bad_lines,
+        ignored_messages=dict(sorted(raw.ignored.items())),
+        time_reversals=reversals,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# File reading
+
+
+class _Malformed(Exception):
+    """A line that does not follow its message's layout; the text says what was expected."""
+
+
+class _Context:
+    """The file being read and what to do with malformed lines."""
+
+    def __init__(self, path: Path, skip_bad_lines: bool):
+        self.path = path
+        self.skip_bad_lines = skip_bad_lines
+        self.bad_lines = 0
+
+    def reject(self, message: str, line: int) -> None:
+        """Skip a malformed line (counting it) or raise, as the caller asked."""
+        if not self.skip_bad_lines:
+            raise InputError(message, self.path, line)
+        self.bad_lines += 1
+
+    def error(self, message: str, line: int | None = None) -> InputError:
+        return InputError(message, self.path, line)
+
+
+@dataclass
+class _RawLog:
+    """First pass over the file: lines grouped by use, not yet parsed (except PARAM)."""
+
+    params: dict[str, tuple[str, int]] = field(default_factory=dict)  # name -> (value, line)
+    odom: list[tuple[int, str]] = field(default_factory=list)
+    lasers: dict[str, list[tuple[int, str]]] = field(default_factory=dict)
+    ignored: Counter = field(default_factory=Counter)
+    known_messages: int = 0
+
+
+def _check_options(laser: str, fov_deg: float, max_time_reversal: float) -> None:
+    if laser not in _KINDS:
+        raise ConfigError(f"laser must be 'front' or 'rear', got {laser!r}")
+    if not (0.0 < fov_deg <= 360.0):
+        raise ConfigError(f"fov_deg must be in (0, 360], got {fov_deg!r}")
+    if not (max_time_reversal >= 0.0):
+        raise ConfigError(f"max_time_reversal must be >= 0 seconds, got {max_time_reversal!r}")
+
+
+def _open_binary(path: Path) -> BinaryIO:
+    """Open for reading bytes, decompressing by magic bytes (a .gz that is not gzip is plain)."""
+    with path.open("rb") as f:
+        magic = f.read(3)
+    if magic.startswith(_GZIP_MAGIC):
+        return gzip.open(path, "rb")
+    if magic.startswith(_BZIP2_MAGIC):
+        return bz2.open(path, "rb")
+    return path.open("rb")
+
+
+def _lines(ctx: _Context) -> Iterator[tuple[int, str]]:
+    """(line number, text) of the non-blank, non-comment lines; file errors as InputError."""
+    if not ctx.path.exists():
+        raise ctx.error("file not found")
+    if not ctx.path.is_file():
+        raise ctx.error("not a file")
+    try:
+        with _open_binary(ctx.path) as raw:
+            if b"\x00" in raw.peek(_SNIFF_BYTES)[:_SNIFF_BYTES]:
+                raise ctx.error("not a CARMEN log: binary content (NUL bytes)")
+            # Hostnames may hold any bytes; the numbers are ASCII, so never fail on decoding.
+            # newline=None folds CRLF (and lone CR) line ends into "\n".
+            stream = io.TextIOWrapper(raw, encoding="utf-8", errors="replace", newline=None)
+            for number, line in enumerate(stream, start=1):
+                text = line.strip()
+                if text and not text.startswith("#"):
+                    yield number, text
+    except (OSError, EOFError, zlib.error) as exc:
+        raise ctx.error(f"cannot read the file: {exc}") from exc
+
+
+def _scan_file(ctx: _Context, laser: str) -> _RawLog:
+    """Group the lines by message; parse PARAMs; count the messages that are not used."""
+    raw = _RawLog()
+    wanted = set(_KINDS[laser])
+    for number, text in _lines(ctx):
+        name = text.split(None, 1)[0]
+        if name in _KNOWN_MESSAGES:
+            raw.known_messages += 1
+        if name == "PARAM":
+            _add_param(ctx, raw, number, text.split())
+        elif name == "ODOM":
+            raw.odom.append((number, text))
+        elif name in wanted:
+            raw.lasers.setdefault(name, []).append((number, text))
+        elif _MESSAGE_NAME.match(name):
+            raw.ignored[name] += 1
+        elif raw.known_messages == 0 and not ctx.skip_bad_lines:
+            raise ctx.error(
+                f"not a CARMEN log: the line starts with {name[:40]!r}; expected '#' comments "
+                "and messages such as PARAM, ODOM, FLASER, ROBOTLASER1",
+                number,
+            )
+        else:
+            ctx.reject(f"not a CARMEN message: {name[:40]!r} is not a message name", number)
+    if raw.known_messages == 0:
+        raise ctx.error(
+            "not a CARMEN log: no PARAM, ODOM, FLASER, ROBOTLASER or RAWLASER message in it"
+        )
+    return raw
+
+
+def _add_param(ctx: _Context, raw: _RawLog, number: int, tokens: list[str]) -> None:
+    """PARAM name value, optionally followed by `ipc_timestamp host logger_timestamp` (new
+    loggers) or `host timestamp` (older ones, e.g. intel's `nohost 0`)."""
+    if len(tokens) < 3:
+        ctx.reject("PARAM needs a name and a value: PARAM name value [" + TRAILER + "]", number)
+        return
+    if len(tokens) >= 6 and _is_number(tokens[-3]) and _is_number(tokens[-1]):
+        value = " ".join(tokens[2:-3])
+    elif len(tokens) == 5 and not _is_number(tokens[3]) and _is_number(tokens[4]):
+        value = tokens[2]
+    else:
+        value = " ".join(tokens[2:])
+    raw.params[tokens[1]] = (value, number)
+
+
+def _is_number(token: str) -> bool:
+    try:
+        return math.isfinite(float(token))
+    except ValueError:
+        return False
+
+
+# --------------------------------------------------------------------------------------------
+# Message layouts and number parsing
+
+
+class _Layout:
+    """The fields of one message line, for saying which token is wrong and what was expected."""
+
+    def __init__(self, name: str, fields: list[tuple[str, int | None]]):
+        self.name = name
+        self.fields = fields  # (label, how many); None: a count not yet known
+
+    @property
+    def expected(self) -> str:
+        parts = [label if count == 1 else f"{'n' if count is None else count} {label}s"
+                 for label, count in self.fields]  # fmt: skip
+        return f"expected {self.name} " + " ".join(parts)
+
+    def describe(self, index: int) -> str:
+        """The field at token `index` (0 is the message name)."""
+        position = index - 1
+        for label, count in self.fields:
+            if count is None:  # fields after an unknown count cannot be located
+                break
+            if position < count:
+                return f"{label} {position + 1} of {count}" if count != 1 else label
+            position -= count
+        return f"token {index + 1}"
+
+
+def _pose_fields(prefix: str) -> list[tuple[str, int]]:
+    return [(f"{prefix}_x", 1), (f"{prefix}_y", 1), (f"{prefix}_theta", 1)]
+
+
+_TRAILER_FIELDS = [("ipc_timestamp", 1), ("ipc_hostname", 1), ("logger_timestamp", 1)]
+_CONFIG_FIELDS = [
+    (label, 1)
+    for label in (
+        "laser_type", "start_angle", "field_of_view", "angular_resolution", "maximum_range",
+        "accuracy", "remission_mode",
+    )
+]  # fmt: skip
+_MOTION_FIELDS = [
+    (label, 1)
+    for label in ("tv", "rv", "forward_safety_dist", "side_safety_dist", "turn_axis")
+]
+
+
+# Below this many tokens, Python's float() beats numpy's per-call overhead.
+_SHORT = 16
+
+
+def _floats(tokens: list[str], start: int, stop: int, layout: _Layout) -> np.ndarray:
+    """tokens[start:stop] as finite float64; a bad token is reported by its field name."""
+    try:
+        if stop - start <= _SHORT:
+            values = np.array([float(t) for t in tokens[start:stop]])
+        else:
+            values = np.array(tokens[start:stop], dtype=np.float64)
+        if np.isfinite(values).all():
+            return values
+    except ValueError:
+        pass
+    for index in range(start, stop):
+        if not _is_number(tokens[index]):
+            raise _Malformed(
+                f"{layout.describe(index)} is {tokens[index][:40]!r}, not a finite number; "
+                f"{layout.expected}"
+            )
+    raise AssertionError("unreachable: some token failed to parse")
+
+
+def _count(tokens: list[str], index: int, what: str, layout: _Layout, minimum: int = 0) -> int:
+    """A whole number >= minimum (a beam or remission count) at token `index`."""
+    if index >= len(tokens):
+        raise _Malformed(f"the line ends before {what}; {layout.expected}")
+    token = tokens[index]
+    if not (token.isascii() and token.isdigit()) or int(token) < minimum:
+        raise _Malformed(
+            f"{what} is {token[:40]!r}, not a whole number >= {minimum}; {layout.expected}"
+        )
+    return int(token)
+
+
+def _timestamp(tokens: list[str], layout: _Layout) -> float:
+    """The ipc timestamp; the logger timestamp is checked but not kept."""
+    stamp, logger_stamp = tokens[-3], tokens[-1]
+    if not _is_number(stamp):
+        raise _Malformed(f"ipc_timestamp is {stamp[:40]!r}, not a finite number; {layout.expected}")
+    if not _is_number(logger_stamp):
+        raise _Malformed(
+            f"logger_timestamp is {logger_stamp[:40]!r}, not a finite number; {layout.expected}"
+        )
+    return float(stamp)
+
+
+# --------------------------------------------------------------------------------------------
+# Messages
+
+
+@dataclass
+class _Scan:
+    """One parsed laser message."""
+
+    line: int
+    stamp: float
+    ranges: np.ndarray  # (n,) float64, as logged
+    remissions: np.ndarray | None = None
+    laser_pose: np.ndarray | None = None
+    robot_pose: np.ndarray | None = None
+    geometry: tuple[float, float, float] | None = None  # start_angle, resolution, max range
+
+
+_ODOM_LAYOUT = _Layout(
+    "ODOM", [(label, 1) for label in ("x", "y", "theta", "tv", "rv", "accel")] + _TRAILER_FIELDS
+)
+
+
+def _parse_odom(tokens: list[str]) -> tuple[float, np.ndarray]:
+    if len(tokens) != 10:
+        raise _Malformed(f"ODOM has {len(tokens) - 1} values, not 9; {_ODOM_LAYOUT.expected}")
+    values = _floats(tokens, 1, 7, _ODOM_LAYOUT)
+    return _timestamp(tokens, _ODOM_LAYOUT), values[:3]
+
+
+def _old_laser_fields(n: int | None) -> list[tuple[str, int | None]]:
+    poses = [*_pose_fields("laser"), *_pose_fields("odom")]
+    return [("num_readings", 1), ("range", n), *poses, *_TRAILER_FIELDS]
+
+
+def _parse_old_laser(tokens: list[str]) -> _Scan:
+    """FLASER / RLASER n ranges.. laser_pose robot_pose <trailer>."""
+    name = tokens[0]
+    layout = _Layout(name, _old_laser_fields(None))
+    n = _count(tokens, 1, "num_readings", layout, minimum=1)
+    layout.fields = _old_laser_fields(n)
+    after = len(tokens) - 2
+    if after != n + 9:
+        raise _Malformed(
+            f"{name} declares {n} ranges but {after} values follow the count "
+            f"(room for {after - 9} ranges); expected {n} ranges + 6 pose values + {TRAILER}"
+        )
+    values = _floats(tokens, 2, n + 8, layout)
+    return _Scan(
+        line=0,
+        stamp=_timestamp(tokens, layout),
+        ranges=values[:n],
+        laser_pose=values[n : n + 3],
+        robot_pose=values[n + 3 : n + 6],
+    )
+
+
+def _parse_new_laser(tokens: list[str], with_pose: bool) -> _Scan:
+    """ROBOTLASERk (with_pose) or RAWLASERk: config, ranges, remissions[, poses, motion]."""
+    name = tokens[0]
+    tail = [*_pose_fields("laser"), *_pose_fields("robot"), *_MOTION_FIELDS] if with_pose else []
+    layout = _Layout(name, [*_CONFIG_FIELDS, ("num_readings", 1), ("range", None)])
+    n = _count(tokens, 8, "num_readings", layout, minimum=1)
+    layout.fields = [*_CONFIG_FIELDS, ("num_readings", 1), ("range", n), ("num_remissions", 1)]
+    m = _count(tokens, 9 + n, f"num_remissions (the token after {n} ranges)", layout)
+    layout.fields += [("remission", m), *tail, *_TRAILER_FIELDS]
+    total = 10 + n + m + len(tail) + 3
+    if len(tokens) != total:
+        parts = "6 pose values, 5 motion values, " if with_pose else ""
+        raise _Malformed(
+            f"{name} declares {n} ranges and {m} remissions, so the line should have {total} "
+            f"tokens but it has {len(tokens)}; expected {name}, 7 config values, "
+            f"num_readings, {n} ranges, num_remissions, {m} remissions, {parts}{TRAILER}"
+        )
+    config = _floats(tokens, 1, 8, layout)
+    ranges = _floats(tokens, 9, 9 + n, layout)
+    remissions = _floats(tokens, 10 + n, 10 + n + m, layout)
+    start, resolution, max_range = config[1], config[3], config[4]
+    if not max_range > 0.0:
+        raise _Malformed(f"maximum_range is {tokens[5]!r}; it must be positive")
+    scan = _Scan(
+        line=0,
+        stamp=_timestamp(tokens, layout),
+        ranges=ranges,
+        remissions=remissions if m == n else None,
+        geometry=(float(start), float(resolution), float(max_range)),
+    )
+    if with_pose:
+        poses = _floats(tokens, 10 + n + m, 21 + n + m, layout)  # with tv, rv, safety, turn
+        scan.laser_pose, scan.robot_pose = poses[:3], poses[3:6]
+    return scan
+
+
+def _parse_laser(kind: str, tokens: list[str]) -> _Scan:
+    if kind in ("FLASER", "RLASER"):
+        return _parse_old_laser(tokens)
+    return _parse_new_laser(tokens, with_pose=kind.startswith("ROBOTLASER"))
+
+
+def _parse_odometry(ctx: _Context, lines: list[tuple[int, str]]) -> tuple[Trajectory, np.ndarray]:
+    """All ODOM messages as a Trajectory (file order), and their line numbers."""
+    stamps: list[float] = []
+    poses: list[np.ndarray] = []
+    numbers: list[int] = []
+    for number, text in lines:
+        try:
+            stamp, pose = _parse_odom(text.split())
+        except _Malformed as exc:
+            ctx.reject(str(exc), number)
+            continue
+        stamps.append(stamp)
+        poses.append(pose)
+        numbers.append(number)
+    trajectory = Trajectory(np.array(stamps), np.array(poses).reshape(-1, 3))
+    return trajectory, np.array(numbers, dtype=np.int64)
+
+
+def _choose_kind(ctx: _Context, raw: _RawLog, laser: str) -> str:
+    """The message kind that gives the scans; the laser's other kinds count as ignored."""
+    old, new, bare = _KINDS[laser]
+    present = [kind for kind in (old, new, bare) if raw.lasers.get(kind)]
+    if old in present and new in present:
+        raise ctx.error(
+            f"the {laser} laser is logged both as {old} (first at line {raw.lasers[old][0][0]}) "
+            f"and as {new} (first at line {raw.lasers[new][0][0]}); cannot tell which to use"
+        )
+    if not present:
+        raise ctx.error(f"no {laser} laser scans in the log ({old}, {new} or {bare} messages)")
+    chosen = present[0]  # with poses first: old or new, else the bare RAWLASER
+    for kind in present[1:]:
+        raw.ignored[kind] += len(raw.lasers[kind])
+    return chosen
+
+
+def _parse_scans(ctx: _Context, kind: str, lines: list[tuple[int, str]]) -> list[_Scan]:
+    """Parse the chosen laser's lines; beam count and geometry must not change."""
+    scans: list[_Scan] = []
+    for number, text in lines:
+        try:
+            scan = _parse_laser(kind, text.split())
+        except _Malformed as exc:
+            ctx.reject(str(exc), number)
+            continue
+        scan.line = number
+        if scans:
+            _check_same_geometry(ctx, kind, scans[0], scan)
+        scans.append(scan)
+    if not scans:
+        raise ctx.error(f"no well-formed {kind} scan in the log")
+    return scans
+
+
+def _check_same_geometry(ctx: _Context, kind: str, first: _Scan, scan: _Scan) -> None:
+    if len(scan.ranges) != len(first.ranges):
+        raise ctx.error(
+            f"{kind} has {len(scan.ranges)} beams here but {len(first.ranges)} in the first "
+            f"scan (line {first.line}); all scans of one laser must have the same beam count",
+            scan.line,
+        )
+    if first.geometry is not None and scan.geometry is not None:
+        change = max(abs(a - b) for a, b in zip(scan.geometry, first.geometry))
+        if change > GEOMETRY_TOLERANCE:
+            raise ctx.error(
+                f"{kind} start_angle, angular_resolution, maximum_range = {scan.geometry} here "
+                f"but {first.geometry} in the first scan (line {first.line}); the beam geometry "
+                "must not change within a log",
+                scan.line,
+            )
+
+
+# --------------------------------------------------------------------------------------------
+# Building the ScanSequence
+
+
+def _build_sequence(
+    ctx: _Context,
+    kind: str,
+    laser: str,
+    scans: list[_Scan],
+    params: dict[str, tuple[str, int]],
+    odometry: Trajectory,
+    odom_lines: np.ndarray,
+    fov_deg: float,
+) -> ScanSequence:
+    n = len(scans[0].ranges)
+    stamps = np.array([s.stamp for s in scans])
+    if scans[0].geometry is not None:
+        start, resolution, max_range = scans[0].geometry
+        angles = start + resolution * np.arange(n)
+    else:
+        angles = old_format_angles(n, _fov_deg(ctx, laser, params, fov_deg))
+        max_range = _old_format_max_range(ctx, laser, params)
+    if scans[0].robot_pose is not None:
+        robot_poses = np.array([s.robot_pose for s in scans])
+        laser_poses = np.array([s.laser_pose for s in scans])
+        sensor_pose = _sensor_pose(ctx, kind, laser, scans, laser_poses, robot_poses, params)
+    else:
+        robot_poses = _interpolate_odometry(ctx, kind, scans, stamps, odometry, odom_lines)
+        sensor_pose = _param_sensor_pose(ctx, laser, params)
+        if sensor_pose is None:
+            sensor_pose = np.zeros(3)
+    return ScanSequence(
+        timestamps=stamps,
+        ranges=_no_echo_to_inf(np.array([s.ranges for s in scans]), max_range),
+        angles=angles,
+        odometry=robot_poses,
+        sensor_pose=sensor_pose,
+        max_range=float(max_range),
+        remissions=_remissions(scans),
+        source=str(ctx.path),
+    )
+
+
+def old_format_angles(n_beams: int, fov_deg: float) -> np.ndarray:
+    """Beam angles (radians) of an old-format scan: CARMEN's convention, see read_carmen.
+
+    The sweep spans [-fov/2, +fov/2] with a beam at each end; an even count means the last beam
+    was dropped (CARMEN: "179 degrees (last beam ignored)" for 180 beams), an odd count keeps
+    both ends. So 180 beams over 180° are -90°, -89°, ..., +89°.
+    """
+    fov = math.radians(fov_deg)
+    gaps = n_beams if n_beams % 2 == 0 else max(n_beams - 1, 1)
+    return -0.5 * fov + (fov / gaps) * np.arange(n_beams)
+
+
+def _param_float(ctx: _Context, params: dict[str, tuple[str, int]], name: str) -> float | None:
+    if name not in params:
+        return None
+    value, line = params[name]
+    if not _is_number(value):
+        raise ctx.error(f"PARAM {name} is {value[:40]!r}, not a finite number", line)
+    return float(value)
+
+
+def _fov_deg(
+    ctx: _Context, laser: str, params: dict[str, tuple[str, int]], default: float
+) -> float:
+    name = f"laser_{laser}_laser_fov"
+    fov = _param_float(ctx, params, name)
+    if fov is None:
+        return default
+    if not (0.0 < fov <= 360.0):
+        raise ctx.error(f"PARAM {name} is {fov}; expected degrees in (0, 360]", params[name][1])
+    return fov
+
+
+def _old_format_max_range(ctx: _Context, laser: str, params: dict[str, tuple[str, int]]) -> float:
+    for name in (f"robot_{laser}_laser_max", f"laser_{laser}_laser_max_range"):
+        value = _param_float(ctx, params, name)
+        if value is not None:
+            if value <= 0.0:
+                raise ctx.error(f"PARAM {name} is {value}; it must be positive", params[name][1])
+            return value
+    return DEFAULT_MAX_RANGE
+
+
+def _no_echo_to_inf(ranges: np.ndarray, max_range: float) -> np.ndarray:
+    """float32 ranges with +inf where the laser saw nothing (>= max range, or <= 0)."""
+    out = ranges.astype(np.float32)
+    out[(ranges >= max_range) | (ranges <= 0.0)] = np.inf
+    return out
+
+
+def _remissions(scans: list[_Scan]) -> np.ndarray | None:
+    """Remissions only if every scan has one per beam."""
+    if any(s.remissions is None for s in scans):
+        return None
+    return np.array([s.remissions for s in scans], dtype=np.float32)
+
+
+def _param_sensor_pose(
+    ctx: _Context, laser: str, params: dict[str, tuple[str, int]]
+) -> np.ndarray | None:
+    """robot_T_sensor from the offset PARAMs, or None if the log has none of them."""
+    names = [f"robot_{laser}laser_{what}" for what in ("offset", "side_offset", "angular_offset")]
+    offset, side, angle = (_param_float(ctx, params, name) for name in names)
+    if offset is None and side is None and angle is None:
+        return None
+    pose = np.array([offset or 0.0, side or 0.0, angle or 0.0])
+    if laser == "rear" and angle is None:
+        # Older CARMEN knew only robot_rearlaser_offset and mounted the rear laser facing
+        # backwards, the offset measured along its own heading (localize: theta + pi).
+        pose = np.array([0.0 - pose[0], 0.0 - pose[1], math.pi])
+    return pose
+
+
+def _sensor_pose(
+    ctx: _Context,
+    kind: str,
+    laser: str,
+    scans: list[_Scan],
+    laser_poses: np.ndarray,
+    robot_poses: np.ndarray,
+    params: dict[str, tuple[str, int]],
+) -> np.ndarray:
+    """robot_T_sensor from the messages' poses if they differ, else from PARAMs (else zero)."""
+    from_params = _param_sensor_pose(ctx, laser, params)
+    if np.array_equal(laser_poses, robot_poses):
+        # Loggers that know no offset copy the robot pose; that says nothing about the mount.
+        return np.zeros(3) if from_params is None else from_params
+    offsets = relative(robot_poses, laser_poses)
+    first = offsets[0]
+    bad = np.flatnonzero(~_same_offset(offsets, first))
+    if bad.size:
+        i = int(bad[0])
+        raise ctx.error(
+            f"the {kind} laser pose is {_fmt_pose(offsets[i])} in the robot's frame here but "
+            f"{_fmt_pose(first)} in the first scan (line {scans[0].line}); a laser fixed on the "
+            "robot must keep its offset to within 1 cm and 0.5°",
+            scans[i].line,
+        )
+    if from_params is not None and not _same_offset(from_params[None, :], first)[0]:
+        warnings.warn(
+            f"{ctx.path}: the PARAMs put the {laser} laser at {_fmt_pose(from_params)} on the "
+            f"robot but the {kind} messages at {_fmt_pose(first)}; using the messages",
+            CarmenWarning,
+            stacklevel=4,
+        )
+    return first
+
+
+def _same_offset(offsets: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    shift = np.hypot(offsets[:, 0] - reference[0], offsets[:, 1] - reference[1])
+    turn = np.abs(wrap_angle(offsets[:, 2] - reference[2]))
+    return (shift <= OFFSET_TOLERANCE_M) & (turn <= OFFSET_TOLERANCE_RAD)
+
+
+def _fmt_pose(pose: np.ndarray) -> str:
+    return f"(x {pose[0]:.4f} m, y {pose[1]:.4f} m, theta {math.degrees(pose[2]):.2f}°)"
+
+
+def _interpolate_odometry(
+    ctx: _Context,
+    kind: str,
+    scans: list[_Scan],
+    stamps: np.ndarray,
+    odometry: Trajectory,
+    odom_lines: np.ndarray,
+) -> np.ndarray:
+    """Robot poses at `stamps` from ODOM: linear in x, y; along the shorter arc in theta."""
+    if len(odometry) == 0:
+        raise ctx.error(f"{kind} scans carry no pose and the log has no ODOM message")
+    t = odometry.timestamps
+    backwards = np.flatnonzero(np.diff(t) < 0)
+    if backwards.size:
+        raise ctx.error(
+            f"cannot interpolate {kind} poses: ODOM timestamps go backwards here",
+            int(odom_lines[backwards[0] + 1]),
+        )
+    outside = np.flatnonzero((stamps < t[0]) | (stamps > t[-1]))
+    if outside.size:
+        i = int(outside[0])
+        raise ctx.error(
+            f"{kind} scan at t = {stamps[i]:.6f} is outside the odometry's time span "
+            f"[{t[0]:.6f}, {t[-1]:.6f}]; its pose cannot be interpolated",
+            scans[i].line,
+        )
+    poses = odometry.poses
+    theta = np.unwrap(poses[:, 2])  # consecutive steps below pi: the shorter arc
+    return np.stack(
+        [
+            np.interp(stamps, t, poses[:, 0]),
+            np.interp(stamps, t, poses[:, 1]),
+            wrap_angle(np.interp(stamps, t, theta)),
+        ],
+        axis=1,
+    )
+
+
+def _check_time_order(
+    ctx: _Context, kind: str, scans: list[_Scan], max_time_reversal: float
+) -> int:
+    """Count backward timestamp steps; refuse one larger than max_time_reversal."""
+    stamps = np.array([s.stamp for s in scans])
+    steps = np.diff(stamps)
+    backwards = np.flatnonzero(steps < 0)
+    if not backwards.size:
+        return 0
+    too_far = backwards[-steps[backwards] > max_time_reversal]
+    if too_far.size:
+        i = int(too_far[0]) + 1
+        raise ctx.error(
+            f"{kind} timestamps go backwards: {stamps[i]:.6f} follows {stamps[i - 1]:.6f} "
+            f"(line {scans[i - 1].line}), {stamps[i - 1] - stamps[i]:.6f} s earlier; at most "
+            f"{max_time_reversal} s is tolerated (max_time_reversal)",
+            scans[i].line,
+        )
+    first = int(backwards[0]) + 1
+    warnings.warn(
+        f"{ctx.path}: {backwards.size} {kind} timestamps are earlier than the one before "
+        f"(by up to {-steps.min():.3f} s; first at line {scans[first].line}); the scans are kept "
+        "in file order with their logged timestamps",
+        CarmenWarning,
+        stacklevel=3,
+    )
+    return int(backwards.size)
+
+
+# --------------------------------------------------------------------------------------------
+# Writing
+
+
+def write_carmen(path: str | Path, scans: ScanSequence, *, hostname: str = "omnitof") -> None:
+    """Write scans as a new-format CARMEN log (ROBOTLASER1 per scan, ODOM before each), so that
+    other SLAM tools can read them; `read_carmen` reads it back to the same arrays (to the
+    printed precision: 1 mm ranges, 1e-6 poses, microsecond timestamps).
+
+    The beams must be evenly spaced (ROBOTLASER1 states start angle and step only). No-echo
+    readings are written as the maximum range. gzip or bzip2 compression follows the suffix
+    (.gz, .bz2). The file is written atomically.
+    """
+    from omnitof.geometry import compose
+    from omnitof.io.atomic import atomic_write
+
+    angles = scans.angles
+    step = float(angles[1] - angles[0]) if len(angles) > 1 else 0.0
+    if len(angles) > 2 and not np.allclose(np.diff(angles), step, atol=1e-9):
+        raise ValueError("ROBOTLASER1 needs evenly spaced beams")
+    laser_poses = compose(scans.odometry, scans.sensor_pose)
+    max_range = float(scans.max_range)
+    ranges = np.where(np.isfinite(scans.ranges), scans.ranges, max_range)
+    fov = step * (len(angles) - 1)  # the span from the first to the last beam
+    header = (
+        "# CARMEN Logfile written by omnitof\n"
+        "# ODOM x y theta tv rv accel\n"
+        "# ROBOTLASER1 laser_type start_angle field_of_view angular_resolution maximum_range "
+        "accuracy remission_mode num_readings [range_readings] num_remissions [remissions] "
+        "laser_pose_x laser_pose_y laser_pose_theta robot_pose_x robot_pose_y robot_pose_theta "
+        "laser_tv laser_rv forward_safety_dist side_safty_dist turn_axis\n"
+    )
+    lines = [header]
+    for i in range(len(scans)):
+        t = scans.timestamps[i]
+        o, lp = scans.odometry[i], laser_poses[i]
+        trailer = f"{t:.6f} {hostname} {t - scans.timestamps[0]:.6f}"
+        lines.append(f"ODOM {o[0]:.6f} {o[1]:.6f} {o[2]:.6f} 0 0 0 {trailer}\n")
+        r = " ".join(f"{v:.3f}" for v in ranges[i])
+        lines.append(
+            f"ROBOTLASER1 0 {angles[0]:.17g} {fov:.17g} {step:.17g} {max_range:.3f} 0.01 0 "
+            f"{len(angles)} {r} 0 {lp[0]:.6f} {lp[1]:.6f} {lp[2]:.6f} {o[0]:.6f} {o[1]:.6f} "
+            f"{o[2]:.6f} 0 0 0 0 0 {trailer}\n"
+        )
+    text = "".join(lines).encode()
+    suffix = Path(path).suffix
+    if suffix == ".gz":
+        text = gzip.compress(text)
+    elif suffix == ".bz2":
+        text = bz2.compress(text)
+    with atomic_write(path, "wb") as f:
+        f.write(text)

@@ -1,0 +1,296 @@
+"""Occupancy maps in the ROS map_server format: a YAML description beside a PGM image.
+
+The YAML names the image (relative to the YAML's own directory), the `resolution` (metres per
+pixel), the `origin` [x, y, yaw] (the lower-left corner of the lower-left pixel, in metres; yaw
+must be 0 here), `negate`, `occupied_thresh`, `free_thresh` and `mode`.
+
+Trinary pixel values, as ROS's map_saver writes them: occupied 0 (black), free 254 (white),
+unknown 205 (grey). map_server reads a pixel back as the occupancy probability
+p = (255 - value) / 255 (p = value / 255 when negate is 1): occupied if p > occupied_thresh, free if
+p < free_thresh, unknown otherwise. Note 205 gives p = 50/255 = 0.19608, just above the usual
+free_thresh 0.196, which is why unknown survives a round trip.
+
+Image row 0 is the TOP of the map (the highest y); OccupancyMap row 0 is the lowest y. Both
+functions flip the rows at the one place marked below.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from omnitof.errors import InputError
+from omnitof.io.atomic import atomic_write
+from omnitof.types import OccupancyMap
+
+OCCUPIED, FREE, UNKNOWN = 0, 254, 205
+
+# The probability 205 stands for; thresholds must keep it unknown (see _check_thresholds).
+_UNKNOWN_P = (255 - UNKNOWN) / 255.0
+
+# Log-odds given to cells read from a map: trinary maps carry no confidence, so every occupied or
+# free cell gets the same magnitude (2.0 <=> p = 0.88), well clear of the usual thresholds.
+DEFAULT_LOG_ODDS = 2.0
+
+
+# --------------------------------------------------------------------------------------------
+# Writing
+
+
+def write_ros_map(
+    yaml_path: str | Path,
+    occ: OccupancyMap,
+    *,
+    occupied_thresh: float = 0.65,
+    free_thresh: float = 0.196,
+) -> Path:
+    """Write `occ` as `<stem>.pgm` (binary P5, 8 bit) and the YAML at `yaml_path`, atomically.
+
+    Cells never observed, or with free_thresh <= p <= occupied_thresh, are written as unknown.
+    The image is written first, so the YAML never names a missing image. Returns the PGM path.
+
+    Raises:
+        ValueError: for thresholds with which map_server would misread the written values.
+    """
+    _check_thresholds(occupied_thresh, free_thresh)
+    yaml_path = Path(yaml_path)
+    pgm_path = yaml_path.with_suffix(".pgm")
+    pixels = _trinary_pixels(occ, occupied_thresh, free_thresh)
+    # The flip: OccupancyMap row 0 is the lowest y, image row 0 the highest y.
+    image = pixels[::-1]
+    with atomic_write(pgm_path, "wb") as f:
+        f.write(_encode_pgm(image, comment=f"omnitof {occ.resolution:.3f} m/pix"))
+    with atomic_write(yaml_path, "w") as f:
+        f.write(_map_yaml(pgm_path.name, occ, occupied_thresh, free_thresh))
+    return pgm_path
+
+
+def _check_thresholds(occupied_thresh: float, free_thresh: float) -> None:
+    # map_server reads 254 as p = 1/255 (must be free), 205 as p = 50/255 (must stay unknown),
+    # 0 as p = 1 (must be occupied); other thresholds would change the map on reading.
+    if not 1.0 / 255.0 < free_thresh < _UNKNOWN_P:
+        raise ValueError(
+            f"free_thresh must be in (1/255, 50/255 = {_UNKNOWN_P:.5f}), got {free_thresh}"
+        )
+    if not _UNKNOWN_P <= occupied_thresh < 1.0:
+        raise ValueError(f"occupied_thresh must be in [50/255, 1), got {occupied_thresh}")
+
+
+def _trinary_pixels(occ: OccupancyMap, occupied_thresh: float, free_thresh: float) -> np.ndarray:
+    """Pixel values in OccupancyMap row order (row 0 = lowest y)."""
+    p = occ.probability
+    known = np.asarray(occ.known, dtype=bool)
+    pixels = np.full(p.shape, UNKNOWN, dtype=np.uint8)
+    pixels[known & (p > occupied_thresh)] = OCCUPIED
+    pixels[known & (p < free_thresh)] = FREE
+    return pixels
+
+
+def _encode_pgm(image: np.ndarray, comment: str = "") -> bytes:
+    """A binary (P5) 8-bit PGM, written by hand: the format is a short text header + raw bytes."""
+    height, width = image.shape
+    header = "P5\n" + (f"# {comment}\n" if comment else "") + f"{width} {height}\n255\n"
+    return header.encode("ascii") + np.ascontiguousarray(image, dtype=np.uint8).tobytes()
+
+
+def _map_yaml(
+    image_name: str, occ: OccupancyMap, occupied_thresh: float, free_thresh: float
+) -> str:
+    x0, y0 = (float(v) for v in occ.origin)
+    # repr() of a float round-trips exactly; written by hand to keep map_server's familiar layout.
+    return (
+        f"image: {image_name}\n"
+        f"resolution: {float(occ.resolution)!r}\n"
+        f"origin: [{x0!r}, {y0!r}, 0.0]\n"
+        "negate: 0\n"
+        f"occupied_thresh: {float(occupied_thresh)!r}\n"
+        f"free_thresh: {float(free_thresh)!r}\n"
+        "mode: trinary\n"
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Reading
+
+
+def read_ros_map(yaml_path: str | Path, *, log_odds: float = DEFAULT_LOG_ODDS) -> OccupancyMap:
+    """Read a map_server map (YAML + P5 or P2 PGM) in trinary mode.
+
+    Occupied cells get log-odds +`log_odds`, free cells -`log_odds`, both known; unknown cells get
+    0 and known = False.
+
+    Raises:
+        InputError: naming the YAML and the missing or invalid field, or the image and what is
+            wrong with it.
+    """
+    yaml_path = Path(yaml_path)
+    meta = _load_yaml(yaml_path)
+    resolution = _positive_number(meta, "resolution", yaml_path)
+    origin = _origin(meta, yaml_path)
+    negate = _negate(meta, yaml_path)
+    occupied_thresh = _probability(meta, "occupied_thresh", yaml_path)
+    free_thresh = _probability(meta, "free_thresh", yaml_path)
+    _check_mode(meta, yaml_path)
+    image_path = _image_path(meta, yaml_path)
+    image, maxval = _decode_pgm(image_path)
+
+    p = image.astype(np.float64) / maxval
+    if not negate:
+        p = 1.0 - p
+    # The flip: image row 0 is the highest y, OccupancyMap row 0 the lowest y.
+    p = p[::-1]
+    occupied = p > occupied_thresh
+    free = p < free_thresh
+    values = np.zeros(p.shape, dtype=np.float32)
+    values[occupied] = log_odds
+    values[free] = -log_odds
+    return OccupancyMap(
+        log_odds=values, known=occupied | free, resolution=resolution, origin=origin
+    )
+
+
+def _load_yaml(path: Path) -> dict[str, Any]:
+    try:
+        meta = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read the map description: {exc}", path) from exc
+    except yaml.YAMLError as exc:
+        raise InputError(f"not valid YAML: {exc}", path) from exc
+    if not isinstance(meta, dict):
+        raise InputError(
+            "a map description must be a YAML mapping with image, resolution, ...", path
+        )
+    return meta
+
+
+def _field(meta: dict[str, Any], key: str, path: Path) -> Any:
+    if key not in meta:
+        raise InputError(f"missing field '{key}'", path)
+    return meta[key]
+
+
+def _number(value: Any, key: str, path: Path) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise InputError(f"field '{key}' must be a finite number, got {value!r}", path)
+    return float(value)
+
+
+def _positive_number(meta: dict[str, Any], key: str, path: Path) -> float:
+    value = _number(_field(meta, key, path), key, path)
+    if value <= 0:
+        raise InputError(f"field '{key}' must be positive, got {value!r}", path)
+    return value
+
+
+def _probability(meta: dict[str, Any], key: str, path: Path) -> float:
+    value = _number(_field(meta, key, path), key, path)
+    if not 0.0 <= value <= 1.0:
+        raise InputError(f"field '{key}' must be in [0, 1], got {value!r}", path)
+    return value
+
+
+def _origin(meta: dict[str, Any], path: Path) -> tuple[float, float]:
+    value = _field(meta, "origin", path)
+    if not isinstance(value, list) or len(value) != 3:
+        raise InputError(f"field 'origin' must be a list [x, y, yaw], got {value!r}", path)
+    x, y, yaw = (_number(v, "origin", path) for v in value)
+    if yaw != 0.0:
+        raise InputError(f"field 'origin': a rotated map (yaw {yaw!r}) is not supported", path)
+    return (x, y)
+
+
+def _negate(meta: dict[str, Any], path: Path) -> bool:
+    value = _field(meta, "negate", path)
+    if value not in (0, 1) or isinstance(value, float):
+        raise InputError(f"field 'negate' must be 0 or 1, got {value!r}", path)
+    return bool(value)
+
+
+def _check_mode(meta: dict[str, Any], path: Path) -> None:
+    # map_server's default mode is trinary; the others need alpha channels or raw values.
+    mode = meta.get("mode", "trinary")
+    if mode != "trinary":
+        raise InputError(f"field 'mode': only 'trinary' maps are supported, got {mode!r}", path)
+
+
+def _image_path(meta: dict[str, Any], path: Path) -> Path:
+    value = _field(meta, "image", path)
+    if not isinstance(value, str) or not value:
+        raise InputError(f"field 'image' must be a file name, got {value!r}", path)
+    image = Path(value)
+    # As map_server does: a relative image name is relative to the YAML's directory.
+    return image if image.is_absolute() else path.parent / image
+
+
+def _decode_pgm(path: Path) -> tuple[np.ndarray, int]:
+    """Read a P5 (binary) or P2 (ASCII) PGM: (image (rows, cols) uint16 in file order, maxval)."""
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read the map image: {exc}", path) from exc
+    magic, width, height, maxval, offset = _pgm_header(data, path)
+    if magic == b"P5":
+        pixels = _p5_pixels(data[offset:], width * height, maxval, path)
+    else:
+        pixels = _p2_pixels(data[offset:], width * height, path)
+    if pixels.size and pixels.max() > maxval:
+        raise InputError(f"pixel value {pixels.max()} exceeds the maximum {maxval}", path)
+    return pixels.astype(np.uint16).reshape(height, width), maxval
+
+
+def _pgm_header(data: bytes, path: Path) -> tuple[bytes, int, int, int, int]:
+    """(magic, width, height, maxval, offset of the pixel data), skipping '#' comments."""
+    tokens: list[bytes] = []
+    i = 0
+    while len(tokens) < 4:
+        while i < len(data) and data[i : i + 1].isspace():
+            i += 1
+        if i < len(data) and data[i : i + 1] == b"#":
+            while i < len(data) and data[i : i + 1] not in (b"\n", b"\r"):
+                i += 1
+            continue
+        start = i
+        while i < len(data) and not data[i : i + 1].isspace() and data[i : i + 1] != b"#":
+            i += 1
+        if start == i:
+            raise InputError("truncated PGM header", path)
+        tokens.append(data[start:i])
+    magic = tokens[0]
+    if magic not in (b"P5", b"P2"):
+        raise InputError(f"not a greyscale PGM (P5 or P2): magic {magic!r}", path)
+    try:
+        width, height, maxval = (int(t) for t in tokens[1:])
+    except ValueError as exc:
+        raise InputError("PGM width, height and maxval must be integers", path) from exc
+    if width <= 0 or height <= 0 or not 0 < maxval < 65536:
+        raise InputError(f"invalid PGM size {width}x{height} or maxval {maxval}", path)
+    # Exactly one whitespace byte separates the header from P5 pixel data.
+    return magic, width, height, maxval, i + 1
+
+
+def _p5_pixels(raw: bytes, count: int, maxval: int, path: Path) -> np.ndarray:
+    dtype = np.dtype(">u2") if maxval > 255 else np.dtype(np.uint8)  # 16-bit PGM is big-endian
+    if len(raw) < count * dtype.itemsize:
+        raise InputError(
+            f"PGM pixel data truncated: {len(raw)} bytes for {count} pixels "
+            f"of {dtype.itemsize} byte(s)",
+            path,
+        )
+    return np.frombuffer(raw, dtype=dtype, count=count)
+
+
+def _p2_pixels(raw: bytes, count: int, path: Path) -> np.ndarray:
+    text = b"\n".join(line.split(b"#", 1)[0] for line in raw.splitlines())
+    try:
+        values = np.array(text.split(), dtype=np.int64)
+    except ValueError as exc:
+        raise InputError("P2 PGM pixels must be integers", path) from exc
+    if values.size != count:
+        raise InputError(f"P2 PGM has {values.size} pixels, expected {count}", path)
+    if values.size and values.min() < 0:
+        raise InputError("P2 PGM pixels must not be negative", path)
+    return values

@@ -1,0 +1,119 @@
+"""Trajectories in the TUM RGB-D benchmark format.
+
+One pose per line: `timestamp x y z qx qy qz qw` (seconds, metres, a unit quaternion giving the
+orientation of the robot frame in the world frame, scalar last). omnitof is planar: it writes
+z = 0 and a rotation about +z only, and on reading keeps x, y and the yaw of the quaternion
+(z, roll and pitch are dropped). Lines starting with '#' are comments.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from omnitof.errors import InputError
+from omnitof.geometry import quaternion_to_yaw, yaw_to_quaternion
+from omnitof.io.atomic import atomic_write
+from omnitof.types import Trajectory
+
+HEADER = "# timestamp x y z qx qy qz qw"
+ROW_MESSAGE = "TUM trajectory rows need 8 numbers: timestamp x y z qx qy qz qw"
+
+# Unix times (~1e9 s) at microsecond precision need 6 decimals; positions to the micrometre, and
+# quaternions to 1e-9 so that yaw survives a round trip to ~1e-9 rad.
+_FORMATS = ["%.6f", "%.6f", "%.6f", "%.6f", "%.9f", "%.9f", "%.9f", "%.9f"]
+
+
+def write_tum(path: str | Path, traj: Trajectory, *, sort: bool = False) -> None:
+    """Write `traj` as a TUM trajectory file (atomically), with a '#' header naming the columns.
+
+    With `sort`, rows are written in timestamp order. Some logs stamp their messages with clocks
+    that step back now and then (the Intel log's scans do, 631 times); each pose keeps its own
+    timestamp, so ordering the rows loses nothing and keeps the file readable by TUM tools.
+
+    Raises:
+        ValueError: if the timestamps (after sorting, with `sort`) do not strictly increase
+            (the file could not be read back).
+    """
+    if sort:
+        order = np.argsort(traj.timestamps, kind="stable")
+        traj = Trajectory(traj.timestamps[order], traj.poses[order])
+    _check_increasing(traj.timestamps)
+    n = len(traj)
+    data = np.empty((n, 8))
+    data[:, 0] = traj.timestamps
+    data[:, 1:3] = traj.poses[:, :2]
+    data[:, 3] = 0.0
+    data[:, 4:8] = yaw_to_quaternion(traj.poses[:, 2])
+    with atomic_write(path, "w") as f:
+        f.write(HEADER + "\n")
+        np.savetxt(f, data, fmt=_FORMATS, delimiter=" ")
+
+
+def _check_increasing(timestamps: np.ndarray) -> None:
+    bad = np.flatnonzero(np.diff(timestamps) <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        raise ValueError(
+            f"trajectory timestamps must strictly increase: pose {i} at {timestamps[i]:.6f} "
+            f"follows {timestamps[i - 1]:.6f}"
+        )
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    """Read a TUM trajectory file; yaw comes from the quaternion.
+
+    Raises:
+        InputError: naming the file and line for a row that is not 8 finite numbers, a zero
+            quaternion, or a timestamp that does not increase; naming the file if it cannot be
+            read or holds no pose.
+    """
+    rows: list[list[float]] = []
+    previous: tuple[float, int] | None = None  # (timestamp, line number) of the last row
+    for number, line in enumerate(_read_lines(path), start=1):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        row = _parse_row(text, path, number)
+        if previous is not None and row[0] <= previous[0]:
+            raise InputError(
+                f"timestamps must increase: {row[0]:.6f} follows {previous[0]:.6f} "
+                f"(line {previous[1]})",
+                path,
+                number,
+            )
+        previous = (row[0], number)
+        rows.append(row)
+    if not rows:
+        raise InputError("no poses: the TUM trajectory file is empty", path)
+    data = np.asarray(rows)
+    return Trajectory(timestamps=data[:, 0], poses=np.column_stack([data[:, 1:3], _yaw(data)]))
+
+
+def _read_lines(path: str | Path) -> list[str]:
+    try:
+        return Path(path).read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read the TUM trajectory: {exc}", path) from exc
+
+
+def _parse_row(text: str, path: str | Path, number: int) -> list[float]:
+    fields = text.split()
+    try:
+        row = [float(v) for v in fields]
+    except ValueError:
+        row = []
+    if len(row) != 8:
+        raise InputError(f"{ROW_MESSAGE} (found {len(fields)} fields)", path, number)
+    if not all(np.isfinite(row)):
+        raise InputError(f"{ROW_MESSAGE}, all finite (found nan or inf)", path, number)
+    if np.linalg.norm(row[4:8]) < 1e-9:
+        raise InputError("the quaternion qx qy qz qw has zero length", path, number)
+    return row
+
+
+def _yaw(data: np.ndarray) -> np.ndarray:
+    q = data[:, 4:8]
+    # quaternion_to_yaw assumes unit quaternions; files rounded to a few decimals are not quite.
+    return np.asarray(quaternion_to_yaw(q / np.linalg.norm(q, axis=1, keepdims=True)))

@@ -1,0 +1,65 @@
+"""The results folder of a SLAM run, so that a run can be inspected and reproduced:
+
+    map.pgm, map.yaml     the best particle's map (ROS map_server format)
+    trajectory.tum        the corrected pose at every scan (TUM: timestamp x y z qx qy qz qw)
+    odometry.tum          the raw odometry at every scan
+    config.yaml           the configuration actually used
+    map.png               the map with the SLAM and odometry trajectories drawn over it
+    summary.yaml          counts, timings and any evaluation
+
+Every file is written to a temporary name and renamed, so an interrupted run leaves no
+half-written file.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from omnitof.config import SlamConfig
+from omnitof.io.atomic import atomic_write
+from omnitof.io.rosmap import write_ros_map
+from omnitof.io.tum import write_tum
+from omnitof.slam import SlamResult
+from omnitof.types import Trajectory
+from omnitof.viz.maps import plot_map
+
+
+def write_results(
+    out_dir: str | Path,
+    result: SlamResult,
+    cfg: SlamConfig,
+    *,
+    title: str = "",
+    ground_truth: np.ndarray | None = None,
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Path]:
+    """Write the results folder; returns the paths written, by name."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    write_ros_map(out / "map.yaml", result.map)
+    paths = {
+        "map": out / "map.yaml",
+        "trajectory": out / "trajectory.tum",
+        "odometry": out / "odometry.tum",
+        "config": out / "config.yaml",
+        "figure": out / "map.png",
+        "summary": out / "summary.yaml",
+    }
+    write_tum(paths["trajectory"], result.trajectory, sort=True)
+    write_tum(paths["odometry"], result.odometry, sort=True)
+    with atomic_write(paths["config"]) as f:
+        f.write(cfg.to_yaml())
+    drawn = {"SLAM": result.trajectory.poses, "odometry": result.odometry.poses}
+    if ground_truth is not None:
+        drawn["ground truth"] = ground_truth
+        write_tum(out / "ground_truth.tum", Trajectory(result.trajectory.timestamps, ground_truth), sort=True)
+        paths["ground_truth"] = out / "ground_truth.tum"
+    plot_map(paths["figure"], result.map, drawn, title=title)
+    summary = {"run": result.stats, **(extra or {})}
+    with atomic_write(paths["summary"]) as f:
+        yaml.safe_dump(summary, f, sort_keys=False)
+    return paths

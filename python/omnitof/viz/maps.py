@@ -1,0 +1,91 @@
+"""PNG figures of occupancy maps and trajectories, drawn without a display.
+
+The figures use matplotlib's object API (`Figure` + the Agg canvas) rather than pyplot, so
+drawing never selects a global backend, opens a window or keeps figures alive in pyplot's registry.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from omnitof.io.atomic import atomic_write
+from omnitof.types import OccupancyMap
+
+UNKNOWN_SHADE = 0.5  # mid-grey for cells never observed
+DEFAULT_FIGSIZE = (8.0, 8.0)  # inches; the PNG is figsize * dpi pixels
+
+
+def map_shades(occ: OccupancyMap) -> np.ndarray:
+    """Grey level per cell in [0, 1], row 0 = lowest y: 1 - p for known cells (occupied black,
+    free white), UNKNOWN_SHADE where never observed."""
+    return np.where(np.asarray(occ.known, dtype=bool), 1.0 - occ.probability, UNKNOWN_SHADE)
+
+
+def plot_map(
+    path: str | Path,
+    occ: OccupancyMap | None,
+    trajectories: Mapping[str, np.ndarray],
+    *,
+    title: str = "",
+    dpi: int = 150,
+    figsize: tuple[float, float] = DEFAULT_FIGSIZE,
+) -> Figure:
+    """Draw the map and trajectories and write them as a PNG at `path` (atomically).
+
+    Args:
+        path: the PNG file.
+        occ: the map, drawn in greyscale in metres (None for trajectories only).
+        trajectories: name -> (N, 3) poses (x, y, theta) in the map frame, metres; each becomes a
+            coloured line (colours in the order of the dict) with a circle at its first pose and
+            its name in the legend.
+        title: the figure title.
+        dpi: resolution; the PNG is figsize[0] * dpi by figsize[1] * dpi pixels.
+        figsize: (width, height) in inches.
+
+    Returns:
+        The drawn Figure (its axes' transforms map metres to the PNG's pixels, y up).
+    """
+    fig = Figure(figsize=figsize, dpi=dpi)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    if occ is not None:
+        _draw_map(ax, occ)
+    for index, (name, poses) in enumerate(trajectories.items()):
+        _draw_trajectory(ax, name, poses, color=f"C{index}")
+    ax.set_aspect("equal", adjustable="datalim" if occ is None else "box")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(title)
+    if trajectories:
+        ax.legend(loc="best")
+    with atomic_write(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=dpi)
+    return fig
+
+
+def _draw_map(ax: Axes, occ: OccupancyMap) -> None:
+    # origin="lower": row 0 of the grid is the lowest y. "nearest" keeps cells crisp.
+    ax.imshow(
+        map_shades(occ),
+        cmap="gray",
+        vmin=0.0,
+        vmax=1.0,
+        origin="lower",
+        extent=occ.extent,
+        interpolation="nearest",
+    )
+
+
+def _draw_trajectory(ax: Axes, name: str, poses: np.ndarray, *, color: str) -> None:
+    xy = np.asarray(poses, dtype=np.float64)
+    if xy.ndim != 2 or xy.shape[1] != 3:
+        raise ValueError(f"trajectory '{name}' must be (N, 3) poses, got shape {xy.shape}")
+    ax.plot(xy[:, 0], xy[:, 1], color=color, linewidth=1.5, label=name)
+    if len(xy):
+        ax.plot(xy[0, 0], xy[0, 1], marker="o", color=color, markersize=6, linestyle="none")

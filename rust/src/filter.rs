@@ -1,0 +1,289 @@
+//! The Rao-Blackwellized particle filter of the paper (section IV): each particle carries a pose,
+//! a log-odds grid map (eq. 8) and a log importance weight (eq. 9). One `step` per integrated
+//! scan: sample every particle's pose from the odometry motion model, weigh it with the beam
+//! model in its own map, write the scan into its map, and resample (low variance) when the
+//! effective sample size (eq. 10) falls below a threshold.
+//!
+//! Memory: maps share unchanged tiles (see grid.rs) and trajectories share their history
+//! through parent links, so a resampled particle costs only what it changes afterwards.
+//! Determinism: every random draw comes from a generator seeded by (seed, step, particle), and
+//! the parallel loop writes each particle's result to its own slot, so the result does not
+//! depend on the number of threads.
+
+use std::collections::HashSet;
+use std::sync::Arc;
+
+use rand::{RngExt, SeedableRng};
+use rand_pcg::Pcg64;
+use rayon::prelude::*;
+
+use crate::grid::{LogOddsModel, TiledGrid};
+use crate::motion::OdometryMotion;
+use crate::sensor_model::{integrate_scan, BeamModel, ScanGeometry};
+
+/// One pose of a particle's trajectory, linked to the pose before it. Children of one parent
+/// share it, so the trajectories of all particles form a tree.
+pub struct TrajectoryNode {
+    pub pose: [f64; 3],
+    pub scan: u64,
+    pub parent: Option<Arc<TrajectoryNode>>,
+}
+
+impl Drop for TrajectoryNode {
+    // Unlink iteratively: the default recursive drop of a chain of thousands of nodes would
+    // overflow the stack.
+    fn drop(&mut self) {
+        let mut next = self.parent.take();
+        while let Some(node) = next {
+            match Arc::try_unwrap(node) {
+                Ok(mut inner) => next = inner.parent.take(),
+                Err(_) => break,
+            }
+        }
+    }
+}
+
+#[derive(Clone)]
+pub struct Particle {
+    pub pose: [f64; 3],
+    pub log_weight: f64,
+    pub map: TiledGrid,
+    pub trajectory: Arc<TrajectoryNode>,
+}
+
+#[derive(Clone, Debug)]
+pub struct FilterParams {
+    pub n_particles: usize,
+    pub seed: u64,
+    pub threads: usize,
+    pub motion: OdometryMotion,
+    pub beam: BeamModel,
+    pub beam_stride: usize,
+    /// Multiplies the scan log-likelihood: below 1 it flattens the weights, the usual remedy
+    /// for the overconfidence of independent beams.
+    pub likelihood_gain: f64,
+    pub log_odds: LogOddsModel,
+    pub resolution: f64,
+    /// Readings beyond this (metres) update free space only.
+    pub map_max_range: f64,
+    pub clear_no_echo: bool,
+    /// Resample when Neff < resample_threshold · N.
+    pub resample_threshold: f64,
+}
+
+#[derive(Clone, Copy, Debug, Default)]
+pub struct StepInfo {
+    pub neff: f64,
+    pub resampled: bool,
+}
+
+pub struct ParticleFilter {
+    pub params: FilterParams,
+    angles: Vec<f64>,
+    sensor: [f64; 3],
+    pub particles: Vec<Particle>,
+    pub steps: u64,
+    pub resamplings: u64,
+    best: usize,
+    pool: rayon::ThreadPool,
+}
+
+/// SplitMix64 finaliser: decorrelates generator seeds built from (seed, step, particle).
+fn mix(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+pub fn rng_for(seed: u64, step: u64, stream: u64) -> Pcg64 {
+    Pcg64::seed_from_u64(mix(mix(mix(seed) ^ step) ^ stream))
+}
+
+/// Effective sample size of normalised weights (eq. 10): 1 / Σ w̄ᵢ².
+pub fn neff(normalised: &[f64]) -> f64 {
+    1.0 / normalised.iter().map(|w| w * w).sum::<f64>()
+}
+
+/// Normalised weights from log weights (subtracting the maximum first, so none underflows).
+pub fn normalise(log_weights: &[f64]) -> Vec<f64> {
+    let max = log_weights.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+    let w: Vec<f64> = log_weights.iter().map(|l| (l - max).exp()).collect();
+    let sum: f64 = w.iter().sum();
+    w.into_iter().map(|x| x / sum).collect()
+}
+
+/// Low-variance (systematic) resampling (Probabilistic Robotics, table 4.4): one uniform offset
+/// r in [0, 1/N), then the particles under the comb r + k/N. Each particle i is drawn either
+/// ⌊N·wᵢ⌋ or ⌈N·wᵢ⌉ times; indices come out sorted.
+pub fn low_variance_resample<R: rand::Rng>(normalised: &[f64], rng: &mut R) -> Vec<usize> {
+    let n = normalised.len();
+    let step = 1.0 / n as f64;
+    let r: f64 = rng.random::<f64>() * step;
+    let mut out = Vec::with_capacity(n);
+    let mut c = normalised[0];
+    let mut i = 0;
+    for k in 0..n {
+        let u = r + k as f64 * step;
+        while u > c && i + 1 < n {
+            i += 1;
+            c += normalised[i];
+        }
+        out.push(i);
+    }
+    out
+}
+
+impl ParticleFilter {
+    pub fn new(params: FilterParams, angles: Vec<f64>, sensor: [f64; 3]) -> Result<Self, String> {
+        if params.n_particles == 0 {
+            return Err("n_particles must be at least 1".into());
+        }
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(params.threads)
+            .build()
+            .map_err(|e| e.to_string())?;
+        Ok(ParticleFilter {
+            params,
+            angles,
+            sensor,
+            particles: Vec::new(),
+            steps: 0,
+            resamplings: 0,
+            best: 0,
+            pool,
+        })
+    }
+
+    pub fn n_beams(&self) -> usize {
+        self.angles.len()
+    }
+
+    fn geometry(&self) -> ScanGeometry<'_> {
+        ScanGeometry { angles: &self.angles, sensor: self.sensor }
+    }
+
+    /// Start every particle at `pose` with the first scan written into one shared map.
+    fn initialise(&mut self, pose: [f64; 3], ranges: &[f32], scan: u64) {
+        let p = &self.params;
+        let mut map = TiledGrid::new(p.resolution);
+        integrate_scan(&mut map, &p.log_odds, &self.geometry(), pose, ranges, p.map_max_range, p.clear_no_echo);
+        let root = Arc::new(TrajectoryNode { pose, scan, parent: None });
+        let first = Particle { pose, log_weight: 0.0, map, trajectory: root };
+        self.particles = vec![first; p.n_particles];
+    }
+
+    /// Integrate one scan taken at odometry pose `odom_cur`, the robot having moved there from
+    /// odometry pose `odom_prev` since the last integrated scan. The first call only starts the
+    /// map, at `odom_cur`.
+    pub fn step(&mut self, odom_prev: [f64; 3], odom_cur: [f64; 3], ranges: &[f32], scan: u64) -> StepInfo {
+        let step_index = self.steps;
+        self.steps += 1;
+        if self.particles.is_empty() {
+            self.initialise(odom_cur, ranges, scan);
+            return StepInfo { neff: self.params.n_particles as f64, resampled: false };
+        }
+        let p = &self.params;
+        let geom = ScanGeometry { angles: &self.angles, sensor: self.sensor };
+        let seed = p.seed;
+        self.pool.install(|| {
+            self.particles.par_iter_mut().enumerate().for_each(|(i, part)| {
+                let mut rng = rng_for(seed, step_index, i as u64);
+                let pose = p.motion.sample(part.pose, odom_prev, odom_cur, &mut rng);
+                let ll = p.beam.scan_log_likelihood(&part.map, &geom, pose, ranges, p.beam_stride);
+                part.log_weight += p.likelihood_gain * ll;
+                part.pose = pose;
+                part.trajectory = Arc::new(TrajectoryNode { pose, scan, parent: Some(part.trajectory.clone()) });
+                integrate_scan(&mut part.map, &p.log_odds, &geom, pose, ranges, p.map_max_range, p.clear_no_echo);
+            })
+        });
+        let log_w: Vec<f64> = self.particles.iter().map(|q| q.log_weight).collect();
+        let w = normalise(&log_w);
+        let n_eff = neff(&w);
+        let best = (0..w.len()).fold(0, |b, i| if w[i] > w[b] { i } else { b });
+        let mut resampled = false;
+        if n_eff < self.params.resample_threshold * self.particles.len() as f64 {
+            let mut rng = rng_for(seed, step_index, u64::MAX);
+            let idx = low_variance_resample(&w, &mut rng);
+            self.best = idx.iter().position(|&j| j == best).unwrap_or(0);
+            self.particles = idx
+                .iter()
+                .map(|&j| Particle { log_weight: 0.0, ..self.particles[j].clone() })
+                .collect();
+            self.resamplings += 1;
+            resampled = true;
+        } else {
+            // Keep log weights near zero so that they never lose precision.
+            let max = log_w.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+            for q in &mut self.particles {
+                q.log_weight -= max;
+            }
+            self.best = best;
+        }
+        StepInfo { neff: n_eff, resampled }
+    }
+
+    /// The particle with the highest weight (after a resampling, a copy of the one that had it).
+    pub fn best(&self) -> Option<&Particle> {
+        self.particles.get(self.best)
+    }
+
+    /// (scan index, pose) of every integrated scan along a particle's trajectory, oldest first.
+    pub fn trajectory_of(particle: &Particle) -> Vec<(u64, [f64; 3])> {
+        let mut out = Vec::new();
+        let mut node = Some(&particle.trajectory);
+        while let Some(n) = node {
+            out.push((n.scan, n.pose));
+            node = n.parent.as_ref();
+        }
+        out.reverse();
+        out
+    }
+
+    /// (distinct tiles over all particles, tile references over all particles).
+    pub fn tile_counts(&self) -> (usize, usize) {
+        let mut seen = HashSet::new();
+        let mut refs = 0;
+        for q in &self.particles {
+            for t in q.map.tiles() {
+                refs += 1;
+                seen.insert(Arc::as_ptr(t) as usize);
+            }
+        }
+        (seen.len(), refs)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn neff_of_uniform_and_degenerate_weights() {
+        assert!((neff(&[0.25; 4]) - 4.0).abs() < 1e-12);
+        assert!((neff(&[1.0, 0.0, 0.0]) - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn low_variance_counts_are_floor_or_ceil() {
+        let w = normalise(&[0.0, -1.0, -0.2, -3.0, 0.5, -0.7, -0.1]);
+        for seed in 0..50 {
+            let idx = low_variance_resample(&w, &mut rng_for(seed, 0, 0));
+            assert!(idx.windows(2).all(|p| p[0] <= p[1]));
+            for (i, wi) in w.iter().enumerate() {
+                let count = idx.iter().filter(|&&j| j == i).count() as f64;
+                let expect = wi * w.len() as f64;
+                assert!(count >= expect.floor() - 1e-9 && count <= expect.ceil() + 1e-9);
+            }
+        }
+    }
+
+    #[test]
+    fn long_trajectories_drop_without_overflowing_the_stack() {
+        let mut node = Arc::new(TrajectoryNode { pose: [0.0; 3], scan: 0, parent: None });
+        for k in 1..1_000_000 {
+            node = Arc::new(TrajectoryNode { pose: [0.0; 3], scan: k, parent: Some(node) });
+        }
+        drop(node);
+    }
+}

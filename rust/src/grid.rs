@@ -1,0 +1,214 @@
+//! Tiled log-odds occupancy grid with copy-on-write tiles (paper eq. 8).
+//!
+//! The grid is unbounded: cells are addressed by signed integer indices (ix, iy) with cell
+//! (ix, iy) covering [ix·res, (ix+1)·res) × [iy·res, (iy+1)·res) in the world frame. Cells are
+//! grouped in square tiles of TILE×TILE; a tile is held through an `Arc`, so particles that were
+//! copied from one another by resampling share every tile that neither has changed since. A
+//! write goes through `Arc::make_mut`, which copies the tile first if another particle holds it.
+//! Unknown (never observed) cells hold NaN.
+
+use std::sync::Arc;
+
+pub const TILE_SHIFT: i32 = 4;
+pub const TILE: i32 = 1 << TILE_SHIFT;
+const TILE_CELLS: usize = (TILE * TILE) as usize;
+
+#[derive(Clone)]
+pub struct Tile {
+    cells: [f32; TILE_CELLS],
+}
+
+impl Tile {
+    fn unknown() -> Self {
+        Tile { cells: [f32::NAN; TILE_CELLS] }
+    }
+}
+
+/// Log-odds increments and limits of the inverse sensor model.
+#[derive(Clone, Copy, Debug)]
+pub struct LogOddsModel {
+    pub l_occ: f32,
+    pub l_free: f32,
+    pub l_min: f32,
+    pub l_max: f32,
+}
+
+#[derive(Clone)]
+pub struct TiledGrid {
+    pub resolution: f64,
+    // Tile-index window covered by `tiles`: tiles (tx0..tx0+ntx, ty0..ty0+nty), row-major in y.
+    tx0: i32,
+    ty0: i32,
+    ntx: i32,
+    nty: i32,
+    tiles: Vec<Option<Arc<Tile>>>,
+}
+
+impl TiledGrid {
+    pub fn new(resolution: f64) -> Self {
+        TiledGrid { resolution, tx0: 0, ty0: 0, ntx: 0, nty: 0, tiles: Vec::new() }
+    }
+
+    #[inline]
+    fn tile_slot(&self, ix: i32, iy: i32) -> Option<usize> {
+        let tx = (ix >> TILE_SHIFT) - self.tx0;
+        let ty = (iy >> TILE_SHIFT) - self.ty0;
+        if tx < 0 || ty < 0 || tx >= self.ntx || ty >= self.nty {
+            None
+        } else {
+            Some((ty * self.ntx + tx) as usize)
+        }
+    }
+
+    #[inline]
+    fn cell_offset(ix: i32, iy: i32) -> usize {
+        (((iy & (TILE - 1)) << TILE_SHIFT) | (ix & (TILE - 1))) as usize
+    }
+
+    /// Log-odds of a cell; NaN where unknown (never observed, or outside the grid).
+    #[inline]
+    pub fn get(&self, ix: i32, iy: i32) -> f32 {
+        match self.tile_slot(ix, iy).and_then(|s| self.tiles[s].as_ref()) {
+            Some(tile) => tile.cells[Self::cell_offset(ix, iy)],
+            None => f32::NAN,
+        }
+    }
+
+    /// Add `delta` to a cell's log-odds and clamp. The cell must lie inside the window made by
+    /// `ensure_covers`.
+    #[inline]
+    pub fn add(&mut self, ix: i32, iy: i32, delta: f32, model: &LogOddsModel) {
+        let slot = self.tile_slot(ix, iy).expect("cell outside the grid window");
+        let tile = self.tiles[slot].get_or_insert_with(|| Arc::new(Tile::unknown()));
+        let cell = &mut Arc::make_mut(tile).cells[Self::cell_offset(ix, iy)];
+        let prior = if cell.is_nan() { 0.0 } else { *cell };
+        *cell = (prior + delta).clamp(model.l_min, model.l_max);
+    }
+
+    /// Grow the tile window so that it holds the world rectangle [x0, x1] × [y0, y1].
+    pub fn ensure_covers(&mut self, x0: f64, y0: f64, x1: f64, y1: f64) {
+        let to_tile = |v: f64| ((v / self.resolution).floor() as i32) >> TILE_SHIFT;
+        let (ax, ay, bx, by) = (to_tile(x0), to_tile(y0), to_tile(x1), to_tile(y1));
+        if self.ntx > 0
+            && ax >= self.tx0
+            && ay >= self.ty0
+            && bx < self.tx0 + self.ntx
+            && by < self.ty0 + self.nty
+        {
+            return;
+        }
+        // Grow with margin so that a robot moving on does not regrow at every scan.
+        let margin = 4;
+        let (nx0, ny0, nx1, ny1) = if self.ntx == 0 {
+            (ax - margin, ay - margin, bx + margin, by + margin)
+        } else {
+            (
+                ax.min(self.tx0) - if ax < self.tx0 { margin } else { 0 },
+                ay.min(self.ty0) - if ay < self.ty0 { margin } else { 0 },
+                bx.max(self.tx0 + self.ntx - 1) + if bx >= self.tx0 + self.ntx { margin } else { 0 },
+                by.max(self.ty0 + self.nty - 1) + if by >= self.ty0 + self.nty { margin } else { 0 },
+            )
+        };
+        let (ntx, nty) = (nx1 - nx0 + 1, ny1 - ny0 + 1);
+        let mut tiles = vec![None; (ntx * nty) as usize];
+        for ty in 0..self.nty {
+            for tx in 0..self.ntx {
+                let old = &mut self.tiles[(ty * self.ntx + tx) as usize];
+                let (gx, gy) = (tx + self.tx0 - nx0, ty + self.ty0 - ny0);
+                tiles[(gy * ntx + gx) as usize] = old.take();
+            }
+        }
+        self.tx0 = nx0;
+        self.ty0 = ny0;
+        self.ntx = ntx;
+        self.nty = nty;
+        self.tiles = tiles;
+    }
+
+    /// Tiles this grid holds (allocated, whether shared or not).
+    pub fn tiles(&self) -> impl Iterator<Item = &Arc<Tile>> {
+        self.tiles.iter().flatten()
+    }
+
+    pub const fn tile_bytes() -> usize {
+        std::mem::size_of::<Tile>()
+    }
+
+    /// Dense copy of the observed part: (rows, cols, first cell ix, first cell iy, data) with
+    /// data row-major, row 0 = lowest y; NaN where unknown. Empty grids give 0×0.
+    pub fn to_dense(&self) -> (usize, usize, i32, i32, Vec<f32>) {
+        let mut bounds: Option<(i32, i32, i32, i32)> = None;
+        for ty in 0..self.nty {
+            for tx in 0..self.ntx {
+                if self.tiles[(ty * self.ntx + tx) as usize].is_some() {
+                    let (x, y) = (tx + self.tx0, ty + self.ty0);
+                    bounds = Some(match bounds {
+                        None => (x, y, x, y),
+                        Some((a, b, c, d)) => (a.min(x), b.min(y), c.max(x), d.max(y)),
+                    });
+                }
+            }
+        }
+        let Some((tx_lo, ty_lo, tx_hi, ty_hi)) = bounds else {
+            return (0, 0, 0, 0, Vec::new());
+        };
+        let (ix0, iy0) = (tx_lo << TILE_SHIFT, ty_lo << TILE_SHIFT);
+        let cols = ((tx_hi - tx_lo + 1) * TILE) as usize;
+        let rows = ((ty_hi - ty_lo + 1) * TILE) as usize;
+        let mut data = vec![f32::NAN; rows * cols];
+        for r in 0..rows {
+            for c in 0..cols {
+                data[r * cols + c] = self.get(ix0 + c as i32, iy0 + r as i32);
+            }
+        }
+        (rows, cols, ix0, iy0, data)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MODEL: LogOddsModel = LogOddsModel { l_occ: 0.9, l_free: -0.4, l_min: -2.0, l_max: 3.5 };
+
+    #[test]
+    fn writes_read_back_and_clamp_including_negative_indices() {
+        let mut g = TiledGrid::new(0.05);
+        g.ensure_covers(-3.0, -3.0, 3.0, 3.0);
+        assert!(g.get(-37, 12).is_nan());
+        for _ in 0..10 {
+            g.add(-37, 12, MODEL.l_occ, &MODEL);
+        }
+        assert_eq!(g.get(-37, 12), MODEL.l_max);
+        g.add(5, -5, MODEL.l_free, &MODEL);
+        assert_eq!(g.get(5, -5), -0.4);
+    }
+
+    #[test]
+    fn growing_keeps_contents() {
+        let mut g = TiledGrid::new(0.1);
+        g.ensure_covers(0.0, 0.0, 1.0, 1.0);
+        g.add(3, 4, 1.0, &MODEL);
+        g.ensure_covers(-50.0, -20.0, 80.0, 1.0);
+        assert_eq!(g.get(3, 4), 1.0);
+        g.add(-499, -199, 1.0, &MODEL);
+        assert_eq!(g.get(-499, -199), 1.0);
+    }
+
+    #[test]
+    fn copies_share_tiles_until_written() {
+        let mut a = TiledGrid::new(0.1);
+        a.ensure_covers(0.0, 0.0, 10.0, 10.0);
+        a.add(1, 1, 1.0, &MODEL);
+        a.add(60, 60, 1.0, &MODEL);
+        let mut b = a.clone();
+        let shared = |a: &TiledGrid, b: &TiledGrid| {
+            a.tiles().zip(b.tiles()).filter(|(x, y)| Arc::ptr_eq(x, y)).count()
+        };
+        assert_eq!(shared(&a, &b), 2);
+        b.add(1, 2, 1.0, &MODEL);
+        assert_eq!(shared(&a, &b), 1);
+        assert!(a.get(1, 2).is_nan());
+        assert_eq!(b.get(1, 2), 1.0);
+    }
+}

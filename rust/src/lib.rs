@@ -1,0 +1,311 @@
+//! PyO3 bindings of omnitof's core: numpy arrays in, numpy arrays out, nothing else here.
+//! The algorithms live in the other modules and know nothing of Python.
+
+pub mod filter;
+pub mod grid;
+pub mod motion;
+pub mod raycast;
+pub mod sensor_model;
+
+use numpy::ndarray::Array2;
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+
+use filter::{FilterParams, ParticleFilter};
+use grid::{LogOddsModel, TiledGrid};
+use motion::OdometryMotion;
+use sensor_model::{integrate_scan, BeamModel, ScanGeometry};
+
+fn pose3(v: &[f64], what: &str) -> PyResult<[f64; 3]> {
+    if v.len() != 3 {
+        return Err(PyValueError::new_err(format!("{what} must be a pose (x, y, theta)")));
+    }
+    Ok([v[0], v[1], v[2]])
+}
+
+fn rows3<'py>(py: Python<'py>, poses: &[[f64; 3]]) -> Bound<'py, PyArray2<f64>> {
+    let flat: Vec<f64> = poses.iter().flat_map(|p| p.iter().copied()).collect();
+    Array2::from_shape_vec((poses.len(), 3), flat).unwrap().into_pyarray(py)
+}
+
+type DenseGrid<'py> = (Bound<'py, PyArray2<f32>>, i32, i32);
+
+fn dense<'py>(py: Python<'py>, grid: &TiledGrid) -> DenseGrid<'py> {
+    let (rows, cols, ix0, iy0, data) = grid.to_dense();
+    (Array2::from_shape_vec((rows, cols), data).unwrap().into_pyarray(py), ix0, iy0)
+}
+
+#[pyclass(name = "ParticleFilter", module = "omnitof._core")]
+struct PyParticleFilter {
+    inner: ParticleFilter,
+}
+
+#[pymethods]
+impl PyParticleFilter {
+    #[new]
+    #[pyo3(signature = (*, n_particles, seed, threads, alphas, z_hit, z_short, z_max, z_rand,
+        sigma_hit, lambda_short, max_range, occupied_threshold, beam_stride, likelihood_gain,
+        l_occ, l_free, l_min, l_max, resolution, map_max_range, clear_no_echo,
+        resample_threshold, angles, sensor_pose))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        n_particles: usize,
+        seed: u64,
+        threads: usize,
+        alphas: [f64; 4],
+        z_hit: f64,
+        z_short: f64,
+        z_max: f64,
+        z_rand: f64,
+        sigma_hit: f64,
+        lambda_short: f64,
+        max_range: f64,
+        occupied_threshold: f32,
+        beam_stride: usize,
+        likelihood_gain: f64,
+        l_occ: f32,
+        l_free: f32,
+        l_min: f32,
+        l_max: f32,
+        resolution: f64,
+        map_max_range: f64,
+        clear_no_echo: bool,
+        resample_threshold: f64,
+        angles: PyReadonlyArray1<f64>,
+        sensor_pose: PyReadonlyArray1<f64>,
+    ) -> PyResult<Self> {
+        let params = FilterParams {
+            n_particles,
+            seed,
+            threads,
+            motion: OdometryMotion { alpha: alphas },
+            beam: BeamModel { z_hit, z_short, z_max, z_rand, sigma_hit, lambda_short, max_range, occupied_threshold },
+            beam_stride,
+            likelihood_gain,
+            log_odds: LogOddsModel { l_occ, l_free, l_min, l_max },
+            resolution,
+            map_max_range,
+            clear_no_echo,
+            resample_threshold,
+        };
+        let sensor = pose3(sensor_pose.as_slice()?, "sensor_pose")?;
+        let inner = ParticleFilter::new(params, angles.as_slice()?.to_vec(), sensor).map_err(PyValueError::new_err)?;
+        Ok(PyParticleFilter { inner })
+    }
+
+    /// Integrate one scan; returns (Neff before any resampling, whether it resampled).
+    fn step(
+        &mut self,
+        py: Python<'_>,
+        odom_prev: PyReadonlyArray1<f64>,
+        odom_cur: PyReadonlyArray1<f64>,
+        ranges: PyReadonlyArray1<f32>,
+        scan: u64,
+    ) -> PyResult<(f64, bool)> {
+        let prev = pose3(odom_prev.as_slice()?, "odom_prev")?;
+        let cur = pose3(odom_cur.as_slice()?, "odom_cur")?;
+        let ranges = ranges.as_slice()?;
+        if ranges.len() != self.inner.n_beams() {
+            return Err(PyValueError::new_err(format!(
+                "scan has {} ranges, the filter was made for {}",
+                ranges.len(),
+                self.inner.n_beams()
+            )));
+        }
+        let inner = &mut self.inner;
+        let info = py.detach(|| inner.step(prev, cur, ranges, scan));
+        Ok((info.neff, info.resampled))
+    }
+
+    /// (scan indices (K,), poses (K, 3)) of the best particle's integrated scans.
+    fn best_trajectory<'py>(&self, py: Python<'py>) -> (Bound<'py, PyArray1<u64>>, Bound<'py, PyArray2<f64>>) {
+        let traj = self.inner.best().map(ParticleFilter::trajectory_of).unwrap_or_default();
+        let scans: Vec<u64> = traj.iter().map(|t| t.0).collect();
+        let poses: Vec<[f64; 3]> = traj.iter().map(|t| t.1).collect();
+        (PyArray1::from_vec(py, scans), rows3(py, &poses))
+    }
+
+    /// (log-odds (rows, cols) with NaN = unknown, ix0, iy0) of the best particle's map.
+    fn best_map<'py>(&self, py: Python<'py>) -> DenseGrid<'py> {
+        match self.inner.best() {
+            Some(p) => dense(py, &p.map),
+            None => dense(py, &TiledGrid::new(self.inner.params.resolution)),
+        }
+    }
+
+    fn map_of<'py>(&self, py: Python<'py>, index: usize) -> PyResult<DenseGrid<'py>> {
+        let p = self.inner.particles.get(index).ok_or_else(|| PyValueError::new_err("no such particle"))?;
+        Ok(dense(py, &p.map))
+    }
+
+    fn poses<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
+        let poses: Vec<[f64; 3]> = self.inner.particles.iter().map(|p| p.pose).collect();
+        rows3(py, &poses)
+    }
+
+    fn log_weights<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_vec(py, self.inner.particles.iter().map(|p| p.log_weight).collect())
+    }
+
+    /// (distinct map tiles over all particles, tile references over all particles).
+    fn tile_counts(&self) -> (usize, usize) {
+        self.inner.tile_counts()
+    }
+
+    #[staticmethod]
+    fn tile_bytes() -> usize {
+        TiledGrid::tile_bytes()
+    }
+
+    #[getter]
+    fn steps(&self) -> u64 {
+        self.inner.steps
+    }
+
+    #[getter]
+    fn resamplings(&self) -> u64 {
+        self.inner.resamplings
+    }
+}
+
+/// A single log-odds grid, for tests and for maps built along a known trajectory.
+#[pyclass(name = "OccupancyGrid", module = "omnitof._core")]
+struct PyOccupancyGrid {
+    grid: TiledGrid,
+    model: LogOddsModel,
+}
+
+#[pymethods]
+impl PyOccupancyGrid {
+    #[new]
+    #[pyo3(signature = (resolution, l_occ, l_free, l_min, l_max))]
+    fn new(resolution: f64, l_occ: f32, l_free: f32, l_min: f32, l_max: f32) -> PyResult<Self> {
+        if !(resolution > 0.0) {
+            return Err(PyValueError::new_err("resolution must be positive"));
+        }
+        Ok(PyOccupancyGrid { grid: TiledGrid::new(resolution), model: LogOddsModel { l_occ, l_free, l_min, l_max } })
+    }
+
+    #[pyo3(signature = (robot_pose, angles, ranges, max_range, clear_no_echo=false, sensor_pose=None))]
+    fn integrate(
+        &mut self,
+        robot_pose: PyReadonlyArray1<f64>,
+        angles: PyReadonlyArray1<f64>,
+        ranges: PyReadonlyArray1<f32>,
+        max_range: f64,
+        clear_no_echo: bool,
+        sensor_pose: Option<PyReadonlyArray1<f64>>,
+    ) -> PyResult<()> {
+        let robot = pose3(robot_pose.as_slice()?, "robot_pose")?;
+        let sensor = match sensor_pose {
+            Some(s) => pose3(s.as_slice()?, "sensor_pose")?,
+            None => [0.0; 3],
+        };
+        let (angles, ranges) = (angles.as_slice()?, ranges.as_slice()?);
+        if angles.len() != ranges.len() {
+            return Err(PyValueError::new_err("angles and ranges differ in length"));
+        }
+        let geom = ScanGeometry { angles, sensor };
+        integrate_scan(&mut self.grid, &self.model, &geom, robot, ranges, max_range, clear_no_echo);
+        Ok(())
+    }
+
+    /// (log-odds (rows, cols) with NaN = unknown, ix0, iy0): cell (r, c) is (ix0 + c, iy0 + r).
+    fn to_dense<'py>(&self, py: Python<'py>) -> DenseGrid<'py> {
+        dense(py, &self.grid)
+    }
+
+    /// Ranges the map predicts from a sensor pose (see BeamModel::expected_range); NaN where
+    /// the ray reaches unknown space first.
+    fn expected_ranges<'py>(
+        &self,
+        py: Python<'py>,
+        sensor_pose: PyReadonlyArray1<f64>,
+        angles: PyReadonlyArray1<f64>,
+        max_range: f64,
+        occupied_threshold: f32,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let sp = pose3(sensor_pose.as_slice()?, "sensor_pose")?;
+        let model = BeamModel {
+            z_hit: 1.0, z_short: 0.0, z_max: 0.0, z_rand: 0.0, sigma_hit: 1.0, lambda_short: 1.0,
+            max_range, occupied_threshold,
+        };
+        let out = angles
+            .as_slice()?
+            .iter()
+            .map(|a| match model.expected_range(&self.grid, [sp[0], sp[1]], sp[2] + a) {
+                (z, true) => z,
+                _ => f64::NAN,
+            })
+            .collect();
+        Ok(PyArray1::from_vec(py, out))
+    }
+}
+
+/// Draw n poses from the odometry motion model for a robot at `pose` whose odometry moved from
+/// `odom_prev` to `odom_cur`.
+#[pyfunction]
+fn sample_motion_odometry<'py>(
+    py: Python<'py>,
+    pose: PyReadonlyArray1<f64>,
+    odom_prev: PyReadonlyArray1<f64>,
+    odom_cur: PyReadonlyArray1<f64>,
+    alphas: [f64; 4],
+    n: usize,
+    seed: u64,
+) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    let (pose, prev, cur) = (pose3(pose.as_slice()?, "pose")?, pose3(odom_prev.as_slice()?, "odom_prev")?, pose3(odom_cur.as_slice()?, "odom_cur")?);
+    let model = OdometryMotion { alpha: alphas };
+    let mut rng = filter::rng_for(seed, 0, 0);
+    let out: Vec<[f64; 3]> = (0..n).map(|_| model.sample(pose, prev, cur, &mut rng)).collect();
+    Ok(rows3(py, &out))
+}
+
+/// The beam model's density (or max-reading mass) of each reading in `z` given `z_star`.
+#[pyfunction]
+#[pyo3(signature = (z, z_star, *, z_hit, z_short, z_max, z_rand, sigma_hit, lambda_short, max_range))]
+#[allow(clippy::too_many_arguments)]
+fn beam_likelihood<'py>(
+    py: Python<'py>,
+    z: PyReadonlyArray1<f64>,
+    z_star: f64,
+    z_hit: f64,
+    z_short: f64,
+    z_max: f64,
+    z_rand: f64,
+    sigma_hit: f64,
+    lambda_short: f64,
+    max_range: f64,
+) -> PyResult<Bound<'py, PyArray1<f64>>> {
+    let m = BeamModel { z_hit, z_short, z_max, z_rand, sigma_hit, lambda_short, max_range, occupied_threshold: 0.0 };
+    Ok(PyArray1::from_vec(py, z.as_slice()?.iter().map(|&zi| m.likelihood(zi, z_star)).collect()))
+}
+
+/// Effective sample size (paper eq. 10) of normalised weights.
+#[pyfunction]
+fn neff(weights: PyReadonlyArray1<f64>) -> PyResult<f64> {
+    Ok(filter::neff(weights.as_slice()?))
+}
+
+/// Indices drawn by low-variance resampling from normalised weights.
+#[pyfunction]
+fn low_variance_resample<'py>(py: Python<'py>, weights: PyReadonlyArray1<f64>, seed: u64) -> PyResult<Bound<'py, PyArray1<u64>>> {
+    let w = weights.as_slice()?;
+    if w.is_empty() {
+        return Err(PyValueError::new_err("no weights"));
+    }
+    let idx = filter::low_variance_resample(w, &mut filter::rng_for(seed, 0, 1));
+    Ok(PyArray1::from_vec(py, idx.into_iter().map(|i| i as u64).collect()))
+}
+
+#[pymodule]
+fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<PyParticleFilter>()?;
+    m.add_class::<PyOccupancyGrid>()?;
+    m.add_function(wrap_pyfunction!(sample_motion_odometry, m)?)?;
+    m.add_function(wrap_pyfunction!(beam_likelihood, m)?)?;
+    m.add_function(wrap_pyfunction!(neff, m)?)?;
+    m.add_function(wrap_pyfunction!(low_variance_resample, m)?)?;
+    Ok(())
+}

@@ -1,0 +1,218 @@
+//! The range sensor's two models: the beam model p(z | m, x) that weighs particles (paper eq. 9;
+//! Thrun, Burgard & Fox, Probabilistic Robotics, section 6.3) and the inverse sensor model that
+//! writes a scan into a log-odds grid (paper eq. 8).
+
+use crate::grid::{LogOddsModel, TiledGrid};
+use crate::raycast::traverse;
+
+/// Beam model mixture: weights of the hit / short / max / random parts and their parameters.
+#[derive(Clone, Copy, Debug)]
+pub struct BeamModel {
+    pub z_hit: f64,
+    pub z_short: f64,
+    pub z_max: f64,
+    pub z_rand: f64,
+    /// Standard deviation of the hit part (metres).
+    pub sigma_hit: f64,
+    /// Rate of the exponential short-reading part (1/metres).
+    pub lambda_short: f64,
+    /// Largest range the model describes (metres); readings at or beyond it are max readings.
+    pub max_range: f64,
+    /// Log-odds above which a cell counts as an obstacle when casting the expected range.
+    pub occupied_threshold: f32,
+}
+
+/// Scan geometry shared by both models: beam bearings in the sensor frame and the sensor's
+/// pose in the robot frame.
+pub struct ScanGeometry<'a> {
+    pub angles: &'a [f64],
+    pub sensor: [f64; 3],
+}
+
+impl<'a> ScanGeometry<'a> {
+    /// The sensor's world pose for a robot pose.
+    #[inline]
+    pub fn sensor_pose(&self, robot: [f64; 3]) -> [f64; 3] {
+        crate::motion::compose(robot, self.sensor)
+    }
+}
+
+fn std_normal_cdf(x: f64) -> f64 {
+    0.5 * (1.0 + libm::erf(x / std::f64::consts::SQRT_2))
+}
+
+impl BeamModel {
+    /// Density of reading `z` when the map predicts `z_star` (both in [0, max_range]); a reading
+    /// `z >= max_range` is a max reading and gets the point mass z_max instead of a density.
+    /// The mixture integrates to one over [0, max_range] plus the point mass: the hit part is a
+    /// Gaussian truncated to [0, max_range], the short part an exponential truncated to
+    /// [0, z_star], the random part uniform.
+    pub fn likelihood(&self, z: f64, z_star: f64) -> f64 {
+        if z >= self.max_range {
+            return self.z_max;
+        }
+        if z < 0.0 {
+            return 0.0;
+        }
+        let s = self.sigma_hit;
+        let mass = std_normal_cdf((self.max_range - z_star) / s) - std_normal_cdf(-z_star / s);
+        let u = (z - z_star) / s;
+        let hit = if mass > 0.0 {
+            (-0.5 * u * u).exp() / (s * (2.0 * std::f64::consts::PI).sqrt()) / mass
+        } else {
+            0.0
+        };
+        let short = if z <= z_star && z_star > 0.0 {
+            let l = self.lambda_short;
+            l * (-l * z).exp() / (1.0 - (-l * z_star).exp())
+        } else {
+            0.0
+        };
+        self.z_hit * hit + self.z_short * short + self.z_rand / self.max_range
+    }
+
+    /// The range the map predicts along a ray: the distance to the middle of the ray's chord
+    /// through the first occupied cell, or `max_range` if none is within it. `None` when the
+    /// ray reaches a never-observed cell first (the map says nothing beyond it) — the returned
+    /// value then is the distance at which it did.
+    #[inline]
+    pub fn expected_range(&self, grid: &TiledGrid, origin: [f64; 2], angle: f64) -> (f64, bool) {
+        let mut result = (self.max_range, true);
+        traverse(origin, [angle.cos(), angle.sin()], self.max_range, grid.resolution, |ix, iy, t0, t1| {
+            let l = grid.get(ix, iy);
+            if l.is_nan() {
+                result = (t0, false);
+                false
+            } else if l > self.occupied_threshold {
+                result = (0.5 * (t0 + t1.min(self.max_range)), true);
+                false
+            } else {
+                true
+            }
+        });
+        result
+    }
+
+    /// log p(z | m, x) of a scan, every `stride`-th beam, beams independent (eq. 9). Readings
+    /// that are no echo (+inf) or beyond max_range are left out, as are beams whose ray leaves
+    /// the known map before the reading could have ended.
+    pub fn scan_log_likelihood(
+        &self,
+        grid: &TiledGrid,
+        geom: &ScanGeometry,
+        robot: [f64; 3],
+        ranges: &[f32],
+        stride: usize,
+    ) -> f64 {
+        let sp = geom.sensor_pose(robot);
+        let mut total = 0.0;
+        for i in (0..ranges.len()).step_by(stride.max(1)) {
+            let z = ranges[i] as f64;
+            if !z.is_finite() || z >= self.max_range {
+                continue;
+            }
+            let (z_star, known) = self.expected_range(grid, [sp[0], sp[1]], sp[2] + geom.angles[i]);
+            // Unknown space ahead: a reading well short of it contradicts the free cells it
+            // passed; a reading past it is uninformative and is left out.
+            if !known && z > z_star - 2.0 * self.sigma_hit {
+                continue;
+            }
+            total += self.likelihood(z, z_star).max(1e-300).ln();
+        }
+        total
+    }
+}
+
+/// Write a scan into a grid with the inverse sensor model: every cell a beam passes through
+/// gets l_free, the cell holding its end point l_occ; log-odds are clamped to [l_min, l_max].
+/// Beams longer than `max_range` (including no echo, +inf, when `clear_no_echo`) mark free
+/// space up to `max_range` and no obstacle.
+pub fn integrate_scan(
+    grid: &mut TiledGrid,
+    model: &LogOddsModel,
+    geom: &ScanGeometry,
+    robot: [f64; 3],
+    ranges: &[f32],
+    max_range: f64,
+    clear_no_echo: bool,
+) {
+    let sp = geom.sensor_pose(robot);
+    let (mut x0, mut y0, mut x1, mut y1) = (sp[0], sp[1], sp[0], sp[1]);
+    let mut beams: Vec<(usize, f64, bool)> = Vec::with_capacity(ranges.len());
+    for (i, &r) in ranges.iter().enumerate() {
+        let r = r as f64;
+        let (len, hit) = if r.is_finite() && r <= max_range {
+            (r, true)
+        } else if r.is_finite() || clear_no_echo {
+            (max_range, false)
+        } else {
+            continue;
+        };
+        if !(len > 0.0) {
+            continue;
+        }
+        let a = sp[2] + geom.angles[i];
+        let (ex, ey) = (sp[0] + len * a.cos(), sp[1] + len * a.sin());
+        x0 = x0.min(ex);
+        y0 = y0.min(ey);
+        x1 = x1.max(ex);
+        y1 = y1.max(ey);
+        beams.push((i, len, hit));
+    }
+    let res = grid.resolution;
+    grid.ensure_covers(x0 - res, y0 - res, x1 + res, y1 + res);
+    for (i, len, hit) in beams {
+        let a = sp[2] + geom.angles[i];
+        traverse([sp[0], sp[1]], [a.cos(), a.sin()], len, res, |ix, iy, _, t1| {
+            let end = t1 >= len;
+            let delta = if end && hit { model.l_occ } else { model.l_free };
+            grid.add(ix, iy, delta, model);
+            true
+        });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn model() -> BeamModel {
+        BeamModel {
+            z_hit: 0.7,
+            z_short: 0.1,
+            z_max: 0.05,
+            z_rand: 0.15,
+            sigma_hit: 0.1,
+            lambda_short: 0.5,
+            max_range: 10.0,
+            occupied_threshold: 0.0,
+        }
+    }
+
+    #[test]
+    fn mixture_integrates_to_one() {
+        let m = model();
+        for &z_star in &[0.05, 1.0, 4.3, 9.95, 10.0] {
+            let n = 200_000;
+            let h = m.max_range / n as f64;
+            let integral: f64 = (0..n).map(|k| m.likelihood((k as f64 + 0.5) * h, z_star) * h).sum();
+            assert!((integral + m.z_max - 1.0).abs() < 1e-4, "z*={z_star}: {integral}");
+        }
+    }
+
+    #[test]
+    fn expected_range_finds_the_wall_and_reports_unknown() {
+        let lm = LogOddsModel { l_occ: 2.0, l_free: -1.0, l_min: -5.0, l_max: 5.0 };
+        let mut g = TiledGrid::new(0.1);
+        g.ensure_covers(-1.0, -1.0, 10.0, 1.0);
+        for ix in 0..30 {
+            g.add(ix, 0, lm.l_free, &lm);
+        }
+        g.add(30, 0, lm.l_occ, &lm);
+        let m = model();
+        let (z, known) = m.expected_range(&g, [0.05, 0.05], 0.0);
+        assert!(known && (z - 3.0).abs() < 0.051, "{z}");
+        let (z, known) = m.expected_range(&g, [0.05, 0.05], std::f64::consts::FRAC_PI_2);
+        assert!(!known && (z - 0.05).abs() < 1e-9);
+    }
+}

@@ -1,0 +1,116 @@
+"""The `omnitof` command: each subcommand on data the test makes, outputs checked, and user
+mistakes reported as one line with exit status 2 (no traceback)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from omnitof.cli import main
+from omnitof.eval.relations import read_relations
+from omnitof.geometry import relative
+from omnitof.io.carmen import write_carmen
+from omnitof.io.rosmap import read_ros_map
+from omnitof.io.tum import read_tum
+
+
+@pytest.fixture(scope="module")
+def loop_log(tmp_path_factory, corridor_loop):
+    path = tmp_path_factory.mktemp("log") / "loop.log.gz"
+    write_carmen(path, corridor_loop)
+    return path
+
+
+@pytest.fixture(scope="module")
+def loop_relations(tmp_path_factory, corridor_loop):
+    # Reference relations from the ground truth, between scans 50 apart.
+    t, gt = corridor_loop.timestamps, corridor_loop.ground_truth
+    i = np.arange(0, len(t) - 50, 25)
+    d = relative(gt[i], gt[i + 50])
+    path = tmp_path_factory.mktemp("rel") / "loop.relations"
+    rows = [f"{t[a]:.6f} {t[a + 50]:.6f} {x:.6f} {y:.6f} 0 0 0 {th:.6f}" for a, (x, y, th) in zip(i, d)]
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def test_slam_writes_the_results_folder(tmp_path, loop_log, loop_relations, corridor_loop, capsys):
+    out = tmp_path / "run"
+    code = main(["slam", str(loop_log), "--out", str(out), "--preset", "sim2d", "--particles", "10",
+                 "--relations", str(loop_relations), "--quiet"])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "scans 1597" in printed and "particles 10" in printed and "resamplings" in printed
+    traj = read_tum(out / "trajectory.tum")
+    assert np.allclose(traj.timestamps, corridor_loop.timestamps, atol=1e-6)
+    odom = read_tum(out / "odometry.tum")
+    assert np.allclose(odom.poses[:, :2], corridor_loop.odometry[:, :2], atol=1e-5)
+    occ = read_ros_map(out / "map.yaml")
+    assert occ.known.mean() > 0.2 and occ.resolution == 0.05
+    meta = yaml.safe_load((out / "map.yaml").read_text())
+    assert meta["image"] == "map.pgm" and meta["mode"] == "trinary"
+    used = yaml.safe_load((out / "config.yaml").read_text())
+    assert used["filter"]["particles"] == 10
+    summary = yaml.safe_load((out / "summary.yaml").read_text())
+    assert summary["run"]["scans"] == 1597
+    assert summary["relations"]["n_matched"] == len(read_relations(loop_relations))
+    assert (out / "map.png").stat().st_size > 10_000
+
+
+def test_eval_relations_prints_the_metric(tmp_path, loop_relations, corridor_loop, capsys):
+    from omnitof.io.tum import write_tum
+    from omnitof.types import Trajectory
+
+    path = tmp_path / "gt.tum"
+    write_tum(path, Trajectory(corridor_loop.timestamps, corridor_loop.ground_truth))
+    assert main(["eval", "relations", str(path), str(loop_relations)]) == 0
+    printed = capsys.readouterr().out
+    n = len(read_relations(loop_relations))
+    assert f"matched {n}" in printed
+    # Ground truth against its own relations: zero error (to the printed precision).
+    trans_row = next(line for line in printed.splitlines() if line.startswith("translational [m]"))
+    assert float(trans_row.split()[2]) < 1e-5
+
+
+def test_config_prints_a_loadable_configuration(tmp_path, capsys):
+    assert main(["config", "--preset", "paper", "--seed", "9"]) == 0
+    text = capsys.readouterr().out
+    data = yaml.safe_load(text)
+    assert data["filter"]["particles"] == 200 and data["filter"]["seed"] == 9
+    assert main(["config", "--list"]) == 0
+    assert "laser180" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["slam", "MISSING.clf", "--out", "OUT"], "MISSING.clf"),
+        (["config", "--preset", "nope"], "unknown preset"),
+        (["config", "--particles", "0"], "filter.particles"),
+    ],
+)
+def test_user_mistakes_are_one_line(tmp_path, monkeypatch, capsys, argv, message):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_malformed_log_names_the_line(tmp_path, capsys):
+    log = tmp_path / "bad.clf"
+    log.write_text("ODOM 0 0 0 0 0 0 1.0 host 0\nFLASER 3 1.0 2.0 0 0 0 0 0 0 2.0 host 0\n")
+    assert main(["slam", str(log), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "bad.clf:2" in err
+    assert not (tmp_path / "out" / "map.yaml").exists()
+
+
+def test_demo_runs_and_writes_figures(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--particles", "10", "--quiet"]) == 0
+    assert "trajectory error" in capsys.readouterr().out
+    for name in ("map.png", "map.yaml", "map.pgm", "trajectory.tum", "ground_truth.tum", "summary.yaml"):
+        assert (out / name).exists(), name
+    summary = yaml.safe_load((out / "summary.yaml").read_text())
+    ev = summary["evaluation"]
+    assert ev["slam_ate"]["mean"] < ev["odometry_ate"]["mean"]

@@ -1,0 +1,65 @@
+"""Configuration: defaults, presets, YAML round trip, and refusals that name the field."""
+
+from __future__ import annotations
+
+import pytest
+
+from omnitof.config import SlamConfig, load_config, preset_names
+from omnitof.errors import ConfigError
+
+
+def test_presets_exist_and_differ_from_defaults():
+    assert {"paper", "laser180", "sim2d"} <= set(preset_names())
+    assert load_config(preset="paper").filter.particles == 200
+    assert load_config(preset="laser180").filter.particles == 30
+
+
+def test_yaml_round_trip(tmp_path):
+    cfg = load_config(preset="paper", overrides={"filter": {"seed": 42}})
+    path = tmp_path / "cfg.yaml"
+    path.write_text(cfg.to_yaml())
+    assert load_config(path) == cfg
+
+
+def test_file_overrides_preset_and_keeps_other_fields(tmp_path):
+    path = tmp_path / "cfg.yaml"
+    path.write_text("filter:\n  particles: 7\nmap:\n  resolution: 0.1\n")
+    cfg = load_config(path, preset="paper")
+    assert cfg.filter.particles == 7
+    assert cfg.map.resolution == 0.1
+    assert cfg.filter.resample_threshold == 0.5
+
+
+@pytest.mark.parametrize(
+    "text, field",
+    [
+        ("filter:\n  particles: 0\n", "filter.particles"),
+        ("map:\n  resolution: -0.05\n", "map.resolution"),
+        ("motion:\n  alpha3: oops\n", "motion.alpha3"),
+        ("filter:\n  partcles: 30\n", "filter.partcles"),
+        ("sensor_model:\n  z_hit: 0.5\n", "sensor_model"),
+    ],
+)
+def test_invalid_values_name_the_field(tmp_path, text, field):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert field in str(err.value) and str(path) in str(err.value)
+
+
+def test_unknown_preset_and_bad_yaml(tmp_path):
+    with pytest.raises(ConfigError, match="unknown preset 'nope'"):
+        load_config(preset="nope")
+    path = tmp_path / "bad.yaml"
+    path.write_text("filter: [1, 2\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(path)
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "missing.yaml")
+
+
+def test_defaults_are_documented():
+    for section in SlamConfig.model_fields.values():
+        for name, field in section.annotation.model_fields.items():
+            assert field.description, f"{section.annotation.__name__}.{name} has no description"

@@ -1,0 +1,188 @@
+"""The Rust core's building blocks against analytic values and independent computations."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from omnitof import _core
+
+ALPHAS = [0.04, 0.02, 0.03, 0.05]
+
+
+def moments(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return samples.mean(axis=0), np.cov(samples.T)
+
+
+def test_motion_model_straight_line_matches_analytic_moments():
+    # Odometry drove d metres straight ahead: rot1 = rot2 = 0, trans = d. Then
+    # r1 ~ N(0, a2 d²), t ~ N(d, a3 d²), r2 ~ N(0, a2 d²) independent, and the new pose is
+    # (t cos r1, t sin r1, r1 + r2). With s² = a2 d² and E[cos r1] = exp(-s²/2):
+    a1, a2, a3, a4 = ALPHAS
+    d = 0.8
+    n = 400_000
+    z = np.zeros(3)
+    samples = _core.sample_motion_odometry(z, z, np.array([d, 0.0, 0.0]), ALPHAS, n, 7)
+    s2 = a2 * d * d
+    t2 = d * d + a3 * d * d  # E[t²]
+    mean_want = np.array([d * np.exp(-s2 / 2), 0.0, 0.0])
+    var_x = t2 * (1 + np.exp(-2 * s2)) / 2 - (d * np.exp(-s2 / 2)) ** 2
+    var_y = t2 * (1 - np.exp(-2 * s2)) / 2
+    var_th = 2 * s2
+    cov_y_th = d * s2 * np.exp(-s2 / 2)  # E[t sin(r1) r1]
+    cov_want = np.array([[var_x, 0, 0], [0, var_y, cov_y_th], [0, cov_y_th, var_th]])
+    mean, cov = moments(samples)
+    se = np.sqrt(np.diag(cov_want) / n)
+    assert np.all(np.abs(mean - mean_want) < 5 * se)
+    # Standard error of a sample covariance: sqrt((var_i var_j + cov_ij²) / n).
+    var = np.diag(cov_want)
+    cov_se = np.sqrt((np.outer(var, var) + cov_want**2) / n)
+    assert np.all(np.abs(cov - cov_want) < 5 * cov_se)
+
+
+def test_motion_model_turn_in_place_matches_analytic_moments():
+    # Pure rotation by phi: trans = 0, rot1 = 0, rot2 = phi, so x ~ N(0, a4 phi²), y = 0,
+    # theta ~ N(phi, a1 phi²), independent.
+    a1, a2, a3, a4 = ALPHAS
+    phi = 0.9
+    n = 200_000
+    z = np.zeros(3)
+    samples = _core.sample_motion_odometry(z, z, np.array([0.0, 0.0, phi]), ALPHAS, n, 3)
+    mean, cov = moments(samples)
+    assert abs(mean[0]) < 5 * np.sqrt(a4 * phi**2 / n)
+    assert abs(mean[2] - phi) < 5 * np.sqrt(a1 * phi**2 / n)
+    assert np.all(samples[:, 1] == 0.0)
+    assert cov[0, 0] == pytest.approx(a4 * phi**2, rel=0.02)
+    assert cov[2, 2] == pytest.approx(a1 * phi**2, rel=0.02)
+    assert abs(cov[0, 2]) < 5 * np.sqrt(a4 * a1) * phi**2 / np.sqrt(n)
+
+
+def test_motion_model_is_applied_in_the_particle_frame():
+    # Noise-free: the particle moves by the odometry increment expressed in its own frame.
+    prev, cur = np.array([1.0, 2.0, 0.3]), np.array([1.5, 2.7, -0.4])
+    start = np.array([-3.0, 0.5, 2.0])
+    got = _core.sample_motion_odometry(start, prev, cur, [0, 0, 0, 0], 1, 0)[0]
+    from omnitof.geometry import compose, relative
+
+    assert np.allclose(got, compose(start, relative(prev, cur)), atol=1e-12)
+
+
+BEAM = dict(z_hit=0.7, z_short=0.1, z_max=0.05, z_rand=0.15, sigma_hit=0.08, lambda_short=0.6, max_range=12.0)
+
+
+@pytest.mark.parametrize("z_star", [0.02, 0.5, 3.7, 11.9, 12.0])
+def test_beam_model_is_normalised(z_star):
+    # Continuous part over [0, max_range) by the midpoint rule, plus the max-reading mass.
+    n = 400_000
+    h = BEAM["max_range"] / n
+    z = (np.arange(n) + 0.5) * h
+    density = _core.beam_likelihood(z, z_star, **BEAM)
+    assert density.sum() * h + BEAM["z_max"] == pytest.approx(1.0, abs=1e-4)
+    assert _core.beam_likelihood(np.array([12.0, 30.0]), z_star, **BEAM) == pytest.approx([0.05, 0.05])
+
+
+def test_beam_model_hit_part_peaks_at_expected_range():
+    z = np.linspace(0.0, 11.99, 10_000)
+    density = _core.beam_likelihood(z, 4.0, **BEAM)
+    assert abs(z[np.argmax(density)] - 4.0) < 0.01
+    # Far from z*, only the uniform part remains beyond it, the short part below it.
+    assert _core.beam_likelihood(np.array([9.0]), 4.0, **BEAM)[0] == pytest.approx(0.15 / 12.0, rel=1e-6)
+
+
+def cells_crossed(p0: np.ndarray, p1: np.ndarray, res: float) -> tuple[np.ndarray, np.ndarray]:
+    """Brute force: every cell of the segment's bounding box whose open square the segment
+    crosses (Liang–Barsky clipping against each cell), and which of them holds the end point."""
+    lo = np.floor(np.minimum(p0, p1) / res).astype(int) - 1
+    hi = np.floor(np.maximum(p0, p1) / res).astype(int) + 1
+    ix, iy = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1), indexing="ij")
+    ix, iy = ix.ravel(), iy.ravel()
+    d = p1 - p0
+    t0 = np.zeros(ix.shape)
+    t1 = np.ones(ix.shape)
+    for axis, idx in ((0, ix), (1, iy)):
+        a, b = idx * res, (idx + 1) * res
+        if d[axis] == 0:
+            inside = (p0[axis] > a) & (p0[axis] < b)
+            t1 = np.where(inside, t1, -1.0)
+            continue
+        ta, tb = (a - p0[axis]) / d[axis], (b - p0[axis]) / d[axis]
+        t0 = np.maximum(t0, np.minimum(ta, tb))
+        t1 = np.minimum(t1, np.maximum(ta, tb))
+    crossed = t1 > t0 + 1e-12
+    end = (ix == np.floor(p1[0] / res)) & (iy == np.floor(p1[1] / res))
+    return np.column_stack([ix[crossed], iy[crossed]]), end[crossed]
+
+
+def test_grid_update_matches_brute_force_traversal():
+    rng = np.random.default_rng(5)
+    res, l_occ, l_free = 0.1, 0.85, -0.4
+    grid = _core.OccupancyGrid(res, l_occ, l_free, -1e6, 1e6)  # clamps out of reach
+    pose = np.array([0.37, -0.21, 0.4])
+    angles = np.sort(rng.uniform(-np.pi, np.pi, 60))
+    ranges = rng.uniform(0.3, 4.0, 60).astype(np.float32)
+    ranges[[5, 17]] = np.inf  # no echo: no update
+    ranges[23] = 9.0  # beyond max_range: free space to max_range only
+    max_range = 5.0
+    grid.integrate(pose, angles, ranges, max_range)
+    want: dict[tuple[int, int], float] = {}
+    for a, r in zip(angles, ranges.astype(np.float64)):
+        if not np.isfinite(r):
+            continue
+        length = min(r, max_range)
+        end = pose[:2] + length * np.array([np.cos(pose[2] + a), np.sin(pose[2] + a)])
+        cells, is_end = cells_crossed(pose[:2], end, res)
+        for (cx, cy), e in zip(cells, is_end):
+            delta = l_occ if (e and r <= max_range) else l_free
+            want[(cx, cy)] = want.get((cx, cy), 0.0) + delta
+    log_odds, ix0, iy0 = grid.to_dense()
+    known = ~np.isnan(log_odds)
+    rows, cols = np.nonzero(known)
+    got = {(int(c + ix0), int(r + iy0)): float(log_odds[r, c]) for r, c in zip(rows, cols)}
+    assert got.keys() == want.keys()
+    for key, value in want.items():
+        assert got[key] == pytest.approx(value, abs=1e-4)
+
+
+def test_grid_update_clamps_log_odds():
+    grid = _core.OccupancyGrid(0.05, 0.9, -0.4, -2.0, 3.5)
+    pose, angles = np.zeros(3), np.array([0.0])
+    for _ in range(20):
+        grid.integrate(pose, angles, np.array([1.02], dtype=np.float32), 10.0)
+    log_odds, ix0, iy0 = grid.to_dense()
+    assert log_odds[0 - iy0, 20 - ix0] == pytest.approx(3.5)  # end point cell (20, 0)
+    assert log_odds[0 - iy0, 10 - ix0] == pytest.approx(-2.0)
+
+
+def test_expected_range_sees_the_wall_it_was_built_from():
+    grid = _core.OccupancyGrid(0.05, 2.0, -0.5, -5.0, 5.0)
+    angles = np.linspace(-0.5, 0.5, 41)
+    wall_x = 3.0
+    ranges = (wall_x / np.cos(angles)).astype(np.float32)
+    grid.integrate(np.zeros(3), angles, ranges, 10.0)
+    expected = grid.expected_ranges(np.zeros(3), angles, 10.0, 0.0)
+    assert np.all(np.abs(expected - ranges) < 0.05 / np.cos(angles) + 1e-9)
+    # Looking backwards the map is unknown: no prediction.
+    assert np.isnan(grid.expected_ranges(np.array([0.0, 0.0, np.pi]), np.array([0.0]), 10.0, 0.0)[0])
+
+
+def test_neff_of_uniform_degenerate_and_scaled_weights():
+    assert _core.neff(np.full(8, 1 / 8)) == pytest.approx(8.0)
+    assert _core.neff(np.array([0.0, 1.0, 0.0])) == pytest.approx(1.0)
+    w = np.array([0.5, 0.25, 0.25])
+    assert _core.neff(w) == pytest.approx(1 / (0.25 + 0.0625 + 0.0625))
+
+
+def test_low_variance_resampling_properties():
+    rng = np.random.default_rng(0)
+    w = rng.random(37)
+    w /= w.sum()
+    counts_sum = np.zeros(37)
+    for seed in range(300):
+        idx = _core.low_variance_resample(w, seed)
+        assert len(idx) == 37 and np.all(np.diff(idx.astype(np.int64)) >= 0)
+        counts = np.bincount(idx.astype(np.int64), minlength=37)
+        assert np.all(counts >= np.floor(37 * w) - 1e-9) and np.all(counts <= np.ceil(37 * w) + 1e-9)
+        counts_sum += counts
+    # Unbiased: the mean count of each particle approaches N·w.
+    assert np.allclose(counts_sum / 300, 37 * w, atol=0.1)
+    assert np.array_equal(_core.low_variance_resample(w, 11), _core.low_variance_resample(w, 11))

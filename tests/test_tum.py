@@ -1,0 +1,135 @@
+"""Tests of omnitof.io.tum and of the atomic writer it relies on."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from omnitof.errors import InputError
+from omnitof.io.atomic import atomic_write
+from omnitof.io.tum import ROW_MESSAGE, read_tum, write_tum
+from omnitof.types import Trajectory
+
+
+def _trajectory() -> Trajectory:
+    # Unix-like times with microsecond parts, yaws all around the circle including near +-pi.
+    t = 976052896.784509 + np.array([0.0, 0.123456, 1.5, 2.000001, 7.25])
+    poses = np.array(
+        [
+            [0.0, 0.0, 0.0],
+            [1.5, -2.25, 0.3],
+            [-3.0, 4.0, -2.9],
+            [10.0, 0.001, 3.14],
+            [0.5, 0.5, -1.0],
+        ]
+    )
+    return Trajectory(t, poses)
+
+
+def test_round_trip(tmp_path: Path) -> None:
+    traj = _trajectory()
+    path = tmp_path / "traj.tum"
+    write_tum(path, traj)
+    back = read_tum(path)
+    np.testing.assert_allclose(back.timestamps, traj.timestamps, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(back.poses[:, :2], traj.poses[:, :2], atol=1e-6)
+    yaw_diff = np.angle(np.exp(1j * (back.poses[:, 2] - traj.poses[:, 2])))
+    np.testing.assert_allclose(yaw_diff, 0.0, atol=1e-8)
+
+
+def test_written_rows(tmp_path: Path) -> None:
+    path = tmp_path / "traj.tum"
+    write_tum(path, Trajectory([1234567890.000001], [[1.0, 2.0, np.pi / 2]]))
+    lines = path.read_text().splitlines()
+    assert lines[0].startswith("#") and lines[0].split()[1:] == [
+        "timestamp",
+        "x",
+        "y",
+        "z",
+        "qx",
+        "qy",
+        "qz",
+        "qw",
+    ]
+    fields = lines[1].split()
+    assert fields[0] == "1234567890.000001"  # microseconds survive
+    values = np.array(fields, dtype=float)
+    h = np.sqrt(0.5)
+    np.testing.assert_allclose(values[1:], [1.0, 2.0, 0.0, 0.0, 0.0, h, h], atol=1e-9)
+
+
+def test_reads_comments_blank_lines_and_unnormalised_quaternions(tmp_path: Path) -> None:
+    path = tmp_path / "t.txt"
+    # Second row: a quaternion for yaw 90 deg, scaled by 2 (yaw must not depend on the scale).
+    path.write_text("# comment\n\n1.0 1 2 0.5 0 0 0 1\n  \n2.0 3 4 0 0 0 1.414214 1.414214\n")
+    traj = read_tum(path)
+    np.testing.assert_allclose(traj.timestamps, [1.0, 2.0])
+    np.testing.assert_allclose(traj.poses, [[1, 2, 0], [3, 4, np.pi / 2]], atol=1e-6)
+
+
+@pytest.mark.parametrize("row", ["1.0 2 3 4 0 0 0", "1.0 2 3 4 0 0 0 1 9", "1.0 2 3 a 0 0 0 1"])
+def test_bad_row_names_file_line_and_format(tmp_path: Path, row: str) -> None:
+    path = tmp_path / "bad.tum"
+    path.write_text(f"# header\n0.5 0 0 0 0 0 0 1\n{row}\n")
+    with pytest.raises(InputError) as info:
+        read_tum(path)
+    assert info.value.path == path and info.value.line == 3
+    assert ROW_MESSAGE in str(info.value) and str(path) in str(info.value)
+
+
+def test_non_increasing_timestamps(tmp_path: Path) -> None:
+    path = tmp_path / "t.tum"
+    path.write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n")
+    with pytest.raises(InputError, match="increase") as info:
+        read_tum(path)
+    assert info.value.line == 3
+
+
+@pytest.mark.parametrize("text", ["", "# only a header\n\n"])
+def test_empty_file(tmp_path: Path, text: str) -> None:
+    path = tmp_path / "empty.tum"
+    path.write_text(text)
+    with pytest.raises(InputError, match="empty"):
+        read_tum(path)
+
+
+def test_missing_file_is_an_input_error(tmp_path: Path) -> None:
+    with pytest.raises(InputError) as info:
+        read_tum(tmp_path / "nope.tum")
+    assert info.value.path == tmp_path / "nope.tum"
+
+
+def test_writer_refuses_unreadable_trajectory(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="strictly increase"):
+        write_tum(tmp_path / "t.tum", Trajectory([1.0, 1.0], np.zeros((2, 3))))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_atomic_write_replaces_only_on_success(tmp_path: Path) -> None:
+    path = tmp_path / "out.txt"
+    with atomic_write(path) as f:
+        f.write("first\n")
+    assert path.read_text() == "first\n"
+    with pytest.raises(RuntimeError), atomic_write(path) as f:
+        f.write("half a")
+        raise RuntimeError("interrupted")
+    assert path.read_text() == "first\n"  # the old content survives
+    assert [p.name for p in tmp_path.iterdir()] == ["out.txt"]  # no temp file left
+
+
+def test_atomic_write_leaves_nothing_on_error(tmp_path: Path) -> None:
+    path = tmp_path / "new.bin"
+    with pytest.raises(KeyboardInterrupt), atomic_write(path, "wb") as f:
+        f.write(b"\x00\x01")
+        raise KeyboardInterrupt
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_atomic_write_binary_and_mode_check(tmp_path: Path) -> None:
+    with atomic_write(tmp_path / "b.bin", "wb") as f:
+        f.write(b"\x00\xff")
+    assert (tmp_path / "b.bin").read_bytes() == b"\x00\xff"
+    with pytest.raises(ValueError), atomic_write(tmp_path / "c", "a"):
+        pass
