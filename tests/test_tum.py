@@ -133,3 +133,17 @@ def test_atomic_write_binary_and_mode_check(tmp_path: Path) -> None:
     assert (tmp_path / "b.bin").read_bytes() == b"\x00\xff"
     with pytest.raises(ValueError), atomic_write(tmp_path / "c", "a"):
         pass
+
+
+def test_write_sorted_keeps_each_pose_with_its_timestamp(tmp_path):
+    # A log whose clock stepped back: rows come out in time order, each pose with its own stamp.
+    t = np.array([10.0, 10.2, 10.1, 10.3])
+    poses = np.array([[0.0, 0, 0], [2.0, 0, 0.2], [1.0, 0, 0.1], [3.0, 0, 0.3]])
+    path = tmp_path / "t.tum"
+    with pytest.raises(ValueError, match="strictly increase"):
+        write_tum(path, Trajectory(t, poses))
+    write_tum(path, Trajectory(t, poses), sort=True)
+    back = read_tum(path)
+    assert np.allclose(back.timestamps, [10.0, 10.1, 10.2, 10.3])
+    assert np.allclose(back.poses[:, 0], [0.0, 1.0, 2.0, 3.0])
+    assert np.allclose(back.poses[:, 2], [0.0, 0.1, 0.2, 0.3])

@@ -46,9 +46,10 @@ class SensorModelConfig(_Section):
     lambda_short: float = Field(0.5, gt=0, description="rate of the short-reading part (1/m)")
     max_range: float = Field(15.0, gt=0, description="largest range the model scores (m); longer readings are left out")
     beam_stride: int = Field(2, ge=1, description="score every n-th beam")
-    likelihood_gain: float = Field(
-        0.1, gt=0, le=1,
-        description="multiplies the scan log-likelihood; below 1 it tempers the overconfidence of independent beams",
+    effective_beams: float = Field(
+        9.0, gt=0,
+        description="a scan's log-likelihood is the mean over its scored beams times this: the scan counts as "
+        "this many independent beams, which tempers the overconfidence of treating real beams as independent",
     )
 
     @model_validator(mode="after")

@@ -17,7 +17,7 @@ import numpy as np
 
 from omnitof import _core
 from omnitof.config import SlamConfig
-from omnitof.geometry import compose, relative, wrap_angle
+from omnitof.geometry import compose, relative
 from omnitof.types import OccupancyMap, ScanSequence, Trajectory
 
 
@@ -81,7 +81,7 @@ def _make_filter(scans: ScanSequence, cfg: SlamConfig) -> "_core.ParticleFilter"
         max_range=min(s.max_range, scans.max_range),
         occupied_threshold=g.occupied_threshold,
         beam_stride=s.beam_stride,
-        likelihood_gain=s.likelihood_gain,
+        effective_beams=s.effective_beams,
         l_occ=g.l_occ,
         l_free=g.l_free,
         l_min=g.l_min,
@@ -155,7 +155,3 @@ def run_slam(
         stats=stats,
     )
 
-
-def heading_error(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Absolute heading difference (rad) of two pose arrays."""
-    return np.abs(wrap_angle(a[..., 2] - b[..., 2]))

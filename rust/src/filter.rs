@@ -59,9 +59,10 @@ pub struct FilterParams {
     pub motion: OdometryMotion,
     pub beam: BeamModel,
     pub beam_stride: usize,
-    /// Multiplies the scan log-likelihood: below 1 it flattens the weights, the usual remedy
-    /// for the overconfidence of independent beams.
-    pub likelihood_gain: f64,
+    /// The scan's log-likelihood is the mean over its scored beams times this number: the
+    /// scan counts as that many independent beams, whatever the sensor's beam count. Real beams
+    /// are far from independent, and counting every beam makes the weights collapse.
+    pub effective_beams: f64,
     pub log_odds: LogOddsModel,
     pub resolution: f64,
     /// Readings beyond this (metres) update free space only.
@@ -190,8 +191,8 @@ impl ParticleFilter {
             self.particles.par_iter_mut().enumerate().for_each(|(i, part)| {
                 let mut rng = rng_for(seed, step_index, i as u64);
                 let pose = p.motion.sample(part.pose, odom_prev, odom_cur, &mut rng);
-                let ll = p.beam.scan_log_likelihood(&part.map, &geom, pose, ranges, p.beam_stride);
-                part.log_weight += p.likelihood_gain * ll;
+                let (mean_ll, _) = p.beam.scan_log_likelihood(&part.map, &geom, pose, ranges, p.beam_stride);
+                part.log_weight += p.effective_beams * mean_ll;
                 part.pose = pose;
                 part.trajectory = Arc::new(TrajectoryNode { pose, scan, parent: Some(part.trajectory.clone()) });
                 integrate_scan(&mut part.map, &p.log_odds, &geom, pose, ranges, p.map_max_range, p.clear_no_echo);

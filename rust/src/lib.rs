@@ -45,7 +45,7 @@ struct PyParticleFilter {
 impl PyParticleFilter {
     #[new]
     #[pyo3(signature = (*, n_particles, seed, threads, alphas, z_hit, z_short, z_max, z_rand,
-        sigma_hit, lambda_short, max_range, occupied_threshold, beam_stride, likelihood_gain,
+        sigma_hit, lambda_short, max_range, occupied_threshold, beam_stride, effective_beams,
         l_occ, l_free, l_min, l_max, resolution, map_max_range, clear_no_echo,
         resample_threshold, angles, sensor_pose))]
     #[allow(clippy::too_many_arguments)]
@@ -63,7 +63,7 @@ impl PyParticleFilter {
         max_range: f64,
         occupied_threshold: f32,
         beam_stride: usize,
-        likelihood_gain: f64,
+        effective_beams: f64,
         l_occ: f32,
         l_free: f32,
         l_min: f32,
@@ -82,7 +82,7 @@ impl PyParticleFilter {
             motion: OdometryMotion { alpha: alphas },
             beam: BeamModel { z_hit, z_short, z_max, z_rand, sigma_hit, lambda_short, max_range, occupied_threshold },
             beam_stride,
-            likelihood_gain,
+            effective_beams,
             log_odds: LogOddsModel { l_occ, l_free, l_min, l_max },
             resolution,
             map_max_range,

@@ -93,9 +93,9 @@ impl BeamModel {
         result
     }
 
-    /// log p(z | m, x) of a scan, every `stride`-th beam, beams independent (eq. 9). Readings
-    /// that are no echo (+inf) or beyond max_range are left out, as are beams whose ray leaves
-    /// the known map before the reading could have ended.
+    /// Mean log p(z_i | m, x) over the scored beams of a scan (every `stride`-th beam) and how
+    /// many were scored. Readings that are no echo (+inf) or beyond max_range are left out, as
+    /// are beams whose ray leaves the known map before the reading could have ended.
     pub fn scan_log_likelihood(
         &self,
         grid: &TiledGrid,
@@ -103,9 +103,10 @@ impl BeamModel {
         robot: [f64; 3],
         ranges: &[f32],
         stride: usize,
-    ) -> f64 {
+    ) -> (f64, usize) {
         let sp = geom.sensor_pose(robot);
         let mut total = 0.0;
+        let mut scored = 0;
         for i in (0..ranges.len()).step_by(stride.max(1)) {
             let z = ranges[i] as f64;
             if !z.is_finite() || z >= self.max_range {
@@ -118,8 +119,13 @@ impl BeamModel {
                 continue;
             }
             total += self.likelihood(z, z_star).max(1e-300).ln();
+            scored += 1;
         }
-        total
+        if scored == 0 {
+            (0.0, 0)
+        } else {
+            (total / scored as f64, scored)
+        }
     }
 }
 

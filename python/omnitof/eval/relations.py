@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from omnitof.errors import InputError
+from omnitof.io.text import parse_float_row
 from omnitof.geometry import relative, wrap_angle
 from omnitof.types import Trajectory
 
@@ -104,15 +105,7 @@ def read_relations(path: str | Path) -> Relations:
 
 
 def _parse_relation(text: str, path: str | Path, number: int) -> list[float]:
-    fields = text.split()
-    try:
-        row = [float(v) for v in fields]
-    except ValueError:
-        row = []
-    if len(row) != 8:
-        raise InputError(f"{ROW_MESSAGE} (found {len(fields)} fields)", path, number)
-    if not all(math.isfinite(v) for v in row):
-        raise InputError(f"{ROW_MESSAGE}, all finite (found nan or inf)", path, number)
+    row = parse_float_row(text, 8, ROW_MESSAGE, path, number)
     if max(abs(v) for v in row[4:7]) > _PLANAR_TOLERANCE:
         raise InputError(
             "z, roll and pitch must be 0: only planar relations are supported", path, number

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from omnitof.errors import InputError
+from omnitof.io.text import parse_float_row
 from omnitof.geometry import quaternion_to_yaw, yaw_to_quaternion
 from omnitof.io.atomic import atomic_write
 from omnitof.types import Trajectory
@@ -99,15 +100,7 @@ def _read_lines(path: str | Path) -> list[str]:
 
 
 def _parse_row(text: str, path: str | Path, number: int) -> list[float]:
-    fields = text.split()
-    try:
-        row = [float(v) for v in fields]
-    except ValueError:
-        row = []
-    if len(row) != 8:
-        raise InputError(f"{ROW_MESSAGE} (found {len(fields)} fields)", path, number)
-    if not all(np.isfinite(row)):
-        raise InputError(f"{ROW_MESSAGE}, all finite (found nan or inf)", path, number)
+    row = parse_float_row(text, 8, ROW_MESSAGE, path, number)
     if np.linalg.norm(row[4:8]) < 1e-9:
         raise InputError("the quaternion qx qy qz qw has zero length", path, number)
     return row
