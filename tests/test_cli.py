@@ -87,6 +87,7 @@ def test_config_prints_a_loadable_configuration(tmp_path, capsys):
         (["slam", "MISSING.clf", "--out", "OUT"], "MISSING.clf"),
         (["config", "--preset", "nope"], "unknown preset"),
         (["config", "--particles", "0"], "filter.particles"),
+        (["eval", "relations", "none.tum", "none.relations"], "none.tum"),
     ],
 )
 def test_user_mistakes_are_one_line(tmp_path, monkeypatch, capsys, argv, message):

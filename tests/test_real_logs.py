@@ -1,8 +1,10 @@
 """The paper's filter on the real Intel Research Lab log (CARMEN), scored with the SLAM
 benchmark's relations (Kümmerle et al. 2009). Skipped with a reason when OMNITOF_DATA is unset.
 
-The accuracy bound is the one recorded in BENCHMARKS.md for this preset and seed; the odometry
-proposal is a lottery on this log across seeds, which BENCHMARKS.md shows too.
+The run is the paper's configuration (preset `paper`: 200 particles, odometry proposal, beam
+model) with seed 0; the bound is the accuracy recorded for it in BENCHMARKS.md. Other seeds can
+do much worse (the odometry proposal fails to close some of Intel's loops now and then), which
+BENCHMARKS.md shows too.
 """
 
 from __future__ import annotations
@@ -21,13 +23,13 @@ def test_intel_log_end_to_end(data_dir):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the log's clock steps back; the reader says so
         scans = read_carmen(data_dir / "intel.clf.bz2").scans
-    cfg = load_config(preset="laser180", overrides={"filter": {"seed": 0}})
+    cfg = load_config(preset="paper", overrides={"filter": {"seed": 0}})
     result = run_slam(scans, cfg)
     relations = read_relations(data_dir / "intel.relations")
     slam = evaluate_relations(result.trajectory, relations)
     odometry = evaluate_relations(result.odometry, relations)
     assert slam.n_matched == slam.n_relations == 2984
-    assert slam.trans_mean < 0.12  # BENCHMARKS.md: 0.077 m for this preset and seed
+    assert slam.trans_mean < 0.10  # BENCHMARKS.md: 0.064 m for this preset and seed
     assert slam.rot_mean < 3.0
     assert slam.trans_mean < 0.1 * odometry.trans_mean
     # The map spans the Intel lab (about 30 m x 30 m), not a smeared multiple of it.

@@ -151,6 +151,9 @@ def main(argv: list[str] | None = None) -> int:
     except OmnitofError as err:
         print(f"omnitof: error: {err}", file=sys.stderr)
         return 2
+    except OSError as err:  # an output folder that cannot be written, a full disk, ...
+        print(f"omnitof: error: {err}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("omnitof: interrupted", file=sys.stderr)
         return 130

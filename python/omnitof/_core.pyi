@@ -1,0 +1,95 @@
+# Type stubs of the compiled core (rust/src/lib.rs). Private: use omnitof.slam and friends.
+from typing import final
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = [
+    "OccupancyGrid",
+    "ParticleFilter",
+    "beam_likelihood",
+    "low_variance_resample",
+    "neff",
+    "sample_motion_odometry",
+]
+
+_F64 = npt.NDArray[np.float64]
+_F32 = npt.NDArray[np.float32]
+_U64 = npt.NDArray[np.uint64]
+
+@final
+class ParticleFilter:
+    def __new__(
+        cls,
+        *,
+        n_particles: int,
+        seed: int,
+        threads: int,
+        alphas: list[float],
+        z_hit: float,
+        z_short: float,
+        z_max: float,
+        z_rand: float,
+        sigma_hit: float,
+        lambda_short: float,
+        max_range: float,
+        occupied_threshold: float,
+        beam_stride: int,
+        effective_beams: float,
+        l_occ: float,
+        l_free: float,
+        l_min: float,
+        l_max: float,
+        resolution: float,
+        map_max_range: float,
+        clear_no_echo: bool,
+        resample_threshold: float,
+        angles: _F64,
+        sensor_pose: _F64,
+    ) -> ParticleFilter: ...
+    def step(self, odom_prev: _F64, odom_cur: _F64, ranges: _F32, scan: int) -> tuple[float, bool]: ...
+    def best_trajectory(self) -> tuple[_U64, _F64]: ...
+    def best_map(self) -> tuple[_F32, int, int]: ...
+    def map_of(self, index: int) -> tuple[_F32, int, int]: ...
+    def poses(self) -> _F64: ...
+    def log_weights(self) -> _F64: ...
+    def tile_counts(self) -> tuple[int, int]: ...
+    @staticmethod
+    def tile_bytes() -> int: ...
+    @property
+    def steps(self) -> int: ...
+    @property
+    def resamplings(self) -> int: ...
+
+@final
+class OccupancyGrid:
+    def __new__(cls, resolution: float, l_occ: float, l_free: float, l_min: float, l_max: float) -> OccupancyGrid: ...
+    def integrate(
+        self,
+        robot_pose: _F64,
+        angles: _F64,
+        ranges: _F32,
+        max_range: float,
+        clear_no_echo: bool = False,
+        sensor_pose: _F64 | None = None,
+    ) -> None: ...
+    def to_dense(self) -> tuple[_F32, int, int]: ...
+    def expected_ranges(self, sensor_pose: _F64, angles: _F64, max_range: float, occupied_threshold: float) -> _F64: ...
+
+def sample_motion_odometry(
+    pose: _F64, odom_prev: _F64, odom_cur: _F64, alphas: list[float], n: int, seed: int
+) -> _F64: ...
+def beam_likelihood(
+    z: _F64,
+    z_star: float,
+    *,
+    z_hit: float,
+    z_short: float,
+    z_max: float,
+    z_rand: float,
+    sigma_hit: float,
+    lambda_short: float,
+    max_range: float,
+) -> _F64: ...
+def neff(weights: _F64) -> float: ...
+def low_variance_resample(weights: _F64, seed: int) -> _U64: ...
