@@ -46,6 +46,20 @@ class ParticleFilter:
         resample_threshold: float,
         angles: _F64,
         sensor_pose: _F64,
+        proposal: str,
+        observation: str,
+        field_sigma: float,
+        field_z_hit: float,
+        field_z_rand: float,
+        field_window: int,
+        match_step_xy: float,
+        match_step_theta: float,
+        match_refinements: int,
+        match_gauss_newton: int,
+        match_sample_xy: float,
+        match_sample_theta: float,
+        match_min_matched: float,
+        match_odometry_prior: bool,
     ) -> ParticleFilter: ...
     def step(self, odom_prev: _F64, odom_cur: _F64, ranges: _F32, scan: int) -> tuple[float, bool]: ...
     def best_trajectory(self) -> tuple[_U64, _F64]: ...
@@ -60,6 +74,8 @@ class ParticleFilter:
     def steps(self) -> int: ...
     @property
     def resamplings(self) -> int: ...
+    @property
+    def fallbacks(self) -> int: ...
 
 @final
 class OccupancyGrid:
@@ -74,6 +90,22 @@ class OccupancyGrid:
         sensor_pose: _F64 | None = None,
     ) -> None: ...
     def to_dense(self) -> tuple[_F32, int, int]: ...
+    def match_scan(
+        self,
+        start: _F64,
+        angles: _F64,
+        ranges: _F32,
+        *,
+        sensor_pose: _F64 | None = None,
+        sigma: float = 0.05,
+        window: int = 3,
+        max_range: float = 20.0,
+        occupied_threshold: float = 0.0,
+        step_xy: float = 0.05,
+        step_theta: float = 0.035,
+        refinements: int = 3,
+        gauss_newton: int = 10,
+    ) -> tuple[list[float], float]: ...
     def expected_ranges(self, sensor_pose: _F64, angles: _F64, max_range: float, occupied_threshold: float) -> _F64: ...
 
 def sample_motion_odometry(

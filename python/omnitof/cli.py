@@ -93,6 +93,28 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_design(args: argparse.Namespace) -> int:
+    from omnitof.camera import Camera
+    from omnitof.design import design_report, format_sweep, plot_sweep, sweep
+    from omnitof.mirrors import plot_mirror_regions, pyramid
+
+    lenses = {"standard": Camera.sr4000(), "wide": Camera.sr4000_wide()}
+    if args.sweep is not None:
+        rows = sweep(lenses, tilts_deg=range(40, 66, 2), yaws_deg=(0.0, 45.0), n_mirrors=(3, 4, 6),
+                     elev_band_deg=args.band)
+        print(format_sweep(rows))
+        plot_sweep(args.sweep, rows)
+        print(f"sweep figure: {args.sweep}")
+        return 0
+    camera = lenses[args.lens]
+    mirrors = pyramid(args.mirrors, args.tilt, yaw_deg=args.yaw, camera=camera)
+    print(design_report(camera, mirrors, elev_band_deg=args.band).format())
+    if args.figure is not None:
+        plot_mirror_regions(args.figure, camera, mirrors)
+        print(f"mirror regions: {args.figure}")
+    return 0
+
+
 def _add_config_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", help="a bundled preset (see `omnitof config --list`)")
     p.add_argument("--config", type=Path, help="a YAML configuration file (over the preset)")
@@ -128,6 +150,16 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_options(p)
     p.add_argument("--list", action="store_true", help="list the bundled presets")
     p.set_defaults(func=cmd_config)
+
+    p = sub.add_parser("design", help="measure a mirror-pyramid rig: bearing coverage, elevation bands")
+    p.add_argument("--lens", choices=["standard", "wide"], default="wide", help="SR4000 lens (43.6° or 69°)")
+    p.add_argument("--mirrors", type=int, default=4, help="number of mirrors")
+    p.add_argument("--tilt", type=float, default=56.0, help="mirror tilt from the optical axis (deg)")
+    p.add_argument("--yaw", type=float, default=0.0, help="pyramid yaw against the driving direction (deg)")
+    p.add_argument("--band", type=float, default=10.0, help="usable elevations: ± this around horizontal (deg)")
+    p.add_argument("--figure", type=Path, help="draw the mirror regions of the image (PNG)")
+    p.add_argument("--sweep", type=Path, metavar="PNG", help="sweep tilt, yaw, mirrors and lens; plot to PNG")
+    p.set_defaults(func=cmd_design)
 
     p = sub.add_parser("demo", help="simulate a corridor loop, run SLAM, evaluate, write figures")
     p.add_argument("--out", type=Path, default=Path("results/demo"), help="results folder")

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -36,8 +36,15 @@ class MotionConfig(_Section):
 
 
 class SensorModelConfig(_Section):
-    """Beam model p(z | m, x) that weighs the particles (Probabilistic Robotics, section 6.3)."""
+    """Observation model p(z | m, x) that weighs particles drawn from the odometry proposal.
 
+    `model: beam` is the paper's beam model (Probabilistic Robotics, section 6.3) with the
+    mixture below; `model: likelihood_field` scores beam end points by their distance to the
+    nearest obstacle (section 6.4, parameters in the `likelihood_field` section), smoother and
+    cheaper. The scan-matching proposal always matches against the likelihood field.
+    """
+
+    model: Literal["beam", "likelihood_field"] = Field("beam", description="observation model: beam | likelihood_field")
     z_hit: float = Field(0.8, ge=0, description="weight of the Gaussian hit part")
     z_short: float = Field(0.05, ge=0, description="weight of the exponential short-reading part")
     z_max: float = Field(0.05, ge=0, description="weight of the max-reading point mass")
@@ -60,6 +67,40 @@ class SensorModelConfig(_Section):
         return self
 
 
+class LikelihoodFieldConfig(_Section):
+    """Likelihood field: p = z_hit·N(d; 0, sigma) + z_rand/max_range for an end point at
+    distance d from the nearest occupied cell, searched up to window_cells cells away."""
+
+    sigma: float = Field(0.05, gt=0, description="standard deviation of the end-point distance (m)")
+    z_hit: float = Field(0.9, ge=0, le=1, description="weight of the Gaussian part")
+    z_rand: float = Field(0.1, ge=0, le=1, description="weight of the uniform part")
+    window_cells: int = Field(3, ge=1, le=20, description="how far (cells) to search for the nearest obstacle")
+
+
+class ScanMatcherConfig(_Section):
+    """The scan-matching proposal (Grisetti, Stachniss & Burgard 2007): hill climbing on the
+    likelihood field from the odometry prediction, then a Gaussian fitted to the target at the
+    3×3×3 poses around the mode."""
+
+    step_xy: float = Field(0.05, gt=0, description="initial hill-climbing step in x and y (m)")
+    step_deg: float = Field(2.0, gt=0, description="initial hill-climbing step in heading (deg)")
+    refinements: int = Field(3, ge=0, le=20, description="how often the hill-climbing steps are halved")
+    gauss_newton: int = Field(
+        10, ge=0, le=100, description="Gauss-Newton iterations on the likelihood field after the hill climbing"
+    )
+    sample_xy: float = Field(0.01, gt=0, description="spacing in x and y of the poses the Gaussian is fitted to (m)")
+    sample_deg: float = Field(0.25, gt=0, description="spacing in heading of those poses (deg)")
+    odometry_prior: bool = Field(
+        False,
+        description="climb to the mode of likelihood × odometry prior instead of the likelihood alone: "
+        "better where scans are ambiguous and odometry good, worse where odometry is poor",
+    )
+    min_matched: float = Field(
+        0.5, ge=0, le=1,
+        description="fall back to the odometry proposal when fewer end points than this share lie near an obstacle",
+    )
+
+
 class MapConfig(_Section):
     """Log-odds occupancy grid and its inverse sensor model (paper eq. 8)."""
 
@@ -79,6 +120,9 @@ class FilterConfig(_Section):
     """The Rao-Blackwellized particle filter (paper section IV)."""
 
     particles: int = Field(30, ge=1, le=100_000, description="number of particles")
+    proposal: Literal["odometry", "scanmatch"] = Field(
+        "odometry", description="odometry: the paper's proposal; scanmatch: Grisetti et al. 2007"
+    )
     resample_threshold: float = Field(
         0.5, gt=0, le=1, description="resample when Neff (eq. 10) falls below this fraction of the particles"
     )
@@ -94,6 +138,8 @@ class SlamConfig(_Section):
     filter: FilterConfig = FilterConfig()
     motion: MotionConfig = MotionConfig()
     sensor_model: SensorModelConfig = SensorModelConfig()
+    likelihood_field: LikelihoodFieldConfig = LikelihoodFieldConfig()
+    scan_matcher: ScanMatcherConfig = ScanMatcherConfig()
     map: MapConfig = MapConfig()
 
     def to_yaml(self) -> str:

@@ -67,6 +67,7 @@ def fill_trajectory(odometry: np.ndarray, integrated: np.ndarray, corrected: np.
 
 def _make_filter(scans: ScanSequence, cfg: SlamConfig) -> "_core.ParticleFilter":
     f, m, s, g = cfg.filter, cfg.motion, cfg.sensor_model, cfg.map
+    lf, sm = cfg.likelihood_field, cfg.scan_matcher
     return _core.ParticleFilter(
         n_particles=f.particles,
         seed=f.seed,
@@ -92,6 +93,20 @@ def _make_filter(scans: ScanSequence, cfg: SlamConfig) -> "_core.ParticleFilter"
         resample_threshold=f.resample_threshold,
         angles=scans.angles,
         sensor_pose=scans.sensor_pose,
+        proposal=f.proposal,
+        observation=s.model,
+        field_sigma=lf.sigma,
+        field_z_hit=lf.z_hit,
+        field_z_rand=lf.z_rand,
+        field_window=lf.window_cells,
+        match_step_xy=sm.step_xy,
+        match_step_theta=math.radians(sm.step_deg),
+        match_refinements=sm.refinements,
+        match_gauss_newton=sm.gauss_newton,
+        match_sample_xy=sm.sample_xy,
+        match_sample_theta=math.radians(sm.sample_deg),
+        match_min_matched=sm.min_matched,
+        match_odometry_prior=sm.odometry_prior,
     )
 
 
@@ -142,6 +157,8 @@ def run_slam(
         "integrated": int(len(integrated)),
         "particles": cfg.filter.particles,
         "resamplings": int(pf.resamplings),
+        "proposal": cfg.filter.proposal,
+        "scanmatch_fallbacks": int(pf.fallbacks),
         "seconds": time.perf_counter() - start,
         "map_tiles_distinct": int(unique_tiles),
         "map_tiles_referenced": int(tile_refs),

@@ -19,7 +19,24 @@ use rayon::prelude::*;
 
 use crate::grid::{LogOddsModel, TiledGrid};
 use crate::motion::OdometryMotion;
+use crate::scan_match::{endpoints, propose, LikelihoodField, MatcherParams};
 use crate::sensor_model::{integrate_scan, BeamModel, ScanGeometry};
+
+/// Where a particle's new pose is drawn from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ProposalKind {
+    /// The paper's: the odometry motion model alone, weighed by the observation model.
+    Odometry,
+    /// Grisetti et al. 2007: a Gaussian around the scan-match mode in the particle's own map.
+    ScanMatch,
+}
+
+/// The observation model that weighs particles drawn from the odometry proposal.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ObservationKind {
+    Beam,
+    LikelihoodField,
+}
 
 /// One pose of a particle's trajectory, linked to the pose before it. Children of one parent
 /// share it, so the trajectories of all particles form a tree.
@@ -57,7 +74,11 @@ pub struct FilterParams {
     pub seed: u64,
     pub threads: usize,
     pub motion: OdometryMotion,
+    pub proposal: ProposalKind,
+    pub observation: ObservationKind,
     pub beam: BeamModel,
+    pub field: LikelihoodField,
+    pub matcher: MatcherParams,
     pub beam_stride: usize,
     /// The scan's log-likelihood is the mean over its scored beams times this number: the
     /// scan counts as that many independent beams, whatever the sensor's beam count. Real beams
@@ -76,6 +97,8 @@ pub struct FilterParams {
 pub struct StepInfo {
     pub neff: f64,
     pub resampled: bool,
+    /// Particles that fell back to the odometry proposal because scan matching failed.
+    pub fallbacks: usize,
 }
 
 pub struct ParticleFilter {
@@ -85,6 +108,7 @@ pub struct ParticleFilter {
     pub particles: Vec<Particle>,
     pub steps: u64,
     pub resamplings: u64,
+    pub fallbacks: u64,
     best: usize,
     pool: rayon::ThreadPool,
 }
@@ -151,6 +175,7 @@ impl ParticleFilter {
             particles: Vec::new(),
             steps: 0,
             resamplings: 0,
+            fallbacks: 0,
             best: 0,
             pool,
         })
@@ -182,22 +207,51 @@ impl ParticleFilter {
         self.steps += 1;
         if self.particles.is_empty() {
             self.initialise(odom_cur, ranges, scan);
-            return StepInfo { neff: self.params.n_particles as f64, resampled: false };
+            return StepInfo { neff: self.params.n_particles as f64, resampled: false, fallbacks: 0 };
         }
         let p = &self.params;
         let geom = ScanGeometry { angles: &self.angles, sensor: self.sensor };
         let seed = p.seed;
-        self.pool.install(|| {
-            self.particles.par_iter_mut().enumerate().for_each(|(i, part)| {
-                let mut rng = rng_for(seed, step_index, i as u64);
-                let pose = p.motion.sample(part.pose, odom_prev, odom_cur, &mut rng);
-                let (mean_ll, _) = p.beam.scan_log_likelihood(&part.map, &geom, pose, ranges, p.beam_stride);
-                part.log_weight += p.effective_beams * mean_ll;
-                part.pose = pose;
-                part.trajectory = Arc::new(TrajectoryNode { pose, scan, parent: Some(part.trajectory.clone()) });
-                integrate_scan(&mut part.map, &p.log_odds, &geom, pose, ranges, p.map_max_range, p.clear_no_echo);
-            })
+        let pts = endpoints(&geom, ranges, p.beam_stride, p.field.max_range);
+        let fallbacks: usize = self.pool.install(|| {
+            self.particles
+                .par_iter_mut()
+                .enumerate()
+                .map(|(i, part)| {
+                    let mut rng = rng_for(seed, step_index, i as u64);
+                    let mut fell_back = false;
+                    let mut drawn = None;
+                    if p.proposal == ProposalKind::ScanMatch {
+                        let prop = propose(&p.field, &p.matcher, &p.motion, &part.map, &geom, &pts, part.pose, odom_prev, odom_cur, &mut rng);
+                        if prop.matched {
+                            part.log_weight += prop.log_normaliser;
+                            drawn = Some(prop.pose);
+                        } else {
+                            fell_back = true;
+                        }
+                    }
+                    let pose = match drawn {
+                        Some(pose) => pose,
+                        None => {
+                            let pose = p.motion.sample(part.pose, odom_prev, odom_cur, &mut rng);
+                            let mean_ll = match p.observation {
+                                ObservationKind::Beam => {
+                                    p.beam.scan_log_likelihood(&part.map, &geom, pose, ranges, p.beam_stride).0
+                                }
+                                ObservationKind::LikelihoodField => p.field.score(&part.map, geom.sensor_pose(pose), &pts).0,
+                            };
+                            part.log_weight += p.effective_beams * mean_ll;
+                            pose
+                        }
+                    };
+                    part.pose = pose;
+                    part.trajectory = Arc::new(TrajectoryNode { pose, scan, parent: Some(part.trajectory.clone()) });
+                    integrate_scan(&mut part.map, &p.log_odds, &geom, pose, ranges, p.map_max_range, p.clear_no_echo);
+                    fell_back as usize
+                })
+                .sum()
         });
+        self.fallbacks += fallbacks as u64;
         let log_w: Vec<f64> = self.particles.iter().map(|q| q.log_weight).collect();
         let w = normalise(&log_w);
         let n_eff = neff(&w);
@@ -221,7 +275,7 @@ impl ParticleFilter {
             }
             self.best = best;
         }
-        StepInfo { neff: n_eff, resampled }
+        StepInfo { neff: n_eff, resampled, fallbacks }
     }
 
     /// The particle with the highest weight (after a resampling, a copy of the one that had it).

@@ -6,6 +6,11 @@
 //! copied from one another by resampling share every tile that neither has changed since. A
 //! write goes through `Arc::make_mut`, which copies the tile first if another particle holds it.
 //! Unknown (never observed) cells hold NaN.
+//!
+//! Beside its log-odds, a cell keeps the running mean of the beam end points that fell into it
+//! (as a sub-cell offset, 1/256 of a cell per step). The scan matcher measures distances to that
+//! point rather than to the cell centre: walls that run along cell boundaries would otherwise
+//! pull every match by up to half a cell.
 
 use std::sync::Arc;
 
@@ -16,11 +21,15 @@ const TILE_CELLS: usize = (TILE * TILE) as usize;
 #[derive(Clone)]
 pub struct Tile {
     cells: [f32; TILE_CELLS],
+    /// Mean end-point offset inside the cell, (x, y) in 1/256 of a cell, and the number of end
+    /// points averaged so far (saturating: the mean then follows the latest 255 with equal weight).
+    hit_offset: [[u8; 2]; TILE_CELLS],
+    hits: [u8; TILE_CELLS],
 }
 
 impl Tile {
     fn unknown() -> Self {
-        Tile { cells: [f32::NAN; TILE_CELLS] }
+        Tile { cells: [f32::NAN; TILE_CELLS], hit_offset: [[128, 128]; TILE_CELLS], hits: [0; TILE_CELLS] }
     }
 }
 
@@ -83,6 +92,35 @@ impl TiledGrid {
         let cell = &mut Arc::make_mut(tile).cells[Self::cell_offset(ix, iy)];
         let prior = if cell.is_nan() { 0.0 } else { *cell };
         *cell = (prior + delta).clamp(model.l_min, model.l_max);
+    }
+
+    /// Record a beam end point at world (x, y) in its cell's running mean. The cell must lie
+    /// inside the window made by `ensure_covers`.
+    #[inline]
+    pub fn add_hit(&mut self, x: f64, y: f64) {
+        let (ux, uy) = (x / self.resolution, y / self.resolution);
+        let (ix, iy) = (ux.floor() as i32, uy.floor() as i32);
+        let slot = self.tile_slot(ix, iy).expect("cell outside the grid window");
+        let tile = Arc::make_mut(self.tiles[slot].get_or_insert_with(|| Arc::new(Tile::unknown())));
+        let k = Self::cell_offset(ix, iy);
+        let n = tile.hits[k] as f64;
+        for (a, u) in [ux, uy].into_iter().enumerate() {
+            let new = (u - u.floor()) * 256.0;
+            let old = tile.hit_offset[k][a] as f64 + 0.5;
+            tile.hit_offset[k][a] = ((old * n + new) / (n + 1.0)).clamp(0.0, 255.0) as u8;
+        }
+        tile.hits[k] = tile.hits[k].saturating_add(1);
+    }
+
+    /// World position of the mean end point in a cell (its centre if none fell into it).
+    #[inline]
+    pub fn hit_point(&self, ix: i32, iy: i32) -> [f64; 2] {
+        let off = match self.tile_slot(ix, iy).and_then(|s| self.tiles[s].as_ref()) {
+            Some(tile) => tile.hit_offset[Self::cell_offset(ix, iy)],
+            None => [128, 128],
+        };
+        let res = self.resolution;
+        [(ix as f64 + (off[0] as f64 + 0.5) / 256.0) * res, (iy as f64 + (off[1] as f64 + 0.5) / 256.0) * res]
     }
 
     /// Grow the tile window so that it holds the world rectangle [x0, x1] × [y0, y1].

@@ -5,6 +5,7 @@ pub mod filter;
 pub mod grid;
 pub mod motion;
 pub mod raycast;
+pub mod scan_match;
 pub mod sensor_model;
 
 use numpy::ndarray::Array2;
@@ -12,7 +13,8 @@ use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
-use filter::{FilterParams, ParticleFilter};
+use filter::{FilterParams, ObservationKind, ParticleFilter, ProposalKind};
+use scan_match::{LikelihoodField, MatcherParams};
 use grid::{LogOddsModel, TiledGrid};
 use motion::OdometryMotion;
 use sensor_model::{integrate_scan, BeamModel, ScanGeometry};
@@ -47,7 +49,9 @@ impl PyParticleFilter {
     #[pyo3(signature = (*, n_particles, seed, threads, alphas, z_hit, z_short, z_max, z_rand,
         sigma_hit, lambda_short, max_range, occupied_threshold, beam_stride, effective_beams,
         l_occ, l_free, l_min, l_max, resolution, map_max_range, clear_no_echo,
-        resample_threshold, angles, sensor_pose))]
+        resample_threshold, angles, sensor_pose, proposal, observation, field_sigma, field_z_hit,
+        field_z_rand, field_window, match_step_xy, match_step_theta, match_refinements, match_gauss_newton,
+        match_sample_xy, match_sample_theta, match_min_matched, match_odometry_prior))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         n_particles: usize,
@@ -74,8 +78,53 @@ impl PyParticleFilter {
         resample_threshold: f64,
         angles: PyReadonlyArray1<f64>,
         sensor_pose: PyReadonlyArray1<f64>,
+        proposal: &str,
+        observation: &str,
+        field_sigma: f64,
+        field_z_hit: f64,
+        field_z_rand: f64,
+        field_window: i32,
+        match_step_xy: f64,
+        match_step_theta: f64,
+        match_refinements: u32,
+        match_gauss_newton: u32,
+        match_sample_xy: f64,
+        match_sample_theta: f64,
+        match_min_matched: f64,
+        match_odometry_prior: bool,
     ) -> PyResult<Self> {
+        let proposal = match proposal {
+            "odometry" => ProposalKind::Odometry,
+            "scanmatch" => ProposalKind::ScanMatch,
+            other => return Err(PyValueError::new_err(format!("unknown proposal {other:?}"))),
+        };
+        let observation = match observation {
+            "beam" => ObservationKind::Beam,
+            "likelihood_field" => ObservationKind::LikelihoodField,
+            other => return Err(PyValueError::new_err(format!("unknown observation model {other:?}"))),
+        };
         let params = FilterParams {
+            proposal,
+            observation,
+            field: LikelihoodField {
+                sigma: field_sigma,
+                z_hit: field_z_hit,
+                z_rand: field_z_rand,
+                max_range,
+                window: field_window,
+                occupied_threshold,
+            },
+            matcher: MatcherParams {
+                step_xy: match_step_xy,
+                step_theta: match_step_theta,
+                refinements: match_refinements,
+                gauss_newton: match_gauss_newton,
+                sample_xy: match_sample_xy,
+                sample_theta: match_sample_theta,
+                min_matched: match_min_matched,
+                effective_beams,
+                odometry_prior: match_odometry_prior,
+            },
             n_particles,
             seed,
             threads,
@@ -167,6 +216,12 @@ impl PyParticleFilter {
     fn resamplings(&self) -> u64 {
         self.inner.resamplings
     }
+
+    /// Particle draws that fell back to the odometry proposal because scan matching failed.
+    #[getter]
+    fn fallbacks(&self) -> u64 {
+        self.inner.fallbacks
+    }
 }
 
 /// A single log-odds grid, for tests and for maps built along a known trajectory.
@@ -214,6 +269,48 @@ impl PyOccupancyGrid {
     /// (log-odds (rows, cols) with NaN = unknown, ix0, iy0): cell (r, c) is (ix0 + c, iy0 + r).
     fn to_dense<'py>(&self, py: Python<'py>) -> DenseGrid<'py> {
         dense(py, &self.grid)
+    }
+
+    /// Scan-match a scan against this map from `start` (robot pose): hill climbing, then
+    /// Gauss-Newton, on the likelihood field. Returns (pose, mean log-likelihood).
+    #[pyo3(signature = (start, angles, ranges, *, sensor_pose=None, sigma=0.05, window=3, max_range=20.0,
+        occupied_threshold=0.0, step_xy=0.05, step_theta=0.035, refinements=3, gauss_newton=10))]
+    #[allow(clippy::too_many_arguments)]
+    fn match_scan(
+        &self,
+        start: PyReadonlyArray1<f64>,
+        angles: PyReadonlyArray1<f64>,
+        ranges: PyReadonlyArray1<f32>,
+        sensor_pose: Option<PyReadonlyArray1<f64>>,
+        sigma: f64,
+        window: i32,
+        max_range: f64,
+        occupied_threshold: f32,
+        step_xy: f64,
+        step_theta: f64,
+        refinements: u32,
+        gauss_newton: u32,
+    ) -> PyResult<([f64; 3], f64)> {
+        let start = pose3(start.as_slice()?, "start")?;
+        let sensor = match sensor_pose {
+            Some(s) => pose3(s.as_slice()?, "sensor_pose")?,
+            None => [0.0; 3],
+        };
+        let (angles, ranges) = (angles.as_slice()?, ranges.as_slice()?);
+        if angles.len() != ranges.len() {
+            return Err(PyValueError::new_err("angles and ranges differ in length"));
+        }
+        let geom = ScanGeometry { angles, sensor };
+        let lf = LikelihoodField { sigma, z_hit: 0.9, z_rand: 0.1, max_range, window, occupied_threshold };
+        let m = MatcherParams {
+            step_xy, step_theta, refinements, gauss_newton, sample_xy: 0.01, sample_theta: 0.005,
+            min_matched: 0.0, effective_beams: 1.0, odometry_prior: false,
+        };
+        let pts = scan_match::endpoints(&geom, ranges, 1, max_range);
+        let target = |p: [f64; 3]| scan_match::objective(&lf, &self.grid, &geom, &pts, 1.0, None, p);
+        let (mode, _) = scan_match::climb(target, start, &m);
+        let (pose, _) = scan_match::gauss_newton(&lf, &self.grid, &geom, &pts, 1.0, None, mode, gauss_newton);
+        Ok((pose, lf.score(&self.grid, geom.sensor_pose(pose), &pts).0))
     }
 
     /// Ranges the map predicts from a sensor pose (see BeamModel::expected_range); NaN where

@@ -168,13 +168,16 @@ pub fn integrate_scan(
     let res = grid.resolution;
     grid.ensure_covers(x0 - res, y0 - res, x1 + res, y1 + res);
     for (i, len, hit) in beams {
-        let a = sp[2] + geom.angles[i];
-        traverse([sp[0], sp[1]], [a.cos(), a.sin()], len, res, |ix, iy, _, t1| {
+        let (s, c) = (sp[2] + geom.angles[i]).sin_cos();
+        traverse([sp[0], sp[1]], [c, s], len, res, |ix, iy, _, t1| {
             let end = t1 >= len;
             let delta = if end && hit { model.l_occ } else { model.l_free };
             grid.add(ix, iy, delta, model);
             true
         });
+        if hit {
+            grid.add_hit(sp[0] + len * c, sp[1] + len * s);
+        }
     }
 }
 

@@ -1,0 +1,493 @@
+//! The scan-matching proposal of Grisetti, Stachniss & Burgard, "Improved techniques for grid
+//! mapping with Rao-Blackwellized particle filters" (IEEE T-RO 2007), and the likelihood-field
+//! observation model it matches against (Probabilistic Robotics, section 6.4).
+//!
+//! Per particle: start at the pose the odometry predicts, climb the likelihood field of the
+//! particle's own map to the mode, evaluate the target p(z|m,x)·p(x|x',u) at K poses around the
+//! mode, fit a Gaussian to them, draw the new pose from it and multiply the weight by the
+//! normaliser η = Σ_k p(z|m,x_k)·p(x_k|x',u).
+
+use rand::RngExt;
+use rand_distr::StandardNormal;
+
+use crate::grid::TiledGrid;
+use crate::motion::{compose, decompose, wrap, OdometryMotion};
+use crate::sensor_model::ScanGeometry;
+
+/// Likelihood field: each beam end point is scored by its distance d to the nearest occupied
+/// cell's mean end point (see grid.rs), p = z_hit·N(d; 0, σ) + z_rand/max_range.
+///
+/// The distance is searched in the grid around the end point, ring by ring up to `window`
+/// cells, instead of being read from a precomputed distance field: end points of a matched
+/// scan lie within a cell or two of an obstacle, so the search mostly stops after 9–25 cells,
+/// and the map needs no second structure to keep up to date when cells turn free again.
+#[derive(Clone, Copy, Debug)]
+pub struct LikelihoodField {
+    pub sigma: f64,
+    pub z_hit: f64,
+    pub z_rand: f64,
+    pub max_range: f64,
+    pub window: i32,
+    pub occupied_threshold: f32,
+}
+
+/// Beam end points in the sensor frame, every `stride`-th beam with a reading below max_range.
+pub fn endpoints(geom: &ScanGeometry, ranges: &[f32], stride: usize, max_range: f64) -> Vec<[f64; 2]> {
+    (0..ranges.len())
+        .step_by(stride.max(1))
+        .filter_map(|i| {
+            let r = ranges[i] as f64;
+            (r.is_finite() && r < max_range && r > 0.0).then(|| {
+                let (s, c) = geom.angles[i].sin_cos();
+                [r * c, r * s]
+            })
+        })
+        .collect()
+}
+
+impl LikelihoodField {
+    /// Squared distance (m²) from (x, y) to the nearest occupied cell centre within the window,
+    /// or infinity.
+    #[inline]
+    fn nearest_sq(&self, grid: &TiledGrid, x: f64, y: f64) -> f64 {
+        self.nearest(grid, x, y).0
+    }
+
+    /// (squared distance, offset (dx, dy) from the point to) the nearest occupied cell centre
+    /// within the window; infinite distance if there is none.
+    #[inline]
+    fn nearest(&self, grid: &TiledGrid, x: f64, y: f64) -> (f64, [f64; 2]) {
+        let res = grid.resolution;
+        let (ix, iy) = ((x / res).floor() as i32, (y / res).floor() as i32);
+        let mut best = f64::INFINITY;
+        let mut offset = [0.0; 2];
+        let mut found_at = None;
+        for r in 0..=self.window {
+            if let Some(f) = found_at {
+                // One more ring after the first hit: a diagonal neighbour can still be nearer.
+                if r > f + 1 {
+                    break;
+                }
+            }
+            let mut visit = |cx: i32, cy: i32| {
+                if grid.get(cx, cy) > self.occupied_threshold {
+                    let h = grid.hit_point(cx, cy);
+                    let (dx, dy) = (h[0] - x, h[1] - y);
+                    if dx * dx + dy * dy < best {
+                        best = dx * dx + dy * dy;
+                        offset = [dx, dy];
+                    }
+                }
+            };
+            if r == 0 {
+                visit(ix, iy);
+            } else {
+                for k in -r..=r {
+                    visit(ix + k, iy - r);
+                    visit(ix + k, iy + r);
+                }
+                for k in (-r + 1)..r {
+                    visit(ix - r, iy + k);
+                    visit(ix + r, iy + k);
+                }
+            }
+            if best.is_finite() && found_at.is_none() {
+                found_at = Some(r);
+            }
+        }
+        (best, offset)
+    }
+
+    #[inline]
+    fn point_log_likelihood(&self, d2: f64) -> f64 {
+        let norm = 1.0 / (self.sigma * (2.0 * std::f64::consts::PI).sqrt());
+        let hit = if d2.is_finite() { norm * (-0.5 * d2 / (self.sigma * self.sigma)).exp() } else { 0.0 };
+        (self.z_hit * hit + self.z_rand / self.max_range).ln()
+    }
+
+    /// (mean log-likelihood over the points, points with an obstacle inside the window) for
+    /// end points `pts` (sensor frame) seen from sensor pose `sp`.
+    pub fn score(&self, grid: &TiledGrid, sp: [f64; 3], pts: &[[f64; 2]]) -> (f64, usize) {
+        if pts.is_empty() {
+            return (0.0, 0);
+        }
+        let (s, c) = sp[2].sin_cos();
+        let mut total = 0.0;
+        let mut matched = 0;
+        for p in pts {
+            let x = sp[0] + c * p[0] - s * p[1];
+            let y = sp[1] + s * p[0] + c * p[1];
+            let d2 = self.nearest_sq(grid, x, y);
+            if d2.is_finite() {
+                matched += 1;
+            }
+            total += self.point_log_likelihood(d2);
+        }
+        (total / pts.len() as f64, matched)
+    }
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct MatcherParams {
+    /// Initial step of the hill climbing in x and y (m) and in θ (rad); halved `refinements` times.
+    pub step_xy: f64,
+    pub step_theta: f64,
+    pub refinements: u32,
+    /// Gauss-Newton iterations on the likelihood field after the hill climbing (0: none).
+    pub gauss_newton: u32,
+    /// Spacing of the K = 27 poses (3×3×3 grid) around the mode used to fit the Gaussian.
+    pub sample_xy: f64,
+    pub sample_theta: f64,
+    /// Fall back to the odometry proposal when fewer than this share of end points lie near an
+    /// obstacle of the map at the mode.
+    pub min_matched: f64,
+    /// The scan's log-likelihood is the mean over its points times this (see FilterParams).
+    pub effective_beams: f64,
+    /// Climb to the mode of likelihood × odometry prior (true) or of the likelihood alone.
+    pub odometry_prior: bool,
+}
+
+/// Hill climbing of `eval` from `start` (robot pose); returns the mode and its value.
+pub fn climb<F: Fn([f64; 3]) -> f64>(eval: F, start: [f64; 3], m: &MatcherParams) -> ([f64; 3], f64) {
+    let mut pose = start;
+    let mut best = eval(pose);
+    let (mut dxy, mut dth) = (m.step_xy, m.step_theta);
+    for _ in 0..=m.refinements {
+        // Bounded: a level moves the pose by at most 50 steps.
+        for _ in 0..50 {
+            let moves = [
+                [dxy, 0.0, 0.0],
+                [-dxy, 0.0, 0.0],
+                [0.0, dxy, 0.0],
+                [0.0, -dxy, 0.0],
+                [0.0, 0.0, dth],
+                [0.0, 0.0, -dth],
+            ];
+            let mut improved = None;
+            for mv in moves {
+                let cand = [pose[0] + mv[0], pose[1] + mv[1], wrap(pose[2] + mv[2])];
+                let s = eval(cand);
+                if s > best + 1e-12 {
+                    best = s;
+                    improved = Some(cand);
+                }
+            }
+            match improved {
+                Some(c) => pose = c,
+                None => break,
+            }
+        }
+        dxy *= 0.5;
+        dth *= 0.5;
+    }
+    (pose, best)
+}
+
+/// A Gaussian prior on the pose: mean, variance of x and y (isotropic) and of θ.
+#[derive(Clone, Copy, Debug)]
+pub struct PosePrior {
+    pub mean: [f64; 3],
+    pub var_xy: f64,
+    pub var_theta: f64,
+}
+
+impl PosePrior {
+    pub fn log_prob(&self, pose: [f64; 3]) -> f64 {
+        let (dx, dy) = (pose[0] - self.mean[0], pose[1] - self.mean[1]);
+        let dt = wrap(pose[2] - self.mean[2]);
+        -0.5 * ((dx * dx + dy * dy) / self.var_xy + dt * dt / self.var_theta + 2.0 * self.var_xy.ln() + self.var_theta.ln())
+    }
+}
+
+/// The objective of the scan match: gain · (mean log-likelihood of the end points) plus the log
+/// prior (none: the likelihood alone).
+pub fn objective(
+    lf: &LikelihoodField,
+    grid: &TiledGrid,
+    geom: &ScanGeometry,
+    pts: &[[f64; 2]],
+    gain: f64,
+    prior: Option<&PosePrior>,
+    pose: [f64; 3],
+) -> f64 {
+    gain * lf.score(grid, geom.sensor_pose(pose), pts).0 + prior.map_or(0.0, |p| p.log_prob(pose))
+}
+
+/// Refine a pose by Gauss-Newton on the likelihood field: each end point pulls towards the
+/// centre of its nearest occupied cell, weighted as iteratively reweighted least squares of
+/// log(z_hit·N(d; 0, σ) + z_rand/max_range) (points with no obstacle in the window drop out);
+/// the points' mean is scaled by `gain`, and the Gaussian `prior` (if any) adds its own pull.
+/// A step that lowers the objective is undone and ends the refinement.
+#[allow(clippy::too_many_arguments)]
+pub fn gauss_newton(
+    lf: &LikelihoodField,
+    grid: &TiledGrid,
+    geom: &ScanGeometry,
+    pts: &[[f64; 2]],
+    gain: f64,
+    prior: Option<&PosePrior>,
+    start: [f64; 3],
+    iterations: u32,
+) -> ([f64; 3], f64) {
+    let eval = |pose: [f64; 3]| objective(lf, grid, geom, pts, gain, prior, pose);
+    let mut pose = start;
+    let mut current = eval(pose);
+    let scale = if pts.is_empty() { 0.0 } else { gain / pts.len() as f64 };
+    let norm = lf.z_hit / (lf.sigma * (2.0 * std::f64::consts::PI).sqrt());
+    let floor = lf.z_rand / lf.max_range;
+    for _ in 0..iterations {
+        let sp = geom.sensor_pose(pose);
+        let (s, c) = sp[2].sin_cos();
+        let mut h = [[0.0; 3]; 3];
+        let mut g = [0.0; 3];
+        for p in pts {
+            let qx = sp[0] + c * p[0] - s * p[1];
+            let qy = sp[1] + s * p[0] + c * p[1];
+            let (d2, off) = lf.nearest(grid, qx, qy);
+            if !d2.is_finite() {
+                continue;
+            }
+            let e = norm * (-0.5 * d2 / (lf.sigma * lf.sigma)).exp();
+            let w = e / (e + floor) / (lf.sigma * lf.sigma);
+            // Residual r = q − centre = −off; dq/d(x, y, θ) = [[1, 0, −(qy − y)], [0, 1, qx − x]].
+            let r = [-off[0], -off[1]];
+            let jt = [-(qy - pose[1]), qx - pose[0]];
+            let rows = [[1.0, 0.0, jt[0]], [0.0, 1.0, jt[1]]];
+            for (k, row) in rows.iter().enumerate() {
+                for a in 0..3 {
+                    g[a] += w * row[a] * r[k];
+                    for b in 0..3 {
+                        h[a][b] += w * row[a] * row[b];
+                    }
+                }
+            }
+        }
+        for a in 0..3 {
+            g[a] *= scale;
+            for b in 0..3 {
+                h[a][b] *= scale;
+            }
+        }
+        if let Some(p) = prior {
+            let d = [pose[0] - p.mean[0], pose[1] - p.mean[1], wrap(pose[2] - p.mean[2])];
+            let info = [1.0 / p.var_xy, 1.0 / p.var_xy, 1.0 / p.var_theta];
+            for a in 0..3 {
+                g[a] += info[a] * d[a];
+                h[a][a] += info[a];
+            }
+        }
+        if h[0][0] <= 0.0 || h[2][2] <= 0.0 {
+            break;
+        }
+        for (a, row) in h.iter_mut().enumerate() {
+            row[a] *= 1.0 + 1e-3; // a touch of Levenberg damping keeps H invertible
+        }
+        let l = cholesky3(&h);
+        let delta = solve_cholesky(&l, &[-g[0], -g[1], -g[2]]);
+        let cand = [pose[0] + delta[0], pose[1] + delta[1], wrap(pose[2] + delta[2])];
+        let score = eval(cand);
+        if score < current {
+            break;
+        }
+        pose = cand;
+        current = score;
+        if delta[0].abs() + delta[1].abs() < 1e-4 && delta[2].abs() < 1e-4 {
+            break;
+        }
+    }
+    (pose, current)
+}
+
+/// Solve L·Lᵀ·x = b for lower-triangular L.
+fn solve_cholesky(l: &[[f64; 3]; 3], b: &[f64; 3]) -> [f64; 3] {
+    let mut y = [0.0; 3];
+    for i in 0..3 {
+        let s: f64 = (0..i).map(|k| l[i][k] * y[k]).sum();
+        y[i] = (b[i] - s) / l[i][i];
+    }
+    let mut x = [0.0; 3];
+    for i in (0..3).rev() {
+        let s: f64 = (i + 1..3).map(|k| l[k][i] * x[k]).sum();
+        x[i] = (y[i] - s) / l[i][i];
+    }
+    x
+}
+
+/// The odometry motion model's Gaussian approximation p(x | x', u) around the pose `predicted`
+/// by composing the odometry increment: isotropic position error and heading error with the
+/// variances of sample_motion_model_odometry.
+pub fn motion_prior(motion: &OdometryMotion, prev: [f64; 3], cur: [f64; 3], predicted: [f64; 3]) -> PosePrior {
+    let (rot1, trans, rot2) = decompose(prev, cur);
+    let [a1, a2, a3, a4] = motion.alpha;
+    let rot = rot1.abs() + rot2.abs();
+    // Floors keep a standing robot's Gaussian proper (1 cm, 0.5°).
+    PosePrior {
+        mean: predicted,
+        var_xy: a3 * trans * trans + a4 * rot * rot + 1e-4,
+        var_theta: a1 * rot * rot + a2 * trans * trans + 7.6e-5,
+    }
+}
+
+pub struct Proposal {
+    pub pose: [f64; 3],
+    /// log η, the log of the proposal's normaliser: the particle's log weight increment.
+    pub log_normaliser: f64,
+    /// False when the match failed and the caller should use the odometry proposal.
+    pub matched: bool,
+}
+
+/// Draw a particle's new pose from the Gaussian fitted around the scan-match mode.
+#[allow(clippy::too_many_arguments)]
+pub fn propose<R: rand::Rng>(
+    lf: &LikelihoodField,
+    m: &MatcherParams,
+    motion: &OdometryMotion,
+    grid: &TiledGrid,
+    geom: &ScanGeometry,
+    pts: &[[f64; 2]],
+    prev_pose: [f64; 3],
+    odom_prev: [f64; 3],
+    odom_cur: [f64; 3],
+    rng: &mut R,
+) -> Proposal {
+    let (rot1, trans, rot2) = decompose(odom_prev, odom_cur);
+    let predicted = compose(prev_pose, [trans * rot1.cos(), trans * rot1.sin(), wrap(rot1 + rot2)]);
+    // With `odometry_prior`, climb to the mode of the whole target p(z | m, x)·p(x | x', u), so
+    // that where the scan cannot tell (along a bare corridor) the odometry decides; without it,
+    // to the mode of the likelihood alone, as GMapping does (better where odometry is poor).
+    let prior = motion_prior(motion, odom_prev, odom_cur, predicted);
+    let target = |pose: [f64; 3]| objective(lf, grid, geom, pts, m.effective_beams, Some(&prior), pose);
+    let climb_prior = m.odometry_prior.then_some(&prior);
+    let goal = |pose: [f64; 3]| objective(lf, grid, geom, pts, m.effective_beams, climb_prior, pose);
+    let (mode, _) = climb(goal, predicted, m);
+    let (mode, _) = gauss_newton(lf, grid, geom, pts, m.effective_beams, climb_prior, mode, m.gauss_newton);
+    let (_, matched) = lf.score(grid, geom.sensor_pose(mode), pts);
+    if pts.is_empty() || (matched as f64) < m.min_matched * pts.len() as f64 {
+        return Proposal { pose: predicted, log_normaliser: 0.0, matched: false };
+    }
+    // Target at the 27 poses around the mode; offsets kept relative to the mode.
+    let mut offsets = Vec::with_capacity(27);
+    let mut logs = Vec::with_capacity(27);
+    for i in -1..=1 {
+        for j in -1..=1 {
+            for k in -1..=1 {
+                let off = [i as f64 * m.sample_xy, j as f64 * m.sample_xy, k as f64 * m.sample_theta];
+                let pose = [mode[0] + off[0], mode[1] + off[1], wrap(mode[2] + off[2])];
+                logs.push(target(pose));
+                offsets.push(off);
+            }
+        }
+    }
+    let max = logs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+    let w: Vec<f64> = logs.iter().map(|l| (l - max).exp()).collect();
+    let sum: f64 = w.iter().sum();
+    let log_normaliser = max + sum.ln();
+    let mut mean = [0.0; 3];
+    for (wk, o) in w.iter().zip(&offsets) {
+        for a in 0..3 {
+            mean[a] += wk / sum * o[a];
+        }
+    }
+    let mut cov = [[0.0; 3]; 3];
+    for (wk, o) in w.iter().zip(&offsets) {
+        let d = [o[0] - mean[0], o[1] - mean[1], o[2] - mean[2]];
+        for a in 0..3 {
+            for b in 0..3 {
+                cov[a][b] += wk / sum * d[a] * d[b];
+            }
+        }
+    }
+    // Keep the Gaussian proper even when one pose takes all the weight.
+    let floor = [1e-2 * m.sample_xy * m.sample_xy, 1e-2 * m.sample_xy * m.sample_xy, 1e-2 * m.sample_theta * m.sample_theta];
+    for a in 0..3 {
+        cov[a][a] += floor[a];
+    }
+    let l = cholesky3(&cov);
+    let n: [f64; 3] = [rng.sample(StandardNormal), rng.sample(StandardNormal), rng.sample(StandardNormal)];
+    let mut draw = mean;
+    for a in 0..3 {
+        for b in 0..=a {
+            draw[a] += l[a][b] * n[b];
+        }
+    }
+    let pose = [mode[0] + draw[0], mode[1] + draw[1], wrap(mode[2] + draw[2])];
+    Proposal { pose, log_normaliser, matched: true }
+}
+
+/// Lower-triangular L with L·Lᵀ = a for a symmetric positive definite 3×3 matrix.
+fn cholesky3(a: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    let mut l = [[0.0; 3]; 3];
+    for i in 0..3 {
+        for j in 0..=i {
+            let s: f64 = (0..j).map(|k| l[i][k] * l[j][k]).sum();
+            if i == j {
+                l[i][j] = (a[i][i] - s).max(1e-18).sqrt();
+            } else {
+                l[i][j] = (a[i][j] - s) / l[j][j];
+            }
+        }
+    }
+    l
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::grid::LogOddsModel;
+    use crate::sensor_model::integrate_scan;
+
+    fn room() -> (TiledGrid, Vec<f64>, Vec<f32>) {
+        // A 6 m × 4 m box seen from (2, 1.5): ranges computed exactly.
+        let angles: Vec<f64> = (0..360).map(|k| (k as f64).to_radians()).collect();
+        let (x0, y0) = (2.0, 1.5);
+        let ranges: Vec<f32> = angles
+            .iter()
+            .map(|a| {
+                let (s, c) = a.sin_cos();
+                let tx = if c > 1e-12 { (6.0 - x0) / c } else if c < -1e-12 { -x0 / c } else { f64::INFINITY };
+                let ty = if s > 1e-12 { (4.0 - y0) / s } else if s < -1e-12 { -y0 / s } else { f64::INFINITY };
+                tx.min(ty) as f32
+            })
+            .collect();
+        let lm = LogOddsModel { l_occ: 0.9, l_free: -0.4, l_min: -2.0, l_max: 3.5 };
+        let mut g = TiledGrid::new(0.05);
+        let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
+        integrate_scan(&mut g, &lm, &geom, [x0, y0, 0.0], &ranges, 20.0, false);
+        (g, angles, ranges)
+    }
+
+    #[test]
+    fn climbing_recovers_a_displaced_pose() {
+        let (g, angles, ranges) = room();
+        let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
+        let lf = LikelihoodField { sigma: 0.05, z_hit: 0.9, z_rand: 0.1, max_range: 20.0, window: 3, occupied_threshold: 0.0 };
+        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 0, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false };
+        let pts = endpoints(&geom, &ranges, 1, 20.0);
+        let (pose, _) = climb(|p| objective(&lf, &g, &geom, &pts, 1.0, None, p), [2.08, 1.43, 0.03], &m);
+        assert!((pose[0] - 2.0).abs() < 0.02 && (pose[1] - 1.5).abs() < 0.02, "{pose:?}");
+        assert!(pose[2].abs() < 0.01, "{pose:?}");
+    }
+
+    #[test]
+    fn gauss_newton_recovers_a_displaced_pose() {
+        let (g, angles, ranges) = room();
+        let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
+        let lf = LikelihoodField { sigma: 0.05, z_hit: 0.9, z_rand: 0.1, max_range: 20.0, window: 3, occupied_threshold: 0.0 };
+        let pts = endpoints(&geom, &ranges, 1, 20.0);
+        let (pose, _) = gauss_newton(&lf, &g, &geom, &pts, 1.0, None, [2.06, 1.46, 0.02], 20);
+        assert!((pose[0] - 2.0).abs() < 0.02 && (pose[1] - 1.5).abs() < 0.02, "{pose:?}");
+        assert!(pose[2].abs() < 0.01, "{pose:?}");
+    }
+
+    #[test]
+    fn cholesky_reproduces_the_matrix() {
+        let a = [[4.0, 1.0, 0.5], [1.0, 3.0, 0.2], [0.5, 0.2, 2.0]];
+        let l = cholesky3(&a);
+        for i in 0..3 {
+            for j in 0..3 {
+                let v: f64 = (0..3).map(|k| l[i][k] * l[j][k]).sum();
+                assert!((v - a[i][j]).abs() < 1e-12);
+            }
+        }
+    }
+}

@@ -1,0 +1,86 @@
+"""The scan-matching proposal and the likelihood field (issue: beyond the paper's filter)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from omnitof import _core
+from omnitof.config import load_config
+from omnitof.eval.trajectory import absolute_trajectory_error
+from omnitof.geometry import wrap_angle
+from omnitof.slam import run_slam
+from omnitof.types import ScanSequence
+
+
+def map_from_truth(scans, stop):
+    grid = _core.OccupancyGrid(0.05, 0.9, -0.4, -2.0, 3.5)
+    for k in range(0, stop, 8):
+        grid.integrate(scans.ground_truth[k], scans.angles, scans.ranges[k], scans.max_range)
+    return grid
+
+
+@pytest.mark.parametrize("k", [120, 400, 700])
+def test_matcher_recovers_a_displaced_pose(corridor_loop, k):
+    # Map from the true poses of the scans before k; scan k matched from 8 cm and 3° off.
+    grid = map_from_truth(corridor_loop, k)
+    truth = corridor_loop.ground_truth[k]
+    start = truth + np.array([0.06, -0.05, np.radians(3.0)])
+    pose, mean_ll = grid.match_scan(start, corridor_loop.angles, corridor_loop.ranges[k],
+                                    max_range=corridor_loop.max_range, sigma=0.03)
+    err = np.asarray(pose) - truth
+    assert np.hypot(err[0], err[1]) < 0.03
+    assert abs(np.degrees(wrap_angle(err[2]))) < 0.5
+    assert mean_ll > 0.0  # most end points sit on walls (density above 1/m)
+
+
+def test_likelihood_field_observation_model_closes_the_loop(corridor_loop):
+    # The odometry proposal weighed with the likelihood field instead of the beam model. The
+    # field's log-likelihood spans a wider range than the beam model's, so it is tempered harder.
+    cfg = load_config(preset="sim2d", overrides={
+        "filter": {"particles": 100},
+        "sensor_model": {"model": "likelihood_field", "effective_beams": 3.0},
+        "likelihood_field": {"sigma": 0.1},
+    })
+    result = run_slam(corridor_loop, cfg)
+    slam = absolute_trajectory_error(result.trajectory.poses, corridor_loop.ground_truth)
+    odom = absolute_trajectory_error(corridor_loop.odometry, corridor_loop.ground_truth)
+    assert slam.final < 0.2 < 0.8 < odom.final
+    assert slam.mean < 0.5 * odom.mean
+
+
+def scanmatch_config(**filter_overrides):
+    return load_config(preset="sim2d", overrides={
+        "filter": {"proposal": "scanmatch", "particles": 10, **filter_overrides},
+        "scan_matcher": {"odometry_prior": True},
+    })
+
+
+def test_scanmatch_proposal_beats_raw_odometry(corridor_loop):
+    result = run_slam(corridor_loop, scanmatch_config())
+    slam = absolute_trajectory_error(result.trajectory.poses, corridor_loop.ground_truth)
+    odom = absolute_trajectory_error(corridor_loop.odometry, corridor_loop.ground_truth)
+    assert result.stats["scanmatch_fallbacks"] == 0
+    assert slam.mean < 0.5 * odom.mean
+    assert slam.final < 0.5 * odom.final
+
+
+def test_scanmatch_is_identical_for_one_and_two_threads(corridor_loop):
+    scans = corridor_loop.slice(0, 400)
+    one = run_slam(scans, scanmatch_config(threads=1, seed=5))
+    two = run_slam(scans, scanmatch_config(threads=2, seed=5))
+    assert np.array_equal(one.map.log_odds, two.map.log_odds)
+    assert np.array_equal(one.trajectory.poses, two.trajectory.poses)
+
+
+def test_failed_matches_fall_back_to_odometry_and_are_counted(corridor_loop):
+    # After scan 200 the sensor sees nothing: no end point can match, every particle of every
+    # later step must fall back to the odometry proposal.
+    scans = corridor_loop.slice(0, 400)
+    ranges = scans.ranges.copy()
+    ranges[200:] = np.inf
+    blind = ScanSequence(scans.timestamps, ranges, scans.angles, scans.odometry, max_range=scans.max_range)
+    result = run_slam(blind, scanmatch_config())
+    later = int(np.sum(result.integrated >= 200))
+    assert later > 5
+    assert result.stats["scanmatch_fallbacks"] == 10 * later
