@@ -129,3 +129,17 @@ def test_design_reports_the_default_rig_and_draws_it(tmp_path, capsys):
     assert f"{100 * want:.1f} %" in printed
     assert figure.stat().st_size > 5_000
     assert isinstance(camera, Camera)
+
+
+def test_slam_reads_a_laserscan_ros2_bag(tmp_path, corridor_loop, capsys):
+    from omnitof.io.rosbag import write_laserscan_bag
+
+    bag = tmp_path / "loop_bag"
+    write_laserscan_bag(bag, corridor_loop.slice(0, 300))
+    out = tmp_path / "run"
+    assert main(["slam", str(bag), "--out", str(out), "--preset", "sim2d", "--particles", "5", "--quiet"]) == 0
+    assert "scans 300" in capsys.readouterr().out
+    summary = yaml.safe_load((out / "summary.yaml").read_text())
+    assert summary["input"]["kind"] == "rosbag"
+    traj = read_tum(out / "trajectory.tum")
+    assert len(traj) == 300

@@ -41,16 +41,16 @@ def _summary_line(stats: dict) -> str:
 
 
 def cmd_slam(args: argparse.Namespace) -> int:
-    from omnitof.io.carmen import read_carmen
+    from omnitof.io.scans import read_scans
     from omnitof.results import write_results
     from omnitof.slam import run_slam
 
     cfg = _config_from_args(args)
-    log = read_carmen(args.log, skip_bad_lines=args.skip_bad_lines)
-    scans = log.scans if args.max_scans is None else log.scans.slice(0, args.max_scans)
+    data = read_scans(args.log, skip_bad_lines=args.skip_bad_lines)
+    scans = data.scans if args.max_scans is None else data.scans.slice(0, args.max_scans)
     with _progress_bar(len(scans), not args.quiet, "slam") as bar:
         result = run_slam(scans, cfg, progress=bar.update)
-    extra = {"input": {"log": str(args.log), "bad_lines_skipped": log.bad_lines}}
+    extra = {"input": {"path": str(args.log), "kind": data.kind, "bad_lines_skipped": data.bad_lines}}
     if args.relations is not None:
         from omnitof.eval.relations import evaluate_relations, read_relations
 
@@ -128,8 +128,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"omnitof {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("slam", help="run particle-filter SLAM on a CARMEN log")
-    p.add_argument("log", type=Path, help="CARMEN log (.clf/.log, plain, .gz or .bz2)")
+    p = sub.add_parser("slam", help="run particle-filter SLAM on a CARMEN log or a LaserScan ROS bag")
+    p.add_argument("log", type=Path, help="CARMEN log (plain, .gz or .bz2) or ROS 1/2 bag with LaserScan + Odometry")
     p.add_argument("--out", type=Path, required=True, help="results folder")
     _add_config_options(p)
     p.add_argument("--relations", type=Path, help="benchmark relations file to score the trajectory with")

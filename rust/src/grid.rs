@@ -112,15 +112,19 @@ impl TiledGrid {
         tile.hits[k] = tile.hits[k].saturating_add(1);
     }
 
-    /// World position of the mean end point in a cell (its centre if none fell into it).
+    /// The world position of the mean end point of a cell whose log-odds exceed `threshold`;
+    /// None for cells below it or unknown. One tile lookup for both.
     #[inline]
-    pub fn hit_point(&self, ix: i32, iy: i32) -> [f64; 2] {
-        let off = match self.tile_slot(ix, iy).and_then(|s| self.tiles[s].as_ref()) {
-            Some(tile) => tile.hit_offset[Self::cell_offset(ix, iy)],
-            None => [128, 128],
-        };
+    pub fn occupied_hit(&self, ix: i32, iy: i32, threshold: f32) -> Option<[f64; 2]> {
+        let tile = self.tile_slot(ix, iy).and_then(|s| self.tiles[s].as_ref())?;
+        let k = Self::cell_offset(ix, iy);
+        // NaN (unknown) compares false, so unknown cells are never occupied.
+        if !(tile.cells[k] > threshold) {
+            return None;
+        }
+        let off = tile.hit_offset[k];
         let res = self.resolution;
-        [(ix as f64 + (off[0] as f64 + 0.5) / 256.0) * res, (iy as f64 + (off[1] as f64 + 0.5) / 256.0) * res]
+        Some([(ix as f64 + (off[0] as f64 + 0.5) / 256.0) * res, (iy as f64 + (off[1] as f64 + 0.5) / 256.0) * res])
     }
 
     /// Grow the tile window so that it holds the world rectangle [x0, x1] × [y0, y1].

@@ -5,6 +5,8 @@ pub mod filter;
 pub mod grid;
 pub mod motion;
 pub mod raycast;
+pub mod render;
+mod render_bindings;
 pub mod scan_match;
 pub mod sensor_model;
 
@@ -404,5 +406,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(beam_likelihood, m)?)?;
     m.add_function(wrap_pyfunction!(neff, m)?)?;
     m.add_function(wrap_pyfunction!(low_variance_resample, m)?)?;
+    render_bindings::register(m)?;
     Ok(())
 }

@@ -46,15 +46,8 @@ pub fn endpoints(geom: &ScanGeometry, ranges: &[f32], stride: usize, max_range: 
 }
 
 impl LikelihoodField {
-    /// Squared distance (m²) from (x, y) to the nearest occupied cell centre within the window,
-    /// or infinity.
-    #[inline]
-    fn nearest_sq(&self, grid: &TiledGrid, x: f64, y: f64) -> f64 {
-        self.nearest(grid, x, y).0
-    }
-
-    /// (squared distance, offset (dx, dy) from the point to) the nearest occupied cell centre
-    /// within the window; infinite distance if there is none.
+    /// (squared distance, offset (dx, dy) from the point to) the nearest occupied cell's mean end
+    /// point within the window; infinite distance if there is none.
     #[inline]
     fn nearest(&self, grid: &TiledGrid, x: f64, y: f64) -> (f64, [f64; 2]) {
         let res = grid.resolution;
@@ -70,8 +63,7 @@ impl LikelihoodField {
                 }
             }
             let mut visit = |cx: i32, cy: i32| {
-                if grid.get(cx, cy) > self.occupied_threshold {
-                    let h = grid.hit_point(cx, cy);
+                if let Some(h) = grid.occupied_hit(cx, cy, self.occupied_threshold) {
                     let (dx, dy) = (h[0] - x, h[1] - y);
                     if dx * dx + dy * dy < best {
                         best = dx * dx + dy * dy;
@@ -117,7 +109,7 @@ impl LikelihoodField {
         for p in pts {
             let x = sp[0] + c * p[0] - s * p[1];
             let y = sp[1] + s * p[0] + c * p[1];
-            let d2 = self.nearest_sq(grid, x, y);
+            let d2 = self.nearest(grid, x, y).0;
             if d2.is_finite() {
                 matched += 1;
             }
@@ -229,27 +221,31 @@ pub fn gauss_newton(
     start: [f64; 3],
     iterations: u32,
 ) -> ([f64; 3], f64) {
-    let eval = |pose: [f64; 3]| objective(lf, grid, geom, pts, gain, prior, pose);
-    let mut pose = start;
-    let mut current = eval(pose);
-    let scale = if pts.is_empty() { 0.0 } else { gain / pts.len() as f64 };
     let norm = lf.z_hit / (lf.sigma * (2.0 * std::f64::consts::PI).sqrt());
     let floor = lf.z_rand / lf.max_range;
-    for _ in 0..iterations {
+    let scale = if pts.is_empty() { 0.0 } else { gain / pts.len() as f64 };
+    let mut pose = start;
+    let mut best = (start, f64::NEG_INFINITY);
+    // Each pass scores the pose and linearises there in one sweep over the points; a pass
+    // that scores lower than the one before undoes the last step and ends the refinement.
+    for _ in 0..=iterations {
         let sp = geom.sensor_pose(pose);
         let (s, c) = sp[2].sin_cos();
         let mut h = [[0.0; 3]; 3];
         let mut g = [0.0; 3];
+        let mut total = 0.0;
         for p in pts {
             let qx = sp[0] + c * p[0] - s * p[1];
             let qy = sp[1] + s * p[0] + c * p[1];
             let (d2, off) = lf.nearest(grid, qx, qy);
             if !d2.is_finite() {
+                total += floor.ln();
                 continue;
             }
             let e = norm * (-0.5 * d2 / (lf.sigma * lf.sigma)).exp();
+            total += (e + floor).ln();
             let w = e / (e + floor) / (lf.sigma * lf.sigma);
-            // Residual r = q − centre = −off; dq/d(x, y, θ) = [[1, 0, −(qy − y)], [0, 1, qx − x]].
+            // Residual r = q − hit point = −off; dq/d(x, y, θ) = [[1, 0, −(qy − y)], [0, 1, qx − x]].
             let r = [-off[0], -off[1]];
             let jt = [-(qy - pose[1]), qx - pose[0]];
             let rows = [[1.0, 0.0, jt[0]], [0.0, 1.0, jt[1]]];
@@ -262,6 +258,7 @@ pub fn gauss_newton(
                 }
             }
         }
+        let mut score = scale * total;
         for a in 0..3 {
             g[a] *= scale;
             for b in 0..3 {
@@ -269,6 +266,7 @@ pub fn gauss_newton(
             }
         }
         if let Some(p) = prior {
+            score += p.log_prob(pose);
             let d = [pose[0] - p.mean[0], pose[1] - p.mean[1], wrap(pose[2] - p.mean[2])];
             let info = [1.0 / p.var_xy, 1.0 / p.var_xy, 1.0 / p.var_theta];
             for a in 0..3 {
@@ -276,6 +274,10 @@ pub fn gauss_newton(
                 h[a][a] += info[a];
             }
         }
+        if score < best.1 {
+            break;
+        }
+        best = (pose, score);
         if h[0][0] <= 0.0 || h[2][2] <= 0.0 {
             break;
         }
@@ -284,18 +286,12 @@ pub fn gauss_newton(
         }
         let l = cholesky3(&h);
         let delta = solve_cholesky(&l, &[-g[0], -g[1], -g[2]]);
-        let cand = [pose[0] + delta[0], pose[1] + delta[1], wrap(pose[2] + delta[2])];
-        let score = eval(cand);
-        if score < current {
-            break;
-        }
-        pose = cand;
-        current = score;
         if delta[0].abs() + delta[1].abs() < 1e-4 && delta[2].abs() < 1e-4 {
             break;
         }
+        pose = [pose[0] + delta[0], pose[1] + delta[1], wrap(pose[2] + delta[2])];
     }
-    (pose, current)
+    best
 }
 
 /// Solve L·Lᵀ·x = b for lower-triangular L.

@@ -1,0 +1,41 @@
+"""One entry point for range-scan input: CARMEN logs and ROS bags with LaserScan + Odometry."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from omnitof.errors import InputError
+from omnitof.types import ScanSequence
+
+# A ROS 2 bag is a folder (with metadata.yaml); single-file bags carry these suffixes.
+BAG_SUFFIXES = {".bag", ".mcap", ".db3"}
+
+
+@dataclass
+class ScanInput:
+    """Scans read from a file, and what the reader noticed."""
+
+    scans: ScanSequence
+    kind: str  # "carmen" or "rosbag"
+    bad_lines: int = 0
+
+
+def is_bag(path: Path) -> bool:
+    return path.is_dir() or path.suffix in BAG_SUFFIXES
+
+
+def read_scans(path: str | Path, *, skip_bad_lines: bool = False) -> ScanInput:
+    """Read scans with odometry from a CARMEN log (plain, .gz, .bz2) or a ROS 1/2 bag holding
+    sensor_msgs/LaserScan and nav_msgs/Odometry (topics found by type)."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError("no such file or folder", path)
+    if is_bag(path):
+        from omnitof.io.rosbag import read_laserscan_bag
+
+        return ScanInput(read_laserscan_bag(path), "rosbag")
+    from omnitof.io.carmen import read_carmen
+
+    log = read_carmen(path, skip_bad_lines=skip_bad_lines)
+    return ScanInput(log.scans, "carmen", log.bad_lines)

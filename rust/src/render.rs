@@ -1,0 +1,1079 @@
+//! The ToF renderer: per-pixel phasors of a camera that looks through planar mirrors into an
+//! indoor world of vertical walls, boxes, a floor and a ceiling. Pure Rust, no Python.
+//!
+//! Frames and units: metres, radians. The world frame has x, y on the floor and z up; the floor
+//! is z = 0 and the ceiling z = `ceiling_height`. Sub-ray directions and mirrors are given in
+//! the camera frame (omnitof.camera's: x right, y down, z along the optical axis); a robot pose
+//! (x, y, θ) and the fixed mount robot_T_camera place the camera in the world:
+//! world_T_camera = world_T_robot(x, y, θ) · robot_T_camera.
+//!
+//! Light model (the light source is coaxial with the camera, so light leaves and returns along
+//! the same path, and the phase follows the round trip 2r, r the one-way path length from the
+//! camera centre through the mirror to the surface):
+//!
+//! - a diffuse return adds the phasor  g2 · albedo · cos(incidence) / r² · e^{i·4π f r / c},
+//!   scaled by `amplitude_at_1m`, where g2 is the product over the path of the squared
+//!   reflectivities and transmittances met on the way (each is passed twice);
+//! - each pixel's phasor is the mean over its sub-rays, so pixels that straddle a depth edge or a
+//!   mirror edge mix two distances ("flying" pixels) by themselves;
+//! - besides the phasor each pixel reports Σ|p| (the DC part of the modulated light, which the
+//!   noise model needs for mixed pixels) and Σ g1 · albedo, g1 the one-way product: how bright the
+//!   seen surfaces are under uniform ambient light (scaled to an offset on the Python side).
+//!
+//! Materials: matte (diffuse albedo); metal (weak diffuse part, and a mirrored fraction that is
+//! followed as a new ray); glass (weak diffuse part, a weak mirrored fraction, and a transmitted
+//! fraction that continues straight on); grid (a coarse lattice of bars: rays that meet a bar
+//! return diffusely, the others pass through the holes). Specular bounces are limited by
+//! `max_bounces`, pass-throughs (glass, grid holes) by `MAX_PASSES`.
+//!
+//! Acceleration: walls and boxes are binned into a uniform 2D grid over the floor plan (each
+//! cell lists the primitives whose footprint touches it); a ray walks the cells under its
+//! horizontal projection with `raycast::traverse` (Amanatides & Woo) and stops at the first cell
+//! that ends beyond the nearest hit found so far.
+//!
+//! Determinism: nothing here is random (sub-ray jitter is chosen by the caller, the grid's bars
+//! are a fixed pattern in space), and each pixel sums its sub-rays in a fixed order, so the
+//! output is the same bit for bit for any number of threads.
+
+use rayon::prelude::*;
+
+use crate::raycast::traverse;
+
+/// Speed of light in vacuum, m/s (exact by definition of the metre).
+pub const SPEED_OF_LIGHT: f64 = 299_792_458.0;
+/// Rays start this far (metres) beyond their origin, so a ray leaving a surface does not hit it.
+const T_MIN: f64 = 1e-6;
+/// Limit on pass-throughs (glass, grid holes) along one path: bounds the work per ray.
+pub const MAX_PASSES: u32 = 6;
+/// Pending ray segments of one sub-ray; glass splits a ray in two, so this bounds the branching.
+const STACK: usize = 16;
+/// Bit that marks a box (rather than a wall) in the grid's item lists.
+const BLOCK_BIT: u32 = 1 << 31;
+
+/// How a surface answers light; see the module docs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kind {
+    Matte,
+    Metal,
+    Glass,
+    Grid,
+}
+
+/// A surface material. Fractions are of the incoming light at 850 nm, each in [0, 1].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Material {
+    pub kind: Kind,
+    /// Lambertian (diffuse) reflectance; for a grid, that of its bars.
+    pub albedo: f64,
+    /// Fraction mirrored (metal, glass); 0 for matte and grid.
+    pub specular: f64,
+    /// Fraction transmitted straight on (glass only).
+    pub transmission: f64,
+    /// Share of a grid's area covered by bars, in [0, 1] (grid only).
+    pub coverage: f64,
+    /// Distance between a grid's bars, metres (grid only).
+    pub pitch: f64,
+}
+
+impl Material {
+    /// A matte surface of the given albedo.
+    pub fn matte(albedo: f64) -> Material {
+        Material { kind: Kind::Matte, albedo, specular: 0.0, transmission: 0.0, coverage: 0.0, pitch: 1.0 }
+    }
+
+    fn check(&self, index: usize) -> Result<(), String> {
+        let fractions = [self.albedo, self.specular, self.transmission, self.coverage];
+        if fractions.iter().any(|f| !(0.0..=1.0).contains(f)) {
+            return Err(format!("material {index}: fractions must lie in [0, 1]"));
+        }
+        if self.albedo + self.specular + self.transmission > 1.0 + 1e-9 {
+            return Err(format!("material {index}: albedo + specular + transmission exceeds 1"));
+        }
+        if self.kind == Kind::Grid && !(self.pitch > 0.0 && self.pitch.is_finite()) {
+            return Err(format!("material {index}: a grid needs a positive pitch"));
+        }
+        Ok(())
+    }
+
+    /// Whether a point on a grid surface lies on a bar. Bars of width b·pitch run both ways,
+    /// centred on multiples of the pitch (so the pattern looks the same from either side), and
+    /// cover 1 − (1 − b)² = `coverage` of the area.
+    fn on_bar(&self, point: [f64; 3], normal: [f64; 3]) -> bool {
+        let bar = 1.0 - (1.0 - self.coverage).sqrt();
+        let (u, v) = if normal[2].abs() > 0.5 {
+            (point[0], point[1])
+        } else {
+            let h = normal[0].hypot(normal[1]);
+            ((normal[0] * point[1] - normal[1] * point[0]) / h, point[2])
+        };
+        let near_bar = |x: f64| {
+            let s = x / self.pitch;
+            (s - s.round()).abs() < 0.5 * bar
+        };
+        near_bar(u) || near_bar(v)
+    }
+}
+
+/// A wall: the vertical quad over the floor-plan segment a → b, from z = bottom to z = top.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Wall {
+    pub a: [f64; 2],
+    pub b: [f64; 2],
+    pub bottom: f64,
+    pub top: f64,
+    pub material: u32,
+}
+
+/// A box: a rectangle in plan (centre, half sizes along its own axes, turned by `yaw` radians
+/// counter-clockwise), extruded from z = bottom to z = top.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Block {
+    pub centre: [f64; 2],
+    pub half: [f64; 2],
+    pub yaw: f64,
+    pub bottom: f64,
+    pub top: f64,
+    pub material: u32,
+}
+
+/// Where a ray first meets the scene.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Hit {
+    /// Ray parameter (metres along a unit direction).
+    pub t: f64,
+    /// Unit surface normal, turned to face the incoming ray.
+    pub normal: [f64; 3],
+    pub material: u32,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct WallGeom {
+    a: [f64; 2],
+    e: [f64; 2],
+    normal: [f64; 2],
+    bottom: f64,
+    top: f64,
+    material: u32,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct BlockGeom {
+    centre: [f64; 2],
+    half: [f64; 2],
+    cos: f64,
+    sin: f64,
+    bottom: f64,
+    top: f64,
+    material: u32,
+}
+
+/// Uniform grid over the floor plan; cell (ix, iy) covers [ix·cell, (ix+1)·cell) × [iy·cell, …),
+/// as in `raycast`. Items are stored in compressed rows: cell k holds items[starts[k]..starts[k+1]].
+#[derive(Clone, Debug)]
+struct PlanGrid {
+    cell: f64,
+    ix0: i32,
+    iy0: i32,
+    nx: i32,
+    ny: i32,
+    starts: Vec<u32>,
+    items: Vec<u32>,
+}
+
+impl PlanGrid {
+    fn lo(&self) -> [f64; 2] {
+        [self.ix0 as f64 * self.cell, self.iy0 as f64 * self.cell]
+    }
+
+    fn hi(&self) -> [f64; 2] {
+        [(self.ix0 + self.nx) as f64 * self.cell, (self.iy0 + self.ny) as f64 * self.cell]
+    }
+
+    #[inline]
+    fn cell_items(&self, ix: i32, iy: i32) -> Option<&[u32]> {
+        let (lx, ly) = (ix - self.ix0, iy - self.iy0);
+        if lx < 0 || ly < 0 || lx >= self.nx || ly >= self.ny {
+            return None;
+        }
+        let k = (ly * self.nx + lx) as usize;
+        Some(&self.items[self.starts[k] as usize..self.starts[k + 1] as usize])
+    }
+}
+
+/// The world to render: walls, boxes, floor and ceiling, their materials, and the plan grid.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    walls: Vec<WallGeom>,
+    blocks: Vec<BlockGeom>,
+    materials: Vec<Material>,
+    floor_material: u32,
+    ceiling_material: u32,
+    ceiling_height: f64,
+    grid: PlanGrid,
+}
+
+impl Scene {
+    /// Build a scene and its plan grid of `cell` metres. Errors name the offending item.
+    pub fn new(
+        walls: &[Wall],
+        blocks: &[Block],
+        materials: Vec<Material>,
+        floor_material: u32,
+        ceiling_material: u32,
+        ceiling_height: f64,
+        cell: f64,
+    ) -> Result<Scene, String> {
+        if !(cell > 0.0 && cell.is_finite()) {
+            return Err(format!("grid cell must be a positive number of metres, got {cell}"));
+        }
+        if !(ceiling_height > 0.0 && ceiling_height.is_finite()) {
+            return Err(format!("ceiling height must be positive, got {ceiling_height}"));
+        }
+        for (i, m) in materials.iter().enumerate() {
+            m.check(i)?;
+        }
+        let n_mat = materials.len() as u32;
+        let known = |m: u32, what: &str| {
+            if m < n_mat { Ok(()) } else { Err(format!("{what}: material index {m} out of range ({n_mat} materials)")) }
+        };
+        known(floor_material, "floor")?;
+        known(ceiling_material, "ceiling")?;
+        let mut wall_geoms = Vec::with_capacity(walls.len());
+        for (i, w) in walls.iter().enumerate() {
+            known(w.material, &format!("wall {i}"))?;
+            let e = [w.b[0] - w.a[0], w.b[1] - w.a[1]];
+            let len = e[0].hypot(e[1]);
+            let finite = w.a.iter().chain(&w.b).chain(&[w.bottom, w.top]).all(|v| v.is_finite());
+            if !finite || !(len > 0.0) || !(w.top > w.bottom) {
+                return Err(format!("wall {i} must be finite, of positive length and height"));
+            }
+            wall_geoms.push(WallGeom {
+                a: w.a,
+                e,
+                normal: [e[1] / len, -e[0] / len],
+                bottom: w.bottom,
+                top: w.top,
+                material: w.material,
+            });
+        }
+        let mut block_geoms = Vec::with_capacity(blocks.len());
+        for (i, b) in blocks.iter().enumerate() {
+            known(b.material, &format!("box {i}"))?;
+            let finite = b.centre.iter().chain(&b.half).chain(&[b.yaw, b.bottom, b.top]).all(|v| v.is_finite());
+            if !finite || !(b.half[0] > 0.0 && b.half[1] > 0.0) || !(b.top > b.bottom) {
+                return Err(format!("box {i} must be finite with positive sizes"));
+            }
+            block_geoms.push(BlockGeom {
+                centre: b.centre,
+                half: b.half,
+                cos: b.yaw.cos(),
+                sin: b.yaw.sin(),
+                bottom: b.bottom,
+                top: b.top,
+                material: b.material,
+            });
+        }
+        let grid = build_grid(&wall_geoms, &block_geoms, cell);
+        Ok(Scene {
+            walls: wall_geoms,
+            blocks: block_geoms,
+            materials,
+            floor_material,
+            ceiling_material,
+            ceiling_height,
+            grid,
+        })
+    }
+
+    pub fn material(&self, index: u32) -> &Material {
+        &self.materials[index as usize]
+    }
+
+    /// The first surface along the ray o + t·d with t in (t_min, t_max); `d` must be a unit
+    /// vector. Walks the plan grid; never loops over all walls.
+    pub fn intersect(&self, o: [f64; 3], d: [f64; 3], t_min: f64, t_max: f64) -> Option<Hit> {
+        let mut best: Option<Hit> = None;
+        let mut best_t = t_max;
+        // Floor and ceiling first: they bound how far the grid walk has to go.
+        let planes = [(0.0, 1.0, self.floor_material), (self.ceiling_height, -1.0, self.ceiling_material)];
+        for (height, facing, material) in planes {
+            if d[2] * facing < 0.0 {
+                let t = (height - o[2]) / d[2];
+                if t > t_min && t < best_t {
+                    best_t = t;
+                    best = Some(Hit { t, normal: [0.0, 0.0, facing], material });
+                }
+            }
+        }
+        let h = d[0].hypot(d[1]);
+        let grid = &self.grid;
+        let test_items = |items: &[u32], best: &mut Option<Hit>, best_t: &mut f64| {
+            for &item in items {
+                let hit = if item & BLOCK_BIT != 0 {
+                    hit_block(&self.blocks[(item & !BLOCK_BIT) as usize], o, d, t_min, *best_t)
+                } else {
+                    hit_wall(&self.walls[item as usize], o, d, t_min, *best_t)
+                };
+                if let Some(hit) = hit {
+                    *best_t = hit.t;
+                    *best = Some(hit);
+                }
+            }
+        };
+        if h < 1e-12 {
+            // Straight up or down: the ray never leaves the cell it starts in.
+            let (ix, iy) = ((o[0] / grid.cell).floor() as i32, (o[1] / grid.cell).floor() as i32);
+            if let Some(items) = grid.cell_items(ix, iy) {
+                test_items(items, &mut best, &mut best_t);
+            }
+            return best;
+        }
+        let u = [d[0] / h, d[1] / h];
+        // Clip the horizontal ray (arc length s = t·h) to the grid's rectangle.
+        let Some((s_in, s_out)) = clip_to_rect([o[0], o[1]], u, grid.lo(), grid.hi()) else {
+            return best;
+        };
+        let s_lo = s_in.max(t_min * h);
+        let s_hi = s_out.min(best_t * h);
+        if !(s_lo < s_hi) {
+            return best;
+        }
+        // Start a hair inside so the first cell is inside the grid (geometry keeps a margin).
+        let s_start = s_lo + 1e-9 * (1.0 + s_lo.abs());
+        let start = [o[0] + s_start * u[0], o[1] + s_start * u[1]];
+        traverse(start, u, s_hi - s_start, grid.cell, |ix, iy, _, s_exit| {
+            let Some(items) = grid.cell_items(ix, iy) else { return false };
+            test_items(items, &mut best, &mut best_t);
+            // Hits found beyond this cell stay candidates; stop once the nearest one lies in it.
+            best_t * h > s_start + s_exit
+        });
+        best
+    }
+}
+
+/// Parametric interval [s_in, s_out] (s >= 0 not enforced) of the 2D ray p + s·u inside the
+/// rectangle [lo, hi]; None if it misses.
+fn clip_to_rect(p: [f64; 2], u: [f64; 2], lo: [f64; 2], hi: [f64; 2]) -> Option<(f64, f64)> {
+    let (mut s0, mut s1) = (f64::NEG_INFINITY, f64::INFINITY);
+    for k in 0..2 {
+        if u[k] == 0.0 {
+            if p[k] < lo[k] || p[k] > hi[k] {
+                return None;
+            }
+        } else {
+            let a = (lo[k] - p[k]) / u[k];
+            let b = (hi[k] - p[k]) / u[k];
+            s0 = s0.max(a.min(b));
+            s1 = s1.min(a.max(b));
+        }
+    }
+    (s0 <= s1).then_some((s0, s1))
+}
+
+#[inline]
+fn cross2(a: [f64; 2], b: [f64; 2]) -> f64 {
+    a[0] * b[1] - a[1] * b[0]
+}
+
+#[inline]
+fn hit_wall(w: &WallGeom, o: [f64; 3], d: [f64; 3], t_min: f64, t_max: f64) -> Option<Hit> {
+    // o + t·d = a + s·e in plan: t = ((a − o) × e)/(d × e), s = ((a − o) × d)/(d × e).
+    let dd = [d[0], d[1]];
+    let denom = cross2(dd, w.e);
+    if denom.abs() < 1e-15 {
+        return None; // parallel to the wall (or vertical): it cannot cross it
+    }
+    let ao = [w.a[0] - o[0], w.a[1] - o[1]];
+    let t = cross2(ao, w.e) / denom;
+    if !(t > t_min && t < t_max) {
+        return None;
+    }
+    let s = cross2(ao, dd) / denom;
+    let z = o[2] + t * d[2];
+    if !(0.0..=1.0).contains(&s) || z < w.bottom || z > w.top {
+        return None;
+    }
+    let facing = if w.normal[0] * d[0] + w.normal[1] * d[1] > 0.0 { -1.0 } else { 1.0 };
+    Some(Hit { t, normal: [facing * w.normal[0], facing * w.normal[1], 0.0], material: w.material })
+}
+
+#[inline]
+fn hit_block(b: &BlockGeom, o: [f64; 3], d: [f64; 3], t_min: f64, t_max: f64) -> Option<Hit> {
+    // Slab test in the box's own frame (its axes turned by yaw in plan).
+    let rel = [o[0] - b.centre[0], o[1] - b.centre[1]];
+    let p = [b.cos * rel[0] + b.sin * rel[1], -b.sin * rel[0] + b.cos * rel[1], o[2]];
+    let q = [b.cos * d[0] + b.sin * d[1], -b.sin * d[0] + b.cos * d[1], d[2]];
+    let lo = [-b.half[0], -b.half[1], b.bottom];
+    let hi = [b.half[0], b.half[1], b.top];
+    let (mut t_near, mut t_far) = (f64::NEG_INFINITY, f64::INFINITY);
+    let (mut axis_near, mut axis_far) = (0usize, 0usize);
+    for k in 0..3 {
+        if q[k].abs() < 1e-15 {
+            if p[k] < lo[k] || p[k] > hi[k] {
+                return None;
+            }
+            continue;
+        }
+        let ta = (lo[k] - p[k]) / q[k];
+        let tb = (hi[k] - p[k]) / q[k];
+        let (t0, t1) = if ta < tb { (ta, tb) } else { (tb, ta) };
+        if t0 > t_near {
+            t_near = t0;
+            axis_near = k;
+        }
+        if t1 < t_far {
+            t_far = t1;
+            axis_far = k;
+        }
+    }
+    if t_near > t_far {
+        return None;
+    }
+    // From outside, the entry face; from inside (a ray passing through glass), the exit face.
+    let (t, axis) = if t_near > t_min { (t_near, axis_near) } else { (t_far, axis_far) };
+    if !(t > t_min && t < t_max) {
+        return None;
+    }
+    let mut local = [0.0; 3];
+    local[axis] = -q[axis].signum(); // the face's side that the ray meets
+    let normal = [b.cos * local[0] - b.sin * local[1], b.sin * local[0] + b.cos * local[1], local[2]];
+    Some(Hit { t, normal, material: b.material })
+}
+
+/// Whether the segment a → b touches the axis-aligned square [lo, hi] (both closed).
+fn segment_touches_box(a: [f64; 2], b: [f64; 2], lo: [f64; 2], hi: [f64; 2]) -> bool {
+    let u = [b[0] - a[0], b[1] - a[1]];
+    let (mut s0, mut s1) = (0.0f64, 1.0f64);
+    for k in 0..2 {
+        if u[k] == 0.0 {
+            if a[k] < lo[k] || a[k] > hi[k] {
+                return false;
+            }
+        } else {
+            let p = (lo[k] - a[k]) / u[k];
+            let q = (hi[k] - a[k]) / u[k];
+            s0 = s0.max(p.min(q));
+            s1 = s1.min(p.max(q));
+        }
+    }
+    s0 <= s1
+}
+
+/// Bin every primitive into the cells its footprint touches. Cells are padded by a tiny slack so
+/// a wall that runs exactly along a cell boundary is listed on both sides, and the grid keeps an
+/// empty margin of one cell around all geometry.
+fn build_grid(walls: &[WallGeom], blocks: &[BlockGeom], cell: f64) -> PlanGrid {
+    let mut footprints: Vec<([f64; 2], [f64; 2])> = Vec::with_capacity(walls.len() + blocks.len());
+    for w in walls {
+        let b = [w.a[0] + w.e[0], w.a[1] + w.e[1]];
+        footprints.push(([w.a[0].min(b[0]), w.a[1].min(b[1])], [w.a[0].max(b[0]), w.a[1].max(b[1])]));
+    }
+    for b in blocks {
+        let ex = b.half[0] * b.cos.abs() + b.half[1] * b.sin.abs();
+        let ey = b.half[0] * b.sin.abs() + b.half[1] * b.cos.abs();
+        footprints.push(([b.centre[0] - ex, b.centre[1] - ey], [b.centre[0] + ex, b.centre[1] + ey]));
+    }
+    let (mut lo, mut hi) = ([0.0f64; 2], [cell; 2]);
+    if let Some(first) = footprints.first() {
+        (lo, hi) = *first;
+        for (l, h) in &footprints {
+            for k in 0..2 {
+                lo[k] = lo[k].min(l[k]);
+                hi[k] = hi[k].max(h[k]);
+            }
+        }
+    }
+    let ix0 = (lo[0] / cell).floor() as i32 - 1;
+    let iy0 = (lo[1] / cell).floor() as i32 - 1;
+    let nx = (hi[0] / cell).floor() as i32 + 2 - ix0;
+    let ny = (hi[1] / cell).floor() as i32 + 2 - iy0;
+    let mut lists: Vec<Vec<u32>> = vec![Vec::new(); (nx * ny) as usize];
+    let slack = 1e-9 * (1.0 + cell);
+    let cell_of = |v: f64| (v / cell).floor() as i32;
+    for (index, (l, h)) in footprints.iter().enumerate() {
+        let (cx0, cx1) = (cell_of(l[0] - slack), cell_of(h[0] + slack));
+        let (cy0, cy1) = (cell_of(l[1] - slack), cell_of(h[1] + slack));
+        for iy in cy0..=cy1 {
+            for ix in cx0..=cx1 {
+                let box_lo = [ix as f64 * cell - slack, iy as f64 * cell - slack];
+                let box_hi = [(ix + 1) as f64 * cell + slack, (iy + 1) as f64 * cell + slack];
+                let item = if index < walls.len() {
+                    let w = &walls[index];
+                    let b = [w.a[0] + w.e[0], w.a[1] + w.e[1]];
+                    if !segment_touches_box(w.a, b, box_lo, box_hi) {
+                        continue;
+                    }
+                    index as u32
+                } else {
+                    // The box's bounding rectangle: conservative, and boxes are few.
+                    (index - walls.len()) as u32 | BLOCK_BIT
+                };
+                lists[((iy - iy0) * nx + (ix - ix0)) as usize].push(item);
+            }
+        }
+    }
+    let mut starts = Vec::with_capacity(lists.len() + 1);
+    let mut items = Vec::new();
+    starts.push(0u32);
+    for list in lists {
+        items.extend(list);
+        starts.push(items.len() as u32);
+    }
+    PlanGrid { cell, ix0, iy0, nx, ny, starts, items }
+}
+
+// --- the camera side ---------------------------------------------------------------------
+
+/// A planar mirror in the camera frame: the plane {x : n·x = d} (n unit, pointing away from the
+/// camera, d > 0), a convex outline on it, and its reflectivity.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Mirror {
+    pub normal: [f64; 3],
+    pub d: f64,
+    pub polygon: Vec<[f64; 3]>,
+    pub reflectivity: f64,
+}
+
+impl Mirror {
+    fn check(&self, index: usize) -> Result<(), String> {
+        let n = self.normal;
+        let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+        if !((len - 1.0).abs() < 1e-9 && self.d > 0.0 && self.d.is_finite()) {
+            return Err(format!("mirror {index}: the normal must be a unit vector and d > 0"));
+        }
+        if self.polygon.len() < 3 || self.polygon.iter().flatten().any(|v| !v.is_finite()) {
+            return Err(format!("mirror {index}: the outline needs >= 3 finite vertices"));
+        }
+        if !(0.0..=1.0).contains(&self.reflectivity) {
+            return Err(format!("mirror {index}: reflectivity must lie in [0, 1]"));
+        }
+        Ok(())
+    }
+
+    /// Distance along the unit ray from the camera centre to this mirror, if it meets the
+    /// reflective side inside the outline.
+    fn hit_from_centre(&self, v: [f64; 3]) -> Option<f64> {
+        let approach = dot(self.normal, v);
+        if approach <= 0.0 {
+            return None;
+        }
+        let t = self.d / approach;
+        let p = scale(v, t);
+        let k = self.polygon.len();
+        let (mut pos, mut neg) = (false, false);
+        let tol = 1e-12 * (1.0 + t);
+        for i in 0..k {
+            let a = self.polygon[i];
+            let b = self.polygon[(i + 1) % k];
+            let side = dot(self.normal, cross(sub(b, a), sub(p, a)));
+            pos |= side > tol;
+            neg |= side < -tol;
+        }
+        (!(pos && neg)).then_some(t)
+    }
+}
+
+/// One sub-ray as it leaves the optics, in the camera frame: where it starts (on a mirror, or at
+/// the camera centre if it misses every mirror), its unit direction, the path length so far, and
+/// the round-trip (g2) and one-way (g1) light factors so far. g2 = 0 marks a ray that does not
+/// exist (outside the lens model).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SubRay {
+    pub origin: [f64; 3],
+    pub dir: [f64; 3],
+    pub path: f64,
+    pub g2: f64,
+    pub g1: f64,
+}
+
+/// The fixed optics: every sub-ray of every pixel after the mirrors, and the mount.
+#[derive(Clone, Debug)]
+pub struct Rig {
+    pub height: usize,
+    pub width: usize,
+    pub sub_rays: usize,
+    rays: Vec<SubRay>,
+    robot_t_camera: [[f64; 4]; 3],
+}
+
+impl Rig {
+    /// `dirs`: H·W·S camera-frame directions, pixel-major ([row][col][sub]); NaN rows are rays
+    /// the lens does not have. Each is sent to the nearest mirror it meets and reflected there.
+    pub fn new(
+        dirs: &[[f64; 3]],
+        height: usize,
+        width: usize,
+        sub_rays: usize,
+        mirrors: &[Mirror],
+        robot_t_camera: [[f64; 4]; 3],
+    ) -> Result<Rig, String> {
+        if height == 0 || width == 0 || sub_rays == 0 || dirs.len() != height * width * sub_rays {
+            return Err(format!(
+                "{} directions do not fill {height}×{width} pixels × {sub_rays} sub-rays",
+                dirs.len()
+            ));
+        }
+        for (i, m) in mirrors.iter().enumerate() {
+            m.check(i)?;
+        }
+        if robot_t_camera.iter().flatten().any(|v| !v.is_finite()) {
+            return Err("robot_T_camera must be finite".into());
+        }
+        let rays = dirs.iter().map(|&v| through_mirrors(v, mirrors)).collect();
+        Ok(Rig { height, width, sub_rays, rays, robot_t_camera })
+    }
+
+    /// The sub-rays after the optics, pixel-major.
+    pub fn rays(&self) -> &[SubRay] {
+        &self.rays
+    }
+
+    /// world_T_camera (3×4) for a robot pose (x, y, θ).
+    pub fn world_t_camera(&self, pose: [f64; 3]) -> [[f64; 4]; 3] {
+        let (s, c) = pose[2].sin_cos();
+        let m = &self.robot_t_camera;
+        let mut out = [[0.0; 4]; 3];
+        for j in 0..4 {
+            out[0][j] = c * m[0][j] - s * m[1][j];
+            out[1][j] = s * m[0][j] + c * m[1][j];
+            out[2][j] = m[2][j];
+        }
+        out[0][3] += pose[0];
+        out[1][3] += pose[1];
+        out
+    }
+}
+
+fn through_mirrors(v: [f64; 3], mirrors: &[Mirror]) -> SubRay {
+    let len = norm(v);
+    if !(len > 0.0 && len.is_finite()) {
+        return SubRay { origin: [0.0; 3], dir: [0.0, 0.0, 1.0], path: 0.0, g2: 0.0, g1: 0.0 };
+    }
+    let v = scale(v, 1.0 / len);
+    let mut nearest: Option<(f64, &Mirror)> = None;
+    for m in mirrors {
+        if let Some(t) = m.hit_from_centre(v) {
+            if nearest.is_none_or(|(best, _)| t < best) {
+                nearest = Some((t, m));
+            }
+        }
+    }
+    match nearest {
+        Some((t, m)) => {
+            let r = m.reflectivity;
+            SubRay { origin: scale(v, t), dir: reflect(v, m.normal), path: t, g2: r * r, g1: r }
+        }
+        None => SubRay { origin: [0.0; 3], dir: v, path: 0.0, g2: 1.0, g1: 1.0 },
+    }
+}
+
+// --- rendering ---------------------------------------------------------------------------
+
+/// Signal scale and light-path limits.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RenderParams {
+    /// Modulation frequency, Hz.
+    pub f_mod: f64,
+    /// Amplitude (sample units) of an albedo-1 Lambertian target facing the camera at 1 m.
+    pub amplitude_at_1m: f64,
+    /// Specular bounces (metal, glass) followed after the first surface.
+    pub max_bounces: u32,
+    /// Paths whose round-trip factor g2 falls below this are dropped.
+    pub min_gain: f64,
+}
+
+/// What one pixel (or one sub-ray) collects: the phasor (re, im), Σ|p|, and the ambient
+/// brightness Σ g1·albedo. Pixel values are means over the sub-rays.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Return {
+    pub re: f64,
+    pub im: f64,
+    pub magnitude: f64,
+    pub ambient: f64,
+}
+
+#[derive(Clone, Copy)]
+struct Segment {
+    origin: [f64; 3],
+    dir: [f64; 3],
+    path: f64,
+    g2: f64,
+    g1: f64,
+    bounces: u32,
+    passes: u32,
+}
+
+/// Follow one ray (world frame) through the scene and add what comes back to `acc`.
+pub fn trace(scene: &Scene, params: &RenderParams, ray: &SubRay, acc: &mut Return) {
+    if ray.g2 <= 0.0 {
+        return;
+    }
+    // Phase per metre of one-way path: the light travels it twice.
+    let k = 4.0 * std::f64::consts::PI * params.f_mod / SPEED_OF_LIGHT;
+    let mut stack = [Segment { origin: [0.0; 3], dir: [0.0; 3], path: 0.0, g2: 0.0, g1: 0.0, bounces: 0, passes: 0 }; STACK];
+    stack[0] = Segment { origin: ray.origin, dir: ray.dir, path: ray.path, g2: ray.g2, g1: ray.g1, bounces: 0, passes: 0 };
+    let mut pending = 1;
+    let push = |stack: &mut [Segment; STACK], pending: &mut usize, s: Segment| {
+        if *pending < STACK && s.g2 >= params.min_gain {
+            stack[*pending] = s;
+            *pending += 1;
+        }
+    };
+    while pending > 0 {
+        pending -= 1;
+        let seg = stack[pending];
+        let Some(hit) = scene.intersect(seg.origin, seg.dir, T_MIN, f64::INFINITY) else { continue };
+        let point = add(seg.origin, scale(seg.dir, hit.t));
+        let r = seg.path + hit.t;
+        let m = scene.material(hit.material);
+        if m.kind == Kind::Grid && !m.on_bar(point, hit.normal) {
+            if seg.passes < MAX_PASSES {
+                push(&mut stack, &mut pending, Segment { origin: point, path: r, passes: seg.passes + 1, ..seg });
+            }
+            continue;
+        }
+        if m.albedo > 0.0 {
+            let cos = -dot(hit.normal, seg.dir);
+            let amplitude = params.amplitude_at_1m * seg.g2 * m.albedo * cos / (r * r);
+            let (s, c) = (k * r).sin_cos();
+            acc.re += amplitude * c;
+            acc.im += amplitude * s;
+            acc.magnitude += amplitude;
+            acc.ambient += seg.g1 * m.albedo;
+        }
+        if m.specular > 0.0 && seg.bounces < params.max_bounces {
+            let reflected = Segment {
+                origin: point,
+                dir: reflect(seg.dir, hit.normal),
+                path: r,
+                g2: seg.g2 * m.specular * m.specular,
+                g1: seg.g1 * m.specular,
+                bounces: seg.bounces + 1,
+                passes: seg.passes,
+            };
+            push(&mut stack, &mut pending, reflected);
+        }
+        if m.transmission > 0.0 && seg.passes < MAX_PASSES {
+            let t = m.transmission;
+            let through = Segment { origin: point, path: r, g2: seg.g2 * t * t, g1: seg.g1 * t, passes: seg.passes + 1, ..seg };
+            push(&mut stack, &mut pending, through);
+        }
+    }
+}
+
+/// Render the frames of `poses` into `out`: (frame, row, col, [re, im, Σ|p|, ambient]) as f32,
+/// each value the mean over the pixel's sub-rays. Runs on the current rayon pool, one image
+/// row per task; the result does not depend on the number of threads.
+pub fn render(scene: &Scene, rig: &Rig, params: &RenderParams, poses: &[[f64; 3]], out: &mut [f32]) {
+    let (h, w, s) = (rig.height, rig.width, rig.sub_rays);
+    assert_eq!(out.len(), poses.len() * h * w * 4, "output buffer size");
+    let transforms: Vec<[[f64; 4]; 3]> = poses.iter().map(|&p| rig.world_t_camera(p)).collect();
+    out.par_chunks_mut(w * 4).enumerate().for_each(|(row_index, row)| {
+        let m = &transforms[row_index / h];
+        let first = (row_index % h) * w * s;
+        for (col, px) in row.chunks_exact_mut(4).enumerate() {
+            let mut acc = Return::default();
+            for sub in &rig.rays[first + col * s..first + (col + 1) * s] {
+                let world = SubRay { origin: apply(m, sub.origin), dir: rotate(m, sub.dir), ..*sub };
+                trace(scene, params, &world, &mut acc);
+            }
+            let inv = 1.0 / s as f64;
+            px[0] = (acc.re * inv) as f32;
+            px[1] = (acc.im * inv) as f32;
+            px[2] = (acc.magnitude * inv) as f32;
+            px[3] = (acc.ambient * inv) as f32;
+        }
+    });
+}
+
+// --- small vector helpers ----------------------------------------------------------------
+
+#[inline]
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+#[inline]
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+#[inline]
+fn add(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+}
+
+#[inline]
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+#[inline]
+fn scale(a: [f64; 3], k: f64) -> [f64; 3] {
+    [a[0] * k, a[1] * k, a[2] * k]
+}
+
+#[inline]
+fn norm(a: [f64; 3]) -> f64 {
+    dot(a, a).sqrt()
+}
+
+/// Mirror direction v in a plane of unit normal n: v − 2(v·n)n.
+#[inline]
+fn reflect(v: [f64; 3], n: [f64; 3]) -> [f64; 3] {
+    sub(v, scale(n, 2.0 * dot(v, n)))
+}
+
+#[inline]
+fn rotate(m: &[[f64; 4]; 3], v: [f64; 3]) -> [f64; 3] {
+    [
+        m[0][0] * v[0] + m[0][1] * v[1] + m[0][2] * v[2],
+        m[1][0] * v[0] + m[1][1] * v[1] + m[1][2] * v[2],
+        m[2][0] * v[0] + m[2][1] * v[1] + m[2][2] * v[2],
+    ]
+}
+
+#[inline]
+fn apply(m: &[[f64; 4]; 3], p: [f64; 3]) -> [f64; 3] {
+    add(rotate(m, p), [m[0][3], m[1][3], m[2][3]])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{RngExt, SeedableRng};
+    use rand_pcg::Pcg64;
+
+    fn matte_room(walls: &[Wall], blocks: &[Block], cell: f64) -> Scene {
+        Scene::new(walls, blocks, vec![Material::matte(0.5)], 0, 0, 3.0, cell).unwrap()
+    }
+
+    fn wall(a: [f64; 2], b: [f64; 2]) -> Wall {
+        Wall { a, b, bottom: 0.0, top: 3.0, material: 0 }
+    }
+
+    fn unit(v: [f64; 3]) -> [f64; 3] {
+        scale(v, 1.0 / norm(v))
+    }
+
+    /// Nearest hit by testing every primitive: the reference for the grid walk.
+    fn brute_force(scene: &Scene, o: [f64; 3], d: [f64; 3]) -> Option<f64> {
+        let mut best = f64::INFINITY;
+        for w in &scene.walls {
+            if let Some(h) = hit_wall(w, o, d, T_MIN, best) {
+                best = h.t;
+            }
+        }
+        for b in &scene.blocks {
+            if let Some(h) = hit_block(b, o, d, T_MIN, best) {
+                best = h.t;
+            }
+        }
+        for (z, dz) in [(0.0, d[2] < 0.0), (scene.ceiling_height, d[2] > 0.0)] {
+            let t = (z - o[2]) / d[2];
+            if dz && t > T_MIN && t < best {
+                best = t;
+            }
+        }
+        best.is_finite().then_some(best)
+    }
+
+    #[test]
+    fn wall_hit_at_known_distance_with_facing_normal() {
+        let scene = matte_room(&[wall([3.0, -5.0], [3.0, 5.0])], &[], 0.5);
+        let d = unit([1.0, 0.0, 0.2]);
+        let hit = scene.intersect([0.0, 0.0, 1.0], d, T_MIN, f64::INFINITY).unwrap();
+        assert!((hit.t - 3.0 / d[0]).abs() < 1e-12);
+        assert_eq!(hit.normal, [-1.0, 0.0, 0.0]);
+    }
+
+    #[test]
+    fn wall_is_only_as_high_as_its_top() {
+        let low = Wall { top: 1.0, ..wall([3.0, -5.0], [3.0, 5.0]) };
+        let scene = matte_room(&[low], &[], 0.5);
+        // Rising at 45°, the ray passes 3 m out at z = 3.5 > 1: it meets the ceiling instead.
+        let hit = scene.intersect([0.0, 0.0, 0.5], unit([1.0, 0.0, 1.0]), T_MIN, f64::INFINITY).unwrap();
+        assert_eq!(hit.normal, [0.0, 0.0, -1.0]);
+        assert!((hit.t - 2.5 * 2f64.sqrt()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn rotated_box_face_distance() {
+        // A unit cube turned 45°: its corner points at the ray, 2 − √2/2 m away.
+        let b = Block { centre: [2.0, 0.0], half: [0.5, 0.5], yaw: std::f64::consts::FRAC_PI_4, bottom: 0.0, top: 1.0, material: 0 };
+        let scene = matte_room(&[], &[b], 0.5);
+        let hit = scene.intersect([0.0, 0.0, 0.5], [1.0, 0.0, 0.0], T_MIN, f64::INFINITY).unwrap();
+        assert!((hit.t - (2.0 - 0.5 * 2f64.sqrt())).abs() < 1e-12);
+        assert!(hit.normal[0] < 0.0 && hit.normal[2] == 0.0);
+        // From inside the box the ray meets the far face.
+        let inside = scene.intersect([2.0, 0.0, 0.5], [1.0, 0.0, 0.0], T_MIN, f64::INFINITY).unwrap();
+        assert!((inside.t - 0.5 * 2f64.sqrt()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn grid_walk_matches_brute_force_on_random_rays() {
+        let mut rng = Pcg64::seed_from_u64(5);
+        let mut walls = vec![];
+        for _ in 0..60 {
+            let a: [f64; 2] = [rng.random_range(-8.0..8.0), rng.random_range(-8.0..8.0)];
+            let len: f64 = rng.random_range(0.2..6.0);
+            let ang: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+            // Every fourth wall lies exactly on cell boundaries, the hard case for binning.
+            let (a, b) = if walls.len() % 4 == 0 {
+                let a = [a[0].round() * 0.5, a[1].round() * 0.5];
+                (a, [a[0] + len.round(), a[1]])
+            } else {
+                (a, [a[0] + len * ang.cos(), a[1] + len * ang.sin()])
+            };
+            if a != b {
+                walls.push(Wall { a, b, bottom: 0.0, top: rng.random_range(0.3..3.0), material: 0 });
+            }
+        }
+        let blocks: Vec<Block> = (0..15)
+            .map(|_| Block {
+                centre: [rng.random_range(-8.0..8.0), rng.random_range(-8.0..8.0)],
+                half: [rng.random_range(0.1..1.0), rng.random_range(0.1..1.0)],
+                yaw: rng.random_range(0.0..3.0),
+                bottom: rng.random_range(0.0..0.8),
+                top: rng.random_range(0.9..2.5),
+                material: 0,
+            })
+            .collect();
+        for cell in [0.25, 0.5, 1.3] {
+            let scene = matte_room(&walls, &blocks, cell);
+            for _ in 0..4000 {
+                let o = [rng.random_range(-10.0..10.0), rng.random_range(-10.0..10.0), rng.random_range(0.05..2.9)];
+                let d = unit([rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-0.4..0.4)]);
+                let got = scene.intersect(o, d, T_MIN, f64::INFINITY).map(|h| h.t);
+                let want = brute_force(&scene, o, d);
+                assert_eq!(got.is_some(), want.is_some());
+                if let (Some(g), Some(w)) = (got, want) {
+                    assert!((g - w).abs() < 1e-9, "cell {cell}: grid {g} vs brute force {w}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn vertical_rays_and_rays_from_outside_the_grid() {
+        let scene = matte_room(&[wall([0.0, 0.0], [4.0, 0.0])], &[], 0.5);
+        let up = scene.intersect([1.0, 1.0, 0.5], [0.0, 0.0, 1.0], T_MIN, f64::INFINITY).unwrap();
+        assert!((up.t - 2.5).abs() < 1e-12);
+        // Starting far outside the grid, heading back in across its upper edge.
+        let d = unit([0.0, -1.0, 0.0]);
+        let hit = scene.intersect([2.0, 50.0, 1.0], d, T_MIN, f64::INFINITY).unwrap();
+        assert!((hit.t - 50.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn grid_bars_cover_the_stated_fraction() {
+        let m = Material { kind: Kind::Grid, albedo: 0.4, specular: 0.0, transmission: 0.0, coverage: 0.35, pitch: 0.1 };
+        let mut rng = Pcg64::seed_from_u64(2);
+        let n = 200_000;
+        let hits = (0..n)
+            .filter(|_| m.on_bar([3.0, rng.random_range(-5.0..5.0), rng.random_range(0.0..3.0)], [-1.0, 0.0, 0.0]))
+            .count();
+        assert!((hits as f64 / n as f64 - 0.35).abs() < 0.005);
+        // The same point seen from the other side lies on the same bar.
+        for _ in 0..1000 {
+            let p = [3.0, rng.random_range(-5.0..5.0), rng.random_range(0.0..3.0)];
+            assert_eq!(m.on_bar(p, [-1.0, 0.0, 0.0]), m.on_bar(p, [1.0, 0.0, 0.0]));
+        }
+    }
+
+    fn params() -> RenderParams {
+        RenderParams { f_mod: 20e6, amplitude_at_1m: 1.0, max_bounces: 2, min_gain: 1e-6 }
+    }
+
+    fn trace_one(scene: &Scene, o: [f64; 3], d: [f64; 3]) -> Return {
+        let mut acc = Return::default();
+        trace(scene, &params(), &SubRay { origin: o, dir: d, path: 0.0, g2: 1.0, g1: 1.0 }, &mut acc);
+        acc
+    }
+
+    #[test]
+    fn matte_return_has_inverse_square_amplitude_and_round_trip_phase() {
+        let scene = matte_room(&[wall([2.0, -5.0], [2.0, 5.0])], &[], 0.5);
+        let acc = trace_one(&scene, [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]);
+        let amplitude = acc.re.hypot(acc.im);
+        assert!((amplitude - 0.5 / 4.0).abs() < 1e-12);
+        let phase = acc.im.atan2(acc.re).rem_euclid(std::f64::consts::TAU);
+        let want = (4.0 * std::f64::consts::PI * 20e6 * 2.0 / SPEED_OF_LIGHT).rem_euclid(std::f64::consts::TAU);
+        assert!((phase - want).abs() < 1e-12);
+    }
+
+    #[test]
+    fn metal_returns_the_mirrored_world() {
+        // A purely specular wall at x = 2 and a matte wall behind the camera at x = −3: the
+        // reading is the unfolded path 2 + 5 = 7 m.
+        let metal = Material { kind: Kind::Metal, albedo: 0.0, specular: 0.8, transmission: 0.0, coverage: 0.0, pitch: 1.0 };
+        let walls = [
+            Wall { material: 1, ..wall([2.0, -5.0], [2.0, 5.0]) },
+            wall([-3.0, -5.0], [-3.0, 5.0]),
+        ];
+        let scene = Scene::new(&walls, &[], vec![Material::matte(0.5), metal], 0, 0, 3.0, 0.5).unwrap();
+        let acc = trace_one(&scene, [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]);
+        assert!((acc.magnitude - 0.64 * 0.5 / 49.0).abs() < 1e-12);
+        assert!((acc.ambient - 0.8 * 0.5).abs() < 1e-12);
+    }
+
+    #[test]
+    fn glass_passes_most_light_to_the_wall_behind() {
+        let glass = Material { kind: Kind::Glass, albedo: 0.0, specular: 0.0, transmission: 0.9, coverage: 0.0, pitch: 1.0 };
+        let walls = [Wall { material: 1, ..wall([1.0, -5.0], [1.0, 5.0]) }, wall([3.0, -5.0], [3.0, 5.0])];
+        let scene = Scene::new(&walls, &[], vec![Material::matte(0.5), glass], 0, 0, 3.0, 0.5).unwrap();
+        let acc = trace_one(&scene, [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]);
+        assert!((acc.magnitude - 0.81 * 0.5 / 9.0).abs() < 1e-12);
+    }
+
+    fn test_rig(h: usize, w: usize, s: usize) -> Rig {
+        let mut rng = Pcg64::seed_from_u64(9);
+        let dirs: Vec<[f64; 3]> = (0..h * w * s)
+            .map(|_| [rng.random_range(-0.6..0.6), rng.random_range(-0.5..0.5), 1.0])
+            .collect();
+        // A four-sided 45° pyramid, apex 0.1 m above the lens.
+        let c = std::f64::consts::FRAC_1_SQRT_2;
+        let mirrors: Vec<Mirror> = [[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]]
+            .iter()
+            .map(|e| {
+                let normal = [-c * e[0], -c * e[1], c];
+                let apex = [0.0, 0.0, 0.1];
+                let side = [-e[1], e[0]];
+                let corner = |k: f64| [0.3 * e[0] + k * 0.3 * side[0], 0.3 * e[1] + k * 0.3 * side[1], 0.4];
+                Mirror { normal, d: 0.1 * c, polygon: vec![apex, corner(1.0), corner(-1.0)], reflectivity: 0.9 }
+            })
+            .collect();
+        let mount = [[0.0, -1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.4]];
+        Rig::new(&dirs, h, w, s, &mirrors, mount).unwrap()
+    }
+
+    #[test]
+    fn reflected_rays_leave_from_the_mirror_plane() {
+        let rig = test_rig(6, 7, 3);
+        let reflected = rig.rays().iter().filter(|r| r.g2 < 1.0).count();
+        assert!(reflected > 0);
+        for r in rig.rays().iter().filter(|r| r.g2 < 1.0) {
+            assert!((r.g2 - 0.81).abs() < 1e-12 && (norm(r.dir) - 1.0).abs() < 1e-12);
+            assert!((norm(r.origin) - r.path).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn same_image_for_any_thread_count() {
+        let rig = test_rig(12, 10, 4);
+        let walls = [wall([-3.0, -3.0], [3.0, -3.0]), wall([3.0, -3.0], [3.0, 3.0]), wall([3.0, 3.0], [-3.0, 2.0])];
+        let blocks = [Block { centre: [1.0, 1.0], half: [0.3, 0.4], yaw: 0.3, bottom: 0.0, top: 0.8, material: 0 }];
+        let scene = matte_room(&walls, &blocks, 0.5);
+        let poses = [[0.0, 0.0, 0.0], [0.5, -0.2, 1.0]];
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let mut out = vec![0f32; poses.len() * 12 * 10 * 4];
+            pool.install(|| render(&scene, &rig, &params(), &poses, &mut out));
+            out
+        };
+        let one = run(1);
+        assert!(one.iter().any(|&v| v != 0.0));
+        assert_eq!(one, run(2));
+        assert_eq!(one, run(3));
+    }
+}

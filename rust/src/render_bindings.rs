@@ -1,0 +1,219 @@
+//! PyO3 bindings of the ToF renderer (render.rs); registered from lib.rs.
+//!
+//! One private class, `_core._Renderer`, built once per world and rig from plain arrays and then
+//! asked for frames. Its Python face is `omnitof.sim.render.Renderer`; nobody else should use it.
+
+use numpy::ndarray::{Array1, Array4};
+use numpy::{IntoPyArray, PyArray1, PyArray4, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+
+use crate::render::{render, Block, Kind, Material, Mirror, Rig, RenderParams, Scene, Wall};
+
+fn rows<'a>(a: &'a PyReadonlyArray2<'_, f64>, cols: usize, what: &str) -> PyResult<Vec<&'a [f64]>> {
+    let shape = a.shape();
+    if shape[1] != cols {
+        return Err(PyValueError::new_err(format!("{what} must have shape (N, {cols}), got {shape:?}")));
+    }
+    Ok(a.as_slice()?.chunks_exact(cols).collect())
+}
+
+fn same_len(n: usize, m: usize, what: &str) -> PyResult<()> {
+    if n != m {
+        return Err(PyValueError::new_err(format!("{what}: {m} entries for {n} rows")));
+    }
+    Ok(())
+}
+
+fn materials(table: &PyReadonlyArray2<'_, f64>) -> PyResult<Vec<Material>> {
+    rows(table, 6, "materials")?
+        .into_iter()
+        .map(|r| {
+            let kind = match r[0] as i64 {
+                0 => Kind::Matte,
+                1 => Kind::Metal,
+                2 => Kind::Glass,
+                3 => Kind::Grid,
+                k => return Err(PyValueError::new_err(format!("unknown material kind {k}"))),
+            };
+            Ok(Material { kind, albedo: r[1], specular: r[2], transmission: r[3], coverage: r[4], pitch: r[5] })
+        })
+        .collect()
+}
+
+fn mirrors(
+    planes: &PyReadonlyArray2<'_, f64>,
+    vertices: &PyReadonlyArray2<'_, f64>,
+    counts: &PyReadonlyArray1<'_, u64>,
+    reflectivity: &PyReadonlyArray1<'_, f64>,
+) -> PyResult<Vec<Mirror>> {
+    let planes = rows(planes, 4, "mirror_planes")?;
+    let vertices = rows(vertices, 3, "mirror_vertices")?;
+    let (counts, reflectivity) = (counts.as_slice()?, reflectivity.as_slice()?);
+    same_len(planes.len(), counts.len(), "mirror_counts")?;
+    same_len(planes.len(), reflectivity.len(), "mirror_reflectivity")?;
+    if counts.iter().sum::<u64>() as usize != vertices.len() {
+        return Err(PyValueError::new_err("mirror_counts must add up to the number of mirror_vertices"));
+    }
+    let mut next = 0;
+    let mut out = Vec::with_capacity(planes.len());
+    for ((p, &k), &r) in planes.iter().zip(counts).zip(reflectivity) {
+        let polygon = vertices[next..next + k as usize].iter().map(|v| [v[0], v[1], v[2]]).collect();
+        next += k as usize;
+        out.push(Mirror { normal: [p[0], p[1], p[2]], d: p[3], polygon, reflectivity: r });
+    }
+    Ok(out)
+}
+
+/// A world and a rig, ready to render (see omnitof.sim.render for the meaning of every array).
+#[pyclass(name = "_Renderer", module = "omnitof._core")]
+struct PyRenderer {
+    scene: Scene,
+    rig: Rig,
+    params: RenderParams,
+    pool: Option<rayon::ThreadPool>,
+}
+
+#[pymethods]
+impl PyRenderer {
+    #[new]
+    #[pyo3(signature = (*, walls, wall_materials, boxes, box_materials, materials, floor_material,
+        ceiling_material, ceiling_height, cell, directions, height, width, sub_rays, mirror_planes,
+        mirror_vertices, mirror_counts, mirror_reflectivity, robot_T_camera, f_mod, amplitude_at_1m,
+        max_bounces, min_gain, threads=None))]
+    #[allow(clippy::too_many_arguments, non_snake_case)]
+    fn new(
+        walls: PyReadonlyArray2<f64>,
+        wall_materials: PyReadonlyArray1<u32>,
+        boxes: PyReadonlyArray2<f64>,
+        box_materials: PyReadonlyArray1<u32>,
+        materials: PyReadonlyArray2<f64>,
+        floor_material: u32,
+        ceiling_material: u32,
+        ceiling_height: f64,
+        cell: f64,
+        directions: PyReadonlyArray2<f64>,
+        height: usize,
+        width: usize,
+        sub_rays: usize,
+        mirror_planes: PyReadonlyArray2<f64>,
+        mirror_vertices: PyReadonlyArray2<f64>,
+        mirror_counts: PyReadonlyArray1<u64>,
+        mirror_reflectivity: PyReadonlyArray1<f64>,
+        robot_T_camera: PyReadonlyArray2<f64>,
+        f_mod: f64,
+        amplitude_at_1m: f64,
+        max_bounces: u32,
+        min_gain: f64,
+        threads: Option<usize>,
+    ) -> PyResult<Self> {
+        let wall_rows = rows(&walls, 6, "walls")?;
+        let wall_mats = wall_materials.as_slice()?;
+        same_len(wall_rows.len(), wall_mats.len(), "wall_materials")?;
+        let walls: Vec<Wall> = wall_rows
+            .iter()
+            .zip(wall_mats)
+            .map(|(r, &m)| Wall { a: [r[0], r[1]], b: [r[2], r[3]], bottom: r[4], top: r[5], material: m })
+            .collect();
+        let box_rows = rows(&boxes, 7, "boxes")?;
+        let box_mats = box_materials.as_slice()?;
+        same_len(box_rows.len(), box_mats.len(), "box_materials")?;
+        let blocks: Vec<Block> = box_rows
+            .iter()
+            .zip(box_mats)
+            .map(|(r, &m)| Block {
+                centre: [r[0], r[1]],
+                half: [0.5 * r[2], 0.5 * r[3]],
+                yaw: r[4],
+                bottom: r[5],
+                top: r[6],
+                material: m,
+            })
+            .collect();
+        let table = self::materials(&materials)?;
+        let scene = Scene::new(&walls, &blocks, table, floor_material, ceiling_material, ceiling_height, cell)
+            .map_err(PyValueError::new_err)?;
+
+        let dirs: Vec<[f64; 3]> = rows(&directions, 3, "directions")?.iter().map(|r| [r[0], r[1], r[2]]).collect();
+        let mirrors = self::mirrors(&mirror_planes, &mirror_vertices, &mirror_counts, &mirror_reflectivity)?;
+        let mount = rows(&robot_T_camera, 4, "robot_T_camera")?;
+        if mount.len() != 4 {
+            return Err(PyValueError::new_err("robot_T_camera must be 4×4"));
+        }
+        let mut m = [[0.0; 4]; 3];
+        for (i, row) in m.iter_mut().enumerate() {
+            row.copy_from_slice(mount[i]);
+        }
+        let rig = Rig::new(&dirs, height, width, sub_rays, &mirrors, m).map_err(PyValueError::new_err)?;
+
+        if !(f_mod > 0.0 && amplitude_at_1m > 0.0 && min_gain >= 0.0) {
+            return Err(PyValueError::new_err("f_mod and amplitude_at_1m must be > 0, min_gain >= 0"));
+        }
+        let params = RenderParams { f_mod, amplitude_at_1m, max_bounces, min_gain };
+        let pool = match threads {
+            Some(0) => return Err(PyValueError::new_err("threads must be >= 1")),
+            Some(n) => Some(
+                rayon::ThreadPoolBuilder::new()
+                    .num_threads(n)
+                    .build()
+                    .map_err(|e| PyValueError::new_err(e.to_string()))?,
+            ),
+            None => None,
+        };
+        Ok(PyRenderer { scene, rig, params, pool })
+    }
+
+    /// (N, H, W, 4) float32: per pose (x, y, θ) and pixel, the mean over its sub-rays of the
+    /// phasor (re, im), Σ|p| and the ambient brightness Σ g1·albedo.
+    fn render<'py>(&self, py: Python<'py>, poses: PyReadonlyArray2<f64>) -> PyResult<Bound<'py, PyArray4<f32>>> {
+        let poses: Vec<[f64; 3]> = rows(&poses, 3, "poses")?.iter().map(|r| [r[0], r[1], r[2]]).collect();
+        if poses.iter().flatten().any(|v| !v.is_finite()) {
+            return Err(PyValueError::new_err("poses must be finite"));
+        }
+        let (h, w) = (self.rig.height, self.rig.width);
+        let mut out = vec![0f32; poses.len() * h * w * 4];
+        py.detach(|| {
+            let (scene, rig, params) = (&self.scene, &self.rig, &self.params);
+            match &self.pool {
+                Some(pool) => pool.install(|| render(scene, rig, params, &poses, &mut out)),
+                None => render(scene, rig, params, &poses, &mut out),
+            }
+        });
+        Ok(Array4::from_shape_vec((poses.len(), h, w, 4), out).unwrap().into_pyarray(py))
+    }
+
+    /// First surface along world rays (N, 3) origins and unit directions: (distance (N,),
+    /// material index (N,)); inf and −1 where nothing is hit.
+    fn cast<'py>(
+        &self,
+        py: Python<'py>,
+        origins: PyReadonlyArray2<f64>,
+        directions: PyReadonlyArray2<f64>,
+    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<i64>>)> {
+        let o = rows(&origins, 3, "origins")?;
+        let d = rows(&directions, 3, "directions")?;
+        same_len(o.len(), d.len(), "directions")?;
+        let mut t = Array1::from_elem(o.len(), f64::INFINITY);
+        let mut material = Array1::from_elem(o.len(), -1i64);
+        for (i, (o, d)) in o.iter().zip(&d).enumerate() {
+            let norm = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            let unit = [d[0] / norm, d[1] / norm, d[2] / norm];
+            if let Some(hit) = self.scene.intersect([o[0], o[1], o[2]], unit, 0.0, f64::INFINITY) {
+                t[i] = hit.t;
+                material[i] = hit.material as i64;
+            }
+        }
+        Ok((t.into_pyarray(py), material.into_pyarray(py)))
+    }
+
+    /// (height, width, sub_rays) of the rig.
+    #[getter]
+    fn shape(&self) -> (usize, usize, usize) {
+        (self.rig.height, self.rig.width, self.rig.sub_rays)
+    }
+}
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<PyRenderer>()?;
+    Ok(())
+}

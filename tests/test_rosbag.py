@@ -1,0 +1,698 @@
+"""Tests of omnitof.io.rosbag: ToF bags and laser-scan bags, written into tmp_path.
+
+Round trips go through the module's own writers; the bags that must be malformed (or must come
+from "another tool", such as a ROS 1 bag with a tf tree) are written message by message with
+rosbags directly, so that the reader is checked against data its writer did not make.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Writer2
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from omnitof.camera import Camera
+from omnitof.errors import InputError
+from omnitof.io.rosbag import (
+    DEFAULT_STORAGE,
+    SIDECAR_NAME,
+    BagExistsError,
+    RosbagWarning,
+    ToFFrameStamped,
+    ToFTopics,
+    from_ros_time,
+    interpolate_poses,
+    read_laserscan_bag,
+    read_tof_bag,
+    to_ros_time,
+    write_laserscan_bag,
+    write_tof_bag,
+)
+from omnitof.types import ScanSequence, Trajectory
+
+HUMBLE = get_typestore(Stores.ROS2_HUMBLE)
+NOETIC = get_typestore(Stores.ROS1_NOETIC)
+NOETIC.register(
+    get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage")
+)
+IMG = "sensor_msgs/msg/Image"
+INFO = "sensor_msgs/msg/CameraInfo"
+ODOM = "nav_msgs/msg/Odometry"
+SCAN = "sensor_msgs/msg/LaserScan"
+TF = "tf2_msgs/msg/TFMessage"
+SMALL = Camera(8, 6, 10.0, 11.0, 3.5, 2.5, (-0.1, 0.01, 0.001, -0.002, 0.0003))
+NS = 1_000_000_000
+
+
+def angle_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.angle(np.exp(1j * (np.asarray(a) - np.asarray(b))))
+
+
+def assert_poses(actual: np.ndarray, expected: np.ndarray, atol: float = 1e-9) -> None:
+    np.testing.assert_allclose(actual[:, :2], expected[:, :2], rtol=0, atol=atol)
+    np.testing.assert_allclose(angle_diff(actual[:, 2], expected[:, 2]), 0.0, atol=atol)
+
+
+def bits(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float32).view(np.uint32)
+
+
+def make_frames(
+    camera: Camera, n: int, *, samples: bool, seed: int = 0
+) -> list[ToFFrameStamped]:
+    rng = np.random.default_rng(seed)
+    frames = []
+    for i in range(n):
+        distance = rng.uniform(0.0, 7.5, camera.shape).astype(np.float32)
+        distance[0, 0] = np.nan  # special values must survive bit for bit
+        distance[0, 1] = np.inf
+        distance[1, 0] = -0.0
+        amplitude = rng.exponential(100.0, camera.shape).astype(np.float32)
+        raw = rng.uniform(0, 4000, (4, *camera.shape)).astype(np.float32) if samples else None
+        frames.append(ToFFrameStamped(1700000000.0 + 0.1 * i, distance, amplitude, raw))
+    return frames
+
+
+def trajectory(t: np.ndarray, seed: int) -> Trajectory:
+    rng = np.random.default_rng(seed)
+    poses = np.column_stack(
+        [rng.normal(0, 5, len(t)), rng.normal(0, 5, len(t)), rng.uniform(-np.pi, np.pi, len(t))]
+    )
+    return Trajectory(t, poses)
+
+
+# --- raw bags written with rosbags directly ------------------------------------------------
+
+
+def ros_time(store, ns: int):
+    return store.types["builtin_interfaces/msg/Time"](sec=ns // NS, nanosec=ns % NS)
+
+
+def header(store, ns: int, frame_id: str):
+    cls = store.types["std_msgs/msg/Header"]
+    if store is NOETIC:
+        return cls(seq=0, stamp=ros_time(store, ns), frame_id=frame_id)
+    return cls(stamp=ros_time(store, ns), frame_id=frame_id)
+
+
+def image_msg(ns: int, array: np.ndarray, encoding: str = "32FC1"):
+    data = np.ascontiguousarray(array)
+    channels = 1 if data.ndim == 2 else data.shape[2]
+    return HUMBLE.types[IMG](
+        header=header(HUMBLE, ns, "cam"),
+        height=data.shape[0],
+        width=data.shape[1],
+        encoding=encoding,
+        is_bigendian=0,
+        step=data.shape[1] * data.itemsize * channels,
+        data=data.reshape(-1).view(np.uint8),
+    )
+
+
+def camera_info_msg(ns: int, camera: Camera):
+    t = HUMBLE.types
+    return t[INFO](
+        header=header(HUMBLE, ns, "cam"),
+        height=camera.height,
+        width=camera.width,
+        distortion_model="plumb_bob",
+        d=np.array(camera.dist),
+        k=camera.K.reshape(-1),
+        r=np.eye(3).reshape(-1),
+        p=np.zeros(12),
+        binning_x=0,
+        binning_y=0,
+        roi=t["sensor_msgs/msg/RegionOfInterest"](
+            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+        ),
+    )
+
+
+def odometry_msg(store, ns: int, pose, child: str = "base_link"):
+    t = store.types
+    vec = t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+    return t[ODOM](
+        header=header(store, ns, "odom"),
+        child_frame_id=child,
+        pose=t["geometry_msgs/msg/PoseWithCovariance"](
+            pose=t["geometry_msgs/msg/Pose"](
+                position=t["geometry_msgs/msg/Point"](x=pose[0], y=pose[1], z=0.0),
+                orientation=t["geometry_msgs/msg/Quaternion"](
+                    x=0.0, y=0.0, z=math.sin(pose[2] / 2), w=math.cos(pose[2] / 2)
+                ),
+            ),
+            covariance=np.zeros(36),
+        ),
+        twist=t["geometry_msgs/msg/TwistWithCovariance"](
+            twist=t["geometry_msgs/msg/Twist"](linear=vec, angular=vec), covariance=np.zeros(36)
+        ),
+    )
+
+
+def scan_msg(store, ns: int, ranges, *, frame="laser", angle_min=-1.0, inc=0.5, rmin=0.1, rmax=4.0):
+    return store.types[SCAN](
+        header=header(store, ns, frame),
+        angle_min=angle_min,
+        angle_max=angle_min + inc * (len(ranges) - 1),
+        angle_increment=inc,
+        time_increment=0.0,
+        scan_time=0.0,
+        range_min=rmin,
+        range_max=rmax,
+        ranges=np.asarray(ranges, dtype=np.float32),
+        intensities=np.zeros(0, dtype=np.float32),
+    )
+
+
+def tf_msg(store, transforms):
+    """transforms: (parent, child, (x, y, z), (qx, qy, qz, qw)) tuples."""
+    t = store.types
+    return t[TF](
+        transforms=[
+            t["geometry_msgs/msg/TransformStamped"](
+                header=header(store, 0, parent),
+                child_frame_id=child,
+                transform=t["geometry_msgs/msg/Transform"](
+                    translation=t["geometry_msgs/msg/Vector3"](x=xyz[0], y=xyz[1], z=xyz[2]),
+                    rotation=t["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+                ),
+            )
+            for parent, child, xyz, q in transforms
+        ]
+    )
+
+
+def write_raw(path: Path, messages: list[tuple[str, str, object]], *, ros1: bool = False) -> Path:
+    """A bag of (topic, msgtype, message), in this order (log times 1, 2, 3, … µs)."""
+    store = NOETIC if ros1 else HUMBLE
+    writer = Writer1(path) if ros1 else Writer2(path, version=9, storage_plugin=StoragePlugin.MCAP)
+    with writer:
+        conns = {}
+        for k, (topic, msgtype, msg) in enumerate(messages):
+            if topic not in conns:
+                conns[topic] = writer.add_connection(topic, msgtype, typestore=store)
+            data = store.serialize_ros1(msg, msgtype) if ros1 else store.serialize_cdr(msg, msgtype)
+            writer.write(conns[topic], (k + 1) * 1000, data)
+    return path
+
+
+def raw_tof_bag(path: Path, stamps_ns, *, camera=SMALL, shape=None, encoding="32FC1",
+                skip_amplitude=(), odom_stamps_ns=None) -> Path:  # fmt: skip
+    """A ToF bag: per stamp camera_info, distance and amplitude; odometry at odom_stamps_ns."""
+    shape = shape or camera.shape
+    dtype = np.uint16 if encoding == "16UC1" else np.float32
+    messages: list[tuple[str, str, object]] = []
+    odom_stamps_ns = stamps_ns if odom_stamps_ns is None else odom_stamps_ns
+    for k, ns in enumerate(odom_stamps_ns):
+        messages.append(("/odom", ODOM, odometry_msg(HUMBLE, ns, (k, 0, 0))))
+    for ns in stamps_ns:
+        messages.append(("/tof/camera_info", INFO, camera_info_msg(ns, camera)))
+        image = np.full(shape, ns / NS, dtype=dtype)
+        messages.append(("/tof/distance", IMG, image_msg(ns, image, encoding)))
+        if ns not in skip_amplitude:
+            messages.append(("/tof/amplitude", IMG, image_msg(ns, image)))
+    return write_raw(path, messages)
+
+
+# --- ROS time ------------------------------------------------------------------------------
+
+
+def test_ros_time() -> None:
+    assert to_ros_time(1.5) == (1, 500_000_000)
+    assert to_ros_time(0.1 * 3) == (0, 300_000_000)
+    assert to_ros_time(0.9999999999) == (1, 0)
+    t = 1700000000.123456789  # an epoch time: its float resolves ~0.24 µs
+    sec, nanosec = to_ros_time(t)
+    assert sec == 1700000000 and abs(from_ros_time(sec, nanosec) - t) <= 1e-9 * t
+    assert abs(nanosec - 123456789) <= 120  # within the float's own resolution
+    for bad in (-0.1, math.nan, math.inf):
+        with pytest.raises(ValueError):
+            to_ros_time(bad)
+
+
+# --- ToF bags ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_tof_round_trip(tmp_path: Path, storage: str) -> None:
+    camera = Camera.sr4000()
+    frames = make_frames(camera, 6, samples=True)
+    # Odometry at 20 Hz, ground truth at 10 Hz: their own timestamps, not the frames'.
+    odometry = trajectory(1700000000.0 - 0.05 + 0.05 * np.arange(14), seed=1)
+    truth = trajectory(1700000000.0 + 0.1 * np.arange(6), seed=2)
+    sidecar = {
+        "world": "corridor1",
+        "mirrors": {"count": 4, "tilt_deg": 45.0, "normals": np.eye(3)[:2]},
+        "camera": {"fx": np.float64(249.58), "dist": list(camera.dist)},
+    }
+    path = tmp_path / "seq"
+    n = write_tof_bag(
+        path, iter(frames), camera=camera, odometry=odometry, ground_truth=truth,
+        sidecar=sidecar, storage=storage,
+    )  # fmt: skip
+    assert n == 6
+    assert sorted(p.name for p in path.iterdir()) == sorted(
+        ["metadata.yaml", f"seq.{'mcap' if storage == 'mcap' else 'db3'}", SIDECAR_NAME]
+    )
+    assert [p.name for p in tmp_path.iterdir()] == ["seq"]  # no staging folder left
+
+    bag = read_tof_bag(path)
+    assert bag.camera == camera  # width, height, fx, fy, cx, cy and dist, exactly
+    assert bag.n_frames == len(bag) == 6 and bag.has_samples
+    assert bag.sidecar == {
+        "world": "corridor1",
+        "mirrors": {"count": 4, "tilt_deg": 45.0, "normals": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]},
+        "camera": {"fx": 249.58, "dist": list(camera.dist)},
+    }
+    np.testing.assert_allclose(bag.odometry.timestamps, odometry.timestamps, rtol=0, atol=1e-9)
+    assert_poses(bag.odometry.poses, odometry.poses)
+    np.testing.assert_allclose(bag.ground_truth.timestamps, truth.timestamps, rtol=0, atol=1e-9)
+    assert_poses(bag.ground_truth.poses, truth.poses)
+
+    back = list(bag.frames())
+    assert len(back) == 6
+    for got, sent in zip(back, frames):
+        assert abs(got.timestamp - sent.timestamp) <= 1e-9 * sent.timestamp
+        for name in ("distance", "amplitude", "samples"):
+            a, b = getattr(got, name), getattr(sent, name)
+            assert a.dtype == np.float32 and a.shape == b.shape
+            np.testing.assert_array_equal(bits(a), bits(b))  # bit-exact, NaN and -0 included
+        assert_poses(got.odometry[None], interpolate_poses(odometry, sent.timestamp))
+        assert_poses(got.ground_truth[None], truth.poses[[back.index(got)]])
+    assert all(f.samples is None for f in bag.frames(samples=False))
+    np.testing.assert_allclose(
+        bag.frame_timestamps(), [f.timestamp for f in frames], rtol=0, atol=1e-6
+    )
+    assert_poses(bag.frame_ground_truth().poses, truth.poses)
+
+
+def test_tof_bag_without_samples_or_ground_truth(tmp_path: Path) -> None:
+    frames = make_frames(SMALL, 3, samples=False)
+    odometry = trajectory(np.array([frames[0].timestamp, frames[-1].timestamp]), seed=3)
+    write_tof_bag(tmp_path / "b", frames, camera=SMALL, odometry=odometry)
+    bag = read_tof_bag(tmp_path / "b")
+    assert not bag.has_samples and bag.ground_truth is None and bag.sidecar is None
+    assert bag.frame_ground_truth() is None
+    got = list(bag)
+    assert [f.samples for f in got] == [None] * 3
+    np.testing.assert_array_equal(bits(got[2].amplitude), bits(frames[2].amplitude))
+
+
+def test_frames_stream_lazily(tmp_path: Path) -> None:
+    """The writer pulls frames one by one; the reader hands out a frame before reading on."""
+    pulled = []
+
+    def generate():
+        for frame in make_frames(SMALL, 5, samples=False):
+            pulled.append(frame.timestamp)
+            yield frame
+
+    t = Trajectory([1700000000.0, 1700000001.0], np.zeros((2, 3)))
+    write_tof_bag(tmp_path / "b", generate(), camera=SMALL, odometry=t)
+    assert len(pulled) == 5
+    frames = read_tof_bag(tmp_path / "b").frames()
+    first = next(frames)
+    assert first.timestamp == pytest.approx(1700000000.0)
+    frames.close()
+
+
+def test_interpolation_analytic(tmp_path: Path) -> None:
+    # Odometry at t = 0 and 1: from (0, 0, 170°) to (1, 2, -170°); the shorter arc crosses ±180°.
+    start, end = [0.0, 0.0, math.radians(170)], [1.0, 2.0, math.radians(-170)]
+    odometry = Trajectory([0.0, 1.0], [start, end])
+    expected = {
+        0.25: (0.25, 0.5, math.radians(175)),
+        0.5: (0.5, 1.0, math.radians(180)),
+        0.75: (0.75, 1.5, math.radians(-175)),
+        1.0: (1.0, 2.0, math.radians(-170)),
+    }
+    poses = interpolate_poses(odometry, list(expected))
+    assert_poses(poses, np.array(list(expected.values())), atol=1e-12)
+    assert np.isnan(interpolate_poses(odometry, [-0.1, 1.1])).all()
+    # Equal timestamps (a repeated message) are allowed and take the later pose.
+    steps = Trajectory([0.0, 1.0, 1.0, 2.0], [[0, 0, 0], [1, 0, 0], [5, 0, 0], [6, 0, 0]])
+    np.testing.assert_allclose(interpolate_poses(steps, [0.5, 1.5])[:, 0], [0.5, 5.5])
+
+    # Through a bag: frames at 0.25 s and 0.75 s get exactly these poses, the frame at 1.5 s none.
+    frames = [
+        ToFFrameStamped(t, np.zeros(SMALL.shape), np.zeros(SMALL.shape)) for t in (0.25, 0.75, 1.5)
+    ]
+    write_tof_bag(tmp_path / "b", frames, camera=SMALL, odometry=odometry)
+    bag = read_tof_bag(tmp_path / "b")
+    got = list(bag.frames())
+    assert_poses(np.array([got[0].odometry, got[1].odometry]), poses[[0, 2]], atol=1e-12)
+    assert got[2].odometry is None
+    with pytest.raises(InputError, match="/odom.*frame 2 at 1.5"):
+        bag.frame_odometry()
+
+
+def test_write_is_atomic(tmp_path: Path) -> None:
+    frames = make_frames(SMALL, 4, samples=False)
+    odometry = trajectory(np.array([frames[0].timestamp]), seed=0)
+
+    def failing():
+        yield from frames[:2]
+        raise RuntimeError("interrupted")
+
+    with pytest.raises(RuntimeError, match="interrupted"):
+        write_tof_bag(tmp_path / "b", failing(), camera=SMALL, odometry=odometry, sidecar={})
+    assert list(tmp_path.iterdir()) == []  # neither a bag nor a staging folder
+
+    # Bad input found midway (a timestamp going backwards) leaves nothing either.
+    frames[2].timestamp = frames[0].timestamp
+    with pytest.raises(ValueError, match="timestamps must increase"):
+        write_tof_bag(tmp_path / "b", frames, camera=SMALL, odometry=odometry)
+    assert list(tmp_path.iterdir()) == []
+
+    frames[2].timestamp = frames[1].timestamp + 0.1
+    write_tof_bag(tmp_path / "b", frames[:3], camera=SMALL, odometry=odometry)
+    with pytest.raises(BagExistsError):
+        write_tof_bag(tmp_path / "b", frames, camera=SMALL, odometry=odometry)
+    with pytest.raises(RuntimeError):
+        write_tof_bag(tmp_path / "b", failing(), camera=SMALL, odometry=odometry, overwrite=True)
+    assert read_tof_bag(tmp_path / "b").n_frames == 3  # the old bag is untouched
+    write_tof_bag(tmp_path / "b", frames, camera=SMALL, odometry=odometry, overwrite=True)
+    assert read_tof_bag(tmp_path / "b").n_frames == 4
+    assert [p.name for p in tmp_path.iterdir()] == ["b"]
+
+
+def test_writer_rejects_bad_arguments(tmp_path: Path) -> None:
+    frames = make_frames(SMALL, 2, samples=False)
+    odometry = trajectory(np.array([0.0]), seed=0)
+    with pytest.raises(ValueError, match="camera's"):
+        write_tof_bag(tmp_path / "a", frames, camera=Camera.sr4000(), odometry=odometry)
+    with pytest.raises(ValueError, match="storage"):
+        write_tof_bag(tmp_path / "a", frames, camera=SMALL, odometry=odometry, storage="zip")
+    with pytest.raises(ValueError, match="'.bag'"):
+        write_tof_bag(tmp_path / "a.bag", frames, camera=SMALL, odometry=odometry)
+    with pytest.raises(ValueError, match="at least one frame"):
+        write_tof_bag(tmp_path / "a", [], camera=SMALL, odometry=odometry)
+    mixed = make_frames(SMALL, 2, samples=True)
+    mixed[1].samples = None
+    with pytest.raises(ValueError, match="raw samples"):
+        write_tof_bag(tmp_path / "a", mixed, camera=SMALL, odometry=odometry)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_custom_topics(tmp_path: Path) -> None:
+    topics = ToFTopics(distance="/cam/depth", amplitude="/cam/ampl", odometry="/wheel_odom")
+    frames = make_frames(SMALL, 2, samples=False)
+    odometry = trajectory(np.array([f.timestamp for f in frames]), seed=4)
+    write_tof_bag(tmp_path / "b", frames, camera=SMALL, odometry=odometry, topics=topics)
+    bag = read_tof_bag(tmp_path / "b", topics=topics)
+    assert len(list(bag.frames())) == 2
+    with pytest.raises(InputError) as err:
+        read_tof_bag(tmp_path / "b")
+    assert "/tof/distance" in str(err.value) and "/cam/depth" in str(err.value)  # lists topics
+
+
+# --- ToF bag errors: each names the bag and the topic --------------------------------------
+
+
+def expect_error(path: Path, *fragments: str, **kwargs) -> InputError:
+    with pytest.raises(InputError) as info:
+        bag = read_tof_bag(path, **kwargs)
+        list(bag.frames())
+    message = str(info.value)
+    assert str(path) in message and info.value.path == path
+    for fragment in fragments:
+        assert fragment in message, message
+    return info.value
+
+
+def test_not_a_bag(tmp_path: Path) -> None:
+    text = tmp_path / "notes.txt"
+    text.write_text("hello\n")
+    expect_error(text, "not a readable ROS bag")
+    fake = tmp_path / "fake.bag"
+    fake.write_bytes(b"#ROSBAG V1.2\n garbage")
+    expect_error(fake, "not a readable ROS bag")
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    expect_error(folder, "not a readable ROS bag")
+    expect_error(tmp_path / "absent", "no such bag")
+
+
+def test_missing_and_mistyped_topics(tmp_path: Path) -> None:
+    stamps = [NS, 2 * NS]
+    path = raw_tof_bag(tmp_path / "b", stamps)
+    expect_error(path, "topic /tof/samples", "missing",
+                 topics=ToFTopics(samples="/x", distance="/tof/samples"))  # fmt: skip
+    expect_error(path, "topic /gt", "missing", "/tof/distance (sensor_msgs/msg/Image)",
+                 topics=ToFTopics(odometry="/gt"))  # fmt: skip
+    expect_error(path, "topic /tof/distance has type sensor_msgs/msg/Image",
+                 "expected sensor_msgs/msg/CameraInfo",
+                 topics=ToFTopics(camera_info="/tof/distance"))  # fmt: skip
+    # Without odometry the bag can still be read when odometry is not required.
+    bag = read_tof_bag(path, topics=ToFTopics(odometry="/gt"), require_odometry=False)
+    assert bag.odometry is None and [f.odometry for f in bag.frames()] == [None, None]
+
+
+def test_wrong_encoding(tmp_path: Path) -> None:
+    path = raw_tof_bag(tmp_path / "b", [NS], encoding="16UC1")
+    expect_error(path, "topic /tof/distance", "encoding '16UC1'", "expected '32FC1'")
+
+
+def test_image_size_mismatch(tmp_path: Path) -> None:
+    path = raw_tof_bag(tmp_path / "b", [NS], shape=(5, 8))
+    expect_error(path, "topic /tof/distance", "8×5", "/tof/camera_info says 8×6")
+
+
+def test_image_timestamps_backwards(tmp_path: Path) -> None:
+    path = raw_tof_bag(tmp_path / "b", [NS, 3 * NS, 2 * NS], odom_stamps_ns=[NS, 3 * NS])
+    expect_error(
+        path, "topic /tof/distance", "go backwards", "2.000000000 s follows", "3.000000000 s"
+    )
+
+
+def test_odometry_timestamps_backwards(tmp_path: Path) -> None:
+    path = raw_tof_bag(tmp_path / "b", [NS, 2 * NS], odom_stamps_ns=[2 * NS, NS])
+    expect_error(path, "topic /odom", "go backwards")
+
+
+def test_unsupported_camera_info(tmp_path: Path) -> None:
+    info = camera_info_msg(NS, SMALL)
+    info.distortion_model = "equidistant"
+    info.d = np.array([0.1, 0.2, 0.3, 0.4])
+    path = write_raw(tmp_path / "b", [
+        ("/odom", ODOM, odometry_msg(HUMBLE, NS, (0, 0, 0))),
+        ("/tof/camera_info", INFO, info),
+        ("/tof/distance", IMG, image_msg(NS, np.zeros(SMALL.shape, np.float32))),
+        ("/tof/amplitude", IMG, image_msg(NS, np.zeros(SMALL.shape, np.float32))),
+    ])  # fmt: skip
+    expect_error(path, "topic /tof/camera_info", "equidistant")
+
+
+def test_incomplete_frame_is_skipped(tmp_path: Path) -> None:
+    path = raw_tof_bag(tmp_path / "b", [NS, 2 * NS, 3 * NS], skip_amplitude={2 * NS})
+    bag = read_tof_bag(path)
+    with pytest.warns(RosbagWarning, match="skipped 1 frame"):
+        got = list(bag.frames())
+    assert [f.timestamp for f in got] == [1.0, 3.0]
+    np.testing.assert_array_equal(got[1].distance, np.full(SMALL.shape, 3.0, np.float32))
+
+
+def test_topic_that_stops(tmp_path: Path) -> None:
+    stamps = [k * NS for k in range(1, 71)]
+    path = raw_tof_bag(tmp_path / "b", stamps, skip_amplitude=set(stamps[3:]))
+    expect_error(path, "topic /tof/amplitude", "no image for the frame at 4.000000000 s")
+
+
+def test_bad_sidecar(tmp_path: Path) -> None:
+    frames = make_frames(SMALL, 1, samples=False)
+    write_tof_bag(tmp_path / "b", frames, camera=SMALL, odometry=trajectory(np.array([0.0]), 0))
+    (tmp_path / "b" / SIDECAR_NAME).write_text("- a list\n- not a mapping\n")
+    with pytest.raises(InputError, match="mapping") as info:
+        read_tof_bag(tmp_path / "b")
+    assert info.value.path == tmp_path / "b" / SIDECAR_NAME
+
+
+# --- laser-scan bags -----------------------------------------------------------------------
+
+
+def scan_sequence(n: int = 12, beams: int = 360, seed: int = 0) -> ScanSequence:
+    rng = np.random.default_rng(seed)
+    ranges = rng.uniform(0.05, 7.4, (n, beams)).astype(np.float32)
+    ranges[rng.random((n, beams)) < 0.2] = np.inf
+    return ScanSequence(
+        timestamps=1300000000.0 + 0.1 * np.arange(n) + rng.uniform(0, 0.01, n),
+        ranges=ranges,
+        angles=np.radians(np.arange(beams) - 180.0),
+        odometry=np.column_stack([rng.normal(0, 3, (n, 2)), rng.uniform(-np.pi, np.pi, n)]),
+        sensor_pose=np.array([0.12, -0.03, 0.25]),
+        max_range=7.5,
+        remissions=rng.uniform(0, 1000, (n, beams)).astype(np.float32),
+        ground_truth=np.column_stack([rng.normal(0, 3, (n, 2)), rng.uniform(-3, 3, n)]),
+    )
+
+
+@pytest.mark.parametrize("version, name", [(1, "scans.bag"), (2, "scans")])
+def test_laserscan_round_trip(tmp_path: Path, version: int, name: str) -> None:
+    scans = scan_sequence()
+    path = tmp_path / name
+    write_laserscan_bag(path, scans, version=version)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a complete bag reads without a warning
+        back = read_laserscan_bag(path)
+    assert back.source == str(path)
+    np.testing.assert_array_equal(back.ranges, scans.ranges)  # inf (no echo) preserved
+    assert np.isinf(back.ranges).sum() == np.isinf(scans.ranges).sum() > 0
+    np.testing.assert_array_equal(back.remissions, scans.remissions)
+    np.testing.assert_allclose(back.timestamps, scans.timestamps, rtol=0, atol=1e-9 * 1.3e9)
+    np.testing.assert_allclose(back.angles, scans.angles, rtol=0, atol=1e-6)  # float32 fields
+    assert back.max_range == np.float32(7.5)
+    assert_poses(back.odometry, scans.odometry)
+    assert_poses(back.ground_truth, scans.ground_truth)
+    assert_poses(back.sensor_pose[None], scans.sensor_pose[None])
+
+
+def test_laserscan_writer_checks(tmp_path: Path) -> None:
+    scans = scan_sequence(n=3)
+    with pytest.raises(ValueError, match="'.bag'"):
+        write_laserscan_bag(tmp_path / "x", scans, version=1)
+    with pytest.raises(ValueError, match="'.bag'"):
+        write_laserscan_bag(tmp_path / "x.bag", scans, version=2)
+    uneven = ScanSequence(scans.timestamps, scans.ranges[:, :3], [0.0, 0.1, 0.3], scans.odometry)
+    with pytest.raises(ValueError, match="evenly spaced"):
+        write_laserscan_bag(tmp_path / "x", uneven)
+    back = scans.slice()
+    back.timestamps = back.timestamps[::-1].copy()
+    with pytest.raises(ValueError, match="must not decrease"):
+        write_laserscan_bag(tmp_path / "x", back)
+    assert list(tmp_path.iterdir()) == []
+
+
+LEVEL = (0.0, 0.0, math.sin(0.05), math.cos(0.05))  # yaw 0.1 rad
+FLIPPED = (math.cos(0.05), math.sin(0.05), 0.0, 0.0)  # qz(0.1)·qx(π): upside down, yaw 0.1
+PITCHED = (0.0, math.sin(0.1), 0.0, math.cos(0.1))  # pitch 0.2 rad, no yaw
+
+
+def ros1_laser_bag(path: Path, *, tf=True, laser_q=LEVEL, extra_scan_topic=None) -> Path:
+    """A ROS 1 bag as a robot would record it: odometry at 50 Hz moving along an analytic path
+    (x = 0.5 t, y = -0.2 t, θ = 0.3 t, linear in t so interpolation is exact), scans at 10 Hz
+    starting before the odometry, a tf tree base_link → laser_mount → /base_laser."""
+    messages: list[tuple[str, str, object]] = []
+    if tf:
+        half = math.sin(0.25), math.cos(0.25)
+        mount = ("base_link", "laser_mount", (0.2, 0.1, 0.3), (0.0, 0.0, *half))  # yaw 0.5
+        laser = ("laser_mount", "base_laser", (0.05, 0.0, 0.0), laser_q)  # 0.05 m forward
+        messages.append(("/tf_static", TF, tf_msg(NOETIC, [mount, laser])))
+    events = []
+    for k in range(51):  # odometry from 0.1 s to 1.1 s
+        t = 0.1 + 0.02 * k
+        events.append((t, "odom", (0.5 * t, -0.2 * t, 0.3 * t)))
+    for k in range(13):  # scans 0.0 .. 1.2 s (at 0.05 + 0.1 k)
+        events.append((0.05 + 0.1 * k, "scan", k))
+    for t, kind, value in sorted(events, key=lambda e: e[0]):
+        ns = 1000 * NS + round(t * NS)
+        if kind == "odom":
+            messages.append(("/odom", ODOM, odometry_msg(NOETIC, ns, value, "base_link")))
+        else:
+            ranges = [1.0 + 0.25 * value, math.nan, 0.05, 4.0, 4.5, -math.inf, math.inf, 0.1]
+            messages.append(("/base_scan", SCAN, scan_msg(NOETIC, ns, ranges, frame="/base_laser")))
+            if extra_scan_topic:
+                messages.append((extra_scan_topic, SCAN, scan_msg(NOETIC, ns, ranges)))
+    return write_raw(path, messages, ros1=True)
+
+
+def test_ros1_laserscan_bag(tmp_path: Path) -> None:
+    path = ros1_laser_bag(tmp_path / "robot.bag")
+    with pytest.warns(RosbagWarning, match="dropped 3 of 13 scans on /base_scan"):
+        scans = read_laserscan_bag(path)
+    assert len(scans) == 10 and scans.n_beams == 8
+    t = 0.15 + 0.1 * np.arange(10)
+    np.testing.assert_allclose(scans.timestamps, 1000 + t, rtol=0, atol=1e-9)
+    # Interpolated odometry between 50 Hz poses equals the analytic (linear) path.
+    assert_poses(scans.odometry, np.column_stack([0.5 * t, -0.2 * t, 0.3 * t]), atol=1e-9)
+    # Ranges: NaN, ±inf, below range_min (0.1) and above range_max (4.0) are no echo.
+    expected = np.array([1.0, np.inf, np.inf, 4.0, np.inf, np.inf, np.inf, 0.1], np.float32)
+    np.testing.assert_array_equal(scans.ranges[0, 1:], expected[1:])
+    np.testing.assert_array_equal(scans.ranges[:, 0], np.float32(1.0 + 0.25 * np.arange(1, 11)))
+    np.testing.assert_allclose(scans.angles, -1.0 + 0.5 * np.arange(8), rtol=0, atol=1e-7)
+    assert scans.max_range == 4.0 and scans.ground_truth is None
+    # base_link → laser_mount (0.2, 0.1, yaw 0.5) → base_laser (0.05 forward, yaw 0.1).
+    expected_pose = [0.2 + 0.05 * math.cos(0.5), 0.1 + 0.05 * math.sin(0.5), 0.6]
+    np.testing.assert_allclose(scans.sensor_pose, expected_pose, rtol=0, atol=1e-12)
+    assert scans.remissions is None  # the scans carry no intensities
+
+
+def read_warned(path: Path, **kwargs) -> tuple[ScanSequence, list[str]]:
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        scans = read_laserscan_bag(path, **kwargs)
+    assert all(issubclass(w.category, RosbagWarning) for w in record)
+    return scans, [str(w.message) for w in record]
+
+
+def test_upside_down_laser(tmp_path: Path) -> None:
+    scans, messages = read_warned(ros1_laser_bag(tmp_path / "robot.bag", laser_q=FLIPPED))
+    assert not any("tilted" in m for m in messages)  # upside down is handled, not a tilt
+    # An upside-down laser's beams run clockwise: angle a in its frame is -a in the plane.
+    np.testing.assert_allclose(scans.angles, -(-1.0 + 0.5 * np.arange(8)), rtol=0, atol=1e-7)
+    np.testing.assert_allclose(scans.sensor_pose[2], 0.6, atol=1e-12)
+
+
+def test_tilted_laser_warns(tmp_path: Path) -> None:
+    scans, messages = read_warned(ros1_laser_bag(tmp_path / "robot.bag", laser_q=PITCHED))
+    assert any("base_laser is tilted 11.5°" in m for m in messages)
+    np.testing.assert_allclose(scans.sensor_pose[2], 0.5, atol=1e-12)
+    np.testing.assert_allclose(scans.angles, -1.0 + 0.5 * np.arange(8), rtol=0, atol=1e-7)
+
+
+def test_laser_without_tf(tmp_path: Path) -> None:
+    scans, messages = read_warned(ros1_laser_bag(tmp_path / "robot.bag", tf=False))
+    assert any("no static transform base_link → base_laser" in m for m in messages)
+    np.testing.assert_array_equal(scans.sensor_pose, np.zeros(3))
+
+
+def test_topic_auto_detection(tmp_path: Path) -> None:
+    path = ros1_laser_bag(tmp_path / "two.bag", extra_scan_topic="/scan_rear")
+    with pytest.raises(InputError) as info:
+        read_laserscan_bag(path)
+    message = str(info.value)
+    assert str(path) in message and "/base_scan, /scan_rear" in message and "scan_topic=" in message
+    assert len(read_warned(path, scan_topic="/scan_rear")[0]) == 10
+    # The conventional name wins over others: /scan is in frame "laser", which has no tf.
+    path = ros1_laser_bag(tmp_path / "conv.bag", extra_scan_topic="/scan")
+    scans, messages = read_warned(path)
+    assert any("no static transform base_link → laser on" in m for m in messages)
+    np.testing.assert_array_equal(scans.sensor_pose, np.zeros(3))
+    with pytest.raises(InputError, match="topic /nope .*missing"):
+        read_laserscan_bag(path, odom_topic="/nope")
+
+
+def test_laserscan_errors(tmp_path: Path) -> None:
+    store = HUMBLE
+    odom = [("/odom", ODOM, odometry_msg(store, k * NS, (k, 0, 0))) for k in range(3)]
+    no_odom = write_raw(tmp_path / "a", [("/scan", SCAN, scan_msg(store, NS, [1.0]))])
+    with pytest.raises(InputError, match="no nav_msgs/msg/Odometry topic; the bag has: /scan"):
+        read_laserscan_bag(no_odom)
+    changing = write_raw(tmp_path / "b", odom + [
+        ("/scan", SCAN, scan_msg(store, NS, [1.0, 2.0])),
+        ("/scan", SCAN, scan_msg(store, NS + 1, [1.0, 2.0, 3.0])),
+    ])  # fmt: skip
+    with pytest.raises(InputError, match="topic /scan: the scan at 1.000000001 s has beam geom"):
+        read_laserscan_bag(changing)
+    backwards = write_raw(tmp_path / "c", odom + [
+        ("/scan", SCAN, scan_msg(store, 2 * NS, [1.0])),
+        ("/scan", SCAN, scan_msg(store, NS, [1.0])),
+    ])  # fmt: skip
+    with pytest.raises(InputError, match="topic /scan: timestamps go backwards") as info:
+        read_laserscan_bag(backwards)
+    assert info.value.path == backwards
+    outside = write_raw(tmp_path / "d", odom + [
+        ("/scan", SCAN, scan_msg(store, 5 * NS, [1.0])),
+    ])  # fmt: skip
+    with pytest.raises(InputError, match="topic /odom: no scan on /scan lies within"):
+        read_laserscan_bag(outside)
+
+
+def test_default_storage_is_mcap() -> None:
+    assert DEFAULT_STORAGE == "mcap"  # rosbags writes MCAP; sqlite3 stays available
