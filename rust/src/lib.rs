@@ -33,6 +33,22 @@ fn rows3<'py>(py: Python<'py>, poses: &[[f64; 3]]) -> Bound<'py, PyArray2<f64>> 
     Array2::from_shape_vec((poses.len(), 3), flat).unwrap().into_pyarray(py)
 }
 
+/// Scan geometry from beam angles (checked against the ranges) and an optional sensor pose.
+fn scan_geometry<'a>(
+    angles: &'a [f64],
+    ranges: &[f32],
+    sensor_pose: Option<PyReadonlyArray1<f64>>,
+) -> PyResult<ScanGeometry<'a>> {
+    if angles.len() != ranges.len() {
+        return Err(PyValueError::new_err("angles and ranges differ in length"));
+    }
+    let sensor = match sensor_pose {
+        Some(s) => pose3(s.as_slice()?, "sensor_pose")?,
+        None => [0.0; 3],
+    };
+    Ok(ScanGeometry { angles, sensor })
+}
+
 type DenseGrid<'py> = (Bound<'py, PyArray2<f32>>, i32, i32);
 
 fn dense<'py>(py: Python<'py>, grid: &TiledGrid) -> DenseGrid<'py> {
@@ -255,15 +271,8 @@ impl PyOccupancyGrid {
         sensor_pose: Option<PyReadonlyArray1<f64>>,
     ) -> PyResult<()> {
         let robot = pose3(robot_pose.as_slice()?, "robot_pose")?;
-        let sensor = match sensor_pose {
-            Some(s) => pose3(s.as_slice()?, "sensor_pose")?,
-            None => [0.0; 3],
-        };
         let (angles, ranges) = (angles.as_slice()?, ranges.as_slice()?);
-        if angles.len() != ranges.len() {
-            return Err(PyValueError::new_err("angles and ranges differ in length"));
-        }
-        let geom = ScanGeometry { angles, sensor };
+        let geom = scan_geometry(angles, ranges, sensor_pose)?;
         integrate_scan(&mut self.grid, &self.model, &geom, robot, ranges, max_range, clear_no_echo);
         Ok(())
     }
@@ -294,15 +303,8 @@ impl PyOccupancyGrid {
         gauss_newton: u32,
     ) -> PyResult<([f64; 3], f64)> {
         let start = pose3(start.as_slice()?, "start")?;
-        let sensor = match sensor_pose {
-            Some(s) => pose3(s.as_slice()?, "sensor_pose")?,
-            None => [0.0; 3],
-        };
         let (angles, ranges) = (angles.as_slice()?, ranges.as_slice()?);
-        if angles.len() != ranges.len() {
-            return Err(PyValueError::new_err("angles and ranges differ in length"));
-        }
-        let geom = ScanGeometry { angles, sensor };
+        let geom = scan_geometry(angles, ranges, sensor_pose)?;
         let lf = LikelihoodField { sigma, z_hit: 0.9, z_rand: 0.1, max_range, window, occupied_threshold };
         let m = MatcherParams {
             step_xy, step_theta, refinements, gauss_newton, sample_xy: 0.01, sample_theta: 0.005,

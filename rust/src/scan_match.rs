@@ -206,7 +206,7 @@ pub fn objective(
 }
 
 /// Refine a pose by Gauss-Newton on the likelihood field: each end point pulls towards the
-/// centre of its nearest occupied cell, weighted as iteratively reweighted least squares of
+/// mean end point of its nearest occupied cell, weighted as iteratively reweighted least squares of
 /// log(z_hit·N(d; 0, σ) + z_rand/max_range) (points with no obstacle in the window drop out);
 /// the points' mean is scaled by `gain`, and the Gaussian `prior` (if any) adds its own pull.
 /// A step that lowers the objective is undone and ends the refinement.
