@@ -29,7 +29,9 @@
 //! Acceleration: walls and boxes are binned into a uniform 2D grid over the floor plan (each
 //! cell lists the primitives whose footprint touches it); a ray walks the cells under its
 //! horizontal projection with `raycast::traverse` (Amanatides & Woo) and stops at the first cell
-//! that ends beyond the nearest hit found so far.
+//! that ends beyond the nearest hit found so far. A primitive that lies in several cells is
+//! tested once per ray (`Mailbox`). Floor and ceiling are planes tested before the walk; they
+//! bound its length.
 //!
 //! Determinism: nothing here is random (sub-ray jitter is chosen by the caller, the grid's bars
 //! are a fixed pattern in space), and each pixel sums its sub-rays in a fixed order, so the
@@ -45,7 +47,7 @@ pub const SPEED_OF_LIGHT: f64 = 299_792_458.0;
 const T_MIN: f64 = 1e-6;
 /// Limit on pass-throughs (glass, grid holes) along one path: bounds the work per ray.
 pub const MAX_PASSES: u32 = 6;
-/// Pending ray segments of one sub-ray; glass splits a ray in two, so this bounds the branching.
+/// Light paths of one sub-ray waiting to be followed; glass splits a path in two.
 const STACK: usize = 16;
 /// Bit that marks a box (rather than a wall) in the grid's item lists.
 const BLOCK_BIT: u32 = 1 << 31;
@@ -103,7 +105,7 @@ impl Material {
         let (u, v) = if normal[2].abs() > 0.5 {
             (point[0], point[1])
         } else {
-            let h = normal[0].hypot(normal[1]);
+            let h = (normal[0] * normal[0] + normal[1] * normal[1]).sqrt();
             ((normal[0] * point[1] - normal[1] * point[0]) / h, point[2])
         };
         let near_bar = |x: f64| {
@@ -244,7 +246,8 @@ impl Scene {
             let e = [w.b[0] - w.a[0], w.b[1] - w.a[1]];
             let len = e[0].hypot(e[1]);
             let finite = w.a.iter().chain(&w.b).chain(&[w.bottom, w.top]).all(|v| v.is_finite());
-            if !finite || !(len > 0.0) || !(w.top > w.bottom) {
+            let valid = finite && len > 0.0 && w.top > w.bottom; // false for NaN too
+            if !valid {
                 return Err(format!("wall {i} must be finite, of positive length and height"));
             }
             wall_geoms.push(WallGeom {
@@ -260,7 +263,8 @@ impl Scene {
         for (i, b) in blocks.iter().enumerate() {
             known(b.material, &format!("box {i}"))?;
             let finite = b.centre.iter().chain(&b.half).chain(&[b.yaw, b.bottom, b.top]).all(|v| v.is_finite());
-            if !finite || !(b.half[0] > 0.0 && b.half[1] > 0.0) || !(b.top > b.bottom) {
+            let valid = finite && b.half[0] > 0.0 && b.half[1] > 0.0 && b.top > b.bottom;
+            if !valid {
                 return Err(format!("box {i} must be finite with positive sizes"));
             }
             block_geoms.push(BlockGeom {
@@ -292,6 +296,19 @@ impl Scene {
     /// The first surface along the ray o + t·d with t in (t_min, t_max); `d` must be a unit
     /// vector. Walks the plan grid; never loops over all walls.
     pub fn intersect(&self, o: [f64; 3], d: [f64; 3], t_min: f64, t_max: f64) -> Option<Hit> {
+        self.intersect_with(o, d, t_min, t_max, &mut Mailbox::for_scene(self))
+    }
+
+    /// `intersect` with a caller's mailbox (reused across rays to save its allocation).
+    pub fn intersect_with(
+        &self,
+        o: [f64; 3],
+        d: [f64; 3],
+        t_min: f64,
+        t_max: f64,
+        mail: &mut Mailbox,
+    ) -> Option<Hit> {
+        let ray = mail.next_ray();
         let mut best: Option<Hit> = None;
         let mut best_t = t_max;
         // Floor and ceiling first: they bound how far the grid walk has to go.
@@ -305,10 +322,16 @@ impl Scene {
                 }
             }
         }
-        let h = d[0].hypot(d[1]);
+        let h = (d[0] * d[0] + d[1] * d[1]).sqrt();
         let grid = &self.grid;
-        let test_items = |items: &[u32], best: &mut Option<Hit>, best_t: &mut f64| {
+        let mut test_items = |items: &[u32], best: &mut Option<Hit>, best_t: &mut f64| {
             for &item in items {
+                // A long wall lies in many cells along a ray; test it only once.
+                let slot = if item & BLOCK_BIT != 0 { self.walls.len() + (item & !BLOCK_BIT) as usize } else { item as usize };
+                if mail.stamps[slot] == ray {
+                    continue;
+                }
+                mail.stamps[slot] = ray;
                 let hit = if item & BLOCK_BIT != 0 {
                     hit_block(&self.blocks[(item & !BLOCK_BIT) as usize], o, d, t_min, *best_t)
                 } else {
@@ -328,14 +351,19 @@ impl Scene {
             }
             return best;
         }
-        let u = [d[0] / h, d[1] / h];
-        // Clip the horizontal ray (arc length s = t·h) to the grid's rectangle.
-        let Some((s_in, s_out)) = clip_to_rect([o[0], o[1]], u, grid.lo(), grid.hi()) else {
+        let inv_h = 1.0 / h;
+        let u = [d[0] * inv_h, d[1] * inv_h];
+        // Clip the horizontal ray (arc length s = t·h) to the grid's rectangle; a ray that
+        // starts inside needs no clip: the walk stops where it leaves the grid.
+        let (lo, hi) = (grid.lo(), grid.hi());
+        let inside = lo[0] < o[0] && o[0] < hi[0] && lo[1] < o[1] && o[1] < hi[1];
+        let Some((s_in, s_out)) = (if inside { Some((0.0, f64::INFINITY)) } else { clip_to_rect([o[0], o[1]], u, lo, hi) })
+        else {
             return best;
         };
         let s_lo = s_in.max(t_min * h);
         let s_hi = s_out.min(best_t * h);
-        if !(s_lo < s_hi) {
+        if s_lo >= s_hi {
             return best;
         }
         // Start a hair inside so the first cell is inside the grid (geometry keeps a margin).
@@ -348,6 +376,30 @@ impl Scene {
             best_t * h > s_start + s_exit
         });
         best
+    }
+}
+
+/// Per-ray marks of the primitives already tested (mailboxing): a primitive that spans many
+/// grid cells is intersected once per ray. One per worker; `next_ray` starts a new ray.
+#[derive(Clone, Debug)]
+pub struct Mailbox {
+    stamps: Vec<u32>,
+    ray: u32,
+}
+
+impl Mailbox {
+    pub fn for_scene(scene: &Scene) -> Mailbox {
+        Mailbox { stamps: vec![0; scene.walls.len() + scene.blocks.len()], ray: 0 }
+    }
+
+    fn next_ray(&mut self) -> u32 {
+        self.ray = self.ray.wrapping_add(1);
+        if self.ray == 0 {
+            // After 2³² rays the stamps could repeat: clear them.
+            self.stamps.fill(0);
+            self.ray = 1;
+        }
+        self.ray
     }
 }
 
@@ -399,24 +451,26 @@ fn hit_wall(w: &WallGeom, o: [f64; 3], d: [f64; 3], t_min: f64, t_max: f64) -> O
 
 #[inline]
 fn hit_block(b: &BlockGeom, o: [f64; 3], d: [f64; 3], t_min: f64, t_max: f64) -> Option<Hit> {
-    // Slab test in the box's own frame (its axes turned by yaw in plan).
+    // Slab test in the box's own frame (its axes turned by yaw in plan): the plan axes first,
+    // since most candidates from the grid miss the box in plan and leave early.
     let rel = [o[0] - b.centre[0], o[1] - b.centre[1]];
     let p = [b.cos * rel[0] + b.sin * rel[1], -b.sin * rel[0] + b.cos * rel[1], o[2]];
     let q = [b.cos * d[0] + b.sin * d[1], -b.sin * d[0] + b.cos * d[1], d[2]];
-    let lo = [-b.half[0], -b.half[1], b.bottom];
-    let hi = [b.half[0], b.half[1], b.top];
+    let mid = [0.0, 0.0, 0.5 * (b.bottom + b.top)];
+    let half = [b.half[0], b.half[1], 0.5 * (b.top - b.bottom)];
     let (mut t_near, mut t_far) = (f64::NEG_INFINITY, f64::INFINITY);
     let (mut axis_near, mut axis_far) = (0usize, 0usize);
     for k in 0..3 {
+        let rel = p[k] - mid[k];
         if q[k].abs() < 1e-15 {
-            if p[k] < lo[k] || p[k] > hi[k] {
+            if rel.abs() > half[k] {
                 return None;
             }
             continue;
         }
-        let ta = (lo[k] - p[k]) / q[k];
-        let tb = (hi[k] - p[k]) / q[k];
-        let (t0, t1) = if ta < tb { (ta, tb) } else { (tb, ta) };
+        let inv = 1.0 / q[k];
+        let (ta, tb) = ((-half[k] - rel) * inv, (half[k] - rel) * inv);
+        let (t0, t1) = if inv > 0.0 { (ta, tb) } else { (tb, ta) };
         if t0 > t_near {
             t_near = t0;
             axis_near = k;
@@ -425,18 +479,21 @@ fn hit_block(b: &BlockGeom, o: [f64; 3], d: [f64; 3], t_min: f64, t_max: f64) ->
             t_far = t1;
             axis_far = k;
         }
-    }
-    if t_near > t_far {
-        return None;
+        if t_near > t_far || t_far <= t_min || t_near >= t_max {
+            return None;
+        }
     }
     // From outside, the entry face; from inside (a ray passing through glass), the exit face.
     let (t, axis) = if t_near > t_min { (t_near, axis_near) } else { (t_far, axis_far) };
     if !(t > t_min && t < t_max) {
         return None;
     }
-    let mut local = [0.0; 3];
-    local[axis] = -q[axis].signum(); // the face's side that the ray meets
-    let normal = [b.cos * local[0] - b.sin * local[1], b.sin * local[0] + b.cos * local[1], local[2]];
+    let side = -q[axis].signum(); // the face's side that the ray meets
+    let normal = match axis {
+        0 => [b.cos * side, b.sin * side, 0.0],
+        1 => [-b.sin * side, b.cos * side, 0.0],
+        _ => [0.0, 0.0, side],
+    };
     Some(Hit { t, normal, material: b.material })
 }
 
@@ -692,7 +749,7 @@ pub struct Return {
     pub ambient: f64,
 }
 
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, Debug)]
 struct Segment {
     origin: [f64; 3],
     dir: [f64; 3],
@@ -703,32 +760,38 @@ struct Segment {
     passes: u32,
 }
 
+/// Scratch space of one worker: the mailbox and the stack of light paths still to follow.
+#[derive(Clone, Debug)]
+pub struct Workspace {
+    mail: Mailbox,
+    pending: Vec<Segment>,
+}
+
+impl Workspace {
+    pub fn for_scene(scene: &Scene) -> Workspace {
+        Workspace { mail: Mailbox::for_scene(scene), pending: Vec::with_capacity(STACK) }
+    }
+}
+
 /// Follow one ray (world frame) through the scene and add what comes back to `acc`.
-pub fn trace(scene: &Scene, params: &RenderParams, ray: &SubRay, acc: &mut Return) {
+pub fn trace(scene: &Scene, params: &RenderParams, ray: &SubRay, acc: &mut Return, work: &mut Workspace) {
     if ray.g2 <= 0.0 {
         return;
     }
     // Phase per metre of one-way path: the light travels it twice.
     let k = 4.0 * std::f64::consts::PI * params.f_mod / SPEED_OF_LIGHT;
-    let mut stack = [Segment { origin: [0.0; 3], dir: [0.0; 3], path: 0.0, g2: 0.0, g1: 0.0, bounces: 0, passes: 0 }; STACK];
-    stack[0] = Segment { origin: ray.origin, dir: ray.dir, path: ray.path, g2: ray.g2, g1: ray.g1, bounces: 0, passes: 0 };
-    let mut pending = 1;
-    let push = |stack: &mut [Segment; STACK], pending: &mut usize, s: Segment| {
-        if *pending < STACK && s.g2 >= params.min_gain {
-            stack[*pending] = s;
-            *pending += 1;
-        }
-    };
-    while pending > 0 {
-        pending -= 1;
-        let seg = stack[pending];
-        let Some(hit) = scene.intersect(seg.origin, seg.dir, T_MIN, f64::INFINITY) else { continue };
+    work.pending.clear();
+    let mut current =
+        Some(Segment { origin: ray.origin, dir: ray.dir, path: ray.path, g2: ray.g2, g1: ray.g1, bounces: 0, passes: 0 });
+    // Only glass splits a path in two; the second half waits on the stack.
+    while let Some(seg) = current.take().or_else(|| work.pending.pop()) {
+        let Some(hit) = scene.intersect_with(seg.origin, seg.dir, T_MIN, f64::INFINITY, &mut work.mail) else { continue };
         let point = add(seg.origin, scale(seg.dir, hit.t));
         let r = seg.path + hit.t;
         let m = scene.material(hit.material);
         if m.kind == Kind::Grid && !m.on_bar(point, hit.normal) {
             if seg.passes < MAX_PASSES {
-                push(&mut stack, &mut pending, Segment { origin: point, path: r, passes: seg.passes + 1, ..seg });
+                current = Some(Segment { origin: point, path: r, passes: seg.passes + 1, ..seg });
             }
             continue;
         }
@@ -741,8 +804,8 @@ pub fn trace(scene: &Scene, params: &RenderParams, ray: &SubRay, acc: &mut Retur
             acc.magnitude += amplitude;
             acc.ambient += seg.g1 * m.albedo;
         }
-        if m.specular > 0.0 && seg.bounces < params.max_bounces {
-            let reflected = Segment {
+        if m.specular > 0.0 && seg.bounces < params.max_bounces && seg.g2 * m.specular * m.specular >= params.min_gain {
+            current = Some(Segment {
                 origin: point,
                 dir: reflect(seg.dir, hit.normal),
                 path: r,
@@ -750,13 +813,16 @@ pub fn trace(scene: &Scene, params: &RenderParams, ray: &SubRay, acc: &mut Retur
                 g1: seg.g1 * m.specular,
                 bounces: seg.bounces + 1,
                 passes: seg.passes,
-            };
-            push(&mut stack, &mut pending, reflected);
+            });
         }
-        if m.transmission > 0.0 && seg.passes < MAX_PASSES {
-            let t = m.transmission;
+        let t = m.transmission;
+        if t > 0.0 && seg.passes < MAX_PASSES && seg.g2 * t * t >= params.min_gain {
             let through = Segment { origin: point, path: r, g2: seg.g2 * t * t, g1: seg.g1 * t, passes: seg.passes + 1, ..seg };
-            push(&mut stack, &mut pending, through);
+            if current.is_none() {
+                current = Some(through);
+            } else if work.pending.len() < STACK {
+                work.pending.push(through);
+            }
         }
     }
 }
@@ -769,18 +835,21 @@ pub fn render(scene: &Scene, rig: &Rig, params: &RenderParams, poses: &[[f64; 3]
     assert_eq!(out.len(), poses.len() * h * w * 4, "output buffer size");
     let transforms: Vec<[[f64; 4]; 3]> = poses.iter().map(|&p| rig.world_t_camera(p)).collect();
     out.par_chunks_mut(w * 4).enumerate().for_each(|(row_index, row)| {
+        let mut work = Workspace::for_scene(scene);
         let m = &transforms[row_index / h];
         let first = (row_index % h) * w * s;
         for (col, px) in row.chunks_exact_mut(4).enumerate() {
             let mut acc = Return::default();
             for sub in &rig.rays[first + col * s..first + (col + 1) * s] {
                 let world = SubRay { origin: apply(m, sub.origin), dir: rotate(m, sub.dir), ..*sub };
-                trace(scene, params, &world, &mut acc);
+                trace(scene, params, &world, &mut acc, &mut work);
             }
             let inv = 1.0 / s as f64;
-            px[0] = (acc.re * inv) as f32;
-            px[1] = (acc.im * inv) as f32;
-            px[2] = (acc.magnitude * inv) as f32;
+            let (re, im) = ((acc.re * inv) as f32, (acc.im * inv) as f32);
+            px[0] = re;
+            px[1] = im;
+            // |Σp| <= Σ|p| holds exactly; keep it true after rounding to f32.
+            px[2] = ((acc.magnitude * inv) as f32).max(re.hypot(im) * (1.0 + 4.0 * f32::EPSILON));
             px[3] = (acc.ambient * inv) as f32;
         }
     });
@@ -987,7 +1056,8 @@ mod tests {
 
     fn trace_one(scene: &Scene, o: [f64; 3], d: [f64; 3]) -> Return {
         let mut acc = Return::default();
-        trace(scene, &params(), &SubRay { origin: o, dir: d, path: 0.0, g2: 1.0, g1: 1.0 }, &mut acc);
+        let mut work = Workspace::for_scene(scene);
+        trace(scene, &params(), &SubRay { origin: o, dir: d, path: 0.0, g2: 1.0, g1: 1.0 }, &mut acc, &mut work);
         acc
     }
 
@@ -1077,3 +1147,4 @@ mod tests {
         assert_eq!(one, run(3));
     }
 }
+

@@ -65,6 +65,9 @@ fn mirrors(
     Ok(out)
 }
 
+/// (distances, material indices) of `_Renderer.cast`.
+type Casts<'py> = (Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<i64>>);
+
 /// A world and a rig, ready to render (see omnitof.sim.render for the meaning of every array).
 #[pyclass(name = "_Renderer", module = "omnitof._core")]
 struct PyRenderer {
@@ -189,7 +192,7 @@ impl PyRenderer {
         py: Python<'py>,
         origins: PyReadonlyArray2<f64>,
         directions: PyReadonlyArray2<f64>,
-    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<i64>>)> {
+    ) -> PyResult<Casts<'py>> {
         let o = rows(&origins, 3, "origins")?;
         let d = rows(&directions, 3, "directions")?;
         same_len(o.len(), d.len(), "directions")?;
@@ -214,6 +217,7 @@ impl PyRenderer {
 }
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
-    m.add_class::<PyRenderer>()?;
-    Ok(())
+    // A plain attribute rather than `add_class`, which would also list the private class in the
+    // module's `__all__` (the public names the stubs in _core.pyi describe).
+    m.setattr("_Renderer", m.py().get_type::<PyRenderer>())
 }

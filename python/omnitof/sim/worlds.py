@@ -31,7 +31,7 @@ field, e.g. `room.yaml: walls[2].doors[0].at: the door runs past the end of edge
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -61,8 +61,9 @@ class WorldError(InputError):
 # assumptions for typical indoor surfaces, not measurements: white wall paint reflects about
 # 0.7–0.8 in the NIR, less once used (0.6); grey vinyl floors about 0.3; ceiling tiles about
 # 0.75. Clear float glass reflects about 4 % per face at normal incidence (Fresnel, n = 1.5),
-# so 0.08 for a pane, and transmits about 0.88 at 850 nm. Bare brushed steel mirrors most of
-# what it does not absorb and scatters only a few per cent.
+# so 0.08 for a pane, and transmits about 0.88 at 850 nm; dust scatters a little (0.005), which
+# is enough to pull a reading through a pane a few centimetres towards it. Bare brushed steel
+# mirrors most of what it does not absorb and scatters only a few per cent.
 
 KINDS = ("matte", "metal", "glass", "grid")
 
@@ -101,7 +102,7 @@ class GlassSpec(_Strict):
     """A glass pane: transmits most light, mirrors a little, scatters almost nothing."""
 
     kind: Literal["glass"]
-    albedo: Fraction = 0.01
+    albedo: Fraction = 0.005
     specular: Fraction = 0.08
     transmission: Fraction = 0.88
 
@@ -158,7 +159,7 @@ MATERIALS: dict[str, Material] = {
         Material("furniture", "matte", 0.5),
         Material("dark", "matte", 0.1),
         Material("metal", "metal", 0.05, specular=0.7),
-        Material("glass", "glass", 0.01, specular=0.08, transmission=0.88),
+        Material("glass", "glass", 0.005, specular=0.08, transmission=0.88),
         Material("metal_grid", "grid", 0.3, coverage=0.3, pitch=0.1),
     )
 }
@@ -310,9 +311,9 @@ class World:
             raise WorldError(f"see_through: unknown material kinds {sorted(unknown)}", self.source)
         parts = []
         cut = (self.quads[:, 4] <= height) & (height <= self.quads[:, 5])
-        for i in np.flatnonzero(cut):
-            if self.materials[self.quad_materials[i]].kind not in skip:
-                parts.append(self.quads[i, :4].reshape(1, 2, 2))
+        for q in np.flatnonzero(cut):
+            if self.materials[self.quad_materials[q]].kind not in skip:
+                parts.append(self.quads[q, :4].reshape(1, 2, 2))
         for i in range(len(self.boxes)):
             bottom, top = self.boxes[i, 5], self.boxes[i, 6]
             if bottom <= height <= top and self.materials[self.box_materials[i]].kind not in skip:
@@ -604,7 +605,9 @@ def _compile(spec: WorldSpec, source: Path | None) -> World:
     )
 
 
-def _wall_pieces(wall: WallSpec, top: float, field: str, source: Path | None, need) -> list:
+def _wall_pieces(
+    wall: WallSpec, top: float, field: str, source: Path | None, need: Callable[[str | None, str], None]
+) -> list[tuple[list[float], str, str]]:
     """The quads of one polyline wall: solid runs between doors, the piece above each door, and
     each door's leaf. Each item is ([ax, ay, bx, by, bottom, top], material, role)."""
     pts = np.array(wall.points, dtype=np.float64)
