@@ -6,6 +6,7 @@ Errors that come from the user's input (OmnitofError) print one line and exit wi
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import warnings
 from pathlib import Path
@@ -93,6 +94,32 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from omnitof.sim.sequence import MotionSettings, make_sequence, simulate_bag
+    from omnitof.sim.worlds import load_world
+
+    world = load_world(args.world)
+    motion = MotionSettings(speed=args.speed)
+    total = len(make_sequence(world, seed=args.seed, motion=motion))
+    if args.max_frames is not None:
+        total = min(total, args.max_frames)
+    with tqdm(total=total, unit="frame", desc="render", disable=args.quiet, dynamic_ncols=True) as bar:
+        sequence, written = simulate_bag(
+            world, args.out, seed=args.seed, motion=motion, samples=args.samples,
+            max_frames=args.max_frames, storage=args.storage, overwrite=args.overwrite,
+            progress=bar.update,
+        )
+    drift, turn = sequence.odometry_end_error(written)
+    print(
+        f"{world.name}: {written} frames at {motion.rate_hz:g} Hz, {sequence.distance_driven(written):.1f} m driven; "
+        f"raw odometry ends {drift:.2f} m and {math.degrees(turn):.1f}° off the truth"
+    )
+    print(f"bag in {args.out}")
+    return 0
+
+
 def cmd_design(args: argparse.Namespace) -> int:
     from omnitof.camera import Camera
     from omnitof.design import design_report, format_sweep, plot_sweep, sweep
@@ -160,6 +187,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--figure", type=Path, help="draw the mirror regions of the image (PNG)")
     p.add_argument("--sweep", type=Path, metavar="PNG", help="sweep tilt, yaw, mirrors and lens; plot to PNG")
     p.set_defaults(func=cmd_design)
+
+    p = sub.add_parser("simulate", help="simulate a robot driving a world with the omnidirectional ToF sensor; write a ROS 2 bag")
+    p.add_argument("--world", default="corridor1", help="a bundled world (room, office, corridor1, corridor2) or a world YAML file")
+    p.add_argument("--out", type=Path, required=True, help="the bag folder to write")
+    p.add_argument("--seed", type=int, default=0, help="fixes the odometry noise, the sensor noise and the sub-ray jitter")
+    p.add_argument("--speed", type=float, default=0.4, help="driving speed (m/s)")
+    p.add_argument("--samples", action="store_true", help="also write the raw samples A0..A3 (5x the size)")
+    p.add_argument("--max-frames", type=int, help="write only the first N frames")
+    p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="ROS 2 bag storage")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing bag")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser("demo", help="simulate a corridor loop, run SLAM, evaluate, write figures")
     p.add_argument("--out", type=Path, default=Path("results/demo"), help="results folder")

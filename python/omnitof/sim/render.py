@@ -210,11 +210,14 @@ class Renderer:
         gen = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
         return self._frames(self.phasors(pose), pose.reshape(1, 3), [gen])[0]
 
-    def render_many(self, poses: np.ndarray, *, seed: int) -> list[Frame]:
+    def render_many(self, poses: np.ndarray, *, seed: int, first_index: int = 0) -> list[Frame]:
         """Frames at robot poses (N, 3), rendered in one batch; frame i's noise comes from the
-        generator seeded with (seed, i), so a frame does not depend on the others."""
+        generator seeded with (seed, first_index + i), so a frame does not depend on the others
+        and a long sequence rendered in batches is the same as one rendered at once."""
         poses2 = _poses(poses)
-        gens = [np.random.default_rng([int(seed), i]) for i in range(len(poses2))]
+        if first_index < 0:
+            raise RenderConfigError(f"first_index must be >= 0, got {first_index!r}")
+        gens = [np.random.default_rng([int(seed), int(first_index) + i]) for i in range(len(poses2))]
         return self._frames(self.phasors(poses2), poses2, gens)
 
     def first_surface(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
