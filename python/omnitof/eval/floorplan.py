@@ -55,3 +55,119 @@ def wall_agreement(
         median_distance=float(np.median(d)),
         tolerance=tolerance,
     )
+
+
+# --- the floor plan the robot could see, and how much of it the map holds ---------------------
+
+
+@dataclass(frozen=True)
+class WallCoverage:
+    """How much of the wall length in the robot's view the map holds (completeness).
+
+    seen_length: metres of wall that some pose saw (within max_range, line of sight).
+    mapped_length: metres of that with an occupied cell centre within `tolerance`.
+    fraction: mapped_length / seen_length (NaN if nothing was seen).
+    mean_distance: mean distance (m) from the seen wall samples to the nearest occupied cell
+        centre (inf if the map has no occupied cell).
+    """
+
+    seen_length: float
+    mapped_length: float
+    fraction: float
+    mean_distance: float
+    tolerance: float
+
+    def to_dict(self) -> dict[str, float]:
+        return {k: float(v) for k, v in self.__dict__.items()}
+
+
+def wall_samples(segments: np.ndarray, spacing: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Points every ~`spacing` metres along the walls, at the middles of equal pieces:
+    (points (K, 2), length (K,) of wall each stands for, metres)."""
+    seg = np.asarray(segments, dtype=np.float64).reshape(-1, 2, 2)
+    if not spacing > 0:
+        raise ValueError(f"spacing must be > 0, got {spacing!r}")
+    lengths = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1)
+    counts = np.maximum(np.ceil(lengths / spacing).astype(np.int64), 1)
+    owner = np.repeat(np.arange(len(seg)), counts)
+    first = np.cumsum(counts) - counts
+    t = (np.arange(counts.sum()) - first[owner] + 0.5) / counts[owner]
+    points = seg[owner, 0] + t[:, None] * (seg[owner, 1] - seg[owner, 0])
+    return points, lengths[owner] / counts[owner]
+
+
+def visible_wall_samples(
+    segments: np.ndarray,
+    poses: np.ndarray,
+    max_range: float,
+    *,
+    spacing: float = 0.05,
+    occluders: np.ndarray | None = None,
+    pose_spacing: float = 0.25,
+    slack: float = 0.02,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which wall samples the robot could see from some pose: within max_range of it and with
+    a free line of sight (the ray from the pose towards the sample meets no occluder more than
+    `slack` metres before it).
+
+    Args:
+        segments: (M, 2, 2) the walls to sample (e.g. World.wall_segments()).
+        poses: (N, 3) or (N, 2) true robot positions; consecutive positions nearer than
+            pose_spacing to the last kept one are skipped (they see the same walls).
+        occluders: (P, 2, 2) what blocks the view (e.g. World.segments_at(scan height));
+            default the walls themselves.
+
+    Returns:
+        (points (K, 2), visible (K,) bool, length (K,) metres each sample stands for).
+    """
+    from omnitof.sim.laser2d import World2D
+
+    points, length = wall_samples(segments, spacing)
+    visible = np.zeros(len(points), dtype=bool)
+    blockers = World2D(np.asarray(segments if occluders is None else occluders, dtype=np.float64))
+    xy = np.asarray(poses, dtype=np.float64)[:, :2]
+    kept: list[np.ndarray] = []
+    for p in xy:
+        if not kept or np.hypot(*(p - kept[-1])) >= pose_spacing:
+            kept.append(p)
+    for p in kept:
+        offset = points - p
+        dist = np.hypot(offset[:, 0], offset[:, 1])
+        near = np.flatnonzero((dist <= max_range) & ~visible)
+        if len(near) == 0:
+            continue
+        angles = np.arctan2(offset[near, 1], offset[near, 0])
+        hit = blockers.raycast(p[None, :], angles[None, :], max_range=max_range + slack)[0]
+        visible[near[hit >= dist[near] - slack]] = True
+    return points, visible, length
+
+
+def wall_coverage(
+    occ: OccupancyMap,
+    segments: np.ndarray,
+    poses: np.ndarray,
+    max_range: float,
+    *,
+    tolerance: float = 0.05,
+    threshold: float = 0.65,
+    spacing: float = 0.05,
+    occluders: np.ndarray | None = None,
+) -> WallCoverage:
+    """The share of the wall length the robot could see (`visible_wall_samples`) that the map
+    holds: seen wall samples with an occupied cell centre within `tolerance` (occupancy >
+    threshold). Map and walls must be in one frame."""
+    from scipy.spatial import cKDTree
+
+    points, visible, length = visible_wall_samples(
+        segments, poses, max_range, spacing=spacing, occluders=occluders
+    )
+    seen = points[visible]
+    seen_length = float(length[visible].sum())
+    centres = occupied_cell_centres(occ, threshold)
+    if len(seen) == 0:
+        return WallCoverage(0.0, 0.0, float("nan"), float("nan"), tolerance)
+    if len(centres) == 0:
+        return WallCoverage(seen_length, 0.0, 0.0, float("inf"), tolerance)
+    d, _ = cKDTree(centres).query(seen)
+    mapped = float(length[visible][d <= tolerance].sum())
+    return WallCoverage(seen_length, mapped, mapped / seen_length, float(d.mean()), tolerance)

@@ -1000,6 +1000,14 @@ def _tf_static_msg(store: Any, ns: int, sensor_pose: np.ndarray, *, ros1: bool) 
 # --- reading helpers -----------------------------------------------------------------------
 
 
+def bag_message_types(path: str | Path) -> set[str]:
+    """The message types (e.g. "sensor_msgs/msg/Image") of every topic in a bag; InputError
+    if it is not a readable bag. For telling a ToF bag from a LaserScan bag."""
+    path = Path(path)
+    with _opened(path) as reader:
+        return {c.msgtype for c in reader.connections}
+
+
 @contextmanager
 def _opened(path: Path) -> Iterator[AnyReader]:
     """An open AnyReader on `path`; anything that is not a readable bag is an InputError."""

@@ -25,6 +25,17 @@ def is_bag(path: Path) -> bool:
     return path.is_dir() or path.suffix in BAG_SUFFIXES
 
 
+def is_tof_bag(path: str | Path) -> bool:
+    """Whether `path` is a bag of ToF images (sensor_msgs/Image) rather than of LaserScans."""
+    path = Path(path)
+    if not (path.exists() and is_bag(path)):
+        return False
+    from omnitof.io.rosbag import bag_message_types
+
+    types = bag_message_types(path)
+    return "sensor_msgs/msg/Image" in types and "sensor_msgs/msg/LaserScan" not in types
+
+
 def read_scans(path: str | Path, *, skip_bad_lines: bool = False) -> ScanInput:
     """Read scans with odometry from a CARMEN log (plain, .gz, .bz2) or a ROS 1/2 bag holding
     sensor_msgs/LaserScan and nav_msgs/Odometry (topics found by type)."""
