@@ -9,9 +9,10 @@ pub mod render;
 mod render_bindings;
 pub mod scan_match;
 pub mod sensor_model;
+pub mod voxel;
 
 use numpy::ndarray::Array2;
-use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1};
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
@@ -20,6 +21,7 @@ use scan_match::{LikelihoodField, MatcherParams};
 use grid::{LogOddsModel, TiledGrid};
 use motion::OdometryMotion;
 use sensor_model::{integrate_scan, BeamModel, ScanGeometry};
+use voxel::VoxelGrid;
 
 fn pose3(v: &[f64], what: &str) -> PyResult<[f64; 3]> {
     if v.len() != 3 {
@@ -344,6 +346,107 @@ impl PyOccupancyGrid {
     }
 }
 
+/// Rows of an (N, 3) float64 array.
+fn points3(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]>> {
+    let shape = a.shape();
+    if shape[1] != 3 {
+        return Err(PyValueError::new_err(format!("{what} must have shape (N, 3), got {shape:?}")));
+    }
+    Ok(a.as_slice()?.chunks_exact(3).map(|r| [r[0], r[1], r[2]]).collect())
+}
+
+/// A sparse 3D log-odds voxel grid (rust/src/voxel.rs); NaN = unknown.
+#[pyclass(name = "VoxelGrid", module = "omnitof._core")]
+struct PyVoxelGrid {
+    grid: VoxelGrid,
+    pool: Option<rayon::ThreadPool>,
+}
+
+#[pymethods]
+impl PyVoxelGrid {
+    #[new]
+    #[pyo3(signature = (resolution, l_occ, l_free, l_min, l_max, threads=None))]
+    fn new(resolution: f64, l_occ: f32, l_free: f32, l_min: f32, l_max: f32, threads: Option<usize>) -> PyResult<Self> {
+        let grid = VoxelGrid::new(resolution, LogOddsModel { l_occ, l_free, l_min, l_max }).map_err(PyValueError::new_err)?;
+        let pool = match threads {
+            Some(0) => return Err(PyValueError::new_err("threads must be >= 1")),
+            Some(n) => Some(
+                rayon::ThreadPoolBuilder::new().num_threads(n).build().map_err(|e| PyValueError::new_err(e.to_string()))?,
+            ),
+            None => None,
+        };
+        Ok(PyVoxelGrid { grid, pool })
+    }
+
+    #[getter]
+    fn resolution(&self) -> f64 {
+        self.grid.resolution
+    }
+
+    /// Integrate rays (world frame) as one frame; returns (hits, max-range rays, skipped rays,
+    /// voxels freed, voxels marked occupied).
+    fn integrate(
+        &mut self,
+        py: Python<'_>,
+        origins: PyReadonlyArray2<f64>,
+        endpoints: PyReadonlyArray2<f64>,
+        max_range: f64,
+    ) -> PyResult<(usize, usize, usize, usize, usize)> {
+        let o = points3(&origins, "origins")?;
+        let e = points3(&endpoints, "endpoints")?;
+        let (grid, pool) = (&mut self.grid, &self.pool);
+        let s = py
+            .detach(|| match pool {
+                Some(pool) => pool.install(|| grid.integrate(&o, &e, max_range)),
+                None => grid.integrate(&o, &e, max_range),
+            })
+            .map_err(PyValueError::new_err)?;
+        Ok((s.hits, s.max_range, s.skipped, s.free_voxels, s.occupied_voxels))
+    }
+
+    /// (M, 3) centres (metres) of the voxels with log-odds > threshold, sorted by index.
+    #[pyo3(signature = (threshold=0.0))]
+    fn occupied<'py>(&self, py: Python<'py>, threshold: f32) -> Bound<'py, PyArray2<f64>> {
+        let r = self.grid.resolution;
+        let c: Vec<[f64; 3]> = self.grid.occupied(threshold).iter().map(|i| i.map(|v| (v as f64 + 0.5) * r)).collect();
+        rows3(py, &c)
+    }
+
+    /// (indices (K, 3) int64, log-odds (K,) float32) of every observed voxel, sorted by index.
+    fn observed<'py>(&self, py: Python<'py>) -> (Bound<'py, PyArray2<i64>>, Bound<'py, PyArray1<f32>>) {
+        let obs = self.grid.observed();
+        let flat: Vec<i64> = obs.iter().flat_map(|(i, _)| i.iter().copied()).collect();
+        let idx = Array2::from_shape_vec((obs.len(), 3), flat).unwrap().into_pyarray(py);
+        (idx, PyArray1::from_vec(py, obs.iter().map(|(_, v)| *v).collect()))
+    }
+
+    /// Log-odds (N,) of the voxels holding points (N, 3); NaN where unknown or not finite.
+    fn log_odds_at<'py>(&self, py: Python<'py>, points: PyReadonlyArray2<f64>) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let p = points3(&points, "points")?;
+        let out = p.iter().map(|&q| self.grid.index_of(q).map_or(f64::NAN, |i| self.grid.get(i) as f64)).collect();
+        Ok(PyArray1::from_vec(py, out))
+    }
+
+    /// Number of observed voxels.
+    fn voxel_count(&self) -> usize {
+        self.grid.voxel_count()
+    }
+
+    fn block_count(&self) -> usize {
+        self.grid.block_count()
+    }
+
+    /// Heap bytes held by the grid (blocks and hash table).
+    fn memory_bytes(&self) -> usize {
+        self.grid.memory_bytes()
+    }
+
+    /// ((xmin, ymin, zmin), (xmax, ymax, zmax)) metres of the observed voxels; None if empty.
+    fn bounds(&self) -> Option<([f64; 3], [f64; 3])> {
+        self.grid.bounds()
+    }
+}
+
 /// Draw n poses from the odometry motion model for a robot at `pose` whose odometry moved from
 /// `odom_prev` to `odom_cur`.
 #[pyfunction]
@@ -404,6 +507,7 @@ fn low_variance_resample<'py>(py: Python<'py>, weights: PyReadonlyArray1<f64>, s
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyParticleFilter>()?;
     m.add_class::<PyOccupancyGrid>()?;
+    m.add_class::<PyVoxelGrid>()?;
     m.add_function(wrap_pyfunction!(sample_motion_odometry, m)?)?;
     m.add_function(wrap_pyfunction!(beam_likelihood, m)?)?;
     m.add_function(wrap_pyfunction!(neff, m)?)?;
