@@ -107,14 +107,21 @@ def test_malformed_log_names_the_line(tmp_path, capsys):
 
 
 def test_demo_runs_and_writes_figures(tmp_path, capsys):
+    # The whole pipeline on the room world, shortened: simulate, calibrate, scans, SLAM, 3D map,
+    # evaluation, report.
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--particles", "10", "--quiet"]) == 0
+    assert main(["demo", "--world", "room", "--out", str(out), "--max-frames", "120", "--quiet"]) == 0
     assert "trajectory error" in capsys.readouterr().out
-    for name in ("map.png", "map.yaml", "map.pgm", "trajectory.tum", "ground_truth.tum", "summary.yaml"):
+    for name in ("map.png", "map.yaml", "map.pgm", "trajectory.tum", "ground_truth.tum", "summary.yaml",
+                 "report.md", "overlay.png", "map3d.ply", "map3d.png", "calibration.yaml", "fig3_depth.png",
+                 "scan.png", "slice.png"):
         assert (out / name).exists(), name
     summary = yaml.safe_load((out / "summary.yaml").read_text())
-    ev = summary["evaluation"]
-    assert ev["slam_ate"]["mean"] < ev["odometry_ate"]["mean"]
+    ev = summary["demo"]["evaluation"]
+    assert ev["trajectory"]["slam"]["mean"] < ev["trajectory"]["odometry"]["mean"]
+    assert ev["floorplan"]["occupied_within_5cm"] > 0.5
+    report = (out / "report.md").read_text()
+    assert "Trajectory error" in report and "![map](map.png)" in report
 
 
 def test_design_reports_the_default_rig_and_draws_it(tmp_path, capsys):

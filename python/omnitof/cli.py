@@ -16,7 +16,7 @@ from omnitof import __version__
 from omnitof.errors import OmnitofError
 
 
-def _config_from_args(args: argparse.Namespace):
+def _config_from_args(args: argparse.Namespace, default_preset: str | None = None):
     from omnitof.config import load_config
 
     overrides: dict[str, Any] = {"filter": {}}
@@ -24,13 +24,14 @@ def _config_from_args(args: argparse.Namespace):
         value = getattr(args, name, None)
         if value is not None:
             overrides["filter"][name] = value
-    return load_config(args.config, preset=args.preset, overrides=overrides)
+    preset = args.preset if args.preset is not None or args.config is not None else default_preset
+    return load_config(args.config, preset=preset, overrides=overrides)
 
 
-def _progress_bar(total: int, enabled: bool, desc: str):
+def _progress_bar(total: int, enabled: bool, desc: str, unit: str = "scan"):
     from tqdm import tqdm
 
-    return tqdm(total=total, unit="scan", desc=desc, disable=not enabled, dynamic_ncols=True)
+    return tqdm(total=total, unit=unit, desc=desc, disable=not enabled, dynamic_ncols=True)
 
 
 def _summary_line(stats: dict) -> str:
@@ -41,26 +42,75 @@ def _summary_line(stats: dict) -> str:
     )
 
 
+def _scan_settings(args: argparse.Namespace):
+    from omnitof.scan import scan_settings
+
+    given = {k: getattr(args, k) for k in ("height", "band") if getattr(args, k, None) is not None}
+    return scan_settings(**given)
+
+
+def _read_tof_input(args: argparse.Namespace):
+    from omnitof.tofscans import frame_count, read_tof_scans
+
+    total = frame_count(args.log)
+    if args.max_scans is not None:
+        total = min(total, args.max_scans)
+    with _progress_bar(total, not args.quiet, "scans", unit="frame") as bar:
+        data = read_tof_scans(
+            args.log, calibration=args.calibration, settings=_scan_settings(args),
+            cloud_every=args.map3d_every if args.map3d else 0, max_frames=args.max_scans,
+            progress=bar.update,
+        )
+    return data
+
+
 def cmd_slam(args: argparse.Namespace) -> int:
-    from omnitof.io.scans import read_scans
+    from omnitof.io.scans import is_tof_bag, read_scans
     from omnitof.results import write_results
     from omnitof.slam import run_slam
 
-    cfg = _config_from_args(args)
-    data = read_scans(args.log, skip_bad_lines=args.skip_bad_lines)
-    scans = data.scans if args.max_scans is None else data.scans.slice(0, args.max_scans)
+    tof = is_tof_bag(args.log)
+    if not tof and (args.calibration is not None or args.map3d):
+        raise OmnitofError(f"{args.log}: --calibration and --map3d need a bag of ToF images")
+    cfg = _config_from_args(args, default_preset="tof" if tof else None)
+    if tof:
+        tof_data = _read_tof_input(args)
+        scans = tof_data.scans
+        extra = {"input": {"path": str(args.log), "kind": "tof-rosbag", "rig": tof_data.rig_source,
+                           "scan": tof_data.extractor.settings.model_dump()}}
+    else:
+        data = read_scans(args.log, skip_bad_lines=args.skip_bad_lines)
+        scans = data.scans if args.max_scans is None else data.scans.slice(0, args.max_scans)
+        extra = {"input": {"path": str(args.log), "kind": data.kind, "bad_lines_skipped": data.bad_lines}}
     with _progress_bar(len(scans), not args.quiet, "slam") as bar:
         result = run_slam(scans, cfg, progress=bar.update)
-    extra = {"input": {"path": str(args.log), "kind": data.kind, "bad_lines_skipped": data.bad_lines}}
     if args.relations is not None:
         from omnitof.eval.relations import evaluate_relations, read_relations
 
         rel = evaluate_relations(result.trajectory, read_relations(args.relations))
         extra["relations"] = rel.to_dict()
-    paths = write_results(args.out, result, cfg, title=f"{Path(args.log).name}", extra=extra)
+    if scans.ground_truth is not None:
+        from omnitof.eval.trajectory import absolute_trajectory_error
+
+        extra["trajectory_error"] = {
+            "slam": absolute_trajectory_error(result.trajectory.poses, scans.ground_truth).to_dict(),
+            "odometry": absolute_trajectory_error(scans.odometry, scans.ground_truth).to_dict(),
+        }
+    paths = write_results(args.out, result, cfg, title=f"{Path(args.log).name}", extra=extra,
+                          ground_truth=scans.ground_truth)
+    if tof and args.map3d:
+        from omnitof.tofscans import voxel_map_from_clouds, write_voxel_outputs
+
+        vmap = voxel_map_from_clouds(result.trajectory.poses[tof_data.cloud_frames], tof_data.clouds)
+        for name, path in write_voxel_outputs(vmap, args.out, trajectory=result.trajectory.poses).items():
+            paths[name] = path
     print(_summary_line(result.stats))
     if args.relations is not None:
         print(rel.format())
+    if "trajectory_error" in extra:
+        te = extra["trajectory_error"]
+        print(f"trajectory error (mean, final): SLAM {te['slam']['mean']:.3f} m, {te['slam']['final']:.3f} m; "
+              f"odometry {te['odometry']['mean']:.3f} m, {te['odometry']['final']:.3f} m")
     print(f"results in {paths['summary'].parent}")
     return 0
 
@@ -90,7 +140,8 @@ def cmd_config(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from omnitof.demo import run_demo
 
-    run_demo(args.out, seed=args.seed, particles=args.particles, progress=not args.quiet)
+    run_demo(args.out, world=args.world, seed=args.seed, preset=args.preset, particles=args.particles,
+             calibrate=not args.true_rig, max_frames=args.max_frames, progress=not args.quiet)
     return 0
 
 
@@ -155,13 +206,20 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"omnitof {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("slam", help="run particle-filter SLAM on a CARMEN log or a LaserScan ROS bag")
-    p.add_argument("log", type=Path, help="CARMEN log (plain, .gz or .bz2) or ROS 1/2 bag with LaserScan + Odometry")
+    p = sub.add_parser("slam", help="run particle-filter SLAM on a ToF bag, a CARMEN log or a LaserScan ROS bag")
+    p.add_argument("log", type=Path, help="ROS 1/2 bag of ToF images + Odometry (omnitof simulate), CARMEN log "
+                   "(plain, .gz or .bz2), or ROS 1/2 bag with LaserScan + Odometry")
     p.add_argument("--out", type=Path, required=True, help="results folder")
     _add_config_options(p)
     p.add_argument("--relations", type=Path, help="benchmark relations file to score the trajectory with")
     p.add_argument("--max-scans", type=int, help="process only the first N scans")
     p.add_argument("--skip-bad-lines", action="store_true", help="skip and count malformed log lines")
+    p.add_argument("--calibration", type=Path, help="ToF bags: the rig's calibration YAML (omnitof calibrate); "
+                   "default: the true rig of a simulated bag")
+    p.add_argument("--height", type=float, help="ToF bags: height of the scan slice above the floor (m)")
+    p.add_argument("--band", type=float, help="ToF bags: half-thickness of the scan slice (m)")
+    p.add_argument("--map3d", action="store_true", help="ToF bags: also build the 3D voxel map (map3d.ply, map3d.png)")
+    p.add_argument("--map3d-every", type=int, default=5, help="ToF bags: frames between those fed to the 3D map")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_slam)
 
@@ -200,12 +258,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_simulate)
 
-    p = sub.add_parser("demo", help="simulate a corridor loop, run SLAM, evaluate, write figures")
+    p = sub.add_parser("demo", help="the whole system on a simulated world: simulate, calibrate, extract scans, "
+                       "SLAM, 3D map, evaluate, report")
+    p.add_argument("--world", default="corridor1", help="a bundled world (room, office, corridor1, corridor2) or a world YAML")
     p.add_argument("--out", type=Path, default=Path("results/demo"), help="results folder")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--particles", type=int, default=30)
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--seed", type=int, default=0, help="fixes every random draw")
+    p.add_argument("--preset", default="tof-scanmatch",
+                   help="SLAM preset: tof-scanmatch (scan-matching proposal, 30 particles) or tof (the paper's filter, 200)")
+    p.add_argument("--particles", type=int, help="number of particles (overrides the preset)")
+    p.add_argument("--true-rig", action="store_true", help="skip the calibration and use the true rig")
+    p.add_argument("--max-frames", type=int, help="stop after N frames (a quick look)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_demo)
+    from omnitof.calibration.cli import add_calibrate_parser
+    add_calibrate_parser(sub)
     return parser
 
 

@@ -1,0 +1,421 @@
+"""Calibration of the omnidirectional ToF sensor: the file that the scan extraction reads.
+
+A calibration (`Calibration`) holds what the paper's sec. II-C determines, in the camera frame
+of `omnitof.mirrors` (z = optical axis, up into the mirrors; metres):
+
+- the intrinsics (`omnitof.camera.Camera`: K and the distortion), from a checkerboard seen
+  without the mirrors (`omnitof.calibration.intrinsics`);
+- one plane {x : n·x = d} per mirror (n away from the camera, d > 0), from the four-dot target
+  seen directly and through the mirror (`omnitof.calibration.mirror_planes`; paper eq. 5);
+  each plane gives the reflection D and the virtual camera Pv = P·D of eq. 6;
+- the masks: per pixel, the index of the mirror it looks through (−1: not used), drawn from
+  the calibrated geometry or from hand-drawn image polygons (`omnitof.calibration.masks`);
+- the mount robot_T_camera, which the paper does not calibrate: taken from the rig's design.
+
+The file (`save_calibration` / `load_calibration`) is one YAML document:
+
+    omnitof_calibration: 1                 # format version
+    camera: {width, height, fx, fy, cx, cy, dist: [k1, k2, p1, p2, k3]}
+    robot_T_camera: [[4 numbers] × 4]
+    mirrors:                               # in label order: labels == k means mirrors[k]
+      - name: front
+        normal: [nx, ny, nz]               # unit, camera frame, pointing away from the camera
+        d: 0.0829                          # metres, > 0
+        D: [[...] × 4]                     # informative: recomputed from normal and d on load
+        Pv: [[...] × 3]                    # informative: K[I|0]·D (eq. 6)
+        quality: {...}                     # optional: residuals of the mirror calibration
+    masks:
+      edge_margin_px: 2.0
+      polygons: {front: [[u, v], ...], ...}   # optional: hand-drawn regions (image pixels)
+      rows: ["-1*12 0*40 ...", ...]        # the labels, one run-length string per image row:
+                                           # "value*count" tokens, left to right
+    quality: {...}                         # optional: intrinsics RMS etc.
+    provenance: {...}                      # optional: how and from what it was made
+
+The run-length rows are the truth for `labels` (loading reproduces them exactly); polygons are
+kept so that a person can edit them and redraw the rows with `omnitof calibrate masks`.
+Floats are written with Python's repr, so numbers survive a round trip bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from omnitof.camera import Camera, CameraParameterError
+from omnitof.errors import InputError
+from omnitof.io.atomic import atomic_write
+from omnitof import mirrors as _mirrors  # not `masks` by name: the submodule masks shadows it
+from omnitof.mirrors import Mirror, MirrorParameterError, MirrorPlane, camera_mount
+
+__all__ = [
+    "FORMAT_VERSION",
+    "Calibration",
+    "CalibrationError",
+    "decode_rows",
+    "encode_rows",
+    "load_calibration",
+    "save_calibration",
+]
+
+FORMAT_VERSION = 1
+
+
+class CalibrationError(InputError):
+    """A calibration that cannot be made or read; the message names the image, mirror or field."""
+
+
+@dataclass(eq=False)
+class Calibration:
+    """Intrinsics, mirror planes, masks and mount of one sensor (see the module docstring).
+
+    Attributes:
+        camera: intrinsics (pixels, OpenCV's distortion order).
+        planes: one MirrorPlane per mirror, camera frame, metres.
+        names: the mirrors' names (e.g. "front"), same order as planes.
+        labels: (H, W) int32, index into planes per pixel, −1 = not used.
+        robot_T_camera: 4×4 float64 mount (maps camera-frame points to the robot frame).
+        polygons: per mirror name, an (K, 2) float64 image polygon (u, v pixels) the mask was
+            drawn from, if it was drawn from one; editable.
+        edge_margin_px: margin the masks keep from region boundaries (as `mirrors.masks`).
+        quality: free-form numbers from the calibration runs (RMS reprojection error, per
+            mirror epipole residuals, ...), stored as they are.
+        provenance: free-form description of how the calibration was made.
+    """
+
+    camera: Camera
+    planes: list[MirrorPlane]
+    names: list[str]
+    labels: np.ndarray
+    robot_T_camera: np.ndarray = field(default_factory=camera_mount)
+    polygons: dict[str, np.ndarray] = field(default_factory=dict)
+    edge_margin_px: float = 2.0
+    quality: dict[str, Any] = field(default_factory=dict)
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.planes = list(self.planes)
+        self.names = [str(n) for n in self.names]
+        if len(self.names) != len(self.planes):
+            raise CalibrationError(
+                f"Calibration: {len(self.planes)} planes but {len(self.names)} names"
+            )
+        if len(set(self.names)) != len(self.names):
+            raise CalibrationError(f"Calibration: mirror names must differ, got {self.names}")
+        labels = np.asarray(self.labels)
+        if labels.shape != self.camera.shape:
+            raise CalibrationError(
+                f"Calibration.labels must have the image shape {self.camera.shape}, "
+                f"got {labels.shape}"
+            )
+        if labels.size and (labels.min() < -1 or labels.max() >= len(self.planes)):
+            raise CalibrationError(
+                f"Calibration.labels must lie in [-1, {len(self.planes) - 1}], "
+                f"got [{labels.min()}, {labels.max()}]"
+            )
+        self.labels = labels.astype(np.int32)
+        mount = np.asarray(self.robot_T_camera, dtype=np.float64)
+        if mount.shape != (4, 4):
+            raise CalibrationError(f"Calibration.robot_T_camera must be 4×4, got {mount.shape}")
+        self.robot_T_camera = mount
+        self.polygons = {
+            str(k): np.asarray(v, dtype=np.float64).reshape(-1, 2) for k, v in self.polygons.items()
+        }
+
+    @classmethod
+    def from_rig(
+        cls,
+        camera: Camera,
+        mirrors: Sequence[Mirror],
+        robot_T_camera: np.ndarray | None = None,
+        edge_margin_px: float = 2.0,
+    ) -> Calibration:
+        """The true geometry of a rig: its planes, names and `mirrors.masks` as labels."""
+        return cls(
+            camera=camera,
+            planes=[m.plane for m in mirrors],
+            names=[m.name for m in mirrors],
+            labels=_mirrors.masks(camera, mirrors, edge_margin_px),
+            robot_T_camera=camera_mount() if robot_T_camera is None else robot_T_camera,
+            edge_margin_px=float(edge_margin_px),
+            provenance={"source": "rig design (true geometry)"},
+        )
+
+    @property
+    def P(self) -> np.ndarray:
+        """The real camera's 3×4 projection K[I|0] (camera frame; distortion not included)."""
+        return self.camera.K @ np.hstack([np.eye(3), np.zeros((3, 1))])
+
+    def reflection_matrices(self) -> list[np.ndarray]:
+        """D (4×4) of each mirror (eq. 6)."""
+        return [p.reflection_matrix() for p in self.planes]
+
+    def virtual_cameras(self) -> list[np.ndarray]:
+        """Pv = P·D (3×4) of each mirror (eq. 6)."""
+        return [p.virtual_camera(self.P) for p in self.planes]
+
+    def index_of(self, name: str) -> int:
+        """The label of the mirror called `name`."""
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise CalibrationError(f"no mirror named {name!r}; mirrors: {self.names}") from None
+
+
+# --- run-length rows -----------------------------------------------------------------------
+
+
+def encode_rows(labels: np.ndarray) -> list[str]:
+    """One string per image row: "value*count" runs, left to right (e.g. "-1*3 0*5")."""
+    rows = []
+    for row in np.asarray(labels):
+        change = np.flatnonzero(np.diff(row)) + 1
+        starts = np.concatenate([[0], change])
+        ends = np.concatenate([change, [len(row)]])
+        rows.append(" ".join(f"{int(row[s])}*{int(e - s)}" for s, e in zip(starts, ends)))
+    return rows
+
+
+def decode_rows(rows: Sequence[str], shape: tuple[int, int], path: str | Path | None = None) -> np.ndarray:
+    """Inverse of `encode_rows`; InputError naming the row if a row is malformed."""
+    height, width = shape
+    if not isinstance(rows, Sequence) or isinstance(rows, str) or len(rows) != height:
+        n = len(rows) if isinstance(rows, Sequence) else type(rows).__name__
+        raise CalibrationError(f"masks.rows: expected {height} rows (image height), got {n}", path)
+    out = np.empty((height, width), dtype=np.int32)
+    for r, text in enumerate(rows):
+        values: list[int] = []
+        try:
+            for token in str(text).split():
+                value, count = token.split("*")
+                n = int(count)
+                if n <= 0:
+                    raise ValueError
+                values.extend([int(value)] * n)
+        except ValueError:
+            raise CalibrationError(
+                f"masks.rows[{r}]: expected 'value*count' tokens, got {str(text)[:60]!r}", path
+            ) from None
+        if len(values) != width:
+            raise CalibrationError(
+                f"masks.rows[{r}]: runs cover {len(values)} pixels, the image is {width} wide", path
+            )
+        out[r] = values
+    return out
+
+
+# --- YAML ----------------------------------------------------------------------------------
+
+
+def _floats(array: np.ndarray) -> list:
+    return np.asarray(array, dtype=np.float64).tolist()
+
+
+def _plain(value: Any) -> Any:
+    """numpy scalars and arrays → Python numbers and lists, recursively, for YAML."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def calibration_to_dict(cal: Calibration) -> dict[str, Any]:
+    """The YAML document of `cal` as plain Python data (see the module docstring)."""
+    cam = cal.camera
+    P = cal.P
+    mirrors = []
+    for name, plane in zip(cal.names, cal.planes):
+        entry: dict[str, Any] = {
+            "name": name,
+            "normal": _floats(plane.normal),
+            "d": float(plane.d),
+            "D": _floats(plane.reflection_matrix()),
+            "Pv": _floats(plane.virtual_camera(P)),
+        }
+        per_mirror = cal.quality.get("mirrors")
+        q = per_mirror.get(name) if isinstance(per_mirror, Mapping) else None
+        if q:
+            entry["quality"] = _plain(q)
+        mirrors.append(entry)
+    mask: dict[str, Any] = {"edge_margin_px": float(cal.edge_margin_px)}
+    if cal.polygons:
+        mask["polygons"] = {k: _floats(v) for k, v in cal.polygons.items()}
+    mask["rows"] = encode_rows(cal.labels)
+    # Per-mirror quality (a mapping by name) is written beside each mirror; anything else as is.
+    quality = {
+        k: v for k, v in cal.quality.items() if not (k == "mirrors" and isinstance(v, Mapping))
+    }
+    return {
+        "omnitof_calibration": FORMAT_VERSION,
+        "camera": {
+            "width": cam.width,
+            "height": cam.height,
+            "fx": cam.fx,
+            "fy": cam.fy,
+            "cx": cam.cx,
+            "cy": cam.cy,
+            "dist": list(cam.dist),
+        },
+        "robot_T_camera": _floats(cal.robot_T_camera),
+        "mirrors": mirrors,
+        "masks": mask,
+        "quality": _plain(quality),
+        "provenance": _plain(cal.provenance),
+    }
+
+
+def save_calibration(cal: Calibration, path: str | Path) -> Path:
+    """Write `cal` as YAML to `path` (atomically); returns the path."""
+    path = Path(path)
+    text = yaml.dump(
+        calibration_to_dict(cal), Dumper=_Dumper, sort_keys=False, width=100, allow_unicode=True
+    )
+    header = "# omnitof calibration: camera frame, metres; see omnitof.calibration\n"
+    with atomic_write(path, "w") as handle:
+        handle.write(header + text)
+    return path
+
+
+class _Dumper(yaml.SafeDumper):
+    """Lists of numbers on one line ([1.0, 2.0]); everything else (mask rows) one item a line."""
+
+
+def _represent_list(dumper: yaml.SafeDumper, data: list) -> yaml.Node:
+    flow = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in data)
+    return dumper.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flow)
+
+
+_Dumper.add_representer(list, _represent_list)
+
+
+def _field(data: Mapping, key: str, where: str, path: Path) -> Any:
+    if not isinstance(data, Mapping) or key not in data:
+        raise CalibrationError(f"{where}{key}: missing", path)
+    return data[key]
+
+
+def _array(value: Any, shape: tuple[int, ...], where: str, path: Path) -> np.ndarray:
+    try:
+        out = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{where}: expected numbers of shape {shape}", path) from None
+    if out.shape != shape or not np.all(np.isfinite(out)):
+        raise CalibrationError(
+            f"{where}: expected finite numbers of shape {shape}, got shape {out.shape}", path
+        )
+    return out
+
+
+def calibration_from_dict(data: Any, path: str | Path = "<calibration>") -> Calibration:
+    """Parse the YAML document (plain data) of a calibration; errors name `path` and the field."""
+    path = Path(path)
+    if not isinstance(data, Mapping):
+        raise CalibrationError("expected a YAML mapping (an omnitof calibration file)", path)
+    version = data.get("omnitof_calibration")
+    if version != FORMAT_VERSION:
+        raise CalibrationError(
+            f"omnitof_calibration: expected format version {FORMAT_VERSION}, got {version!r}", path
+        )
+    cam = _field(data, "camera", "", path)
+    try:
+        camera = Camera(
+            width=_field(cam, "width", "camera.", path),
+            height=_field(cam, "height", "camera.", path),
+            fx=_field(cam, "fx", "camera.", path),
+            fy=_field(cam, "fy", "camera.", path),
+            cx=_field(cam, "cx", "camera.", path),
+            cy=_field(cam, "cy", "camera.", path),
+            dist=tuple(_array(_field(cam, "dist", "camera.", path), (5,), "camera.dist", path)),
+        )
+    except (CameraParameterError, TypeError, ValueError) as err:
+        raise CalibrationError(f"camera: {err}", path) from None
+    mount = _array(data.get("robot_T_camera", camera_mount()), (4, 4), "robot_T_camera", path)
+    entries = _field(data, "mirrors", "", path)
+    if not isinstance(entries, list) or not entries:
+        raise CalibrationError("mirrors: expected a non-empty list of mirrors", path)
+    planes, names, mirror_quality = [], [], {}
+    for k, entry in enumerate(entries):
+        where = f"mirrors[{k}]."
+        name = str(_field(entry, "name", where, path))
+        normal = _array(_field(entry, "normal", where, path), (3,), where + "normal", path)
+        try:
+            d = float(_field(entry, "d", where, path))
+            planes.append(MirrorPlane(normal, d))
+        except (MirrorParameterError, TypeError, ValueError) as err:
+            raise CalibrationError(f"{where[:-1]} ({name}): {err}", path) from None
+        names.append(name)
+        if isinstance(entry, Mapping) and entry.get("quality"):
+            mirror_quality[name] = entry["quality"]
+    mask = _field(data, "masks", "", path)
+    if not isinstance(mask, Mapping):
+        raise CalibrationError("masks: expected a mapping with edge_margin_px, rows", path)
+    try:
+        margin = float(mask.get("edge_margin_px", 2.0))
+    except (TypeError, ValueError):
+        margin = math.nan
+    if not (math.isfinite(margin) and margin >= 0.0):
+        raise CalibrationError("masks.edge_margin_px: expected a number >= 0", path)
+    polygons = {}
+    raw_polygons = mask.get("polygons") or {}
+    if not isinstance(raw_polygons, Mapping):
+        raise CalibrationError("masks.polygons: expected a mapping from mirror name to [[u, v], ...]", path)
+    for key, poly in raw_polygons.items():
+        arr = np.asarray(poly, dtype=np.float64) if isinstance(poly, list) else np.zeros((0,))
+        if arr.ndim != 2 or arr.shape[1] != 2 or len(arr) < 3 or not np.all(np.isfinite(arr)):
+            raise CalibrationError(f"masks.polygons.{key}: expected >= 3 points [u, v]", path)
+        if str(key) not in names:
+            raise CalibrationError(f"masks.polygons.{key}: no mirror of that name ({names})", path)
+        polygons[str(key)] = arr
+    labels = decode_rows(_field(mask, "rows", "masks.", path), camera.shape, path)
+    if labels.min() < -1 or labels.max() >= len(planes):
+        raise CalibrationError(
+            f"masks.rows: labels must lie in [-1, {len(planes) - 1}], got "
+            f"[{labels.min()}, {labels.max()}]",
+            path,
+        )
+    quality = dict(data.get("quality") or {})
+    if mirror_quality:
+        quality["mirrors"] = mirror_quality
+    try:
+        return Calibration(
+            camera=camera,
+            planes=planes,
+            names=names,
+            labels=labels,
+            robot_T_camera=mount,
+            polygons=polygons,
+            edge_margin_px=margin,
+            quality=quality,
+            provenance=dict(data.get("provenance") or {}),
+        )
+    except CalibrationError as err:
+        raise CalibrationError(err.reason, path) from None
+
+
+def load_calibration(path: str | Path) -> Calibration:
+    """Read a calibration YAML written by `save_calibration` (or by hand, same schema)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise CalibrationError(f"cannot read the calibration: {err.strerror or err}", path) from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        line = None if mark is None else mark.line + 1
+        raise CalibrationError(f"not valid YAML: {getattr(err, 'problem', err)}", path, line) from None
+    return calibration_from_dict(data, path)

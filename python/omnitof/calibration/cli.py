@@ -1,0 +1,282 @@
+"""`omnitof calibrate ...`: intrinsics, mirrors, masks, checks and simulated target images.
+
+    omnitof calibrate render-targets --out DIR [--world W] [--seed S] [--placements N]
+    omnitof calibrate intrinsics DIR/intrinsics --out cal.yaml
+    omnitof calibrate mirrors DIR/mirrors --calibration cal.yaml
+    omnitof calibrate check cal.yaml [--truth DIR/truth.yaml] [--figure side.png]
+    omnitof calibrate masks cal.yaml --export regions.yaml | --polygons regions.yaml
+
+The command functions parse nothing themselves beyond argparse and call the library.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def add_calibrate_parser(sub) -> None:
+    """Register `calibrate` and its subcommands on the `omnitof` subparsers."""
+    p = sub.add_parser("calibrate", help="calibrate the camera and the mirrors (paper sec. II-C)")
+    csub = p.add_subparsers(dest="calibrate_command", required=True)
+
+    c = csub.add_parser("intrinsics", help="camera matrix and distortion from checkerboard images")
+    c.add_argument("images", nargs="+", type=Path, help="PNG/.npz images, folders of them, or ROS bags")
+    c.add_argument("--out", type=Path, required=True, help="calibration YAML to write (updated if it exists)")
+    c.add_argument("--board", default="8x6", help="squares across x down (default 8x6)")
+    c.add_argument("--square", type=float, default=0.035, help="square side in metres (default 0.035)")
+    c.add_argument("--fit-k3", action="store_true", help="also fit k3 (default: k3 = 0)")
+    c.set_defaults(func=cmd_intrinsics)
+
+    c = csub.add_parser("mirrors", help="mirror planes from four-dot target images (Hu, Brown, Nelson)")
+    c.add_argument("images", nargs="+", type=Path, help=".npz/PNG images, folders of them, or ROS bags")
+    c.add_argument("--calibration", type=Path, required=True,
+                   help="calibration YAML with the intrinsics (from `calibrate intrinsics`)")
+    c.add_argument("--out", type=Path, help="where to write (default: update --calibration)")
+    c.add_argument("--spacing", type=float, default=0.012, help="side of the square of dots, metres")
+    c.add_argument("--scale", choices=["dots", "tof"], default="dots",
+                   help="metric scale from the dot spacing or from the ToF distances")
+    c.add_argument("--mirror", help="the mirror all images show (default: found from the image)")
+    c.add_argument("--margin", type=float, help="mask edge margin in pixels (default: the file's)")
+    c.set_defaults(func=cmd_mirrors)
+
+    c = csub.add_parser("render-targets", help="simulate checkerboard and dot-target images")
+    c.add_argument("--out", type=Path, required=True, help="folder to write into")
+    c.add_argument("--world", help="bundled world name or YAML: its ceiling, floor and light")
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--placements", type=int, default=8, help="dot-target placements per mirror")
+    c.add_argument("--boards", type=int, default=15, help="checkerboard images")
+    c.set_defaults(func=cmd_render_targets)
+
+    c = csub.add_parser("check", help="equal-height objects seen in every mirror (paper Fig. 6)")
+    c.add_argument("calibration", type=Path)
+    c.add_argument("--truth", type=Path, help="true calibration of the simulated rig (default: the design)")
+    c.add_argument("--frame", type=Path,
+                   help="a recorded frame (.npz with distance, or a ROS bag: its first frame) of the "
+                        "rig among equal-height objects, instead of the simulated scene")
+    c.add_argument("--band", type=float, nargs=2, metavar=("NEAR", "FAR"),
+                   help="horizontal range band of the objects' faces, metres (default 1.95 2.15)")
+    c.add_argument("--min-height", type=float, help="ignore points lower than this (m; default 0.3)")
+    c.add_argument("--figure", type=Path, help="side view PNG")
+    c.add_argument("--seed", type=int, default=0)
+    c.set_defaults(func=cmd_check)
+
+    c = csub.add_parser("masks", help="export the mirror regions as polygons, or redraw them from polygons")
+    c.add_argument("calibration", type=Path)
+    c.add_argument("--export", type=Path, help="write the regions as an editable polygon YAML")
+    c.add_argument("--polygons", type=Path, help="redraw the masks from this polygon YAML")
+    c.add_argument("--margin", type=float, help="edge margin in pixels (default: the file's)")
+    c.add_argument("--figure", type=Path, help="draw the masks (PNG)")
+    c.add_argument("--out", type=Path, help="where to write (default: update the calibration)")
+    c.set_defaults(func=cmd_masks)
+
+
+def _board(text: str):
+    from omnitof.calibration import CalibrationError
+    from omnitof.calibration.targets import Checkerboard
+
+    try:
+        cols, rows = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise CalibrationError(f"--board: expected COLSxROWS squares, e.g. 8x6, got {text!r}") from None
+    return cols, rows
+
+
+def _design_outside(camera) -> np.ndarray:
+    """Pixels that see past the default rig's mirrors (the mirrors' outer edges)."""
+    from omnitof.design import default_rig
+    from omnitof.mirrors import assign_pixels
+
+    return assign_pixels(camera, default_rig()[1]) < 0
+
+
+def cmd_intrinsics(args: argparse.Namespace) -> int:
+    from omnitof.calibration import Calibration, load_calibration, save_calibration
+    from omnitof.calibration.intrinsics import calibrate_intrinsics, load_images
+    from omnitof.calibration.masks import labels_from_planes
+    from omnitof.calibration.targets import Checkerboard
+    from omnitof.design import default_rig
+
+    cols, rows = _board(args.board)
+    board = Checkerboard(cols=cols, rows=rows, square=args.square)
+    started = time.perf_counter()
+    images = load_images(args.images)
+    result = calibrate_intrinsics(images, board, fix_k3=not args.fit_k3)
+    camera = result.camera
+    if args.out.exists():
+        cal = load_calibration(args.out)
+        cal.camera = camera
+    else:
+        _, mirrors = default_rig()
+        cal = Calibration.from_rig(camera, mirrors)
+        cal.provenance = {"mirrors": "rig design (not calibrated yet: run `calibrate mirrors`)"}
+    cal.labels = labels_from_planes(camera, cal.planes, _design_outside(camera), cal.edge_margin_px)
+    cal.quality.update(result.quality())
+    cal.provenance["intrinsics"] = f"{len(result.used)} checkerboard images ({cols}x{rows}, {args.square} m)"
+    save_calibration(cal, args.out)
+    print(f"intrinsics from {len(result.used)} of {len(images)} images: RMS reprojection error "
+          f"{result.rms_px:.3f} px ({time.perf_counter() - started:.1f} s)")
+    print(f"  fx {camera.fx:.2f}  fy {camera.fy:.2f}  cx {camera.cx:.2f}  cy {camera.cy:.2f} px")
+    print("  dist (k1 k2 p1 p2 k3) " + " ".join(f"{v:+.5f}" for v in camera.dist))
+    for name in result.skipped:
+        print(f"  no checkerboard found: {name}")
+    for text in result.rejected:
+        print(f"  rejected as an outlier: {text}")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_mirrors(args: argparse.Namespace) -> int:
+    from omnitof.calibration import load_calibration, save_calibration
+    from omnitof.calibration.intrinsics import load_images
+    from omnitof.calibration.masks import labels_from_planes
+    from omnitof.calibration.mirror_planes import calibrate_mirrors
+    from omnitof.calibration.targets import DotTarget
+
+    cal = load_calibration(args.calibration)
+    started = time.perf_counter()
+    images = load_images(args.images)
+    outside = _design_outside(cal.camera)
+    regions = labels_from_planes(cal.camera, cal.planes, outside, 0.0)
+    target = DotTarget(spacing=args.spacing)
+    result = calibrate_mirrors(cal.camera, images, cal.names, cal.planes, regions,
+                               target=target, scale=args.scale, mirror=args.mirror)
+    mirror_quality = dict(cal.quality.get("mirrors", {}))
+    for estimate in result.estimates:
+        index = cal.names.index(estimate.name)
+        cal.planes[index] = estimate.plane
+        mirror_quality[estimate.name] = estimate.quality()
+    cal.quality["mirrors"] = mirror_quality
+    if args.margin is not None:
+        cal.edge_margin_px = args.margin
+    cal.labels = labels_from_planes(cal.camera, cal.planes, outside, cal.edge_margin_px)
+    cal.polygons = {}
+    cal.provenance["mirrors"] = (
+        f"four-dot target, {len(images)} images, spacing {args.spacing} m, scale from {args.scale}"
+    )
+    out = args.out or args.calibration
+    save_calibration(cal, out)
+    for line in result.report():
+        print(line)
+    print(f"wrote {out} ({time.perf_counter() - started:.1f} s)")
+    return 0
+
+
+def cmd_render_targets(args: argparse.Namespace) -> int:
+    from omnitof.calibration.targets import render_calibration_images
+
+    started = time.perf_counter()
+    summary = render_calibration_images(
+        args.out, world=args.world, seed=args.seed, placements=args.placements, boards=args.boards
+    )
+    print(f"wrote {summary['boards']} checkerboard images to {args.out / 'intrinsics'}, "
+          f"{summary['dot_images']} dot-target images ({args.placements} per mirror: "
+          f"{', '.join(summary['mirrors'])}) to {args.out / 'mirrors'}, "
+          f"and the true calibration {summary['truth']} ({time.perf_counter() - started:.1f} s)")
+    return 0
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from omnitof.calibration import load_calibration
+    from omnitof.calibration.check import edge_heights, plane_errors, plot_side_view, render_check_frame
+    from omnitof.design import default_rig
+
+    cal = load_calibration(args.calibration)
+    truth = load_calibration(args.truth) if args.truth is not None else None
+    if args.frame is not None:
+        from omnitof.calibration import CalibrationError
+        from omnitof.calibration.intrinsics import load_images
+
+        frames = load_images([args.frame])
+        if not frames or frames[0].distance is None:
+            raise CalibrationError("the check needs a distance image (.npz or a ROS bag)", args.frame)
+        distance = frames[0].distance
+    else:
+        camera, mirrors = default_rig()
+        if truth is not None:
+            camera = truth.camera  # the simulated rig is the design's (render-targets renders it)
+        distance = render_check_frame(camera, mirrors, seed=args.seed).distance
+    options = {}
+    if args.band is not None:
+        options["band"] = tuple(args.band)
+    if args.min_height is not None:
+        options["min_height"] = args.min_height
+    check = edge_heights(cal, distance, **options)
+    print("upper edges of objects of equal height, seen through each mirror (paper Fig. 6):")
+    for line in check.report():
+        print("  " + line)
+    if truth is not None:
+        for name, (angle, dd) in plane_errors(cal, truth).items():
+            print(f"  {name:>12}: normal error {angle:.3f} deg, distance error {dd:+.2f} mm")
+    if args.figure:
+        plot_side_view(args.figure, check, cal.names)
+        print(f"wrote {args.figure}")
+    return 0
+
+
+def cmd_masks(args: argparse.Namespace) -> int:
+    from omnitof.calibration import load_calibration, save_calibration
+    from omnitof.calibration.masks import (
+        labels_from_polygons,
+        polygons_from_labels,
+        read_polygon_file,
+        write_polygon_file,
+    )
+
+    cal = load_calibration(args.calibration)
+    changed = False
+    if args.margin is not None:
+        cal.edge_margin_px = args.margin
+    if args.export:
+        polygons = cal.polygons or polygons_from_labels(cal.labels, cal.names)
+        write_polygon_file(args.export, polygons)
+        print(f"wrote {args.export}: {len(polygons)} polygons; edit and redraw with --polygons")
+    if args.polygons:
+        polygons = read_polygon_file(args.polygons)
+        cal.labels = labels_from_polygons(cal.camera, cal.names, polygons, cal.edge_margin_px, args.polygons)
+        cal.polygons = polygons
+        changed = True
+    if args.figure:
+        _plot_labels(args.figure, cal)
+        print(f"wrote {args.figure}")
+    counts = {name: int((cal.labels == k).sum()) for k, name in enumerate(cal.names)}
+    print("pixels per mirror: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+    if changed or args.out:
+        out = args.out or args.calibration
+        save_calibration(cal, out)
+        print(f"wrote {out}")
+    return 0
+
+
+def _plot_labels(path: Path, cal) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.colors import to_rgba
+    from matplotlib.figure import Figure
+
+    from omnitof.io.atomic import atomic_write
+
+    fig = Figure(figsize=(6.4, 5.6), dpi=120)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    colours = np.zeros((*cal.labels.shape, 4))
+    colours[..., 3] = 1.0
+    for k, name in enumerate(cal.names):
+        colours[cal.labels == k] = to_rgba(f"C{k % 10}")
+        rows, cols = np.nonzero(cal.labels == k)
+        if len(rows):
+            ax.text(cols.mean(), rows.mean(), name.upper(), ha="center", va="center", fontsize=9,
+                    bbox={"facecolor": "white", "alpha": 0.8, "linewidth": 0})
+    h, w = cal.labels.shape
+    ax.imshow(colours, extent=(-0.5, w - 0.5, h - 0.5, -0.5), interpolation="nearest")
+    for k, (name, poly) in enumerate(cal.polygons.items()):
+        closed = np.vstack([poly, poly[:1]])
+        ax.plot(closed[:, 0], closed[:, 1], color="white", linewidth=1)
+    ax.set_xlabel("u [px]")
+    ax.set_ylabel("v [px]")
+    ax.set_title(f"mirror masks, {cal.edge_margin_px:g} px edge margin")
+    fig.tight_layout()
+    with atomic_write(path, "wb") as handle:
+        fig.savefig(handle, format="png")

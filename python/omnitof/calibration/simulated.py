@@ -1,0 +1,88 @@
+"""The whole calibration of a simulated rig in one call, as `omnitof demo` runs it.
+
+Renders checkerboard images (no mirrors) and four-dot target images at every mirror with the
+sensor's noise (`calibration.targets`), calibrates the intrinsics from the boards
+(`calibrate_intrinsics`, OpenCV) and then the mirror planes from the dots with those intrinsics
+(`calibrate_mirrors`, paper sec. II-C, eq. 5), draws the masks from the estimated planes
+(`masks.labels_from_planes`; the outer edge of the mirrors, which no plane tells, from the
+rig's design), and reports how far every estimate is from the truth.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from omnitof.calibration import Calibration
+from omnitof.calibration.intrinsics import calibrate_intrinsics
+from omnitof.calibration.masks import labels_from_planes
+from omnitof.calibration.mirror_planes import calibrate_mirrors
+from omnitof.calibration.targets import render_checkerboard_images, render_dot_images
+from omnitof.mirrors import assign_pixels
+
+# 30 boards pin the principal point to ~0.2 px at 176×144 (15: ~0.4 px), which is what limits
+# the mirror normals once the intrinsics are estimated (benchmarks/calibration.py: the worst
+# normal 0.22° with 30 boards against 0.33° with 15, seed 0).
+DEFAULT_BOARDS = 30
+DEFAULT_PLACEMENTS = 8
+
+
+def calibrate_from_simulation(
+    renderer: Any,
+    *,
+    seed: int = 0,
+    truth: Calibration | None = None,
+    boards: int = DEFAULT_BOARDS,
+    placements: int = DEFAULT_PLACEMENTS,
+    edge_margin_px: float = 2.0,
+) -> tuple[Calibration, dict[str, Any]]:
+    """(estimated Calibration, report) for the rig of a `sim.render.Renderer`.
+
+    The report holds the intrinsics' RMS reprojection error and focal-length error, and per
+    mirror the angle between the estimated and the true normal (degrees) and the error of the
+    plane distance (mm), with what the robust steps rejected.
+    """
+    camera, mirrors = renderer.camera, list(renderer.mirrors)
+    truth = truth or Calibration.from_rig(camera, mirrors, renderer.robot_T_camera, edge_margin_px)
+    board_images, _ = render_checkerboard_images(camera, boards, seed, sensor=renderer.sensor)
+    intrinsics = calibrate_intrinsics(board_images)
+    dot_images, _ = render_dot_images(camera, mirrors, placements, seed, sensor=renderer.sensor)
+    design_labels = assign_pixels(camera, mirrors)
+    result = calibrate_mirrors(
+        intrinsics.camera, dot_images, [m.name for m in mirrors], [m.plane for m in mirrors], design_labels
+    )
+    labels = labels_from_planes(intrinsics.camera, result.planes, outside=design_labels < 0,
+                                edge_margin_px=edge_margin_px)
+    calibration = Calibration(
+        camera=intrinsics.camera, planes=result.planes, names=[m.name for m in mirrors], labels=labels,
+        robot_T_camera=np.asarray(renderer.robot_T_camera), edge_margin_px=edge_margin_px,
+        quality={**intrinsics.quality(), "mirrors": result.report()},
+        provenance={"source": f"simulated targets, seed {seed}: {boards} boards, {placements} placements per mirror"},
+    )
+    est, true = calibration.camera, truth.camera
+    report: dict[str, Any] = {
+        "source": calibration.provenance["source"],
+        "intrinsics": {
+            "rms_px": round(float(intrinsics.rms_px), 4),
+            "fx_error_pct": round(100.0 * (est.fx - true.fx) / true.fx, 3),
+            "fy_error_pct": round(100.0 * (est.fy - true.fy) / true.fy, 3),
+            "principal_point_error_px": round(math.hypot(est.cx - true.cx, est.cy - true.cy), 3),
+            "views": len(intrinsics.used),
+        },
+        "mirrors": {},
+    }
+    for name, got, want in zip(calibration.names, calibration.planes, truth.planes):
+        cos = float(np.clip(np.dot(got.normal, want.normal), -1.0, 1.0))
+        report["mirrors"][name] = {
+            "normal_error_deg": round(math.degrees(math.acos(cos)), 4),
+            "distance_error_mm": round(1000.0 * (got.d - want.d), 3),
+        }
+    worst_angle = max(m["normal_error_deg"] for m in report["mirrors"].values())
+    worst_d = max(abs(m["distance_error_mm"]) for m in report["mirrors"].values())
+    report["summary"] = (f"intrinsics RMS {report['intrinsics']['rms_px']:.3f} px, fx error "
+                         f"{report['intrinsics']['fx_error_pct']:+.2f} %; mirrors: normals within "
+                         f"{worst_angle:.3f}°, plane distances within {worst_d:.2f} mm")
+    report["mask_pixels_differing_from_truth"] = int(np.sum(labels != truth.labels))
+    return calibration, report

@@ -1,0 +1,175 @@
+"""From ToF frames (simulated, or read from a ROS bag) to 360° range scans for the filter, and
+the 3D points of some frames for the voxel map: the glue between the sensor and SLAM.
+
+The rig's geometry comes from a calibration file (`omnitof calibrate`, `calibration.
+load_calibration`) or, for a simulated bag, from the true rig in its sidecar (`sim.sequence.
+rig_sidecar`); the calibration wins when both are there. Frames are streamed in batches, so a
+long bag never sits in memory; only the scans (360 floats per frame) and the kept clouds do.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from omnitof.errors import InputError
+from omnitof.scan import ScanExtractor, ScanSettings, scans_from_frames
+from omnitof.types import ScanSequence
+
+
+class ToFInputWarning(UserWarning):
+    """Something about ToF input the user should know (e.g. no calibration file was given)."""
+
+
+@dataclass
+class ToFScans:
+    """Scans of every frame, and the robot-frame 3D points of every `cloud_every`-th frame.
+
+    scans: the ScanSequence (360 bearings, sensor pose (0, 0, 0), odometry, ground truth if
+    known). cloud_frames: (K,) indices of the frames whose points were kept; clouds: K arrays
+    (M_k, 6): ray origin on the mirror (x, y, z) and end point (x, y, z), robot frame, metres.
+    """
+
+    scans: ScanSequence
+    extractor: ScanExtractor
+    cloud_frames: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    clouds: list[np.ndarray] = field(default_factory=list)
+    rig_source: str = ""
+
+
+class _CloudTap:
+    """Passes frames through unchanged and keeps the rays of every `every`-th one."""
+
+    def __init__(self, extractor: ScanExtractor, every: int, pixel_stride: int,
+                 progress: Callable[[int], Any] | None) -> None:
+        self.extractor, self.every, self.stride, self.progress = extractor, every, pixel_stride, progress
+        self.frames: list[int] = []
+        self.clouds: list[np.ndarray] = []
+
+    def __call__(self, frames: Iterable[Any]) -> Iterable[Any]:
+        for i, frame in enumerate(frames):
+            if self.every > 0 and i % self.every == 0:
+                origins, points = self.extractor.rays(np.asarray(frame.distance), np.asarray(frame.amplitude))
+                keep = slice(None, None, self.stride)
+                self.frames.append(i)
+                self.clouds.append(np.hstack([origins[keep], points[keep]]).astype(np.float32))
+            yield frame
+            if self.progress is not None:
+                self.progress(1)
+
+
+def tof_scans(
+    frames: Iterable[Any],
+    extractor: ScanExtractor,
+    *,
+    cloud_every: int = 0,
+    cloud_pixel_stride: int = 1,
+    source: str = "",
+    progress: Callable[[int], Any] | None = None,
+) -> ToFScans:
+    """Scans of every frame (`scan.scans_from_frames`) and, with cloud_every > 0, the rays of
+    every cloud_every-th frame (every cloud_pixel_stride-th point) for the 3D map.
+
+    `frames` are `io.rosbag.ToFFrameStamped` (with timestamp and odometry) as `render_sequence`
+    and `ToFBag.frames` give them.
+    """
+    tap = _CloudTap(extractor, int(cloud_every), max(1, int(cloud_pixel_stride)), progress)
+    scans = scans_from_frames(extractor, tap(frames), source=source)
+    return ToFScans(scans, extractor, np.asarray(tap.frames, dtype=np.int64), tap.clouds)
+
+
+def extractor_for_bag(
+    bag: Any, calibration: str | Path | None = None, settings: ScanSettings | None = None
+) -> tuple[ScanExtractor, str]:
+    """The bag's ScanExtractor and where its geometry came from: the calibration file, else the
+    true rig of a simulated bag's sidecar (with a ToFInputWarning), else an InputError."""
+    if calibration is not None:
+        from omnitof.calibration import load_calibration
+
+        cal = load_calibration(calibration)
+        if cal.camera.shape != bag.camera.shape:
+            raise InputError(
+                f"the calibration is for {cal.camera.width}×{cal.camera.height} images, the bag has "
+                f"{bag.camera.width}×{bag.camera.height}", calibration,
+            )
+        return ScanExtractor.from_calibration(cal, settings=settings), f"calibration {calibration}"
+    if bag.sidecar is not None and "mirrors" in bag.sidecar:
+        from omnitof.sim.sequence import rig_from_sidecar
+
+        rig = rig_from_sidecar(bag.sidecar, bag.path)
+        warnings.warn(
+            f"{bag.path}: no --calibration given; using the true rig from the simulator's sidecar",
+            ToFInputWarning, stacklevel=2,
+        )
+        extractor = ScanExtractor.from_rig(rig.camera, rig.mirrors, rig.robot_T_camera, settings=settings)
+        return extractor, "the bag's sidecar (true rig)"
+    raise InputError(
+        "a ToF bag needs the rig's geometry: give --calibration FILE (see `omnitof calibrate`)", bag.path
+    )
+
+
+def read_tof_scans(
+    path: str | Path,
+    *,
+    calibration: str | Path | None = None,
+    settings: ScanSettings | None = None,
+    cloud_every: int = 0,
+    cloud_pixel_stride: int = 1,
+    max_frames: int | None = None,
+    progress: Callable[[int], Any] | None = None,
+) -> ToFScans:
+    """Scans (and optionally clouds) of a ToF bag (`io.rosbag.read_tof_bag` layout)."""
+    from itertools import islice
+
+    from omnitof.io.rosbag import read_tof_bag
+
+    bag = read_tof_bag(path)
+    extractor, rig_source = extractor_for_bag(bag, calibration, settings)
+    frames = bag.frames(samples=False)
+    if max_frames is not None:
+        frames = islice(frames, int(max_frames))
+    out = tof_scans(frames, extractor, cloud_every=cloud_every, cloud_pixel_stride=cloud_pixel_stride,
+                    source=str(path), progress=progress)
+    out.rig_source = rig_source
+    return out
+
+
+def frame_count(path: str | Path) -> int:
+    """Frames in a ToF bag (for a progress bar)."""
+    from omnitof.io.rosbag import read_tof_bag
+
+    return read_tof_bag(path).n_frames
+
+
+# --- the 3D map of a run ------------------------------------------------------------------
+
+
+def voxel_map_from_clouds(poses: np.ndarray, clouds: list[np.ndarray], **options: Any) -> Any:
+    """A `map3d.VoxelMap` (options: its constructor's) from the kept clouds (`ToFScans.clouds`,
+    (M, 6) origin and end point per ray, robot frame) at their frames' poses (K, 3)."""
+    from omnitof.map3d import VoxelMap, build_voxel_map
+
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    if len(poses) != len(clouds):
+        raise ValueError(f"{len(poses)} poses for {len(clouds)} clouds")
+    rays = ((c[:, :3].astype(np.float64), c[:, 3:].astype(np.float64)) for c in clouds)
+    return build_voxel_map(poses, rays, VoxelMap(**options))
+
+
+def write_voxel_outputs(vmap: Any, out_dir: str | Path, *, trajectory: np.ndarray | None = None,
+                        title: str = "") -> dict[str, Path]:
+    """map3d.ply (occupied voxel centres, coloured by height) and map3d.png in `out_dir`."""
+    from omnitof.map3d import height_colors, plot_voxels, write_ply
+
+    out = Path(out_dir)
+    occupied = vmap.occupied()
+    paths = {"map3d_ply": out / "map3d.ply", "map3d_png": out / "map3d.png"}
+    write_ply(paths["map3d_ply"], occupied, height_colors(occupied) if len(occupied) else None)
+    plot_voxels(paths["map3d_png"], occupied, resolution=vmap.resolution, trajectory=trajectory,
+                title=title or "3D occupancy (occupied voxels)")
+    return paths

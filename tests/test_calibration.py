@@ -1,0 +1,340 @@
+"""Tests of omnitof.calibration: the calibration file, intrinsics from a checkerboard, the
+mirror planes from the four-dot target (paper sec. II-C, eq. 5 and 6), masks and the checks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from omnitof.calibration import (
+    Calibration,
+    CalibrationError,
+    decode_rows,
+    encode_rows,
+    load_calibration,
+    save_calibration,
+)
+from omnitof.design import default_rig
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return default_rig()
+
+
+# --- the calibration file ------------------------------------------------------------------
+
+
+def test_from_rig_is_the_true_geometry(rig):
+    from omnitof.mirrors import masks
+
+    camera, mirrors = rig
+    cal = Calibration.from_rig(camera, mirrors)
+    assert cal.names == [m.name for m in mirrors]
+    assert np.array_equal(cal.labels, masks(camera, mirrors, 2.0))
+    for plane, mirror in zip(cal.planes, mirrors):
+        assert np.allclose(plane.normal, mirror.plane.normal) and plane.d == mirror.plane.d
+    # eq. 6: the virtual camera maps a point to where the real camera sees it in the mirror.
+    point = np.array([0.3, -1.2, -0.1])
+    pv = cal.virtual_cameras()[0] @ np.append(point, 1.0)
+    image = mirrors[0].plane.reflect_points(point[None])[0]
+    assert np.allclose(pv[:2] / pv[2], (camera.K @ image)[:2] / image[2])
+
+
+def test_save_load_round_trip_is_exact(rig, tmp_path):
+    camera, mirrors = rig
+    cal = Calibration.from_rig(camera, mirrors)
+    cal.polygons = {"front": np.array([[0.0, 0.0], [175.0, 0.0], [88.0, 70.0]])}
+    cal.quality = {"intrinsics_rms_px": 0.1, "mirrors": {"front": {"inliers": 12}}}
+    path = save_calibration(cal, tmp_path / "cal.yaml")
+    back = load_calibration(path)
+    assert back.camera == camera
+    assert np.array_equal(back.labels, cal.labels) and back.labels.dtype == np.int32
+    assert back.names == cal.names
+    for a, b in zip(back.planes, cal.planes):
+        assert np.array_equal(a.normal, b.normal) and a.d == b.d
+    assert np.array_equal(back.robot_T_camera, cal.robot_T_camera)
+    assert np.array_equal(back.polygons["front"], cal.polygons["front"])
+    assert back.quality["mirrors"]["front"]["inliers"] == 12
+    assert back.edge_margin_px == 2.0
+
+
+def test_rows_encoding_round_trip():
+    labels = np.random.default_rng(1).integers(-1, 3, size=(5, 9)).astype(np.int32)
+    assert np.array_equal(decode_rows(encode_rows(labels), labels.shape), labels)
+    assert encode_rows(np.array([[-1, -1, 0, 0, 0, 2]])) == ["-1*2 0*3 2*1"]
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda t: t.replace("fx: ", "fx: -"), "camera"),
+        (lambda t: t.replace("  d: 0.0829", "  d: -0.0829", 1), "mirrors[0]"),
+        (lambda t: t.replace("omnitof_calibration: 1", "omnitof_calibration: 7"), "version"),
+        (lambda t: t.replace("  - 3*5 ", "  - 3*6 ", 1), "masks.rows[0]"),
+        (lambda t: t.replace("normal: [0.0, ", "normal: [", 1), "mirrors[0].normal"),
+    ],
+)
+def test_bad_file_names_file_and_field(rig, tmp_path, edit, message):
+    camera, mirrors = rig
+    path = save_calibration(Calibration.from_rig(camera, mirrors), tmp_path / "cal.yaml")
+    path.write_text(edit(path.read_text()))
+    with pytest.raises(CalibrationError) as err:
+        load_calibration(path)
+    assert str(path) in str(err.value) and message in str(err.value)
+
+
+# --- shared simulated data -----------------------------------------------------------------
+
+PLACEMENTS = 8  # dot-target placements per mirror in the accuracy tests
+
+
+@pytest.fixture(scope="module")
+def dot_images(rig):
+    from omnitof.calibration.targets import render_dot_images
+
+    camera, mirrors = rig
+    images, truth = render_dot_images(camera, mirrors, PLACEMENTS, seed=3)
+    return images, truth
+
+
+def _calibrate(rig, images, **kwargs):
+    from omnitof.calibration.mirror_planes import calibrate_mirrors
+    from omnitof.mirrors import assign_pixels
+
+    camera, mirrors = rig
+    return calibrate_mirrors(
+        camera, images, [m.name for m in mirrors], [m.plane for m in mirrors],
+        assign_pixels(camera, mirrors), **kwargs
+    )
+
+
+def _errors(result, mirrors):
+    out = {}
+    for estimate, mirror in zip(result.estimates, mirrors):
+        cos = float(np.clip(estimate.plane.normal @ mirror.plane.normal, -1.0, 1.0))
+        out[mirror.name] = (np.degrees(np.arccos(cos)), 1000.0 * (estimate.plane.d - mirror.plane.d))
+    return out
+
+
+# --- intrinsics ----------------------------------------------------------------------------
+
+
+def test_intrinsics_from_noisy_checkerboards(rig):
+    from omnitof.calibration.intrinsics import calibrate_intrinsics
+    from omnitof.calibration.targets import render_checkerboard_images
+
+    camera, _ = rig
+    images, _ = render_checkerboard_images(camera, 12, seed=2)
+    result = calibrate_intrinsics(images)
+    assert result.rms_px < 0.15
+    assert abs(result.camera.fx / camera.fx - 1.0) < 0.01
+    assert abs(result.camera.fy / camera.fy - 1.0) < 0.01
+    assert abs(result.camera.cx - camera.cx) < 1.5 and abs(result.camera.cy - camera.cy) < 1.5
+    # Over the image, the calibrated model sends the true rays near their pixels (the extreme
+    # corners, which no board reaches, extrapolate the distortion and are worse).
+    v, u = np.mgrid[4:140:8, 4:172:8]
+    pixels = np.stack([u.ravel(), v.ravel()], axis=1).astype(float)
+    moved = np.linalg.norm(result.camera.project(camera.rays(pixels)) - pixels, axis=1)
+    assert np.percentile(moved, 90) < 1.5
+
+
+def test_intrinsics_reads_png_and_rejects_too_few_boards(rig, tmp_path):
+    import cv2
+
+    from omnitof.calibration.intrinsics import calibrate_intrinsics, load_images
+
+    camera, _ = rig
+    cv2.imwrite(str(tmp_path / "blank.png"), np.full(camera.shape, 1000, np.uint16))
+    images = load_images([tmp_path])
+    assert images[0].amplitude.shape == camera.shape and images[0].distance is None
+    with pytest.raises(CalibrationError, match="blank.png"):
+        calibrate_intrinsics(images)
+
+
+def test_intrinsics_from_a_ros_bag(rig, tmp_path):
+    from omnitof.calibration.intrinsics import calibrate_intrinsics, load_images
+    from omnitof.calibration.targets import render_checkerboard_images
+    from omnitof.io.rosbag import ToFFrameStamped, write_tof_bag
+    from omnitof.types import Trajectory
+
+    camera, _ = rig
+    images, _ = render_checkerboard_images(camera, 8, seed=4)
+    frames = [ToFFrameStamped(0.1 * (k + 1), im.distance, im.amplitude) for k, im in enumerate(images)]
+    odometry = Trajectory(np.array([0.0, 1.0]), np.zeros((2, 3)))
+    write_tof_bag(tmp_path / "boards", frames, camera=camera, odometry=odometry)
+    loaded = load_images([tmp_path / "boards"])
+    assert len(loaded) == 8 and loaded[0].name.endswith("frame0")
+    assert np.array_equal(loaded[3].amplitude, images[3].amplitude)
+    result = calibrate_intrinsics(loaded)
+    assert abs(result.camera.fx / camera.fx - 1.0) < 0.01
+
+
+# --- mirrors (paper sec. II-C, eq. 5) --------------------------------------------------------
+
+
+def test_mirror_planes_meet_the_targets(rig, dot_images):
+    camera, mirrors = rig
+    images, _ = dot_images
+    result = _calibrate(rig, images)
+    for name, (angle, dd) in _errors(result, mirrors).items():
+        assert angle < 0.2, f"{name}: normal off by {angle:.3f}°"
+        assert abs(dd) < 2.0, f"{name}: plane distance off by {dd:.2f} mm"
+    for estimate in result.estimates:
+        assert len(estimate.images) == PLACEMENTS and estimate.rms_px < 0.2
+    # eq. 6: the calibrated virtual camera sees a dot where the image shows it in the mirror.
+    cal = Calibration.from_rig(camera, mirrors)
+    cal.planes = result.planes
+    point = np.array([0.02, -0.06, 0.11])
+    pv = cal.virtual_cameras()[0] @ np.append(point, 1.0)
+    true_image = mirrors[0].plane.reflect_points(point[None])[0]
+    assert np.allclose(pv[:2] / pv[2], (camera.K @ true_image)[:2] / true_image[2], atol=0.5)
+
+
+def test_scale_from_tof_distances(rig, dot_images):
+    _, mirrors = rig
+    result = _calibrate(rig, dot_images[0], scale="tof")
+    for name, (angle, dd) in _errors(result, mirrors).items():
+        assert abs(dd) < 3.0, f"{name}: ToF-scaled plane distance off by {dd:.2f} mm"
+
+
+def _paint_disc(image, centre, radius, value):
+    v, u = np.mgrid[0 : image.shape[0], 0 : image.shape[1]]
+    image[(u - centre[0]) ** 2 + (v - centre[1]) ** 2 <= radius**2] = value
+
+
+def test_bad_image_is_rejected_and_reported(rig, dot_images):
+    from omnitof.calibration.intrinsics import AmplitudeImage
+    from omnitof.calibration.mirror_planes import detect_views
+
+    _, mirrors = rig
+    images, _ = dot_images
+    bad = images[0]
+    views = detect_views(bad)
+    direct = min(views[:2], key=lambda view: view.distance)
+    amplitude = bad.amplitude.copy()
+    white = float(np.percentile(amplitude[np.abs(bad.distance - direct.distance) < 0.01], 90))
+    # A dot hidden (a thumb over it) and a false blob (a smudge on the card between the dots).
+    _paint_disc(amplitude, direct.dots[0], 3.5, white)
+    smudge = direct.dots.mean(axis=0) * 0.6 + direct.dots[0] * 0.4
+    _paint_disc(amplitude, smudge, 1.6, 0.05 * white)
+    corrupted = [AmplitudeImage(bad.name, amplitude, bad.distance)] + images[1:]
+    result = _calibrate(rig, corrupted)
+    front = result.estimates[0]
+    assert any(bad.name in message for message in front.rejected)
+    assert any(bad.name in line for line in result.report())
+    for name, (angle, dd) in _errors(result, mirrors).items():
+        assert angle < 0.2 and abs(dd) < 2.0, name
+
+
+def test_clear_errors_name_image_and_mirror(rig, dot_images):
+    from omnitof.calibration.intrinsics import AmplitudeImage
+    from omnitof.calibration.mirror_planes import detect_views
+
+    camera, mirrors = rig
+    images, _ = dot_images
+    blank = AmplitudeImage("empty.npz", np.full(camera.shape, 50.0, np.float32),
+                           np.full(camera.shape, 2.0, np.float32))
+    with pytest.raises(CalibrationError, match=r"empty\.npz.*no dots"):
+        _calibrate(rig, [blank])
+    # One dot left in each view: one correspondence, not enough.
+    one = images[0]
+    amplitude = one.amplitude.copy()
+    for view in detect_views(one)[:2]:
+        white = float(np.max(amplitude[np.abs(one.distance - view.distance) < 0.01]))
+        for dot in view.dots[1:]:
+            _paint_disc(amplitude, dot, 3.5, white)
+    with pytest.raises(CalibrationError, match=rf"{one.name}.*'front'.*at least two"):
+        _calibrate(rig, [AmplitudeImage(one.name, amplitude, one.distance)])
+    # A mirror never seen.
+    without_back = [im for im in images if not im.name.startswith("back")]
+    with pytest.raises(CalibrationError, match="'back'.*no image"):
+        _calibrate(rig, without_back)
+
+
+# --- masks -----------------------------------------------------------------------------------
+
+
+def test_masks_from_planes_and_polygons(rig, tmp_path):
+    from omnitof.calibration.masks import (
+        labels_from_planes,
+        labels_from_polygons,
+        polygons_from_labels,
+        read_polygon_file,
+        write_polygon_file,
+    )
+    from omnitof.mirrors import assign_pixels, masks
+
+    camera, mirrors = rig
+    names = [m.name for m in mirrors]
+    outside = assign_pixels(camera, mirrors) < 0
+    labels = labels_from_planes(camera, [m.plane for m in mirrors], outside, 2.0)
+    assert np.array_equal(labels, masks(camera, mirrors, 2.0))
+    # By hand (the paper's way): polygons drawn around the regions, edited, redrawn.
+    polygons = polygons_from_labels(assign_pixels(camera, mirrors), names)
+    path = write_polygon_file(tmp_path / "regions.yaml", polygons)
+    redrawn = labels_from_polygons(camera, names, read_polygon_file(path), 2.0)
+    assert np.mean(redrawn != labels) < 0.02
+    square = {"front": np.array([[10.0, 10.0], [20.0, 10.0], [20.0, 20.0], [10.0, 20.0]])}
+    hand = labels_from_polygons(camera, names, square, 0.0)
+    assert (hand == 0).sum() == 121 and (hand == 0)[10:21, 10:21].all()
+    with pytest.raises(CalibrationError, match="nowhere"):
+        labels_from_polygons(camera, names, {"nowhere": square["front"]})
+
+
+# --- the check of paper Fig. 6 ---------------------------------------------------------------
+
+
+def test_equal_height_check_sees_a_tilted_mirror(rig):
+    from omnitof.calibration.check import edge_heights, render_check_frame
+    from omnitof.mirrors import MirrorPlane
+
+    camera, mirrors = rig
+    frame = render_check_frame(camera, mirrors, seed=1)
+    cal = Calibration.from_rig(camera, mirrors)
+    good = edge_heights(cal, frame.distance)
+    assert set(good.per_mirror) == set(cal.names)
+    assert good.spread < 0.012
+    for median, _, bins in good.per_mirror.values():
+        assert abs(median - 0.6) < 0.015 and bins >= 10
+    tilt = np.radians(0.5)  # the front mirror turned by 0.5° about the camera's x axis
+    turn = np.array([[1, 0, 0], [0, np.cos(tilt), -np.sin(tilt)], [0, np.sin(tilt), np.cos(tilt)]])
+    cal.planes[0] = MirrorPlane(turn @ cal.planes[0].normal, cal.planes[0].d)
+    assert edge_heights(cal, frame.distance).spread > 0.02
+
+
+# --- command line ----------------------------------------------------------------------------
+
+
+def test_cli_render_calibrate_check(tmp_path, capsys):
+    from omnitof.cli import main
+
+    out = tmp_path / "targets"
+    cal = tmp_path / "cal.yaml"
+    assert main(["calibrate", "render-targets", "--out", str(out), "--placements", "4",
+                 "--boards", "8", "--seed", "5"]) == 0
+    assert main(["calibrate", "intrinsics", str(out / "intrinsics"), "--out", str(cal)]) == 0
+    assert "RMS reprojection error" in capsys.readouterr().out
+    assert main(["calibrate", "mirrors", str(out / "mirrors"), "--calibration", str(cal)]) == 0
+    printed = capsys.readouterr().out
+    for name in ("front", "left", "back", "right"):
+        assert f"mirror {name}:" in printed
+    result = load_calibration(cal)
+    truth = load_calibration(out / "truth.yaml")
+    for plane, true in zip(result.planes, truth.planes):
+        # Calibrated intrinsics and 4 placements: looser than the test above.
+        assert np.degrees(np.arccos(min(1.0, plane.normal @ true.normal))) < 1.5
+        assert abs(plane.d - true.d) < 0.005
+    assert result.quality["mirrors"]["front"]["placements"] == 4
+    assert main(["calibrate", "check", str(cal), "--truth", str(out / "truth.yaml"),
+                 "--figure", str(tmp_path / "side.png")]) == 0
+    assert "difference between mirrors" in capsys.readouterr().out
+    assert (tmp_path / "side.png").stat().st_size > 0
+    regions = tmp_path / "regions.yaml"
+    assert main(["calibrate", "masks", str(cal), "--export", str(regions)]) == 0
+    assert main(["calibrate", "masks", str(cal), "--polygons", str(regions)]) == 0
+    assert set(load_calibration(cal).polygons) == {"front", "left", "back", "right"}
+    # Bad input: one line on stderr, exit status 2, naming the file.
+    (tmp_path / "junk.png").write_bytes(b"not a png")
+    assert main(["calibrate", "mirrors", str(tmp_path / "junk.png"), "--calibration", str(cal)]) == 2
+    assert "junk.png" in capsys.readouterr().err
