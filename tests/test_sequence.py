@@ -159,3 +159,12 @@ def test_speed_changes_frame_count():
     fast = make_sequence(world, motion=MotionSettings(speed=0.5))
     assert len(slow) / len(fast) == pytest.approx(0.5 / 0.3, rel=0.01)
     assert math.isclose(slow.length, fast.length, rel_tol=0.01)
+
+
+def test_cli_simulate_calibration_renders_target_images(tmp_path, capsys):
+    out = tmp_path / "targets"
+    assert main(["simulate", "calibration", "--world", "room", "--out", str(out), "--placements", "1",
+                 "--boards", "2"]) == 0
+    assert len(list((out / "intrinsics").glob("*.png"))) == 2
+    assert len(list((out / "mirrors").glob("*.png"))) == 4  # one placement at each of the 4 mirrors
+    assert (out / "truth.yaml").exists()

@@ -146,6 +146,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    if args.what == "calibration":
+        from omnitof.calibration.cli import cmd_render_targets
+
+        return cmd_render_targets(args)
     from tqdm import tqdm
 
     from omnitof.sim.sequence import MotionSettings, make_sequence, simulate_bag
@@ -246,9 +250,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sweep", type=Path, metavar="PNG", help="sweep tilt, yaw, mirrors and lens; plot to PNG")
     p.set_defaults(func=cmd_design)
 
-    p = sub.add_parser("simulate", help="simulate a robot driving a world with the omnidirectional ToF sensor; write a ROS 2 bag")
+    p = sub.add_parser("simulate", help="simulate a robot driving a world with the omnidirectional ToF sensor and "
+                       "write a ROS 2 bag; or (`simulate calibration`) render calibration target images")
+    p.add_argument("what", nargs="?", choices=["sequence", "calibration"], default="sequence",
+                   help="sequence (default): the robot's drive as a bag; calibration: checkerboard and four-dot "
+                   "target images with the true calibration (as `omnitof calibrate render-targets`)")
     p.add_argument("--world", default="corridor1", help="a bundled world (room, office, corridor1, corridor2) or a world YAML file")
-    p.add_argument("--out", type=Path, required=True, help="the bag folder to write")
+    p.add_argument("--out", type=Path, required=True, help="the bag folder (or, for calibration, the image folder) to write")
+    p.add_argument("--placements", type=int, default=8, help="calibration: dot-target placements per mirror")
+    p.add_argument("--boards", type=int, default=30, help="calibration: checkerboard images")
     p.add_argument("--seed", type=int, default=0, help="fixes the odometry noise, the sensor noise and the sub-ray jitter")
     p.add_argument("--speed", type=float, default=0.4, help="driving speed (m/s)")
     p.add_argument("--samples", action="store_true", help="also write the raw samples A0..A3 (5x the size)")
