@@ -95,3 +95,26 @@ def test_cli_slam_refuses_calibration_for_a_laser_log(tmp_path, capsys):
     write_carmen(log, make_loop_dataset(seed=0).slice(0, 20))
     assert main(["slam", str(log), "--out", str(tmp_path / "o"), "--map3d", "--quiet"]) == 2
     assert "ToF images" in capsys.readouterr().err
+
+
+def test_cli_scans_exports_carmen_and_laserscan_bag(tmp_path, capsys):
+    from omnitof.cli import main
+    from omnitof.io.carmen import read_carmen
+    from omnitof.io.rosbag import read_laserscan_bag
+    from omnitof.tofscans import read_tof_scans
+
+    bag = tmp_path / "room"
+    assert main(["simulate", "--world", "room", "--out", str(bag), "--max-frames", "12", "--quiet"]) == 0
+    with pytest.warns(UserWarning, match="true rig"):
+        want = read_tof_scans(bag).scans
+        assert main(["scans", str(bag), "--out", str(tmp_path / "scans.clf"), "--quiet"]) == 0
+        assert main(["scans", str(bag), "--out", str(tmp_path / "scans"), "--quiet"]) == 0
+    carmen = read_carmen(tmp_path / "scans.clf").scans
+    laser = read_laserscan_bag(tmp_path / "scans")
+    for got in (carmen, laser):
+        assert got.ranges.shape == want.ranges.shape == (12, 360)
+        assert np.array_equal(np.isfinite(got.ranges), np.isfinite(want.ranges))
+        finite = np.isfinite(want.ranges)
+        assert np.allclose(got.ranges[finite], want.ranges[finite], atol=1e-3)
+        assert np.allclose(got.angles, want.angles, atol=1e-6)
+        assert np.allclose(got.odometry, want.odometry, atol=1e-6)

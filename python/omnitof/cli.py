@@ -8,6 +8,8 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+
+import numpy as np
 import warnings
 from pathlib import Path
 from typing import Any
@@ -112,6 +114,34 @@ def cmd_slam(args: argparse.Namespace) -> int:
         print(f"trajectory error (mean, final): SLAM {te['slam']['mean']:.3f} m, {te['slam']['final']:.3f} m; "
               f"odometry {te['odometry']['mean']:.3f} m, {te['odometry']['final']:.3f} m")
     print(f"results in {paths['summary'].parent}")
+    return 0
+
+
+def cmd_scans(args: argparse.Namespace) -> int:
+    args.map3d, args.max_scans = False, args.max_frames
+    data = _read_tof_input(args)
+    scans = data.scans
+    out = Path(args.out)
+    if out.suffix in (".clf", ".log", ".txt"):
+        from omnitof.io.carmen import write_carmen
+
+        write_carmen(out, scans)
+        kind = "CARMEN log"
+    else:
+        from omnitof.io.rosbag import write_laserscan_bag
+
+        version = 1 if out.suffix == ".bag" else 2
+        write_laserscan_bag(out, scans, version=version, overwrite=args.overwrite)
+        kind = f"ROS {version} bag (sensor_msgs/LaserScan on /scan, nav_msgs/Odometry on /odom)"
+    if args.figure is not None:
+        from omnitof.viz.scans import plot_scan
+
+        i = len(scans) // 2
+        plot_scan(args.figure, scans.ranges[i], scans.angles, max_range=scans.max_range,
+                  title=f"frame {i} of {Path(args.log).name}")
+    filled = float(np.isfinite(scans.ranges).mean()) if len(scans) else 0.0
+    print(f"{len(scans)} scans of 360 bins ({100 * filled:.1f} % with a reading; rig from {data.rig_source}) "
+          f"written as a {kind}: {out}")
     return 0
 
 
@@ -226,6 +256,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--map3d-every", type=int, default=5, help="ToF bags: frames between those fed to the 3D map")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_slam)
+
+    p = sub.add_parser("scans", help="extract the 360° range readings of a ToF bag and write them as a CARMEN log "
+                       "or a LaserScan bag, for other SLAM tools")
+    p.add_argument("log", type=Path, help="ROS 1/2 bag of ToF images + Odometry (omnitof simulate)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="FILE.clf / .log: a CARMEN log; FILE.bag: a ROS 1 bag; otherwise a ROS 2 bag folder")
+    p.add_argument("--calibration", type=Path, help="the rig's calibration YAML (default: a simulated bag's true rig)")
+    p.add_argument("--height", type=float, help="height of the scan slice above the floor (m)")
+    p.add_argument("--band", type=float, help="half-thickness of the scan slice (m)")
+    p.add_argument("--max-frames", type=int, help="only the first N frames")
+    p.add_argument("--figure", type=Path, help="draw the middle frame's scan (PNG)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing bag")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_scans)
 
     p = sub.add_parser("eval", help="evaluate results")
     esub = p.add_subparsers(dest="eval_command", required=True)
