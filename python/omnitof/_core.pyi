@@ -54,6 +54,7 @@ class ParticleFilter:
         field_z_hit: float,
         field_z_rand: float,
         field_window: int,
+        field_fit_walls: bool = False,
         match_step_xy: float,
         match_step_theta: float,
         match_refinements: int,

@@ -99,6 +99,7 @@ def _make_filter(scans: ScanSequence, cfg: SlamConfig) -> "_core.ParticleFilter"
         field_z_hit=lf.z_hit,
         field_z_rand=lf.z_rand,
         field_window=lf.window_cells,
+        field_fit_walls=lf.fit_walls,
         match_step_xy=sm.step_xy,
         match_step_theta=math.radians(sm.step_deg),
         match_refinements=sm.refinements,

@@ -127,6 +127,23 @@ impl TiledGrid {
         Some([(ix as f64 + (off[0] as f64 + 0.5) / 256.0) * res, (iy as f64 + (off[1] as f64 + 0.5) / 256.0) * res])
     }
 
+    /// The world position of a cell's mean end point and the number of end points averaged
+    /// (saturating at 255), whatever the cell's log-odds; None if no end point fell into it.
+    #[inline]
+    pub fn hit_mean(&self, ix: i32, iy: i32) -> Option<([f64; 2], u8)> {
+        let tile = self.tile_slot(ix, iy).and_then(|s| self.tiles[s].as_ref())?;
+        let k = Self::cell_offset(ix, iy);
+        if tile.hits[k] == 0 {
+            return None;
+        }
+        let off = tile.hit_offset[k];
+        let res = self.resolution;
+        Some((
+            [(ix as f64 + (off[0] as f64 + 0.5) / 256.0) * res, (iy as f64 + (off[1] as f64 + 0.5) / 256.0) * res],
+            tile.hits[k],
+        ))
+    }
+
     /// Grow the tile window so that it holds the world rectangle [x0, x1] × [y0, y1].
     pub fn ensure_covers(&mut self, x0: f64, y0: f64, x1: f64, y1: f64) {
         let to_tile = |v: f64| ((v / self.resolution).floor() as i32) >> TILE_SHIFT;

@@ -70,7 +70,7 @@ impl PyParticleFilter {
         sigma_hit, lambda_short, max_range, occupied_threshold, beam_stride, effective_beams,
         l_occ, l_free, l_min, l_max, resolution, map_max_range, clear_no_echo,
         resample_threshold, angles, sensor_pose, proposal, observation, field_sigma, field_z_hit,
-        field_z_rand, field_window, match_step_xy, match_step_theta, match_refinements, match_gauss_newton,
+        field_z_rand, field_window, field_fit_walls=false, match_step_xy, match_step_theta, match_refinements, match_gauss_newton,
         match_sample_xy, match_sample_theta, match_min_matched, match_odometry_prior))]
     #[allow(clippy::too_many_arguments)]
     fn new(
@@ -104,6 +104,7 @@ impl PyParticleFilter {
         field_z_hit: f64,
         field_z_rand: f64,
         field_window: i32,
+        field_fit_walls: bool,
         match_step_xy: f64,
         match_step_theta: f64,
         match_refinements: u32,
@@ -133,6 +134,7 @@ impl PyParticleFilter {
                 max_range,
                 window: field_window,
                 occupied_threshold,
+                fit_walls: field_fit_walls,
             },
             matcher: MatcherParams {
                 step_xy: match_step_xy,
@@ -307,7 +309,7 @@ impl PyOccupancyGrid {
         let start = pose3(start.as_slice()?, "start")?;
         let (angles, ranges) = (angles.as_slice()?, ranges.as_slice()?);
         let geom = scan_geometry(angles, ranges, sensor_pose)?;
-        let lf = LikelihoodField { sigma, z_hit: 0.9, z_rand: 0.1, max_range, window, occupied_threshold };
+        let lf = LikelihoodField { sigma, z_hit: 0.9, z_rand: 0.1, max_range, window, occupied_threshold, fit_walls: false };
         let m = MatcherParams {
             step_xy, step_theta, refinements, gauss_newton, sample_xy: 0.01, sample_theta: 0.005,
             min_matched: 0.0, effective_beams: 1.0, odometry_prior: false,

@@ -21,6 +21,19 @@ use crate::sensor_model::ScanGeometry;
 /// cells, instead of being read from a precomputed distance field: end points of a matched
 /// scan lie within a cell or two of an obstacle, so the search mostly stops after 9–25 cells,
 /// and the map needs no second structure to keep up to date when cells turn free again.
+///
+/// With `fit_walls`, d is instead the distance to the wall fitted through the mean end points
+/// around the nearest one (see `wall_distance`), searched exactly within window·resolution, and the
+/// Gaussian runs continuously into the floor there. Why: the nearest mean end point alone is a
+/// noisy and biased stand-in for a wall. Along a wall the points sit a cell apart, and the
+/// cells on the sensor's side of a surface are crossed by most beams and turn free while
+/// those behind it keep even single stray hits, so the occupied means lie behind the surface.
+/// On the simulated corridor loop, scans matched against a map built from the true poses came
+/// out 3.7 mm too far forward each (1.1 mm with fitted walls); the global optimum of the score
+/// lay 0.11° (rms) off the true heading against the map behind the robot, 0.04° against the
+/// true walls. Chained scan after scan, with a 5 cm field, the estimate stretched the corridors
+/// by about 1 % and its heading wandered by a degree over the loop; with fitted walls and a
+/// 2 cm field, 0.14–0.23° rms (at most 0.4–0.7°) with 10 particles.
 #[derive(Clone, Copy, Debug)]
 pub struct LikelihoodField {
     pub sigma: f64,
@@ -29,6 +42,7 @@ pub struct LikelihoodField {
     pub max_range: f64,
     pub window: i32,
     pub occupied_threshold: f32,
+    pub fit_walls: bool,
 }
 
 /// Beam end points in the sensor frame, every `stride`-th beam with a reading below max_range.
@@ -49,7 +63,7 @@ impl LikelihoodField {
     /// (squared distance, offset (dx, dy) from the point to) the nearest occupied cell's mean end
     /// point within the window; infinite distance if there is none.
     #[inline]
-    fn nearest(&self, grid: &TiledGrid, x: f64, y: f64) -> (f64, [f64; 2]) {
+    fn nearest_cell(&self, grid: &TiledGrid, x: f64, y: f64) -> (f64, [f64; 2]) {
         let res = grid.resolution;
         let (ix, iy) = ((x / res).floor() as i32, (y / res).floor() as i32);
         let mut best = f64::INFINITY;
@@ -90,11 +104,144 @@ impl LikelihoodField {
         (best, offset)
     }
 
+    /// The search radius (m) with `fit_walls`: end points farther than this from every
+    /// obstacle score z_rand/max_range.
     #[inline]
-    fn point_log_likelihood(&self, d2: f64) -> f64 {
+    fn radius(&self, res: f64) -> f64 {
+        self.window as f64 * res
+    }
+
+    /// (squared distance, offset (dx, dy) from the point to the nearest obstacle, unit normal of
+    /// the fitted wall if the distance runs across one); infinite distance if there is none.
+    #[inline]
+    fn nearest(&self, grid: &TiledGrid, x: f64, y: f64) -> (f64, [f64; 2], Option<[f64; 2]>) {
+        if self.fit_walls {
+            self.nearest_wall(grid, x, y)
+        } else {
+            let (d2, offset) = self.nearest_cell(grid, x, y);
+            (d2, offset, None)
+        }
+    }
+
+    /// The nearest occupied cell's mean end point within `radius`, then the wall through it
+    /// (`wall_distance`). Exact: the rings stop only once no cell of the next ring can hold a nearer
+    /// point (a cell r rings away lies at least (r − 1) cells from any point of the centre cell).
+    #[inline]
+    fn nearest_wall(&self, grid: &TiledGrid, x: f64, y: f64) -> (f64, [f64; 2], Option<[f64; 2]>) {
+        let res = grid.resolution;
+        let radius = self.radius(res);
+        let (ix, iy) = ((x / res).floor() as i32, (y / res).floor() as i32);
+        let mut best = radius * radius;
+        let mut offset = [0.0; 2];
+        let mut found = None;
+        for r in 0..=self.window + 1 {
+            if r >= 1 {
+                let gap = (r - 1) as f64 * res;
+                if gap * gap >= best {
+                    break;
+                }
+            }
+            let mut visit = |cx: i32, cy: i32| {
+                if let Some(h) = grid.occupied_hit(cx, cy, self.occupied_threshold) {
+                    let (dx, dy) = (h[0] - x, h[1] - y);
+                    if dx * dx + dy * dy < best {
+                        best = dx * dx + dy * dy;
+                        offset = [dx, dy];
+                        found = Some((cx, cy));
+                    }
+                }
+            };
+            if r == 0 {
+                visit(ix, iy);
+            } else {
+                for k in -r..=r {
+                    visit(ix + k, iy - r);
+                    visit(ix + k, iy + r);
+                }
+                for k in (-r + 1)..r {
+                    visit(ix - r, iy + k);
+                    visit(ix + r, iy + k);
+                }
+            }
+        }
+        match found {
+            Some(cell) => self.wall_distance(grid, x, y, cell).unwrap_or((best, offset, None)),
+            None => (f64::INFINITY, offset, None),
+        }
+    }
+
+    /// (squared distance, offset, unit normal) from (x, y) to the wall through the mean end points
+    /// of the cells around `cell` (3×3), a line fitted to them weighted by their end point counts:
+    /// the distance across it, plus the part of the distance along it that reaches past the
+    /// points' extent (then no normal). Cells count whether occupied or not, so that the end
+    /// points on the sensor's side of a surface, whose cells the beams cleared, still pull the
+    /// wall towards where the end points fell. None where the points do not lie along a line
+    /// (fewer than three cells, or a corner).
+    #[inline]
+    fn wall_distance(&self, grid: &TiledGrid, x: f64, y: f64, cell: (i32, i32)) -> Option<(f64, [f64; 2], Option<[f64; 2]>)> {
+        let mut n = 0.0;
+        let mut cells = 0;
+        let (mut sx, mut sy, mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for cy in cell.1 - 1..=cell.1 + 1 {
+            for cx in cell.0 - 1..=cell.0 + 1 {
+                if let Some((h, count)) = grid.hit_mean(cx, cy) {
+                    // Relative to the query point: small numbers, no cancellation.
+                    let (u, v) = (h[0] - x, h[1] - y);
+                    let w = count as f64;
+                    cells += 1;
+                    n += w;
+                    sx += w * u;
+                    sy += w * v;
+                    sxx += w * u * u;
+                    sxy += w * u * v;
+                    syy += w * v * v;
+                }
+            }
+        }
+        if cells < 3 {
+            return None;
+        }
+        let (mx, my) = (sx / n, sy / n);
+        let (a, b, c) = (sxx / n - mx * mx, sxy / n - mx * my, syy / n - my * my);
+        let half_diff = 0.5 * (a - c);
+        let root = (half_diff * half_diff + b * b).sqrt();
+        let (major, minor) = (0.5 * (a + c) + root, 0.5 * (a + c) - root);
+        if minor >= 0.1 * major {
+            return None;
+        }
+        // Direction of the major axis, and the line's normal.
+        let phi = 0.5 * (2.0 * b).atan2(a - c);
+        let (su, cu) = phi.sin_cos();
+        // Centroid relative to the point: across and along the line.
+        let across = -su * mx + cu * my;
+        let along = cu * mx + su * my;
+        let half_length = (3.0 * major).sqrt();
+        let past = if along.abs() > half_length { along - half_length * along.signum() } else { 0.0 };
+        let offset = [-su * across + cu * past, cu * across + su * past];
+        let normal = (past == 0.0).then_some([-su, cu]);
+        Some((across * across + past * past, offset, normal))
+    }
+
+    /// The Gaussian part of a point at squared distance d2; with `fit_walls`, less its value at
+    /// the search radius, so that the score runs continuously into z_rand/max_range there (a
+    /// step makes the scan match jump between poses).
+    #[inline]
+    fn hit_density(&self, d2: f64, radius2: f64) -> f64 {
+        if !d2.is_finite() || (self.fit_walls && d2 >= radius2) {
+            return 0.0;
+        }
         let norm = 1.0 / (self.sigma * (2.0 * std::f64::consts::PI).sqrt());
-        let hit = if d2.is_finite() { norm * (-0.5 * d2 / (self.sigma * self.sigma)).exp() } else { 0.0 };
-        (self.z_hit * hit + self.z_rand / self.max_range).ln()
+        let gauss = |q: f64| (-0.5 * q / (self.sigma * self.sigma)).exp();
+        if self.fit_walls {
+            norm * (gauss(d2) - gauss(radius2))
+        } else {
+            norm * gauss(d2)
+        }
+    }
+
+    #[inline]
+    fn point_log_likelihood(&self, d2: f64, radius2: f64) -> f64 {
+        (self.z_hit * self.hit_density(d2, radius2) + self.z_rand / self.max_range).ln()
     }
 
     /// (mean log-likelihood over the points, points with an obstacle inside the window) for
@@ -104,6 +251,7 @@ impl LikelihoodField {
             return (0.0, 0);
         }
         let (s, c) = sp[2].sin_cos();
+        let radius = self.radius(grid.resolution);
         let mut total = 0.0;
         let mut matched = 0;
         for p in pts {
@@ -113,7 +261,7 @@ impl LikelihoodField {
             if d2.is_finite() {
                 matched += 1;
             }
-            total += self.point_log_likelihood(d2);
+            total += self.point_log_likelihood(d2, radius * radius);
         }
         (total / pts.len() as f64, matched)
     }
@@ -223,6 +371,7 @@ pub fn gauss_newton(
 ) -> ([f64; 3], f64) {
     let norm = lf.z_hit / (lf.sigma * (2.0 * std::f64::consts::PI).sqrt());
     let floor = lf.z_rand / lf.max_range;
+    let radius2 = lf.radius(grid.resolution).powi(2);
     let scale = if pts.is_empty() { 0.0 } else { gain / pts.len() as f64 };
     let mut pose = start;
     let mut best = (start, f64::NEG_INFINITY);
@@ -237,19 +386,25 @@ pub fn gauss_newton(
         for p in pts {
             let qx = sp[0] + c * p[0] - s * p[1];
             let qy = sp[1] + s * p[0] + c * p[1];
-            let (d2, off) = lf.nearest(grid, qx, qy);
+            let (d2, off, normal) = lf.nearest(grid, qx, qy);
             if !d2.is_finite() {
                 total += floor.ln();
                 continue;
             }
-            let e = norm * (-0.5 * d2 / (lf.sigma * lf.sigma)).exp();
+            let g_d = norm * (-0.5 * d2 / (lf.sigma * lf.sigma)).exp();
+            let e = if lf.fit_walls { lf.z_hit * lf.hit_density(d2, radius2) } else { g_d };
             total += (e + floor).ln();
-            let w = e / (e + floor) / (lf.sigma * lf.sigma);
+            // d log(e + floor) / d(d²) = −g_d / (2σ²(e + floor)), g_d the Gaussian without the shift.
+            let w = if e > 0.0 { g_d / (e + floor) / (lf.sigma * lf.sigma) } else { 0.0 };
             // Residual r = q − hit point = −off; dq/d(x, y, θ) = [[1, 0, −(qy − y)], [0, 1, qx − x]].
-            let r = [-off[0], -off[1]];
             let jt = [-(qy - pose[1]), qx - pose[0]];
-            let rows = [[1.0, 0.0, jt[0]], [0.0, 1.0, jt[1]]];
-            for (k, row) in rows.iter().enumerate() {
+            // Across a fitted wall one residual, the distance along its normal n; otherwise the
+            // two of the offset.
+            let (rows, r, n_rows) = match normal {
+                Some(n) => ([[n[0], n[1], n[0] * jt[0] + n[1] * jt[1]], [0.0; 3]], [-(n[0] * off[0] + n[1] * off[1]), 0.0], 1),
+                None => ([[1.0, 0.0, jt[0]], [0.0, 1.0, jt[1]]], [-off[0], -off[1]], 2),
+            };
+            for (k, row) in rows.iter().enumerate().take(n_rows) {
                 for a in 0..3 {
                     g[a] += w * row[a] * r[k];
                     for b in 0..3 {
@@ -456,7 +611,7 @@ mod tests {
     fn climbing_recovers_a_displaced_pose() {
         let (g, angles, ranges) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
-        let lf = LikelihoodField { sigma: 0.05, z_hit: 0.9, z_rand: 0.1, max_range: 20.0, window: 3, occupied_threshold: 0.0 };
+        let lf = LikelihoodField { sigma: 0.05, z_hit: 0.9, z_rand: 0.1, max_range: 20.0, window: 3, occupied_threshold: 0.0, fit_walls: false };
         let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 0, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let (pose, _) = climb(|p| objective(&lf, &g, &geom, &pts, 1.0, None, p), [2.08, 1.43, 0.03], &m);
@@ -468,11 +623,27 @@ mod tests {
     fn gauss_newton_recovers_a_displaced_pose() {
         let (g, angles, ranges) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
-        let lf = LikelihoodField { sigma: 0.05, z_hit: 0.9, z_rand: 0.1, max_range: 20.0, window: 3, occupied_threshold: 0.0 };
+        let lf = LikelihoodField { sigma: 0.05, z_hit: 0.9, z_rand: 0.1, max_range: 20.0, window: 3, occupied_threshold: 0.0, fit_walls: false };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let (pose, _) = gauss_newton(&lf, &g, &geom, &pts, 1.0, None, [2.06, 1.46, 0.02], 20);
         assert!((pose[0] - 2.0).abs() < 0.02 && (pose[1] - 1.5).abs() < 0.02, "{pose:?}");
         assert!(pose[2].abs() < 0.01, "{pose:?}");
+    }
+
+    #[test]
+    fn fitted_walls_recover_a_displaced_pose() {
+        let (g, angles, ranges) = room();
+        let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
+        let lf = LikelihoodField { sigma: 0.02, z_hit: 0.9, z_rand: 0.1, max_range: 20.0, window: 3, occupied_threshold: 0.0, fit_walls: true };
+        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 10, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false };
+        let pts = endpoints(&geom, &ranges, 1, 20.0);
+        let (mode, _) = climb(|p| objective(&lf, &g, &geom, &pts, 1.0, None, p), [2.04, 1.46, 0.02], &m);
+        let (pose, _) = gauss_newton(&lf, &g, &geom, &pts, 1.0, None, mode, m.gauss_newton);
+        assert!((pose[0] - 2.0).abs() < 0.01 && (pose[1] - 1.5).abs() < 0.01, "{pose:?}");
+        assert!(pose[2].abs() < 0.003, "{pose:?}");
+        // Every end point of the true pose lies on a fitted wall: continuous score, no step.
+        let (_, matched) = lf.score(&g, geom.sensor_pose([2.0, 1.5, 0.0]), &pts);
+        assert_eq!(matched, pts.len());
     }
 
     #[test]
