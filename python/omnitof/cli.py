@@ -318,8 +318,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=Path("results/demo"), help="results folder")
     p.add_argument("--seed", type=int, default=0, help="fixes every random draw")
     p.add_argument("--preset", default="tof-scanmatch",
-                   help="SLAM preset: tof-scanmatch (scan-matching proposal, 30 particles) or tof (the paper's filter, 200)")
-    p.add_argument("--particles", type=int, help="number of particles (overrides the preset)")
+                   help="SLAM preset: tof-scanmatch (the scan-matching proposal) or tof (the paper's filter)")
+    p.add_argument("--particles", type=int, default=200, help="number of particles (default 200)")
     p.add_argument("--true-rig", action="store_true", help="skip the calibration and use the true rig")
     p.add_argument("--max-frames", type=int, help="stop after N frames (a quick look)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
