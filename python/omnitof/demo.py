@@ -29,6 +29,7 @@ import numpy as np
 import yaml
 
 from omnitof.io.atomic import atomic_write
+from omnitof.io.plain import to_plain
 
 DEFAULT_WORLD = "corridor1"
 DEFAULT_PRESET = "tof-scanmatch"
@@ -169,13 +170,13 @@ def run_world(settings: DemoSettings, out: str | Path, *, progress: bool = True,
         summary["stages"] = stages.rows
         summary["total_seconds"] = round(time.perf_counter() - started, 1)
         paths = write_results(out, result, cfg, title=f"{world.name} (simulated)", ground_truth=scans.ground_truth,
-                              extra={"demo": _plain(summary)})
+                              extra={"demo": to_plain(summary)})
         _figures(world, renderer, extractor, sequence, scans, result, out)
         write_report(out / "report.md", summary, voxel_paths)
     summary["stages"] = stages.rows
     summary["total_seconds"] = round(time.perf_counter() - started, 1)
     with atomic_write(paths["summary"]) as f:
-        yaml.safe_dump({"run": result.stats, "demo": _plain(summary)}, f, sort_keys=False)
+        yaml.safe_dump({"run": result.stats, "demo": to_plain(summary)}, f, sort_keys=False)
     _print_summary(summary, out, echo)
     return DemoRun(summary, world, scans)
 
@@ -303,7 +304,7 @@ def write_report(path: Path, summary: dict[str, Any], voxel_paths: dict[str, Pat
     if "table1_text" in ev:
         lines += ["## Table I: distances between opposite walls (cm)", "", "```", ev["table1_text"], "```", ""]
     cal = summary["calibration"]
-    lines += ["## Calibration", "", "```", yaml.safe_dump(_plain(cal), sort_keys=False).rstrip(), "```", ""]
+    lines += ["## Calibration", "", "```", yaml.safe_dump(to_plain(cal), sort_keys=False).rstrip(), "```", ""]
     lines += ["## The sensor", "", "![amplitude](fig3_amplitude.png) ![depth](fig3_depth.png)", "",
               "![scan](scan.png) ![slice](slice.png)", ""]
     if voxel_paths:
@@ -334,21 +335,6 @@ def _print_summary(summary: dict[str, Any], out: Path, echo: Callable[[str], Non
             echo(f"Table I: {len(offsets)} of {len(ev['table1'])} places measured, offsets "
                  f"{min(offsets):.1f}–{max(offsets):.1f} cm")
     echo(f"total {summary['total_seconds']:.0f} s; report in {out / 'report.md'}")
-
-
-def _plain(value: Any) -> Any:
-    """YAML-safe copy: numpy scalars and arrays to Python numbers and lists."""
-    if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    return value
 
 
 def run_demo(out: str | Path, *, world: str = DEFAULT_WORLD, seed: int = 0, preset: str = DEFAULT_PRESET,

@@ -51,6 +51,7 @@ import yaml
 from omnitof.camera import Camera, CameraParameterError
 from omnitof.errors import InputError
 from omnitof.io.atomic import atomic_write
+from omnitof.io.plain import to_plain
 from omnitof import mirrors as _mirrors  # not `masks` by name: the submodule masks shadows it
 from omnitof.mirrors import Mirror, MirrorParameterError, MirrorPlane, camera_mount
 
@@ -217,21 +218,6 @@ def _floats(array: np.ndarray) -> list:
     return np.asarray(array, dtype=np.float64).tolist()
 
 
-def _plain(value: Any) -> Any:
-    """numpy scalars and arrays → Python numbers and lists, recursively, for YAML."""
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    return value
-
-
 def calibration_to_dict(cal: Calibration) -> dict[str, Any]:
     """The YAML document of `cal` as plain Python data (see the module docstring)."""
     cam = cal.camera
@@ -248,7 +234,7 @@ def calibration_to_dict(cal: Calibration) -> dict[str, Any]:
         per_mirror = cal.quality.get("mirrors")
         q = per_mirror.get(name) if isinstance(per_mirror, Mapping) else None
         if q:
-            entry["quality"] = _plain(q)
+            entry["quality"] = to_plain(q)
         mirrors.append(entry)
     mask: dict[str, Any] = {"edge_margin_px": float(cal.edge_margin_px)}
     if cal.polygons:
@@ -272,8 +258,8 @@ def calibration_to_dict(cal: Calibration) -> dict[str, Any]:
         "robot_T_camera": _floats(cal.robot_T_camera),
         "mirrors": mirrors,
         "masks": mask,
-        "quality": _plain(quality),
-        "provenance": _plain(cal.provenance),
+        "quality": to_plain(quality),
+        "provenance": to_plain(cal.provenance),
     }
 
 

@@ -66,6 +66,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from omnitof.camera import Camera, CameraParameterError
 from omnitof.errors import InputError, OmnitofError
 from omnitof.geometry import quaternion_to_yaw, wrap_angle, yaw_to_quaternion
+from omnitof.io.plain import to_plain
 from omnitof.types import ScanSequence, Trajectory
 
 __all__ = [
@@ -1315,28 +1316,13 @@ def _sidecar_text(sidecar: dict) -> str:
     if not isinstance(sidecar, dict):
         raise ValueError(f"sidecar must be a dict, got {type(sidecar).__name__}")
     try:
-        body = yaml.safe_dump(_plain(sidecar), sort_keys=False, allow_unicode=True)
+        body = yaml.safe_dump(to_plain(sidecar), sort_keys=False, allow_unicode=True)
     except yaml.YAMLError as err:
         raise ValueError(f"sidecar is not YAML-serialisable: {err}") from None
     return (
         "# omnitof sidecar of the ROS 2 bag in this folder (omnitof.io.rosbag): the data the\n"
         "# bag's messages cannot carry. Metres, radians, seconds.\n" + body
     )
-
-
-def _plain(value: Any) -> Any:
-    """numpy arrays and scalars (and tuples) → plain lists and numbers, for yaml.safe_dump."""
-    if isinstance(value, dict):
-        return {_plain(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    return value
 
 
 def _storage_plugin(storage: str) -> StoragePlugin:
