@@ -39,21 +39,8 @@ from omnitof.map3d import (
     write_ply,
 )
 from omnitof.sim.render import Renderer
-from omnitof.sim.worlds import World, load_world
-
-
-def loop_poses(world: World, count: int) -> np.ndarray:
-    """(count, 3) poses evenly spaced along the world's loop, heading along each leg."""
-    legs = world.path_legs()
-    lengths = np.linalg.norm(legs[:, 1] - legs[:, 0], axis=1)
-    ends = np.cumsum(lengths)
-    s = (np.arange(count) + 0.5) * ends[-1] / count
-    leg = np.searchsorted(ends, s)
-    frac = (s - (ends[leg] - lengths[leg])) / lengths[leg]
-    a, b = legs[leg, 0], legs[leg, 1]
-    xy = a + frac[:, None] * (b - a)
-    heading = np.arctan2(b[:, 1] - a[:, 1], b[:, 0] - a[:, 0])
-    return np.column_stack([xy, heading])
+from omnitof.sim.worlds import load_world
+from omnitof.sim.sequence import poses_along_loop
 
 
 def cpu_model() -> str:
@@ -96,7 +83,7 @@ def main() -> None:
     mount = mirror_module.camera_mount()
     labels = mirror_module.masks(camera, mirrors)
     renderer = Renderer(world, camera, mirrors, robot_T_camera=mount)
-    poses = loop_poses(world, args.frames)
+    poses = poses_along_loop(world, args.frames)
     frames = []
     for k, pose in enumerate(poses):
         frame = renderer.render(pose, seed=k)

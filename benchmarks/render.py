@@ -25,21 +25,8 @@ import time
 import numpy as np
 
 from omnitof.sim.render import Renderer, RenderSettings
-from omnitof.sim.worlds import World, load_world, world_names
-
-
-def loop_poses(world: World, count: int) -> np.ndarray:
-    """(count, 3) poses evenly spaced along the world's loop, heading along each leg."""
-    legs = world.path_legs()
-    lengths = np.linalg.norm(legs[:, 1] - legs[:, 0], axis=1)
-    ends = np.cumsum(lengths)
-    s = (np.arange(count) + 0.5) * ends[-1] / count
-    leg = np.searchsorted(ends, s)
-    frac = (s - (ends[leg] - lengths[leg])) / lengths[leg]
-    a, b = legs[leg, 0], legs[leg, 1]
-    xy = a + frac[:, None] * (b - a)
-    heading = np.arctan2(b[:, 1] - a[:, 1], b[:, 0] - a[:, 0])
-    return np.column_stack([xy, heading])
+from omnitof.sim.worlds import load_world, world_names
+from omnitof.sim.sequence import poses_along_loop
 
 
 def time_runs(fn, runs: int) -> list[float]:
@@ -68,7 +55,7 @@ def main() -> None:
     for name in world_names():
         world = load_world(name)
         renderer = Renderer(world, settings=settings)
-        poses = loop_poses(world, args.frames)
+        poses = poses_along_loop(world, args.frames)
         core = [args.frames / t for t in time_runs(lambda: renderer.phasors(poses), args.runs)]
         full = [
             args.frames / t

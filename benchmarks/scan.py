@@ -36,20 +36,7 @@ import numpy as np
 from omnitof.scan import ScanExtractor
 from omnitof.sim.render import Renderer
 from omnitof.sim.worlds import World, load_world, world_names
-
-
-def loop_poses(world: World, count: int) -> np.ndarray:
-    """(count, 3) poses evenly spaced along the world's loop, heading along each leg."""
-    legs = world.path_legs()
-    lengths = np.linalg.norm(legs[:, 1] - legs[:, 0], axis=1)
-    ends = np.cumsum(lengths)
-    s = (np.arange(count) + 0.5) * ends[-1] / count
-    leg = np.searchsorted(ends, s)
-    frac = (s - (ends[leg] - lengths[leg])) / lengths[leg]
-    a, b = legs[leg, 0], legs[leg, 1]
-    xy = a + frac[:, None] * (b - a)
-    heading = np.arctan2(b[:, 1] - a[:, 1], b[:, 0] - a[:, 0])
-    return np.column_stack([xy, heading])
+from omnitof.sim.sequence import poses_along_loop
 
 
 def accuracy(world: World, renderer: Renderer, extractor: ScanExtractor, poses: np.ndarray,
@@ -98,7 +85,7 @@ def main() -> None:
     for name in args.worlds:
         world = load_world(name)
         renderer = Renderer(world)
-        poses = loop_poses(world, args.frames)
+        poses = poses_along_loop(world, args.frames)
         frames = renderer.render_many(poses, seed=0)
         d = np.stack([f.distance for f in frames])
         a = np.stack([f.amplitude for f in frames])
@@ -148,6 +135,7 @@ def known_pose_table1(extractor: ScanExtractor) -> None:
         start = time.perf_counter()
         scans = scans_from_frames(extractor, render_sequence(sequence, Renderer(world)), source=name)
         seconds = time.perf_counter() - start
+        assert scans.ground_truth is not None  # simulated frames carry their true poses
         scans = dataclasses.replace(scans, odometry=scans.ground_truth.copy())
         occ = run_slam(scans, cfg).map
         results[name] = table1(occ, world.landmarks)

@@ -5,8 +5,6 @@ pixels, glass, metal, grids, phase wrapping, and the distance noise of a matte w
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -374,11 +372,10 @@ def test_bad_settings_and_poses_are_refused():
         r.phasors(np.array([np.nan, 0.0, 0.0]))
 
 
-def test_benchmark_script_runs():
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    from render import loop_poses
+def test_poses_along_the_loop_for_the_benchmarks():
+    from omnitof.sim.sequence import poses_along_loop
 
     w = load_world("corridor1")
-    poses = loop_poses(w, 12)
+    poses = poses_along_loop(w, 12)
     assert poses.shape == (12, 3)
     assert np.all(w.horizontal_distance(poses[:, :2], np.array([0.0]), 0.45) > 0.5)

@@ -335,3 +335,18 @@ def simulate_bag(
         sidecar=rig_sidecar(renderer, sequence), storage=storage, overwrite=overwrite,
     )
     return sequence, written
+
+
+def poses_along_loop(world: World, count: int) -> np.ndarray:
+    """(count, 3) poses evenly spaced along the world's waypoint legs (no corner arcs), each
+    heading along its leg: quick sample poses for benchmarks and tests."""
+    legs = world.path_legs()
+    lengths = np.linalg.norm(legs[:, 1] - legs[:, 0], axis=1)
+    ends = np.cumsum(lengths)
+    s = (np.arange(count) + 0.5) * ends[-1] / count
+    leg = np.searchsorted(ends, s)
+    frac = (s - (ends[leg] - lengths[leg])) / lengths[leg]
+    a, b = legs[leg, 0], legs[leg, 1]
+    xy = a + frac[:, None] * (b - a)
+    heading = np.arctan2(b[:, 1] - a[:, 1], b[:, 0] - a[:, 0])
+    return np.column_stack([xy, heading])
