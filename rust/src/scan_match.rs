@@ -59,6 +59,25 @@ pub fn endpoints(geom: &ScanGeometry, ranges: &[f32], stride: usize, max_range: 
         .collect()
 }
 
+/// Calls `visit` on every cell of the square ring `r` cells out from (ix, iy) (the cell itself
+/// for r = 0), in a fixed order, so that ties between equally near cells resolve the same way
+/// in every search.
+#[inline]
+fn for_ring(ix: i32, iy: i32, r: i32, mut visit: impl FnMut(i32, i32)) {
+    if r == 0 {
+        visit(ix, iy);
+        return;
+    }
+    for k in -r..=r {
+        visit(ix + k, iy - r);
+        visit(ix + k, iy + r);
+    }
+    for k in (-r + 1)..r {
+        visit(ix - r, iy + k);
+        visit(ix + r, iy + k);
+    }
+}
+
 impl LikelihoodField {
     /// (squared distance, offset (dx, dy) from the point to) the nearest occupied cell's mean end
     /// point within the window; infinite distance if there is none.
@@ -76,7 +95,7 @@ impl LikelihoodField {
                     break;
                 }
             }
-            let mut visit = |cx: i32, cy: i32| {
+            for_ring(ix, iy, r, |cx, cy| {
                 if let Some(h) = grid.occupied_hit(cx, cy, self.occupied_threshold) {
                     let (dx, dy) = (h[0] - x, h[1] - y);
                     if dx * dx + dy * dy < best {
@@ -84,19 +103,7 @@ impl LikelihoodField {
                         offset = [dx, dy];
                     }
                 }
-            };
-            if r == 0 {
-                visit(ix, iy);
-            } else {
-                for k in -r..=r {
-                    visit(ix + k, iy - r);
-                    visit(ix + k, iy + r);
-                }
-                for k in (-r + 1)..r {
-                    visit(ix - r, iy + k);
-                    visit(ix + r, iy + k);
-                }
-            }
+            });
             if best.is_finite() && found_at.is_none() {
                 found_at = Some(r);
             }
@@ -141,7 +148,7 @@ impl LikelihoodField {
                     break;
                 }
             }
-            let mut visit = |cx: i32, cy: i32| {
+            for_ring(ix, iy, r, |cx, cy| {
                 if let Some(h) = grid.occupied_hit(cx, cy, self.occupied_threshold) {
                     let (dx, dy) = (h[0] - x, h[1] - y);
                     if dx * dx + dy * dy < best {
@@ -150,19 +157,7 @@ impl LikelihoodField {
                         found = Some((cx, cy));
                     }
                 }
-            };
-            if r == 0 {
-                visit(ix, iy);
-            } else {
-                for k in -r..=r {
-                    visit(ix + k, iy - r);
-                    visit(ix + k, iy + r);
-                }
-                for k in (-r + 1)..r {
-                    visit(ix - r, iy + k);
-                    visit(ix + r, iy + k);
-                }
-            }
+            });
         }
         match found {
             Some(cell) => self.wall_distance(grid, x, y, cell).unwrap_or((best, offset, None)),
