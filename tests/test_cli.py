@@ -107,10 +107,10 @@ def test_malformed_log_names_the_line(tmp_path, capsys):
 
 
 def test_demo_runs_and_writes_figures(tmp_path, capsys):
-    # The whole pipeline on the room world, shortened: simulate, calibrate, scans, SLAM, 3D map,
-    # evaluation, report.
+    # The whole pipeline on the room world (two laps, 17 m): simulate, calibrate, scans, SLAM,
+    # 3D map, evaluation, report.
     out = tmp_path / "demo"
-    assert main(["demo", "--world", "room", "--out", str(out), "--max-frames", "120", "--quiet"]) == 0
+    assert main(["demo", "--world", "room", "--out", str(out), "--quiet"]) == 0
     assert "trajectory error" in capsys.readouterr().out
     for name in ("map.png", "map.yaml", "map.pgm", "trajectory.tum", "ground_truth.tum", "summary.yaml",
                  "report.md", "overlay.png", "map3d.ply", "map3d.png", "calibration.yaml", "fig3_depth.png",
@@ -118,7 +118,10 @@ def test_demo_runs_and_writes_figures(tmp_path, capsys):
         assert (out / name).exists(), name
     summary = yaml.safe_load((out / "summary.yaml").read_text())
     ev = summary["demo"]["evaluation"]
-    assert ev["trajectory"]["slam"]["mean"] < ev["trajectory"]["odometry"]["mean"]
+    # Raw odometry drifts 0.14 m on average and ends 0.19 m off; SLAM stays within a few cm.
+    assert ev["trajectory"]["odometry"]["final"] > 0.15
+    assert ev["trajectory"]["slam"]["mean"] < 0.5 * ev["trajectory"]["odometry"]["mean"]
+    assert ev["trajectory"]["slam"]["final"] < 0.05
     assert ev["floorplan"]["occupied_within_5cm"] > 0.5
     report = (out / "report.md").read_text()
     assert "Trajectory error" in report and "![map](map.png)" in report
