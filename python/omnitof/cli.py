@@ -51,19 +51,17 @@ def _scan_settings(args: argparse.Namespace):
     return scan_settings(**given)
 
 
-def _read_tof_input(args: argparse.Namespace):
+def _read_tof_input(args: argparse.Namespace, *, cloud_every: int, max_frames: int | None):
     from omnitof.tofscans import frame_count, read_tof_scans
 
     total = frame_count(args.log)
-    if args.max_scans is not None:
-        total = min(total, args.max_scans)
+    if max_frames is not None:
+        total = min(total, max_frames)
     with _progress_bar(total, not args.quiet, "scans", unit="frame") as bar:
-        data = read_tof_scans(
+        return read_tof_scans(
             args.log, calibration=args.calibration, settings=_scan_settings(args),
-            cloud_every=args.map3d_every if args.map3d else 0, max_frames=args.max_scans,
-            progress=bar.update,
+            cloud_every=cloud_every, max_frames=max_frames, progress=bar.update,
         )
-    return data
 
 
 def cmd_slam(args: argparse.Namespace) -> int:
@@ -76,7 +74,8 @@ def cmd_slam(args: argparse.Namespace) -> int:
         raise OmnitofError(f"{args.log}: --calibration and --map3d need a bag of ToF images")
     cfg = _config_from_args(args, default_preset="tof" if tof else None)
     if tof:
-        tof_data = _read_tof_input(args)
+        tof_data = _read_tof_input(args, cloud_every=args.map3d_every if args.map3d else 0,
+                                   max_frames=args.max_scans)
         scans = tof_data.scans
         extra = {"input": {"path": str(args.log), "kind": "tof-rosbag", "rig": tof_data.rig_source,
                            "scan": tof_data.extractor.settings.model_dump()}}
@@ -118,8 +117,7 @@ def cmd_slam(args: argparse.Namespace) -> int:
 
 
 def cmd_scans(args: argparse.Namespace) -> int:
-    args.map3d, args.max_scans = False, args.max_frames
-    data = _read_tof_input(args)
+    data = _read_tof_input(args, cloud_every=0, max_frames=args.max_frames)
     scans = data.scans
     out = Path(args.out)
     if out.suffix in (".clf", ".log", ".txt"):
