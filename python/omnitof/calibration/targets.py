@@ -408,23 +408,22 @@ def dot_target_poses(
     # A centre qualifies if the points 0.6 of a dot's distance from it along ±x, ±y, ±z do too
     # (a cheap screen; _dot_pose_ok checks each pose exactly).
     reach = 0.6 * (np.hypot(target.spacing / 2, target.spacing / 2) + target.radius)
-    seen = np.ones(len(box), dtype=bool)
-    for offset in np.vstack([np.zeros(3), reach * np.eye(3), -reach * np.eye(3)]):
-        shifted = box + offset
-        seen &= _inside_image(camera, camera.project(shifted), margin_px)
-        seen &= _inside_image(camera, project_via(camera, mirror, shifted), margin_px)
-        seen &= mirror.plane.signed_distance(shifted) < -CLEAR
-    candidates = box[seen]
+    offsets = np.vstack([np.zeros(3), reach * np.eye(3), -reach * np.eye(3)])
+
+    def qualifies(centres: np.ndarray) -> np.ndarray:
+        ok = np.ones(len(centres), dtype=bool)
+        for offset in offsets:
+            shifted = centres + offset
+            ok &= _inside_image(camera, camera.project(shifted), margin_px)
+            ok &= _inside_image(camera, project_via(camera, mirror, shifted), margin_px)
+            ok &= mirror.plane.signed_distance(shifted) < -CLEAR
+        return ok
+
+    candidates = box[qualifies(box)]
     if 0 < len(candidates) < 2000:  # densify: more samples around the few that qualified
         near = candidates[rng.integers(len(candidates), size=50_000)]
         near = near + rng.uniform(-0.01, 0.01, size=near.shape)
-        keep = np.ones(len(near), dtype=bool)
-        for offset in np.vstack([np.zeros(3), reach * np.eye(3), -reach * np.eye(3)]):
-            shifted = near + offset
-            keep &= _inside_image(camera, camera.project(shifted), margin_px)
-            keep &= _inside_image(camera, project_via(camera, mirror, shifted), margin_px)
-            keep &= mirror.plane.signed_distance(shifted) < -CLEAR
-        candidates = np.vstack([candidates, near[keep]])
+        candidates = np.vstack([candidates, near[qualifies(near)]])
     if len(candidates) == 0:
         raise ValueError(f"no point is seen both directly and through mirror {mirror.name!r}")
     virtual = mirror.plane.virtual_centre()
