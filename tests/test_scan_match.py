@@ -104,3 +104,38 @@ def test_scanmatch_10_particles_beats_odometry_100(seed):
     sm_ate = absolute_trajectory_error(sm.trajectory.poses, scans.ground_truth).mean
     assert sm.stats["scanmatch_fallbacks"] == 0
     assert sm_ate < odo_ate, (sm_ate, odo_ate)
+
+
+def with_odometry_jump(scans, at, jump):
+    """The odometry from scan `at` on shifted by `jump` (x, y, θ in the robot frame of scan at−1):
+    wheels that spun or slid while the robot stayed put."""
+    from omnitof.geometry import compose, relative
+
+    before = scans.odometry[at - 1]
+    odometry = scans.odometry.copy()
+    odometry[at:] = compose(compose(before, np.asarray(jump)), relative(before, scans.odometry[at:]))
+    return ScanSequence(scans.timestamps, scans.ranges, scans.angles, odometry,
+                        max_range=scans.max_range, ground_truth=scans.ground_truth)
+
+
+def test_wide_search_catches_an_odometry_jump(corridor_loop):
+    # 0.6 m and 8° of odometry that never happened, well beyond the reach of the hill climbing
+    # (a few cells), as the robot drives towards the end of a corridor (scan 150): without the
+    # wide search every particle is matched in the wrong place and the map ahead is drawn 0.6 m
+    # off; with it, the one step is corrected and named. (Along a bare corridor no matcher
+    # could see such a jump: the search only runs when the local match leaves much of the scan
+    # off the map.)
+    scans = with_odometry_jump(corridor_loop.slice(0, 500), 150, [0.6, 0.0, np.radians(8.0)])
+    plain = scanmatch_config()
+    searching = scanmatch_config()
+    searching.scan_matcher.search_xy = 1.0
+    before = run_slam(scans, plain)
+    after = run_slam(scans, searching)
+    late = slice(160, None)
+    err_before = absolute_trajectory_error(before.trajectory.poses[late], scans.ground_truth[late])
+    err_after = absolute_trajectory_error(after.trajectory.poses[late], scans.ground_truth[late])
+    assert err_before.mean > 0.3
+    assert err_after.mean < 0.1
+    first_after_jump = int(after.integrated[np.searchsorted(after.integrated, 150)])
+    assert after.stats["odometry_corrected_scans"] == [first_after_jump]
+    assert before.stats["odometry_corrected_scans"] == []

@@ -108,6 +108,28 @@ class ScanMatcherConfig(_Section):
         0.5, ge=0, le=1,
         description="fall back to the odometry proposal when fewer end points than this share lie near an obstacle",
     )
+    climb_from_sample: bool = Field(
+        False,
+        description="start each particle's climb at a pose drawn from the odometry motion model instead of at "
+        "the odometry prediction (as GMapping does): where the scan pins the pose down every start climbs to the "
+        "same mode, where it does not (along a corridor) the particles keep the motion model's spread, "
+        "which is what lets a later loop closure find the right one",
+    )
+    search_xy: float = Field(
+        0.0, ge=0, le=5,
+        description="check the odometry before each step with a wide correlative search of this half-width (m) "
+        "on the best particle's map, and replace the step's odometry increment by the match found where "
+        "it explains clearly more of the scan; catches wheel odometry glitches larger than the hill "
+        "climbing can undo; 0 = off",
+    )
+    search_deg: float = Field(15.0, ge=0, le=180, description="half-width of the wide search in heading (deg)")
+    search_step_xy: float = Field(0.1, gt=0, description="spacing of the wide search's poses in x and y (m)")
+    search_step_deg: float = Field(1.0, gt=0, description="spacing of the wide search's poses in heading (deg)")
+    search_below: float = Field(
+        0.8, ge=0, le=1,
+        description="run the wide search only when fewer than this share of end points lie near an obstacle "
+        "after the local match from the odometry",
+    )
 
 
 class MapConfig(_Section):

@@ -108,6 +108,12 @@ def _make_filter(scans: ScanSequence, cfg: SlamConfig) -> "_core.ParticleFilter"
         match_sample_theta=math.radians(sm.sample_deg),
         match_min_matched=sm.min_matched,
         match_odometry_prior=sm.odometry_prior,
+        match_climb_from_sample=sm.climb_from_sample,
+        search_xy=sm.search_xy,
+        search_theta=math.radians(sm.search_deg),
+        search_step_xy=sm.search_step_xy,
+        search_step_theta=math.radians(sm.search_step_deg),
+        search_below=sm.search_below,
     )
 
 
@@ -139,9 +145,11 @@ def run_slam(
     pf = _make_filter(scans, cfg)
     prev = scans.odometry[integrated[0]]
     done = 0
+    corrected_scans = []
     for k in integrated:
         cur = scans.odometry[k]
-        pf.step(prev, cur, scans.ranges[k], int(k))
+        if pf.step(prev, cur, scans.ranges[k], int(k))[2]:
+            corrected_scans.append(int(k))
         prev = cur
         if progress is not None:
             progress(int(k) + 1 - done)
@@ -160,6 +168,7 @@ def run_slam(
         "resamplings": int(pf.resamplings),
         "proposal": cfg.filter.proposal,
         "scanmatch_fallbacks": int(pf.fallbacks),
+        "odometry_corrected_scans": corrected_scans,
         "seconds": time.perf_counter() - start,
         "map_tiles_distinct": int(unique_tiles),
         "map_tiles_referenced": int(tile_refs),

@@ -19,7 +19,7 @@ use rayon::prelude::*;
 
 use crate::grid::{LogOddsModel, TiledGrid};
 use crate::motion::OdometryMotion;
-use crate::scan_match::{endpoints, propose, LikelihoodField, MatcherParams};
+use crate::scan_match::{check_odometry, endpoints, propose, LikelihoodField, MatcherParams};
 use crate::sensor_model::{integrate_scan, BeamModel, ScanGeometry};
 
 /// Where a particle's new pose is drawn from.
@@ -99,6 +99,8 @@ pub struct StepInfo {
     pub resampled: bool,
     /// Particles that fell back to the odometry proposal because scan matching failed.
     pub fallbacks: usize,
+    /// Whether the wide search replaced the odometry increment (see `check_odometry`).
+    pub odometry_corrected: bool,
 }
 
 pub struct ParticleFilter {
@@ -207,12 +209,19 @@ impl ParticleFilter {
         self.steps += 1;
         if self.particles.is_empty() {
             self.initialise(odom_cur, ranges, scan);
-            return StepInfo { neff: self.params.n_particles as f64, resampled: false, fallbacks: 0 };
+            return StepInfo { neff: self.params.n_particles as f64, resampled: false, fallbacks: 0, odometry_corrected: false };
         }
         let p = &self.params;
         let geom = ScanGeometry { angles: &self.angles, sensor: self.sensor };
         let seed = p.seed;
         let pts = endpoints(&geom, ranges, p.beam_stride, p.field.max_range);
+        let corrected = match (p.proposal, self.particles.get(self.best)) {
+            (ProposalKind::ScanMatch, Some(best)) => {
+                check_odometry(&p.field, &p.matcher, &best.map, &geom, &pts, best.pose, odom_prev, odom_cur)
+            }
+            _ => None,
+        };
+        let odom_cur = corrected.unwrap_or(odom_cur);
         let fallbacks: usize = self.pool.install(|| {
             self.particles
                 .par_iter_mut()
@@ -275,7 +284,7 @@ impl ParticleFilter {
             }
             self.best = best;
         }
-        StepInfo { neff: n_eff, resampled, fallbacks }
+        StepInfo { neff: n_eff, resampled, fallbacks, odometry_corrected: corrected.is_some() }
     }
 
     /// The particle with the highest weight (after a resampling, a copy of the one that had it).

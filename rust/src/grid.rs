@@ -31,6 +31,18 @@ impl Tile {
     fn unknown() -> Self {
         Tile { cells: [f32::NAN; TILE_CELLS], hit_offset: [[128, 128]; TILE_CELLS], hits: [0; TILE_CELLS] }
     }
+
+    /// See `TiledGrid::occupied_hit`; (ix, iy) must lie in this tile.
+    #[inline]
+    fn occupied_hit(&self, ix: i32, iy: i32, threshold: f32, res: f64) -> Option<[f64; 2]> {
+        let k = TiledGrid::cell_offset(ix, iy);
+        // NaN (unknown) compares false, so unknown cells are never occupied.
+        if !(self.cells[k] > threshold) {
+            return None;
+        }
+        let off = self.hit_offset[k];
+        Some([(ix as f64 + (off[0] as f64 + 0.5) / 256.0) * res, (iy as f64 + (off[1] as f64 + 0.5) / 256.0) * res])
+    }
 }
 
 /// Log-odds increments and limits of the inverse sensor model.
@@ -40,6 +52,23 @@ pub struct LogOddsModel {
     pub l_free: f32,
     pub l_min: f32,
     pub l_max: f32,
+}
+
+/// The cells around one cell of a grid; see `TiledGrid::neighbourhood`.
+pub struct Neighbourhood<'a> {
+    tiles: [Option<&'a Tile>; 4],
+    tx0: i32,
+    ty0: i32,
+    resolution: f64,
+}
+
+impl Neighbourhood<'_> {
+    /// As `TiledGrid::occupied_hit`, for a cell within the neighbourhood's reach.
+    #[inline]
+    pub fn occupied_hit(&self, ix: i32, iy: i32, threshold: f32) -> Option<[f64; 2]> {
+        let t = (((iy >> TILE_SHIFT) - self.ty0) * 2 + ((ix >> TILE_SHIFT) - self.tx0)) as usize;
+        self.tiles[t]?.occupied_hit(ix, iy, threshold, self.resolution)
+    }
 }
 
 #[derive(Clone)]
@@ -117,14 +146,25 @@ impl TiledGrid {
     #[inline]
     pub fn occupied_hit(&self, ix: i32, iy: i32, threshold: f32) -> Option<[f64; 2]> {
         let tile = self.tile_slot(ix, iy).and_then(|s| self.tiles[s].as_ref())?;
-        let k = Self::cell_offset(ix, iy);
-        // NaN (unknown) compares false, so unknown cells are never occupied.
-        if !(tile.cells[k] > threshold) {
-            return None;
+        tile.occupied_hit(ix, iy, threshold, self.resolution)
+    }
+
+    /// Read access to the cells within `reach` (< TILE / 2) cells of (ix, iy), with the (at most
+    /// 2×2) tiles they lie in looked up once: a nearest-obstacle search reads up to 49 cells
+    /// around each end point, and the lookups dominated the scan matcher's time.
+    #[inline]
+    pub fn neighbourhood(&self, ix: i32, iy: i32, reach: i32) -> Neighbourhood<'_> {
+        debug_assert!(reach < TILE / 2);
+        let (tx0, ty0) = ((ix - reach) >> TILE_SHIFT, (iy - reach) >> TILE_SHIFT);
+        let tile = |tx: i32, ty: i32| {
+            self.tile_slot(tx << TILE_SHIFT, ty << TILE_SHIFT).and_then(|s| self.tiles[s].as_deref())
+        };
+        Neighbourhood {
+            tiles: [tile(tx0, ty0), tile(tx0 + 1, ty0), tile(tx0, ty0 + 1), tile(tx0 + 1, ty0 + 1)],
+            tx0,
+            ty0,
+            resolution: self.resolution,
         }
-        let off = tile.hit_offset[k];
-        let res = self.resolution;
-        Some([(ix as f64 + (off[0] as f64 + 0.5) / 256.0) * res, (iy as f64 + (off[1] as f64 + 0.5) / 256.0) * res])
     }
 
     /// The world position of a cell's mean end point and the number of end points averaged

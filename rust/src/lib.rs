@@ -1,6 +1,7 @@
 //! PyO3 bindings of omnitof's core: numpy arrays in, numpy arrays out, nothing else here.
 //! The algorithms live in the other modules and know nothing of Python.
 
+pub mod correlative;
 pub mod filter;
 pub mod grid;
 pub mod motion;
@@ -17,6 +18,7 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
 use filter::{FilterParams, ObservationKind, ParticleFilter, ProposalKind};
+use correlative::SearchWindow;
 use scan_match::{LikelihoodField, MatcherParams};
 use grid::{LogOddsModel, TiledGrid};
 use motion::OdometryMotion;
@@ -71,7 +73,8 @@ impl PyParticleFilter {
         l_occ, l_free, l_min, l_max, resolution, map_max_range, clear_no_echo,
         resample_threshold, angles, sensor_pose, proposal, observation, field_sigma, field_z_hit,
         field_z_rand, field_window, field_fit_walls=false, match_step_xy, match_step_theta, match_refinements, match_gauss_newton,
-        match_sample_xy, match_sample_theta, match_min_matched, match_odometry_prior))]
+        match_sample_xy, match_sample_theta, match_min_matched, match_odometry_prior, match_climb_from_sample=false,
+        search_xy=0.0, search_theta=0.0, search_step_xy=0.1, search_step_theta=0.0175, search_below=0.8))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         n_particles: usize,
@@ -113,7 +116,22 @@ impl PyParticleFilter {
         match_sample_theta: f64,
         match_min_matched: f64,
         match_odometry_prior: bool,
+        match_climb_from_sample: bool,
+        search_xy: f64,
+        search_theta: f64,
+        search_step_xy: f64,
+        search_step_theta: f64,
+        search_below: f64,
     ) -> PyResult<Self> {
+        if search_xy > 0.0 && !(search_step_xy > 0.0 && search_step_theta > 0.0) {
+            return Err(PyValueError::new_err("the wide search needs positive steps"));
+        }
+        let search = (search_xy > 0.0).then_some(SearchWindow {
+            half_xy: search_xy,
+            half_theta: search_theta,
+            step_xy: search_step_xy,
+            step_theta: search_step_theta,
+        });
         let proposal = match proposal {
             "odometry" => ProposalKind::Odometry,
             "scanmatch" => ProposalKind::ScanMatch,
@@ -146,6 +164,9 @@ impl PyParticleFilter {
                 min_matched: match_min_matched,
                 effective_beams,
                 odometry_prior: match_odometry_prior,
+                climb_from_sample: match_climb_from_sample,
+                search,
+                search_below,
             },
             n_particles,
             seed,
@@ -165,7 +186,8 @@ impl PyParticleFilter {
         Ok(PyParticleFilter { inner })
     }
 
-    /// Integrate one scan; returns (Neff before any resampling, whether it resampled).
+    /// Integrate one scan; returns (Neff before any resampling, whether it resampled, whether the
+    /// wide search replaced the step's odometry increment).
     fn step(
         &mut self,
         py: Python<'_>,
@@ -173,7 +195,7 @@ impl PyParticleFilter {
         odom_cur: PyReadonlyArray1<f64>,
         ranges: PyReadonlyArray1<f32>,
         scan: u64,
-    ) -> PyResult<(f64, bool)> {
+    ) -> PyResult<(f64, bool, bool)> {
         let prev = pose3(odom_prev.as_slice()?, "odom_prev")?;
         let cur = pose3(odom_cur.as_slice()?, "odom_cur")?;
         let ranges = ranges.as_slice()?;
@@ -186,7 +208,7 @@ impl PyParticleFilter {
         }
         let inner = &mut self.inner;
         let info = py.detach(|| inner.step(prev, cur, ranges, scan));
-        Ok((info.neff, info.resampled))
+        Ok((info.neff, info.resampled, info.odometry_corrected))
     }
 
     /// (scan indices (K,), poses (K, 3)) of the best particle's integrated scans.
@@ -312,12 +334,10 @@ impl PyOccupancyGrid {
         let lf = LikelihoodField { sigma, z_hit: 0.9, z_rand: 0.1, max_range, window, occupied_threshold, fit_walls: false };
         let m = MatcherParams {
             step_xy, step_theta, refinements, gauss_newton, sample_xy: 0.01, sample_theta: 0.005,
-            min_matched: 0.0, effective_beams: 1.0, odometry_prior: false,
+            min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, search: None, search_below: 0.0,
         };
         let pts = scan_match::endpoints(&geom, ranges, 1, max_range);
-        let target = |p: [f64; 3]| scan_match::objective(&lf, &self.grid, &geom, &pts, 1.0, None, p);
-        let (mode, _) = scan_match::climb(target, start, &m);
-        let (pose, _) = scan_match::gauss_newton(&lf, &self.grid, &geom, &pts, 1.0, None, mode, gauss_newton);
+        let (pose, _, _) = scan_match::local_match(&lf, &m, &self.grid, &geom, &pts, start, None);
         Ok((pose, lf.score(&self.grid, geom.sensor_pose(pose), &pts).0))
     }
 

@@ -18,6 +18,14 @@ pub fn compose(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap(a[2] + b[2])]
 }
 
+/// a⁻¹ ⊕ b: pose b in the frame of pose a.
+#[inline]
+pub fn relative(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    let (s, c) = a[2].sin_cos();
+    let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+    [c * dx + s * dy, -s * dx + c * dy, wrap(b[2] - a[2])]
+}
+
 #[derive(Clone, Copy, Debug)]
 pub struct OdometryMotion {
     pub alpha: [f64; 4],
@@ -71,10 +79,7 @@ mod tests {
         let start = [-3.0, 0.5, 2.0];
         let got = m.sample(start, prev, cur, &mut rng);
         // Same motion in the start's frame: start ⊕ (prev⁻¹ ⊕ cur).
-        let (s, c) = prev[2].sin_cos();
-        let (dx, dy) = (cur[0] - prev[0], cur[1] - prev[1]);
-        let rel = [c * dx + s * dy, -s * dx + c * dy, wrap(cur[2] - prev[2])];
-        let want = compose(start, rel);
+        let want = compose(start, relative(prev, cur));
         for k in 0..3 {
             assert!((got[k] - want[k]).abs() < 1e-12);
         }

@@ -2,16 +2,19 @@
 //! mapping with Rao-Blackwellized particle filters" (IEEE T-RO 2007), and the likelihood-field
 //! observation model it matches against (Probabilistic Robotics, section 6.4).
 //!
-//! Per particle: start at the pose the odometry predicts, climb the likelihood field of the
-//! particle's own map to the mode, evaluate the target p(z|m,x)·p(x|x',u) at K poses around the
-//! mode, fit a Gaussian to them, draw the new pose from it and multiply the weight by the
-//! normaliser η = Σ_k p(z|m,x_k)·p(x_k|x',u).
+//! Per particle: start at the pose the odometry predicts (or, with `climb_from_sample`, at a
+//! pose drawn from the motion model), climb the likelihood field of the particle's own map to the
+//! mode, evaluate the target p(z|m,x)·p(x|x',u) at K poses around the mode, fit a Gaussian to
+//! them, draw the new pose from it and multiply the weight by the normaliser
+//! η = Σ_k p(z|m,x_k)·p(x_k|x',u). Before that, `check_odometry` may replace the step's odometry
+//! where a wide search (correlative.rs) finds the scan far from where the odometry puts it.
 
 use rand::RngExt;
 use rand_distr::StandardNormal;
 
-use crate::grid::TiledGrid;
-use crate::motion::{compose, decompose, wrap, OdometryMotion};
+use crate::correlative::{correlative_search, SearchWindow};
+use crate::grid::{TiledGrid, TILE};
+use crate::motion::{compose, decompose, relative, wrap, OdometryMotion};
 use crate::sensor_model::ScanGeometry;
 
 /// Likelihood field: each beam end point is scored by its distance d to the nearest occupied
@@ -85,6 +88,16 @@ impl LikelihoodField {
     fn nearest_cell(&self, grid: &TiledGrid, x: f64, y: f64) -> (f64, [f64; 2]) {
         let res = grid.resolution;
         let (ix, iy) = ((x / res).floor() as i32, (y / res).floor() as i32);
+        if self.window >= TILE / 2 {
+            return self.nearest_cell_in(|cx, cy| grid.occupied_hit(cx, cy, self.occupied_threshold), ix, iy, x, y);
+        }
+        let near = grid.neighbourhood(ix, iy, self.window);
+        self.nearest_cell_in(|cx, cy| near.occupied_hit(cx, cy, self.occupied_threshold), ix, iy, x, y)
+    }
+
+    /// `nearest_cell` through `occupied_hit`, the grid's or a neighbourhood's.
+    #[inline(always)]
+    fn nearest_cell_in(&self, occupied_hit: impl Fn(i32, i32) -> Option<[f64; 2]>, ix: i32, iy: i32, x: f64, y: f64) -> (f64, [f64; 2]) {
         let mut best = f64::INFINITY;
         let mut offset = [0.0; 2];
         let mut found_at = None;
@@ -96,7 +109,7 @@ impl LikelihoodField {
                 }
             }
             for_ring(ix, iy, r, |cx, cy| {
-                if let Some(h) = grid.occupied_hit(cx, cy, self.occupied_threshold) {
+                if let Some(h) = occupied_hit(cx, cy) {
                     let (dx, dy) = (h[0] - x, h[1] - y);
                     if dx * dx + dy * dy < best {
                         best = dx * dx + dy * dy;
@@ -280,6 +293,13 @@ pub struct MatcherParams {
     pub effective_beams: f64,
     /// Climb to the mode of likelihood × odometry prior (true) or of the likelihood alone.
     pub odometry_prior: bool,
+    /// Start each particle's climb at a pose drawn from the odometry motion model (GMapping's
+    /// way) instead of at the odometry prediction; see `propose`.
+    pub climb_from_sample: bool,
+    /// The wide search that checks the odometry before each step (see `check_odometry`); None: off.
+    pub search: Option<SearchWindow>,
+    /// Search when fewer than this share of end points lie near an obstacle after the local match.
+    pub search_below: f64,
 }
 
 /// Hill climbing of `eval` from `start` (robot pose); returns the mode and its value.
@@ -474,6 +494,66 @@ pub fn motion_prior(motion: &OdometryMotion, prev: [f64; 3], cur: [f64; 3], pred
     }
 }
 
+/// Hill climbing, then Gauss-Newton, from `start` to the mode of the scan's likelihood (times
+/// `prior`, if any): (mode, objective there, end points with an obstacle within the window).
+#[allow(clippy::too_many_arguments)]
+pub fn local_match(
+    lf: &LikelihoodField,
+    m: &MatcherParams,
+    grid: &TiledGrid,
+    geom: &ScanGeometry,
+    pts: &[[f64; 2]],
+    start: [f64; 3],
+    prior: Option<&PosePrior>,
+) -> ([f64; 3], f64, usize) {
+    let goal = |pose: [f64; 3]| objective(lf, grid, geom, pts, m.effective_beams, prior, pose);
+    let (mode, _) = climb(goal, start, m);
+    let (mode, value) = gauss_newton(lf, grid, geom, pts, m.effective_beams, prior, mode, m.gauss_newton);
+    (mode, value, lf.score(grid, geom.sensor_pose(mode), pts).1)
+}
+
+/// Check the odometry increment from `odom_prev` to `odom_cur` against the map of a particle at
+/// `pose` (the best one): if the scan, where the odometry puts it and matched locally from there,
+/// finds too few of its end points near the map's obstacles (fewer than `search_below`), search the wide
+/// window around that prediction (see correlative.rs) and match locally from the best pose
+/// found. If that explains clearly more of the scan (a tenth of its end points more, and a
+/// higher likelihood), return the odometry pose that would have predicted it: the increment
+/// the wheels should have reported. Why: an odometry glitch is common to every particle, so one
+/// search on the best map corrects the prediction of them all.
+#[allow(clippy::too_many_arguments)]
+pub fn check_odometry(
+    lf: &LikelihoodField,
+    m: &MatcherParams,
+    grid: &TiledGrid,
+    geom: &ScanGeometry,
+    pts: &[[f64; 2]],
+    pose: [f64; 3],
+    odom_prev: [f64; 3],
+    odom_cur: [f64; 3],
+) -> Option<[f64; 3]> {
+    let window = m.search.as_ref()?;
+    if pts.is_empty() {
+        return None;
+    }
+    let predicted = compose(pose, relative(odom_prev, odom_cur));
+    let n = pts.len() as f64;
+    let enough = |matched: usize| matched as f64 >= m.search_below * n;
+    // Cheap first (this runs before the particles, on one core): a prediction that already puts
+    // the scan on the map needs no search.
+    if enough(lf.score(grid, geom.sensor_pose(predicted), pts).1) {
+        return None;
+    }
+    let (_, local_value, local_matched) = local_match(lf, m, grid, geom, pts, predicted, None);
+    if enough(local_matched) {
+        return None;
+    }
+    let floor = lf.z_rand / lf.max_range;
+    let start = correlative_search(grid, lf.occupied_threshold, floor, geom, pts, predicted, window);
+    let (found, value, matched) = local_match(lf, m, grid, geom, pts, start, None);
+    let better = matched as f64 >= local_matched as f64 + 0.1 * n && value > local_value;
+    better.then(|| compose(odom_prev, relative(pose, found)))
+}
+
 pub struct Proposal {
     pub pose: [f64; 3],
     /// log η, the log of the proposal's normaliser: the particle's log weight increment.
@@ -496,19 +576,22 @@ pub fn propose<R: rand::Rng>(
     odom_cur: [f64; 3],
     rng: &mut R,
 ) -> Proposal {
-    let (rot1, trans, rot2) = decompose(odom_prev, odom_cur);
-    let predicted = compose(prev_pose, [trans * rot1.cos(), trans * rot1.sin(), wrap(rot1 + rot2)]);
+    let predicted = compose(prev_pose, relative(odom_prev, odom_cur));
     // With `odometry_prior`, climb to the mode of the whole target p(z | m, x)·p(x | x', u), so
     // that where the scan cannot tell (along a bare corridor) the odometry decides; without it,
     // to the mode of the likelihood alone, as GMapping does (better where odometry is poor).
     let prior = motion_prior(motion, odom_prev, odom_cur, predicted);
     let target = |pose: [f64; 3]| objective(lf, grid, geom, pts, m.effective_beams, Some(&prior), pose);
     let climb_prior = m.odometry_prior.then_some(&prior);
-    let goal = |pose: [f64; 3]| objective(lf, grid, geom, pts, m.effective_beams, climb_prior, pose);
-    let (mode, _) = climb(goal, predicted, m);
-    let (mode, _) = gauss_newton(lf, grid, geom, pts, m.effective_beams, climb_prior, mode, m.gauss_newton);
-    let (_, matched) = lf.score(grid, geom.sensor_pose(mode), pts);
-    if pts.is_empty() || (matched as f64) < m.min_matched * pts.len() as f64 {
+    let enough = |matched: usize| matched as f64 >= m.min_matched * pts.len() as f64;
+    // A start that the climb cannot bring back onto the map is no hypothesis: climb again from
+    // the prediction.
+    let from_sample = m
+        .climb_from_sample
+        .then(|| local_match(lf, m, grid, geom, pts, motion.sample(prev_pose, odom_prev, odom_cur, rng), climb_prior))
+        .filter(|found| enough(found.2));
+    let (mode, _, matched) = from_sample.unwrap_or_else(|| local_match(lf, m, grid, geom, pts, predicted, climb_prior));
+    if pts.is_empty() || !enough(matched) {
         return Proposal { pose: predicted, log_normaliser: 0.0, matched: false };
     }
     // Target at the 27 poses around the mode; offsets kept relative to the mode.
@@ -607,7 +690,7 @@ mod tests {
         let (g, angles, ranges) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
         let lf = LikelihoodField { sigma: 0.05, z_hit: 0.9, z_rand: 0.1, max_range: 20.0, window: 3, occupied_threshold: 0.0, fit_walls: false };
-        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 0, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false };
+        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 0, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, search: None, search_below: 0.0 };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let (pose, _) = climb(|p| objective(&lf, &g, &geom, &pts, 1.0, None, p), [2.08, 1.43, 0.03], &m);
         assert!((pose[0] - 2.0).abs() < 0.02 && (pose[1] - 1.5).abs() < 0.02, "{pose:?}");
@@ -630,7 +713,7 @@ mod tests {
         let (g, angles, ranges) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
         let lf = LikelihoodField { sigma: 0.02, z_hit: 0.9, z_rand: 0.1, max_range: 20.0, window: 3, occupied_threshold: 0.0, fit_walls: true };
-        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 10, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false };
+        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 10, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, search: None, search_below: 0.0 };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let (mode, _) = climb(|p| objective(&lf, &g, &geom, &pts, 1.0, None, p), [2.04, 1.46, 0.02], &m);
         let (pose, _) = gauss_newton(&lf, &g, &geom, &pts, 1.0, None, mode, m.gauss_newton);
