@@ -16,6 +16,7 @@ from typing import Any
 
 from omnitof import __version__
 from omnitof.errors import OmnitofError
+from omnitof.types import ScanSequence
 
 
 def _config_from_args(args: argparse.Namespace, default_preset: str | None = None):
@@ -83,6 +84,8 @@ def cmd_slam(args: argparse.Namespace) -> int:
         data = read_scans(args.log, skip_bad_lines=args.skip_bad_lines)
         scans = data.scans if args.max_scans is None else data.scans.slice(0, args.max_scans)
         extra = {"input": {"path": str(args.log), "kind": data.kind, "bad_lines_skipped": data.bad_lines}}
+    if args.scan_delay is not None:
+        scans, extra["input"]["scan_delay"] = _retimed(scans, args.scan_delay)
     with _progress_bar(len(scans), not args.quiet, "slam") as bar:
         result = run_slam(scans, cfg, progress=bar.update)
     if args.relations is not None:
@@ -114,6 +117,32 @@ def cmd_slam(args: argparse.Namespace) -> int:
               f"odometry {te['odometry']['mean']:.3f} m, {te['odometry']['final']:.3f} m")
     print(f"results in {paths['summary'].parent}")
     return 0
+
+
+def _scan_delay(text: str) -> str | float:
+    if text == "auto":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds or 'auto', got {text!r}") from None
+
+
+def _retimed(scans: ScanSequence, delay: str | float) -> tuple[ScanSequence, dict]:
+    """The scans with their odometry re-timed by `delay` (seconds, or "auto": estimated), and
+    what to record of it."""
+    from omnitof.timing import estimate_scan_delay, retime_odometry
+
+    try:
+        if delay == "auto":
+            estimate = estimate_scan_delay(scans)
+            print(f"scan delay estimated from {estimate.pairs} scan pairs: {estimate.delay:.3f} s")
+            record = {"seconds": estimate.delay, "estimated_from_pairs": estimate.pairs}
+        else:
+            record = {"seconds": float(delay)}
+        return retime_odometry(scans, record["seconds"]), record
+    except ValueError as err:
+        raise OmnitofError(f"--scan-delay: {err}") from None
 
 
 def cmd_scans(args: argparse.Namespace) -> int:
@@ -246,6 +275,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--relations", type=Path, help="benchmark relations file to score the trajectory with")
     p.add_argument("--max-scans", type=int, help="process only the first N scans")
     p.add_argument("--skip-bad-lines", action="store_true", help="skip and count malformed log lines")
+    p.add_argument("--scan-delay", type=_scan_delay, metavar="SECONDS|auto",
+                   help="the scans were taken this long before their timestamps: take each scan's odometry "
+                   "from then; 'auto' estimates it from the data (omnitof.timing)")
     p.add_argument("--calibration", type=Path, help="ToF bags: the rig's calibration YAML (omnitof calibrate); "
                    "default: the true rig of a simulated bag")
     p.add_argument("--height", type=float, help="ToF bags: height of the scan slice above the floor (m)")

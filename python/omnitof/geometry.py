@@ -6,7 +6,12 @@ shape (N, 3). `compose(a_T_b, b_T_c)` gives a_T_c; every function broadcasts ove
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+if TYPE_CHECKING:
+    from omnitof.types import Trajectory
 
 
 def wrap_angle(theta: np.ndarray | float) -> np.ndarray | float:
@@ -51,3 +56,39 @@ def quaternion_to_yaw(q: np.ndarray) -> np.ndarray:
     q = np.asarray(q, dtype=np.float64)
     qx, qy, qz, qw = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     return np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+
+
+def interpolate_poses(trajectory: Trajectory, timestamps: np.ndarray | float) -> np.ndarray:
+    """Poses (N, 3) of a trajectory at `timestamps`: linear in x, y, along the shorter arc in θ.
+
+    The trajectory's timestamps must not decrease (equal ones are allowed). Rows at times
+    outside [first, last] timestamp are NaN; a time equal to a trajectory timestamp gets that
+    pose exactly (θ wrapped to [-π, π)).
+    """
+    t_query = np.atleast_1d(np.asarray(timestamps, dtype=np.float64))
+    t, poses = trajectory.timestamps, trajectory.poses
+    out = np.full((len(t_query), 3), np.nan)
+    if len(t) == 0:
+        return out
+    if np.any(np.diff(t) < 0):
+        raise ValueError("cannot interpolate a trajectory whose timestamps go backwards")
+    inside = (t_query >= t[0]) & (t_query <= t[-1])
+    if len(t) == 1:
+        out[inside] = poses[0]
+        out[inside, 2] = wrap_angle(poses[0, 2])
+        return out
+    tq = t_query[inside]
+    i = np.clip(np.searchsorted(t, tq, side="right") - 1, 0, len(t) - 2)
+    t0, t1 = t[i], t[i + 1]
+    span = t1 - t0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(span > 0.0, (tq - t0) / np.where(span > 0.0, span, 1.0), 1.0)
+    p0, p1 = poses[i], poses[i + 1]
+    w_col = w[:, None]
+    # (1 - w)·a + w·b gives a exactly at w = 0 and b exactly at w = 1.
+    xy = (1.0 - w_col) * p0[:, :2] + w_col * p1[:, :2]
+    theta = p0[:, 2] + w * wrap_angle(p1[:, 2] - p0[:, 2])
+    theta = np.where(w == 1.0, p1[:, 2], theta)
+    out[inside, :2] = xy
+    out[inside, 2] = wrap_angle(theta)
+    return out

@@ -1,0 +1,122 @@
+"""Scan delay: odometry re-timed to when a scan was taken, and the delay estimated from the data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from omnitof.geometry import interpolate_poses, wrap_angle
+from omnitof.sim.laser2d import World2D, beam_angles, simulate_scans
+from omnitof.timing import estimate_scan_delay, retime_odometry
+from omnitof.types import ScanSequence, Trajectory
+
+RATE_HZ = 5.0
+
+
+def slalom(duration: float, rate_hz: float) -> Trajectory:
+    """A robot weaving through a room: 0.3 m/s, turn rate 0.8·sin(2πt/4 s) rad/s, integrated
+    finely so that the poses are exact to well below a millimetre."""
+    dt = 1e-3
+    t = np.arange(0.0, duration + dt / 2, dt)
+    theta = 0.8 * 4.0 / (2 * np.pi) * (1.0 - np.cos(2 * np.pi * t / 4.0))
+    x = 2.0 + np.concatenate([[0.0], np.cumsum(0.3 * np.cos(theta[:-1]) * dt)])
+    y = 3.0 + np.concatenate([[0.0], np.cumsum(0.3 * np.sin(theta[:-1]) * dt)])
+    fine = Trajectory(t, np.stack([x, y, wrap_angle(theta)], axis=1))
+    stamps = np.arange(0.0, duration, 1.0 / rate_hz)
+    return Trajectory(stamps, interpolate_poses(fine, stamps)), fine
+
+
+def room() -> World2D:
+    outline = np.array([[0, 0], [12, 0], [12, 7], [7, 7], [7, 9], [0, 9], [0, 0]], dtype=float)
+    pillar = np.array([[8.5, 4.0], [9.1, 4.0], [9.1, 4.8], [8.5, 4.8], [8.5, 4.0]])
+    shelf = np.array([[9.5, 1.0], [11.0, 1.0], [11.0, 1.4]])
+    return World2D.from_polylines([outline, pillar, shelf])
+
+
+def delayed_log(delay: float) -> tuple[ScanSequence, np.ndarray]:
+    """Scans taken at the true poses, stamped `delay` seconds late, each logged with the
+    odometry (noise-free) at its stamp; and the true poses."""
+    scan_times, fine = slalom(24.0, RATE_HZ)
+    truth = scan_times.poses
+    angles = beam_angles(181, 180.0)
+    ranges = simulate_scans(room(), truth, angles, max_range=15.0, range_noise=0.005, seed=3)
+    odometry = interpolate_poses(fine, scan_times.timestamps + delay)
+    scans = ScanSequence(scan_times.timestamps, ranges, angles, odometry, max_range=15.0, source="slalom")
+    return scans, truth
+
+
+def test_the_delay_is_found_from_the_scans_alone():
+    scans, _ = delayed_log(0.13)
+    estimate = estimate_scan_delay(scans, min_turn_deg=1.0)
+    assert estimate.pairs >= 40
+    assert abs(estimate.delay - 0.13) < 0.02, estimate.delay
+    # The curve it was read from has its minimum there, and rises to both sides.
+    best = int(np.argmin(estimate.heading_error))
+    assert abs(estimate.delays[best] - 0.13) <= 0.02
+    assert estimate.heading_error[0] > 2 * estimate.heading_error[best]
+    assert estimate.heading_error[-1] > 2 * estimate.heading_error[best]
+
+
+def test_no_delay_is_estimated_as_none():
+    scans, _ = delayed_log(0.0)
+    assert abs(estimate_scan_delay(scans, min_turn_deg=1.0).delay) < 0.02
+
+
+def test_retimed_odometry_is_where_the_robot_was():
+    scans, truth = delayed_log(0.13)
+    retimed = retime_odometry(scans, 0.13)
+    inner = slice(2, -2)  # the ends are held, not extrapolated
+    before = np.abs(wrap_angle(scans.odometry[inner, 2] - truth[inner, 2])).max()
+    after = np.abs(wrap_angle(retimed.odometry[inner, 2] - truth[inner, 2])).max()
+    assert before > np.radians(3.0)
+    assert after < 0.1 * before
+    assert np.abs(retimed.odometry[inner, :2] - truth[inner, :2]).max() < 0.005
+    assert retimed.ranges is scans.ranges  # only the odometry changes
+    assert retime_odometry(scans, 0.0) is scans
+
+
+def test_jittering_timestamps_are_refused():
+    scans, _ = delayed_log(0.1)
+    stamps = scans.timestamps.copy()
+    stamps[10], stamps[11] = stamps[11], stamps[10]
+    jittery = ScanSequence(stamps, scans.ranges, scans.angles, scans.odometry, max_range=15.0, source="jittery")
+    with pytest.raises(ValueError, match="jittery: timestamps go backwards"):
+        retime_odometry(jittery, 0.1)
+    with pytest.raises(ValueError, match="jittery: timestamps go backwards"):
+        estimate_scan_delay(jittery)
+
+
+def test_slam_command_estimates_and_records_the_delay(tmp_path, capsys):
+    import yaml
+
+    from omnitof.cli import main
+    from omnitof.io.carmen import write_carmen
+
+    scans, _ = delayed_log(0.13)
+    log = tmp_path / "slalom.clf"
+    write_carmen(log, scans)
+    out = tmp_path / "run"
+    assert main(["slam", str(log), "--out", str(out), "--preset", "sim2d", "--particles", "5",
+                 "--scan-delay", "auto", "--quiet"]) == 0
+    assert "scan delay estimated from" in capsys.readouterr().out
+    recorded = yaml.safe_load((out / "summary.yaml").read_text())["input"]["scan_delay"]
+    assert abs(recorded["seconds"] - 0.13) < 0.02 and recorded["estimated_from_pairs"] >= 20
+
+
+@pytest.mark.filterwarnings("ignore:.*timestamps are earlier than the one before")
+def test_slam_command_refuses_a_delay_for_a_jittering_clock(tmp_path, capsys):
+    from omnitof.cli import main
+    from omnitof.io.carmen import write_carmen
+
+    scans, _ = delayed_log(0.0)
+    stamps = scans.timestamps.copy()
+    stamps[10], stamps[11] = stamps[11], stamps[10]
+    log = tmp_path / "jitter.clf"
+    write_carmen(log, ScanSequence(stamps, scans.ranges, scans.angles, scans.odometry, max_range=15.0))
+    assert main(["slam", str(log), "--out", str(tmp_path / "run"), "--scan-delay", "0.1", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "--scan-delay" in err and "timestamps go backwards" in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    with pytest.raises(SystemExit):
+        main(["slam", str(log), "--out", str(tmp_path / "run"), "--scan-delay", "soon"])
+    assert "expected seconds or 'auto'" in capsys.readouterr().err
