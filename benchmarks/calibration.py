@@ -1,6 +1,6 @@
 """Calibration accuracy against the number of images and the image noise (simulated).
 
-For the default rig (`omnitof.design.default_rig`), renders checkerboard and four-dot target
+For the default rig (`omnitof.sensor.design.default_rig`), renders checkerboard and four-dot target
 images with `omnitof.calibration.targets` (the sensor's noise model, `tof.SensorNoise`, with
 its standard deviations multiplied by NOISE: the gain divided by NOISE², the read noise times
 NOISE), calibrates, and compares with the simulator's true geometry:
@@ -26,9 +26,9 @@ from omnitof.calibration import CalibrationError
 from omnitof.calibration.intrinsics import calibrate_intrinsics
 from omnitof.calibration.mirror_planes import calibrate_mirrors
 from omnitof.calibration.targets import render_checkerboard_images, render_dot_images
-from omnitof.design import default_rig
-from omnitof.mirrors import assign_pixels
-from omnitof.tof import SensorNoise
+from omnitof.sensor.design import default_rig
+from omnitof.sensor.mirrors import assign_pixels
+from omnitof.sensor.tof import SensorNoise
 
 
 def noisy_sensor(factor: float) -> SensorNoise:
@@ -53,7 +53,8 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="fewer cells (a smoke run)")
     args = parser.parse_args()
-    camera, mirrors = default_rig()
+    rig = default_rig()
+    camera, mirrors = rig.camera, rig.mirrors
     noises = [1.0, 4.0] if args.quick else [1.0, 4.0, 16.0, 64.0]
     placements = [2, 4] if args.quick else [2, 4, 8, 16]
     boards = [8, 15] if args.quick else [8, 15, 30]

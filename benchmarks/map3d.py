@@ -28,16 +28,15 @@ import time
 
 import numpy as np
 
-from omnitof import mirrors as mirror_module
-from omnitof.design import default_rig
+from omnitof.sensor import mirrors as mirror_module
+from omnitof.sensor.design import default_rig
 from omnitof.map3d import (
     VoxelMap,
     backproject_frame,
-    height_colors,
-    plot_voxels,
     surface_distance,
-    write_ply,
 )
+from omnitof.io.ply import write_ply
+from omnitof.viz.map3d import height_colors, plot_voxels
 from omnitof.sim.render import Renderer
 from omnitof.sim.worlds import load_world
 from omnitof.sim.sequence import poses_along_loop
@@ -79,7 +78,8 @@ def main() -> None:
     args = parser.parse_args()
 
     world = load_world(args.world)
-    camera, mirrors = default_rig()
+    rig = default_rig()
+    camera, mirrors = rig.camera, rig.mirrors
     mount = mirror_module.camera_mount()
     labels = mirror_module.masks(camera, mirrors)
     renderer = Renderer(world, camera, mirrors, robot_T_camera=mount)

@@ -113,7 +113,7 @@ def known_pose_table1(extractor: ScanExtractor) -> None:
     """Table I and floor-plan metrics of corridor1 and corridor2 mapped with the true poses."""
     import dataclasses
 
-    from omnitof.config import load_config
+    from omnitof.slam.config import load_config
     from omnitof.eval.floorplan import wall_agreement, wall_coverage
     from omnitof.eval.table1 import format_table1, table1
     from omnitof.scan import scans_from_frames

@@ -6,7 +6,7 @@
 Each run is a fresh child process so that its peak memory (ru_maxrss) is its own. Prints one
 Markdown row per run and, per log and particle count, the median time and the mean ± std of the
 relations metric over the seeds. The data folder defaults to $OMNITOF_DATA. `--scan-delay LOG=S`
-re-times a log's odometry (seconds, or `auto`: estimated from the log, see omnitof.timing)
+re-times a log's odometry (seconds, or `auto`: estimated from the log, see omnitof.slam.timing)
 before the filter runs; the estimate is not part of the timed SLAM run.
 """
 
@@ -24,11 +24,11 @@ from pathlib import Path
 
 
 def single_run(log: Path, relations: Path, preset: str, particles: int, seed: int, delay: str) -> dict:
-    from omnitof.config import load_config
+    from omnitof.slam.config import load_config
     from omnitof.eval.relations import evaluate_relations, read_relations
     from omnitof.io.carmen import read_carmen
     from omnitof.slam import run_slam
-    from omnitof.timing import estimate_scan_delay, retime_odometry
+    from omnitof.slam.timing import estimate_scan_delay, retime_odometry
 
     scans = read_carmen(log).scans
     seconds_delay = estimate_scan_delay(scans).delay if delay == "auto" else float(delay)

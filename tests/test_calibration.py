@@ -3,6 +3,8 @@ mirror planes from the four-dot target (paper sec. II-C, eq. 5 and 6), masks and
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -14,7 +16,7 @@ from omnitof.calibration import (
     load_calibration,
     save_calibration,
 )
-from omnitof.design import default_rig
+from omnitof.sensor.design import default_rig
 
 
 @pytest.fixture(scope="module")
@@ -26,10 +28,10 @@ def rig():
 
 
 def test_from_rig_is_the_true_geometry(rig):
-    from omnitof.mirrors import masks
+    from omnitof.sensor.mirrors import masks
 
-    camera, mirrors = rig
-    cal = Calibration.from_rig(camera, mirrors)
+    camera, mirrors = rig.camera, rig.mirrors
+    cal = Calibration.from_rig(rig)
     assert cal.names == [m.name for m in mirrors]
     assert np.array_equal(cal.labels, masks(camera, mirrors, 2.0))
     for plane, mirror in zip(cal.planes, mirrors):
@@ -42,8 +44,8 @@ def test_from_rig_is_the_true_geometry(rig):
 
 
 def test_save_load_round_trip_is_exact(rig, tmp_path):
-    camera, mirrors = rig
-    cal = Calibration.from_rig(camera, mirrors)
+    camera, mirrors = rig.camera, rig.mirrors
+    cal = Calibration.from_rig(rig)
     cal.polygons = {"front": np.array([[0.0, 0.0], [175.0, 0.0], [88.0, 70.0]])}
     cal.quality = {"intrinsics_rms_px": 0.1, "mirrors": {"front": {"inliers": 12}}}
     path = save_calibration(cal, tmp_path / "cal.yaml")
@@ -76,8 +78,8 @@ def test_rows_encoding_round_trip():
     ],
 )
 def test_bad_file_names_file_and_field(rig, tmp_path, edit, message):
-    camera, mirrors = rig
-    path = save_calibration(Calibration.from_rig(camera, mirrors), tmp_path / "cal.yaml")
+    camera, mirrors = rig.camera, rig.mirrors
+    path = save_calibration(Calibration.from_rig(rig), tmp_path / "cal.yaml")
     path.write_text(edit(path.read_text()))
     with pytest.raises(CalibrationError) as err:
         load_calibration(path)
@@ -93,16 +95,16 @@ PLACEMENTS = 8  # dot-target placements per mirror in the accuracy tests
 def dot_images(rig):
     from omnitof.calibration.targets import render_dot_images
 
-    camera, mirrors = rig
+    camera, mirrors = rig.camera, rig.mirrors
     images, truth = render_dot_images(camera, mirrors, PLACEMENTS, seed=3)
     return images, truth
 
 
 def _calibrate(rig, images, **kwargs):
     from omnitof.calibration.mirror_planes import calibrate_mirrors
-    from omnitof.mirrors import assign_pixels
+    from omnitof.sensor.mirrors import assign_pixels
 
-    camera, mirrors = rig
+    camera, mirrors = rig.camera, rig.mirrors
     return calibrate_mirrors(
         camera, images, [m.name for m in mirrors], [m.plane for m in mirrors],
         assign_pixels(camera, mirrors), **kwargs
@@ -124,7 +126,7 @@ def test_intrinsics_from_noisy_checkerboards(rig):
     from omnitof.calibration.intrinsics import calibrate_intrinsics
     from omnitof.calibration.targets import render_checkerboard_images
 
-    camera, _ = rig
+    camera = rig.camera
     images, _ = render_checkerboard_images(camera, 12, seed=2)
     result = calibrate_intrinsics(images)
     assert result.rms_px < 0.15
@@ -142,9 +144,10 @@ def test_intrinsics_from_noisy_checkerboards(rig):
 def test_intrinsics_reads_png_and_rejects_too_few_boards(rig, tmp_path):
     import cv2
 
-    from omnitof.calibration.intrinsics import calibrate_intrinsics, load_images
+    from omnitof.calibration.images import load_images
+    from omnitof.calibration.intrinsics import calibrate_intrinsics
 
-    camera, _ = rig
+    camera = rig.camera
     cv2.imwrite(str(tmp_path / "blank.png"), np.full(camera.shape, 1000, np.uint16))
     images = load_images([tmp_path])
     assert images[0].amplitude.shape == camera.shape and images[0].distance is None
@@ -153,12 +156,13 @@ def test_intrinsics_reads_png_and_rejects_too_few_boards(rig, tmp_path):
 
 
 def test_intrinsics_from_a_ros_bag(rig, tmp_path):
-    from omnitof.calibration.intrinsics import calibrate_intrinsics, load_images
+    from omnitof.calibration.images import load_images
+    from omnitof.calibration.intrinsics import calibrate_intrinsics
     from omnitof.calibration.targets import render_checkerboard_images
     from omnitof.io.rosbag import ToFFrameStamped, write_tof_bag
     from omnitof.types import Trajectory
 
-    camera, _ = rig
+    camera = rig.camera
     images, _ = render_checkerboard_images(camera, 8, seed=4)
     frames = [ToFFrameStamped(0.1 * (k + 1), im.distance, im.amplitude) for k, im in enumerate(images)]
     odometry = Trajectory(np.array([0.0, 1.0]), np.zeros((2, 3)))
@@ -174,7 +178,7 @@ def test_intrinsics_from_a_ros_bag(rig, tmp_path):
 
 
 def test_mirror_planes_meet_the_targets(rig, dot_images):
-    camera, mirrors = rig
+    camera, mirrors = rig.camera, rig.mirrors
     images, _ = dot_images
     result = _calibrate(rig, images)
     for name, (angle, dd) in _errors(result, mirrors).items():
@@ -183,8 +187,8 @@ def test_mirror_planes_meet_the_targets(rig, dot_images):
     for estimate in result.estimates:
         assert len(estimate.images) == PLACEMENTS and estimate.rms_px < 0.2
     # eq. 6: the calibrated virtual camera sees a dot where the image shows it in the mirror.
-    cal = Calibration.from_rig(camera, mirrors)
-    cal.planes = result.planes
+    truth = Calibration.from_rig(rig)
+    cal = truth.with_rig(replace(truth.rig, planes=tuple(result.planes)))
     point = np.array([0.02, -0.06, 0.11])
     pv = cal.virtual_cameras()[0] @ np.append(point, 1.0)
     true_image = mirrors[0].plane.reflect_points(point[None])[0]
@@ -192,7 +196,7 @@ def test_mirror_planes_meet_the_targets(rig, dot_images):
 
 
 def test_scale_from_tof_distances(rig, dot_images):
-    _, mirrors = rig
+    mirrors = rig.mirrors
     result = _calibrate(rig, dot_images[0], scale="tof")
     for name, (angle, dd) in _errors(result, mirrors).items():
         assert abs(dd) < 3.0, f"{name}: ToF-scaled plane distance off by {dd:.2f} mm"
@@ -204,10 +208,10 @@ def _paint_disc(image, centre, radius, value):
 
 
 def test_bad_image_is_rejected_and_reported(rig, dot_images):
-    from omnitof.calibration.intrinsics import AmplitudeImage
+    from omnitof.calibration.images import AmplitudeImage
     from omnitof.calibration.mirror_planes import detect_views
 
-    _, mirrors = rig
+    mirrors = rig.mirrors
     images, _ = dot_images
     bad = images[0]
     views = detect_views(bad)
@@ -228,10 +232,10 @@ def test_bad_image_is_rejected_and_reported(rig, dot_images):
 
 
 def test_clear_errors_name_image_and_mirror(rig, dot_images):
-    from omnitof.calibration.intrinsics import AmplitudeImage
+    from omnitof.calibration.images import AmplitudeImage
     from omnitof.calibration.mirror_planes import detect_views
 
-    camera, mirrors = rig
+    camera, mirrors = rig.camera, rig.mirrors
     images, _ = dot_images
     blank = AmplitudeImage("empty.npz", np.full(camera.shape, 50.0, np.float32),
                            np.full(camera.shape, 2.0, np.float32))
@@ -263,9 +267,9 @@ def test_masks_from_planes_and_polygons(rig, tmp_path):
         read_polygon_file,
         write_polygon_file,
     )
-    from omnitof.mirrors import assign_pixels, masks
+    from omnitof.sensor.mirrors import assign_pixels, masks
 
-    camera, mirrors = rig
+    camera, mirrors = rig.camera, rig.mirrors
     names = [m.name for m in mirrors]
     outside = assign_pixels(camera, mirrors) < 0
     labels = labels_from_planes(camera, [m.plane for m in mirrors], outside, 2.0)
@@ -287,11 +291,11 @@ def test_masks_from_planes_and_polygons(rig, tmp_path):
 
 def test_equal_height_check_sees_a_tilted_mirror(rig):
     from omnitof.calibration.check import edge_heights, render_check_frame
-    from omnitof.mirrors import MirrorPlane
+    from omnitof.sensor.mirrors import MirrorPlane
 
-    camera, mirrors = rig
+    camera, mirrors = rig.camera, rig.mirrors
     frame = render_check_frame(camera, mirrors, seed=1)
-    cal = Calibration.from_rig(camera, mirrors)
+    cal = Calibration.from_rig(rig)
     good = edge_heights(cal, frame.distance)
     assert set(good.per_mirror) == set(cal.names)
     assert good.spread < 0.012
@@ -299,7 +303,8 @@ def test_equal_height_check_sees_a_tilted_mirror(rig):
         assert abs(median - 0.6) < 0.015 and bins >= 10
     tilt = np.radians(0.5)  # the front mirror turned by 0.5° about the camera's x axis
     turn = np.array([[1, 0, 0], [0, np.cos(tilt), -np.sin(tilt)], [0, np.sin(tilt), np.cos(tilt)]])
-    cal.planes[0] = MirrorPlane(turn @ cal.planes[0].normal, cal.planes[0].d)
+    tilted = (MirrorPlane(turn @ cal.planes[0].normal, cal.planes[0].d), *cal.planes[1:])
+    cal = cal.with_rig(replace(cal.rig, planes=tilted))
     assert edge_heights(cal, frame.distance).spread > 0.02
 
 

@@ -1,4 +1,4 @@
-"""omnitof.camera: the pinhole + distortion model against OpenCV, back-projection accuracy over
+"""omnitof.sensor.camera: the pinhole + distortion model against OpenCV, back-projection accuracy over
 every pixel, the field of view, straight lines after undistortion, and parameter checks."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from omnitof.camera import Camera
+from omnitof.sensor.camera import Camera
 from omnitof.errors import ConfigError
 
 LENSES = {"standard": Camera.sr4000, "wide": Camera.sr4000_wide}

@@ -128,13 +128,14 @@ def test_demo_runs_and_writes_figures(tmp_path, capsys):
 
 
 def test_design_reports_the_default_rig_and_draws_it(tmp_path, capsys):
-    from omnitof.camera import Camera
-    from omnitof.design import default_rig, design_report
+    from omnitof.sensor.camera import Camera
+    from omnitof.sensor.design import default_rig, design_report
 
     figure = tmp_path / "regions.png"
     assert main(["design", "--figure", str(figure)]) == 0
     printed = capsys.readouterr().out
-    camera, mirrors = default_rig()
+    rig = default_rig()
+    camera, mirrors = rig.camera, rig.mirrors
     want = design_report(camera, mirrors).coverage
     assert f"{100 * want:.1f} %" in printed
     assert figure.stat().st_size > 5_000

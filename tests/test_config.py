@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from omnitof.config import SlamConfig, load_config, preset_names
+from omnitof.slam.config import SlamConfig, load_config, preset_names
 from omnitof.errors import ConfigError
 
 

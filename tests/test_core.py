@@ -186,3 +186,21 @@ def test_low_variance_resampling_properties():
     # Unbiased: the mean count of each particle approaches N·w.
     assert np.allclose(counts_sum / 300, 37 * w, atol=0.1)
     assert np.array_equal(_core.low_variance_resample(w, 11), _core.low_variance_resample(w, 11))
+
+
+def test_particle_filter_takes_configuration_sections_and_refuses_unknown_or_missing_fields():
+    from omnitof.slam.config import SlamConfig
+
+    # As omnitof.slam.driver passes them: every section whole, less the driver's scan selection.
+    sections = SlamConfig().model_dump(exclude={"filter": {"linear_update", "angular_update_deg"}})
+    sensor = dict(angles=np.linspace(-1.5, 1.5, 181), sensor_pose=np.zeros(3), scan_max_range=80.0)
+    assert _core.ParticleFilter(**sections, **sensor).steps == 0
+    extra = {**sections, "scan_matcher": {**sections["scan_matcher"], "step_size": 0.1}}
+    with pytest.raises(ValueError, match=r"scan_matcher\.step_size: unknown field"):
+        _core.ParticleFilter(**extra, **sensor)
+    missing = {**sections, "map": {k: v for k, v in sections["map"].items() if k != "l_occ"}}
+    with pytest.raises(ValueError, match=r"map\.l_occ: missing field"):
+        _core.ParticleFilter(**missing, **sensor)
+    wrong = {**sections, "filter": {**sections["filter"], "seed": "zero"}}
+    with pytest.raises(TypeError, match=r"filter\.seed: "):
+        _core.ParticleFilter(**wrong, **sensor)

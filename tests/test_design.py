@@ -1,4 +1,4 @@
-"""omnitof.design: bearing coverage against analytic answers (one 45° mirror: the lens's
+"""omnitof.sensor.design: bearing coverage against analytic answers (one 45° mirror: the lens's
 horizontal field of view; the 45° pyramid: ±10° around each face), the trends of the sweep, the
 default rig's optimality, and the report and figure."""
 
@@ -11,17 +11,17 @@ import matplotlib.image
 import numpy as np
 import pytest
 
-from omnitof.camera import Camera
-from omnitof.design import (
+from omnitof.sensor.camera import Camera
+from omnitof.sensor.design import (
     DEFAULT_RIG_TILT_DEG,
     default_rig,
     design_report,
     format_sweep,
-    plot_sweep,
     sweep,
 )
+from omnitof.viz.sensor import plot_sweep
 from omnitof.errors import ConfigError
-from omnitof.mirrors import Mirror, MirrorPlane, camera_mount, pyramid
+from omnitof.sensor.mirrors import Mirror, MirrorPlane, camera_mount, pyramid
 
 Z = np.array([0.0, 0.0, 1.0])
 LENSES = {"standard": Camera.sr4000(), "wide": Camera.sr4000_wide()}
@@ -102,7 +102,7 @@ def test_turning_the_camera_with_the_pyramid_turns_the_bearings_only():
     # The paper's diagonal yaw (45°) with the camera turned 45° on its axis puts the pyramid's
     # edges into the image corners, like yaw 0° on the square mount: same pixels, same
     # coverage, bearings turned by 45°.
-    camera, (_, mirrors) = Camera.sr4000_wide(), default_rig()
+    camera, mirrors = Camera.sr4000_wide(), default_rig().mirrors
     c, s = math.cos(math.pi / 4), math.sin(math.pi / 4)
     turned = camera_mount()
     turned[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ turned[:3, :3]
@@ -160,7 +160,8 @@ def test_sweep_trends(small_sweep):
 
 
 def test_default_rig_centres_the_view_and_is_near_the_best_tilt():
-    camera, mirrors = default_rig()
+    rig = default_rig()
+    camera, mirrors = rig.camera, rig.mirrors
     assert camera == Camera.sr4000_wide()
     assert [m.name for m in mirrors] == ["front", "left", "back", "right"]
     report = design_report(camera, mirrors)
@@ -177,7 +178,8 @@ def test_default_rig_centres_the_view_and_is_near_the_best_tilt():
 
 
 def test_report_text_and_validation():
-    camera, mirrors = default_rig()
+    rig = default_rig()
+    camera, mirrors = rig.camera, rig.mirrors
     report = design_report(camera, mirrors)
     text = report.format()
     for m in mirrors:

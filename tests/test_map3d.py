@@ -19,12 +19,10 @@ from omnitof.map3d import (
     VoxelMap,
     backproject_frame,
     build_voxel_map,
-    height_colors,
-    plot_voxels,
-    read_ply,
     surface_distance,
-    write_ply,
 )
+from omnitof.io.ply import PlyError, read_ply, write_ply
+from omnitof.viz.map3d import height_colors, plot_voxels
 
 RES = 0.1
 
@@ -243,7 +241,7 @@ def test_ply_of_nothing_and_bad_colours(tmp_path):
     write_ply(tmp_path / "empty.ply", np.zeros((0, 3)))
     pts, cols = read_ply(tmp_path / "empty.ply")
     assert pts.shape == (0, 3) and cols is None
-    with pytest.raises(Map3DError, match="uint8"):
+    with pytest.raises(PlyError, match="uint8"):
         write_ply(tmp_path / "x.ply", np.zeros((2, 3)), np.zeros((2, 3)))
     assert not (tmp_path / "x.ply").exists()
 
@@ -277,13 +275,14 @@ def test_surface_distance_of_known_points():
 
 @pytest.fixture(scope="module")
 def room_scene():
-    from omnitof import mirrors as mirror_module
-    from omnitof.design import default_rig
+    from omnitof.sensor import mirrors as mirror_module
+    from omnitof.sensor.design import default_rig
     from omnitof.sim.render import Renderer
     from omnitof.sim.worlds import load_world
 
     world = load_world("room")
-    camera, mirrors = default_rig()
+    rig = default_rig()
+    camera, mirrors = rig.camera, rig.mirrors
     mount = mirror_module.camera_mount()
     labels = mirror_module.masks(camera, mirrors)
     renderer = Renderer(world, camera, mirrors, robot_T_camera=mount)

@@ -1,4 +1,4 @@
-"""omnitof.mirrors: the reflection matrix D and virtual cameras of the paper's eq. 6 against
+"""omnitof.sensor.mirrors: the reflection matrix D and virtual cameras of the paper's eq. 6 against
 independent geometry, the 45° mirror analytically, the pyramid's faces and names, per-pixel
 mirror assignment and masks (counted), viewing rays through the virtual centres, the figure."""
 
@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from matplotlib.colors import to_rgb
 
-from omnitof.camera import Camera
+from omnitof.sensor.camera import Camera
 from omnitof.errors import ConfigError
-from omnitof.mirrors import (
+from omnitof.sensor.mirrors import (
     ROBOT_R_CAMERA,
     Mirror,
     MirrorPlane,
@@ -23,13 +23,13 @@ from omnitof.mirrors import (
     camera_mount,
     direction_name,
     masks,
-    plot_mirror_regions,
     project_via,
     pyramid,
     viewing_rays,
     virtual_cameras,
     virtual_centres,
 )
+from omnitof.viz.sensor import plot_mirror_regions
 
 Z = np.array([0.0, 0.0, 1.0])
 

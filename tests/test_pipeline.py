@@ -58,7 +58,7 @@ def test_corridor2_outputs_are_consistent(corridor2_run):
     truth = read_tum(out / "ground_truth.tum")
     assert len(trajectory) == len(truth) == len(run.scans)
     # The 3D map's occupied voxels lie in the building (x 0..44, y 0..22.25, z 0..2.8).
-    from omnitof.map3d import read_ply
+    from omnitof.io.ply import read_ply
 
     points, _ = read_ply(out / "map3d.ply")
     assert len(points) > 1000
@@ -101,7 +101,7 @@ def test_cli_scans_exports_carmen_and_laserscan_bag(tmp_path, capsys):
     from omnitof.cli import main
     from omnitof.io.carmen import read_carmen
     from omnitof.io.rosbag import read_laserscan_bag
-    from omnitof.tofscans import read_tof_scans
+    from omnitof.scan.tof_input import read_tof_scans
 
     bag = tmp_path / "room"
     assert main(["simulate", "--world", "room", "--out", str(bag), "--max-frames", "12", "--quiet"]) == 0

@@ -13,7 +13,7 @@ import warnings
 
 import numpy as np
 
-from omnitof.config import load_config
+from omnitof.slam.config import load_config
 from omnitof.eval.relations import evaluate_relations, read_relations
 from omnitof.io.carmen import read_carmen
 from omnitof.slam import run_slam

@@ -1,5 +1,5 @@
 """The ToF renderer (omnitof.sim.render, rust/src/render.rs) against independent computations:
-unfolded mirror paths worked out here with omnitof.mirrors, the virtual camera of eq. 6, mixed
+unfolded mirror paths worked out here with omnitof.sensor.mirrors, the virtual camera of eq. 6, mixed
 pixels, glass, metal, grids, phase wrapping, and the distance noise of a matte wall."""
 
 from __future__ import annotations
@@ -9,13 +9,13 @@ import math
 import numpy as np
 import pytest
 
-from omnitof.design import default_rig
-from omnitof.mirrors import assign_pixels, camera_mount
+from omnitof.sensor.design import default_rig
+from omnitof.sensor.mirrors import assign_pixels, camera_mount
 from omnitof.sim.render import AMBIENT_REFERENCE_ALBEDO, RenderConfigError, Renderer, RenderSettings
 from omnitof.sim.worlds import load_world, parse_world
-from omnitof.tof import SensorNoise, decode, distance_noise_std, phase_to_distance, unambiguous_range
+from omnitof.sensor.tof import SensorNoise, decode, distance_noise_std, phase_to_distance, unambiguous_range
 
-CAMERA, MIRRORS = default_rig()
+CAMERA, MIRRORS = default_rig().camera, default_rig().mirrors
 MOUNT = camera_mount()
 SENSOR = SensorNoise()
 RANGE = unambiguous_range(SENSOR.f_mod)
@@ -57,7 +57,7 @@ def wrapped_error(distance: np.ndarray, path: np.ndarray) -> np.ndarray:
 def central_rays():
     """Per pixel of the default rig at pose ORIGIN: the mirror label, the path from the camera
     to the mirror, and the reflected ray in the world (origin, unit direction), from
-    omnitof.mirrors; pixels that see no mirror are NaN."""
+    omnitof.sensor.mirrors; pixels that see no mirror are NaN."""
     labels = assign_pixels(CAMERA, MIRRORS)
     rays = CAMERA.pixel_grid_rays()
     h, w = labels.shape
@@ -96,7 +96,7 @@ def first_plane(x_planes, ceiling, origin=RAY_O, direction=RAY_D):
 
 def sub_ray_paths(r: Renderer):
     """Per pixel and sub-ray at pose ORIGIN: (path length camera → mirror → first surface,
-    material name), traced here with omnitof.mirrors and the renderer's first-surface cast."""
+    material name), traced here with omnitof.sensor.mirrors and the renderer's first-surface cast."""
     h, w, s, _ = r.directions.shape
     v = r.directions.reshape(-1, 3)
     best = np.full(len(v), np.inf)

@@ -18,7 +18,7 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from omnitof.camera import Camera
+from omnitof.sensor.camera import Camera
 from omnitof.errors import InputError
 from omnitof.io.rosbag import (
     DEFAULT_STORAGE,

@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from omnitof.design import default_rig
+from omnitof.sensor.design import default_rig
 from omnitof.errors import ConfigError, InputError
-from omnitof.mirrors import camera_mount, masks, viewing_rays
+from omnitof.sensor.mirrors import camera_mount, masks, viewing_rays
 from omnitof.scan import ScanConfigError, ScanExtractor, ScanInputError, ScanSettings, scans_from_frames
 
 RIG = default_rig()
@@ -25,7 +25,7 @@ def extractor() -> ScanExtractor:
 def rays_robot():
     """Independent per-pixel geometry: mirrors.viewing_rays (camera frame) moved to the robot
     frame; origin o, unit direction u, path L from the camera centre to the mirror."""
-    camera, mirrors = RIG
+    camera, mirrors = RIG.camera, RIG.mirrors
     labels = masks(camera, mirrors)
     vr = viewing_rays(camera, mirrors, labels)
     mount = camera_mount()
@@ -180,7 +180,7 @@ def test_errors_name_the_array(extractor):
 
 
 def test_bad_settings_and_rig():
-    camera, mirrors = RIG
+    camera, mirrors = RIG.camera, RIG.mirrors
     labels = masks(camera, mirrors)
     with pytest.raises(ScanConfigError, match="statistic"):
         ScanExtractor(camera, mirrors, labels, camera_mount(), statistic="mean")
@@ -194,7 +194,7 @@ def test_bad_settings_and_rig():
 
 
 def test_from_calibration_duck_typed_and_angles():
-    camera, mirrors = RIG
+    camera, mirrors = RIG.camera, RIG.mirrors
 
     class Cal:
         pass

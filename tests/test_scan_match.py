@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from omnitof import _core
-from omnitof.config import load_config
+from omnitof.slam.config import load_config
 from omnitof.eval.trajectory import absolute_trajectory_error
 from omnitof.geometry import wrap_angle
 from omnitof.slam import run_slam

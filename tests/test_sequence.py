@@ -16,7 +16,6 @@ from omnitof.sim.sequence import (
     MotionSettings,
     make_sequence,
     render_sequence,
-    rig_from_sidecar,
     robot_path,
     simulate_bag,
 )
@@ -113,7 +112,7 @@ def test_bag_reads_back_with_rig_and_poses(tmp_path):
         assert np.array_equal(got.samples, want.samples)
         assert np.allclose(got.odometry, want.odometry, atol=1e-9)
         assert np.allclose(got.ground_truth, want.ground_truth, atol=1e-9)
-    rig = rig_from_sidecar(bag.sidecar, out)
+    rig = bag.rig
     assert rig.camera == renderer.camera
     assert np.allclose(rig.robot_T_camera, renderer.robot_T_camera)
     for got_m, want_m in zip(rig.mirrors, renderer.mirrors):

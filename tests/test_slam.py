@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from omnitof.config import load_config
+from omnitof.slam.config import load_config
 from omnitof.eval.floorplan import wall_agreement
 from omnitof.eval.trajectory import absolute_trajectory_error
 from omnitof.geometry import compose

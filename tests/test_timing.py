@@ -7,7 +7,7 @@ import pytest
 
 from omnitof.geometry import interpolate_poses, wrap_angle
 from omnitof.sim.laser2d import World2D, beam_angles, simulate_scans
-from omnitof.timing import estimate_scan_delay, retime_odometry
+from omnitof.slam.timing import estimate_scan_delay, retime_odometry
 from omnitof.types import ScanSequence, Trajectory
 
 RATE_HZ = 5.0

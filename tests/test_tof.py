@@ -1,4 +1,4 @@
-"""omnitof.tof: the paper's eq. 1–4, their inverse, and the noise model, against independent
+"""omnitof.sensor.tof: the paper's eq. 1–4, their inverse, and the noise model, against independent
 computations (hand-worked samples, scalar math, Monte-Carlo)."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from omnitof import tof
+from omnitof.sensor import tof
 from omnitof.errors import ConfigError
 
 C = 299_792_458.0  # m/s, written out here so the tests do not share the module's constant

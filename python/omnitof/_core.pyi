@@ -1,5 +1,5 @@
 # Type stubs of the compiled core (rust/src/lib.rs). Private: use omnitof.slam and friends.
-from typing import final
+from typing import Any, final
 
 import numpy as np
 import numpy.typing as npt
@@ -18,57 +18,24 @@ _F64 = npt.NDArray[np.float64]
 _F32 = npt.NDArray[np.float32]
 _U64 = npt.NDArray[np.uint64]
 _I64 = npt.NDArray[np.int64]
+_U32 = npt.NDArray[np.uint32]
 
 @final
 class ParticleFilter:
+    # Each section is the dict `SlamConfig.<section>.model_dump()` (python/omnitof/slam/config.py),
+    # `filter` without linear_update and angular_update_deg; the core checks the keys.
     def __new__(
         cls,
         *,
-        n_particles: int,
-        seed: int,
-        threads: int,
-        alphas: list[float],
-        z_hit: float,
-        z_short: float,
-        z_max: float,
-        z_rand: float,
-        sigma_hit: float,
-        lambda_short: float,
-        max_range: float,
-        occupied_threshold: float,
-        beam_stride: int,
-        effective_beams: float,
-        l_occ: float,
-        l_free: float,
-        l_min: float,
-        l_max: float,
-        resolution: float,
-        map_max_range: float,
-        clear_no_echo: bool,
-        resample_threshold: float,
+        filter: dict[str, Any],
+        motion: dict[str, Any],
+        sensor_model: dict[str, Any],
+        likelihood_field: dict[str, Any],
+        scan_matcher: dict[str, Any],
+        map: dict[str, Any],
         angles: _F64,
         sensor_pose: _F64,
-        proposal: str,
-        observation: str,
-        field_sigma: float,
-        field_z_hit: float,
-        field_z_rand: float,
-        field_window: int,
-        field_fit_walls: bool = False,
-        match_step_xy: float,
-        match_step_theta: float,
-        match_refinements: int,
-        match_gauss_newton: int,
-        match_sample_xy: float,
-        match_sample_theta: float,
-        match_min_matched: float,
-        match_odometry_prior: bool,
-        match_climb_from_sample: bool = False,
-        search_xy: float = 0.0,
-        search_theta: float = 0.0,
-        search_step_xy: float = 0.1,
-        search_step_theta: float = 0.0175,
-        search_below: float = 0.8,
+        scan_max_range: float,
     ) -> ParticleFilter: ...
     def step(self, odom_prev: _F64, odom_cur: _F64, ranges: _F32, scan: int) -> tuple[float, bool, bool]: ...
     def best_trajectory(self) -> tuple[_U64, _F64]: ...
@@ -132,6 +99,41 @@ class VoxelGrid:
     def block_count(self) -> int: ...
     def memory_bytes(self) -> int: ...
     def bounds(self) -> tuple[list[float], list[float]] | None: ...
+
+# Private: the renderer behind omnitof.sim.render.Renderer (rust/src/render_bindings.rs).
+@final
+class _Renderer:
+    def __new__(
+        cls,
+        *,
+        walls: _F64,
+        wall_materials: _U32,
+        boxes: _F64,
+        box_materials: _U32,
+        materials: _F64,
+        floor_material: int,
+        ceiling_material: int,
+        ceiling_height: float,
+        cell: float,
+        directions: _F64,
+        height: int,
+        width: int,
+        sub_rays: int,
+        mirror_planes: _F64,
+        mirror_vertices: _F64,
+        mirror_counts: _U64,
+        mirror_reflectivity: _F64,
+        robot_T_camera: _F64,
+        f_mod: float,
+        amplitude_at_1m: float,
+        max_bounces: int,
+        min_gain: float,
+        threads: int | None = None,
+    ) -> _Renderer: ...
+    def render(self, poses: _F64) -> _F32: ...
+    def cast(self, origins: _F64, directions: _F64) -> tuple[_F64, _I64]: ...
+    @property
+    def shape(self) -> tuple[int, int, int]: ...
 
 def sample_motion_odometry(
     pose: _F64, odom_prev: _F64, odom_cur: _F64, alphas: list[float], n: int, seed: int

@@ -20,7 +20,7 @@ from omnitof.types import ScanSequence
 
 
 def _config_from_args(args: argparse.Namespace, default_preset: str | None = None):
-    from omnitof.config import load_config
+    from omnitof.slam.config import load_config
 
     overrides: dict[str, Any] = {"filter": {}}
     for name in ("particles", "seed", "threads"):
@@ -32,9 +32,9 @@ def _config_from_args(args: argparse.Namespace, default_preset: str | None = Non
 
 
 def _progress_bar(total: int, enabled: bool, desc: str, unit: str = "scan"):
-    from tqdm import tqdm
+    from omnitof.io.terminal import progress_bar
 
-    return tqdm(total=total, unit=unit, desc=desc, disable=not enabled, dynamic_ncols=True)
+    return progress_bar(total, enabled=enabled, desc=desc, unit=unit)
 
 
 def _summary_line(stats: dict) -> str:
@@ -53,7 +53,7 @@ def _scan_settings(args: argparse.Namespace):
 
 
 def _read_tof_input(args: argparse.Namespace, *, cloud_every: int, max_frames: int | None):
-    from omnitof.tofscans import frame_count, read_tof_scans
+    from omnitof.scan.tof_input import frame_count, read_tof_scans
 
     total = frame_count(args.log)
     if max_frames is not None:
@@ -103,7 +103,8 @@ def cmd_slam(args: argparse.Namespace) -> int:
     paths = write_results(args.out, result, cfg, title=f"{Path(args.log).name}", extra=extra,
                           ground_truth=scans.ground_truth)
     if tof and args.map3d:
-        from omnitof.tofscans import voxel_map_from_clouds, write_voxel_outputs
+        from omnitof.map3d import voxel_map_from_clouds
+        from omnitof.results import write_voxel_outputs
 
         vmap = voxel_map_from_clouds(result.trajectory.poses[tof_data.cloud_frames], tof_data.clouds)
         for name, path in write_voxel_outputs(vmap, args.out, trajectory=result.trajectory.poses).items():
@@ -131,7 +132,7 @@ def _scan_delay(text: str) -> str | float:
 def _retimed(scans: ScanSequence, delay: str | float) -> tuple[ScanSequence, dict]:
     """The scans with their odometry re-timed by `delay` (seconds, or "auto": estimated), and
     what to record of it."""
-    from omnitof.timing import estimate_scan_delay, retime_odometry
+    from omnitof.slam.timing import estimate_scan_delay, retime_odometry
 
     try:
         if delay == "auto":
@@ -185,7 +186,7 @@ def cmd_eval_relations(args: argparse.Namespace) -> int:
 
 
 def cmd_config(args: argparse.Namespace) -> int:
-    from omnitof.config import preset_names
+    from omnitof.slam.config import preset_names
 
     if args.list:
         print("\n".join(preset_names()))
@@ -204,11 +205,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     if args.what == "calibration":
-        from omnitof.calibration.cli import cmd_render_targets
+        from omnitof.cli_calibrate import cmd_render_targets
 
         return cmd_render_targets(args)
-    from tqdm import tqdm
-
     from omnitof.sim.sequence import MotionSettings, make_sequence, simulate_bag
     from omnitof.sim.worlds import load_world
 
@@ -217,7 +216,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     total = len(make_sequence(world, seed=args.seed, motion=motion))
     if args.max_frames is not None:
         total = min(total, args.max_frames)
-    with tqdm(total=total, unit="frame", desc="render", disable=args.quiet, dynamic_ncols=True) as bar:
+    with _progress_bar(total, not args.quiet, "render", unit="frame") as bar:
         sequence, written = simulate_bag(
             world, args.out, seed=args.seed, motion=motion, samples=args.samples,
             max_frames=args.max_frames, storage=args.storage, overwrite=args.overwrite,
@@ -233,9 +232,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_design(args: argparse.Namespace) -> int:
-    from omnitof.camera import Camera
-    from omnitof.design import design_report, format_sweep, plot_sweep, sweep
-    from omnitof.mirrors import plot_mirror_regions, pyramid
+    from omnitof.sensor.camera import Camera
+    from omnitof.sensor.design import design_report, format_sweep, sweep
+    from omnitof.sensor.mirrors import pyramid
+    from omnitof.viz.sensor import plot_mirror_regions, plot_sweep
 
     lenses = {"standard": Camera.sr4000(), "wide": Camera.sr4000_wide()}
     if args.sweep is not None:
@@ -277,7 +277,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--skip-bad-lines", action="store_true", help="skip and count malformed log lines")
     p.add_argument("--scan-delay", type=_scan_delay, metavar="SECONDS|auto",
                    help="the scans were taken this long before their timestamps: take each scan's odometry "
-                   "from then; 'auto' estimates it from the data (omnitof.timing)")
+                   "from then; 'auto' estimates it from the data (omnitof.slam.timing)")
     p.add_argument("--calibration", type=Path, help="ToF bags: the rig's calibration YAML (omnitof calibrate); "
                    "default: the true rig of a simulated bag")
     p.add_argument("--height", type=float, help="ToF bags: height of the scan slice above the floor (m)")
@@ -335,7 +335,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--boards", type=int, default=30, help="calibration: checkerboard images")
     p.add_argument("--seed", type=int, default=0, help="fixes the odometry noise, the sensor noise and the sub-ray jitter")
     p.add_argument("--speed", type=float, default=0.4, help="driving speed (m/s)")
-    p.add_argument("--samples", action="store_true", help="also write the raw samples A0..A3 (5x the size)")
+    p.add_argument("--samples", action="store_true", help="also write the raw samples A0..A3 (3x the size)")
     p.add_argument("--max-frames", type=int, help="write only the first N frames")
     p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="ROS 2 bag storage")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bag")
@@ -354,7 +354,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-frames", type=int, help="stop after N frames (a quick look)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_demo)
-    from omnitof.calibration.cli import add_calibrate_parser
+    from omnitof.cli_calibrate import add_calibrate_parser
     add_calibrate_parser(sub)
     return parser
 

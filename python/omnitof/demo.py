@@ -92,7 +92,7 @@ class DemoRun:
 
 def slam_config(preset: str, seed: int, particles: int | None = None) -> Any:
     """The SLAM configuration of a preset with the run's seed (and particle count)."""
-    from omnitof.config import load_config
+    from omnitof.slam.config import load_config
 
     overrides: dict[str, Any] = {"filter": {"seed": int(seed)}}
     if particles is not None:
@@ -103,7 +103,7 @@ def slam_config(preset: str, seed: int, particles: int | None = None) -> Any:
 def run_world(settings: DemoSettings, out: str | Path, *, progress: bool = True,
               echo: Callable[[str], None] = print) -> DemoRun:
     """Run the pipeline (module docstring) and write its folder `out`."""
-    from tqdm import tqdm
+    from omnitof.io.terminal import progress_bar
 
     from omnitof.results import write_results
     from omnitof.scan import ScanExtractor
@@ -111,7 +111,9 @@ def run_world(settings: DemoSettings, out: str | Path, *, progress: bool = True,
     from omnitof.sim.sequence import MotionSettings, make_sequence, render_sequence
     from omnitof.sim.worlds import load_world
     from omnitof.slam import run_slam
-    from omnitof.tofscans import tof_scans, voxel_map_from_clouds, write_voxel_outputs
+    from omnitof.map3d import voxel_map_from_clouds
+    from omnitof.results import write_voxel_outputs
+    from omnitof.scan.tof_input import tof_scans
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -136,7 +138,7 @@ def run_world(settings: DemoSettings, out: str | Path, *, progress: bool = True,
 
     with stages.stage("render frames and extract scans"):
         extractor = ScanExtractor.from_calibration(calibration)
-        bar = tqdm(total=n_frames, unit="frame", desc="render+scan", disable=not progress, dynamic_ncols=True)
+        bar = progress_bar(n_frames, enabled=progress, desc="render+scan", unit="frame")
         with bar:
             data = tof_scans(
                 render_sequence(sequence, renderer, stop=n_frames), extractor,
@@ -149,7 +151,7 @@ def run_world(settings: DemoSettings, out: str | Path, *, progress: bool = True,
 
     with stages.stage("SLAM"):
         cfg = slam_config(settings.preset, settings.seed, settings.particles)
-        bar = tqdm(total=len(scans), unit="scan", desc="slam", disable=not progress, dynamic_ncols=True)
+        bar = progress_bar(len(scans), enabled=progress, desc="slam", unit="scan")
         with bar:
             result = run_slam(scans, cfg, progress=bar.update)
         summary["slam"] = {"preset": settings.preset, **result.stats}
@@ -188,7 +190,7 @@ def _calibrate(renderer: Any, settings: DemoSettings, out: Path) -> tuple[Any, d
     """The calibration the scans are extracted with, and how far it is from the truth."""
     from omnitof.calibration import Calibration, save_calibration
 
-    truth = Calibration.from_rig(renderer.camera, renderer.mirrors, renderer.robot_T_camera)
+    truth = Calibration.from_rig(renderer.rig)
     if not settings.calibrate:
         save_calibration(truth, out / "calibration.yaml")
         return truth, {"source": "true rig (no calibration run)"}
@@ -247,7 +249,7 @@ def evaluate_run(world: Any, scans: Any, result: Any, out: Path | None) -> dict[
 def _figures(world: Any, renderer: Any, extractor: Any, sequence: Any, scans: Any, result: Any, out: Path) -> None:
     """fig3_amplitude.png / fig3_depth.png (the paper's Fig. 3), scan.png (Fig. 5(b)) and
     slice.png (the pixels that fed the slice) of a frame a quarter into the drive."""
-    from omnitof.mirrors import plot_mirror_regions
+    from omnitof.viz.sensor import plot_mirror_regions
     from omnitof.viz.scans import plot_scan, plot_slice_overlay
 
     i = len(scans) // 4

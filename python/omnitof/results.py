@@ -6,6 +6,7 @@
     config.yaml           the configuration actually used
     map.png               the map with the SLAM and odometry trajectories drawn over it
     summary.yaml          counts, timings and any evaluation
+    map3d.ply, map3d.png  the 3D voxel map of a ToF run, when asked (`write_voxel_outputs`)
 
 Every file is written to a temporary name and renamed, so an interrupted run leaves no
 half-written file.
@@ -19,13 +20,16 @@ from typing import Any
 import numpy as np
 import yaml
 
-from omnitof.config import SlamConfig
+from omnitof.slam.config import SlamConfig
 from omnitof.io.atomic import atomic_write
 from omnitof.io.rosmap import write_ros_map
 from omnitof.io.tum import write_tum
 from omnitof.slam import SlamResult
+from omnitof.map3d import VoxelMap
 from omnitof.types import Trajectory
 from omnitof.viz.maps import plot_map
+from omnitof.viz.map3d import height_colors, plot_voxels
+from omnitof.io.ply import write_ply
 
 
 def write_results(
@@ -62,4 +66,16 @@ def write_results(
     summary = {"run": result.stats, **(extra or {})}
     with atomic_write(paths["summary"]) as f:
         yaml.safe_dump(summary, f, sort_keys=False)
+    return paths
+
+
+def write_voxel_outputs(vmap: VoxelMap, out_dir: str | Path, *, trajectory: np.ndarray | None = None,
+                        title: str = "") -> dict[str, Path]:
+    """map3d.ply (occupied voxel centres, coloured by height) and map3d.png in `out_dir`."""
+    out = Path(out_dir)
+    occupied = vmap.occupied()
+    paths = {"map3d_ply": out / "map3d.ply", "map3d_png": out / "map3d.png"}
+    write_ply(paths["map3d_ply"], occupied, height_colors(occupied) if len(occupied) else None)
+    plot_voxels(paths["map3d_png"], occupied, resolution=vmap.resolution, trajectory=trajectory,
+                title=title or "3D occupancy (occupied voxels)")
     return paths

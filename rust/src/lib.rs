@@ -14,8 +14,9 @@ pub mod voxel;
 
 use numpy::ndarray::Array2;
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
-use pyo3::exceptions::PyValueError;
+use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
+use pyo3::types::PyDict;
 
 use filter::{FilterParams, ObservationKind, ParticleFilter, ProposalKind};
 use correlative::SearchWindow;
@@ -60,27 +61,79 @@ fn dense<'py>(py: Python<'py>, grid: &TiledGrid) -> DenseGrid<'py> {
     (Array2::from_shape_vec((rows, cols), data).unwrap().into_pyarray(py), ix0, iy0)
 }
 
-#[pyclass(name = "ParticleFilter", module = "omnitof._core")]
-struct PyParticleFilter {
-    inner: ParticleFilter,
+/// A section of the SLAM configuration as a Rust struct, read from the section's dict
+/// (`SlamConfig.<section>.model_dump()`, python/omnitof/slam/config.py). Fields have the names,
+/// units and types of the configuration; defaults and validation live there alone. A key
+/// that is unknown or missing is an error: an option added on one side only must not be
+/// silently ignored.
+macro_rules! config_section {
+    ($(#[$meta:meta])* $name:ident = $section:literal { $($(#[$fmeta:meta])* $field:ident: $ty:ty,)* }) => {
+        $(#[$meta])*
+        struct $name {
+            $($(#[$fmeta])* $field: $ty,)*
+        }
+
+        impl<'a, 'py> FromPyObject<'a, 'py> for $name {
+            type Error = PyErr;
+
+            fn extract(obj: Borrowed<'a, 'py, PyAny>) -> PyResult<Self> {
+                let dict = section_dict(&obj, $section, &[$(stringify!($field)),*])?;
+                Ok($name { $($field: section_field(&dict, $section, stringify!($field))?,)* })
+            }
+        }
+    };
 }
 
-#[pymethods]
-impl PyParticleFilter {
-    #[new]
-    #[pyo3(signature = (*, n_particles, seed, threads, alphas, z_hit, z_short, z_max, z_rand,
-        sigma_hit, lambda_short, max_range, occupied_threshold, beam_stride, effective_beams,
-        l_occ, l_free, l_min, l_max, resolution, map_max_range, clear_no_echo,
-        resample_threshold, angles, sensor_pose, proposal, observation, field_sigma, field_z_hit,
-        field_z_rand, field_window, field_fit_walls=false, match_step_xy, match_step_theta, match_refinements, match_gauss_newton,
-        match_sample_xy, match_sample_theta, match_min_matched, match_odometry_prior, match_climb_from_sample=false,
-        search_xy=0.0, search_theta=0.0, search_step_xy=0.1, search_step_theta=0.0175, search_below=0.8))]
-    #[allow(clippy::too_many_arguments)]
-    fn new(
-        n_particles: usize,
+/// The dict of configuration section `section`, checked to hold no key but `fields`.
+fn section_dict<'py>(obj: &Borrowed<'_, 'py, PyAny>, section: &str, fields: &[&str]) -> PyResult<Bound<'py, PyDict>> {
+    let dict = obj.cast::<PyDict>().map_err(|_| {
+        PyTypeError::new_err(format!("{section}: the section must be a dict of its fields"))
+    })?;
+    for key in dict.keys() {
+        let key: String = key.str()?.extract()?;
+        if !fields.contains(&key.as_str()) {
+            return Err(PyValueError::new_err(format!("{section}.{key}: unknown field")));
+        }
+    }
+    Ok(dict.to_owned())
+}
+
+fn section_field<'py, T>(dict: &Bound<'py, PyDict>, section: &str, field: &str) -> PyResult<T>
+where
+    T: for<'a> FromPyObject<'a, 'py, Error = PyErr>,
+{
+    let value = dict
+        .get_item(field)?
+        .ok_or_else(|| PyValueError::new_err(format!("{section}.{field}: missing field")))?;
+    value
+        .extract()
+        .map_err(|err| PyTypeError::new_err(format!("{section}.{field}: {err}")))
+}
+
+config_section! {
+    /// `filter`, less the scan selection (linear_update, angular_update_deg) that the driver does.
+    FilterSection = "filter" {
+        particles: usize,
+        proposal: String,
+        resample_threshold: f64,
         seed: u64,
+        /// 0: one per core.
         threads: usize,
-        alphas: [f64; 4],
+    }
+}
+
+config_section! {
+    MotionSection = "motion" {
+        alpha1: f64,
+        alpha2: f64,
+        alpha3: f64,
+        alpha4: f64,
+    }
+}
+
+config_section! {
+    SensorModelSection = "sensor_model" {
+        model: String,
         z_hit: f64,
         z_short: f64,
         z_max: f64,
@@ -88,99 +141,164 @@ impl PyParticleFilter {
         sigma_hit: f64,
         lambda_short: f64,
         max_range: f64,
-        occupied_threshold: f32,
         beam_stride: usize,
         effective_beams: f64,
+    }
+}
+
+config_section! {
+    LikelihoodFieldSection = "likelihood_field" {
+        sigma: f64,
+        z_hit: f64,
+        z_rand: f64,
+        window_cells: i32,
+        fit_walls: bool,
+    }
+}
+
+config_section! {
+    ScanMatcherSection = "scan_matcher" {
+        step_xy: f64,
+        step_deg: f64,
+        refinements: u32,
+        gauss_newton: u32,
+        sample_xy: f64,
+        sample_deg: f64,
+        odometry_prior: bool,
+        min_matched: f64,
+        climb_from_sample: bool,
+        search_xy: f64,
+        search_deg: f64,
+        search_step_xy: f64,
+        search_step_deg: f64,
+        search_below: f64,
+    }
+}
+
+config_section! {
+    MapSection = "map" {
+        resolution: f64,
         l_occ: f32,
         l_free: f32,
         l_min: f32,
         l_max: f32,
-        resolution: f64,
-        map_max_range: f64,
+        occupied_threshold: f32,
+        max_range: f64,
         clear_no_echo: bool,
-        resample_threshold: f64,
+    }
+}
+
+/// The core's parameters from the configuration's sections and the sensor's largest range: the
+/// one place where degrees become radians and the configured ranges are capped by the sensor's.
+fn filter_params(
+    f: FilterSection,
+    m: MotionSection,
+    s: SensorModelSection,
+    lf: LikelihoodFieldSection,
+    sm: ScanMatcherSection,
+    g: MapSection,
+    scan_max_range: f64,
+) -> PyResult<FilterParams> {
+    let proposal = match f.proposal.as_str() {
+        "odometry" => ProposalKind::Odometry,
+        "scanmatch" => ProposalKind::ScanMatch,
+        other => return Err(PyValueError::new_err(format!("filter.proposal: unknown proposal {other:?}"))),
+    };
+    let observation = match s.model.as_str() {
+        "beam" => ObservationKind::Beam,
+        "likelihood_field" => ObservationKind::LikelihoodField,
+        other => return Err(PyValueError::new_err(format!("sensor_model.model: unknown observation model {other:?}"))),
+    };
+    if sm.search_xy > 0.0 && !(sm.search_step_xy > 0.0 && sm.search_step_deg > 0.0) {
+        return Err(PyValueError::new_err("scan_matcher: the wide search needs positive steps"));
+    }
+    let search = (sm.search_xy > 0.0).then_some(SearchWindow {
+        half_xy: sm.search_xy,
+        half_theta: sm.search_deg.to_radians(),
+        step_xy: sm.search_step_xy,
+        step_theta: sm.search_step_deg.to_radians(),
+    });
+    let threads = match f.threads {
+        0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
+        n => n,
+    };
+    // Readings beyond the sensor's range are no echo, whatever the configuration allows.
+    let max_range = s.max_range.min(scan_max_range);
+    Ok(FilterParams {
+        n_particles: f.particles,
+        seed: f.seed,
+        threads,
+        motion: OdometryMotion { alpha: [m.alpha1, m.alpha2, m.alpha3, m.alpha4] },
+        proposal,
+        observation,
+        beam: BeamModel {
+            z_hit: s.z_hit,
+            z_short: s.z_short,
+            z_max: s.z_max,
+            z_rand: s.z_rand,
+            sigma_hit: s.sigma_hit,
+            lambda_short: s.lambda_short,
+            max_range,
+            occupied_threshold: g.occupied_threshold,
+        },
+        field: LikelihoodField {
+            sigma: lf.sigma,
+            z_hit: lf.z_hit,
+            z_rand: lf.z_rand,
+            max_range,
+            window: lf.window_cells,
+            occupied_threshold: g.occupied_threshold,
+            fit_walls: lf.fit_walls,
+        },
+        matcher: MatcherParams {
+            step_xy: sm.step_xy,
+            step_theta: sm.step_deg.to_radians(),
+            refinements: sm.refinements,
+            gauss_newton: sm.gauss_newton,
+            sample_xy: sm.sample_xy,
+            sample_theta: sm.sample_deg.to_radians(),
+            min_matched: sm.min_matched,
+            effective_beams: s.effective_beams,
+            odometry_prior: sm.odometry_prior,
+            climb_from_sample: sm.climb_from_sample,
+            search,
+            search_below: sm.search_below,
+        },
+        beam_stride: s.beam_stride,
+        effective_beams: s.effective_beams,
+        log_odds: LogOddsModel { l_occ: g.l_occ, l_free: g.l_free, l_min: g.l_min, l_max: g.l_max },
+        resolution: g.resolution,
+        map_max_range: g.max_range.min(scan_max_range),
+        clear_no_echo: g.clear_no_echo,
+        resample_threshold: f.resample_threshold,
+    })
+}
+
+#[pyclass(name = "ParticleFilter", module = "omnitof._core")]
+struct PyParticleFilter {
+    inner: ParticleFilter,
+}
+
+#[pymethods]
+impl PyParticleFilter {
+    /// A filter for the configuration's sections (each the dict `SlamConfig.<section>.model_dump()`)
+    /// and a sensor: its beam angles, its pose on the robot and its largest range.
+    #[new]
+    #[pyo3(signature = (*, filter, motion, sensor_model, likelihood_field, scan_matcher, map,
+        angles, sensor_pose, scan_max_range))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        filter: FilterSection,
+        motion: MotionSection,
+        sensor_model: SensorModelSection,
+        likelihood_field: LikelihoodFieldSection,
+        scan_matcher: ScanMatcherSection,
+        map: MapSection,
         angles: PyReadonlyArray1<f64>,
         sensor_pose: PyReadonlyArray1<f64>,
-        proposal: &str,
-        observation: &str,
-        field_sigma: f64,
-        field_z_hit: f64,
-        field_z_rand: f64,
-        field_window: i32,
-        field_fit_walls: bool,
-        match_step_xy: f64,
-        match_step_theta: f64,
-        match_refinements: u32,
-        match_gauss_newton: u32,
-        match_sample_xy: f64,
-        match_sample_theta: f64,
-        match_min_matched: f64,
-        match_odometry_prior: bool,
-        match_climb_from_sample: bool,
-        search_xy: f64,
-        search_theta: f64,
-        search_step_xy: f64,
-        search_step_theta: f64,
-        search_below: f64,
+        scan_max_range: f64,
     ) -> PyResult<Self> {
-        if search_xy > 0.0 && !(search_step_xy > 0.0 && search_step_theta > 0.0) {
-            return Err(PyValueError::new_err("the wide search needs positive steps"));
-        }
-        let search = (search_xy > 0.0).then_some(SearchWindow {
-            half_xy: search_xy,
-            half_theta: search_theta,
-            step_xy: search_step_xy,
-            step_theta: search_step_theta,
-        });
-        let proposal = match proposal {
-            "odometry" => ProposalKind::Odometry,
-            "scanmatch" => ProposalKind::ScanMatch,
-            other => return Err(PyValueError::new_err(format!("unknown proposal {other:?}"))),
-        };
-        let observation = match observation {
-            "beam" => ObservationKind::Beam,
-            "likelihood_field" => ObservationKind::LikelihoodField,
-            other => return Err(PyValueError::new_err(format!("unknown observation model {other:?}"))),
-        };
-        let params = FilterParams {
-            proposal,
-            observation,
-            field: LikelihoodField {
-                sigma: field_sigma,
-                z_hit: field_z_hit,
-                z_rand: field_z_rand,
-                max_range,
-                window: field_window,
-                occupied_threshold,
-                fit_walls: field_fit_walls,
-            },
-            matcher: MatcherParams {
-                step_xy: match_step_xy,
-                step_theta: match_step_theta,
-                refinements: match_refinements,
-                gauss_newton: match_gauss_newton,
-                sample_xy: match_sample_xy,
-                sample_theta: match_sample_theta,
-                min_matched: match_min_matched,
-                effective_beams,
-                odometry_prior: match_odometry_prior,
-                climb_from_sample: match_climb_from_sample,
-                search,
-                search_below,
-            },
-            n_particles,
-            seed,
-            threads,
-            motion: OdometryMotion { alpha: alphas },
-            beam: BeamModel { z_hit, z_short, z_max, z_rand, sigma_hit, lambda_short, max_range, occupied_threshold },
-            beam_stride,
-            effective_beams,
-            log_odds: LogOddsModel { l_occ, l_free, l_min, l_max },
-            resolution,
-            map_max_range,
-            clear_no_echo,
-            resample_threshold,
-        };
+        let params = filter_params(filter, motion, sensor_model, likelihood_field, scan_matcher, map, scan_max_range)?;
         let sensor = pose3(sensor_pose.as_slice()?, "sensor_pose")?;
         let inner = ParticleFilter::new(params, angles.as_slice()?.to_vec(), sensor).map_err(PyValueError::new_err)?;
         Ok(PyParticleFilter { inner })

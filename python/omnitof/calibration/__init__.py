@@ -1,9 +1,12 @@
 """Calibration of the omnidirectional ToF sensor: the file that the scan extraction reads.
 
-A calibration (`Calibration`) holds what the paper's sec. II-C determines, in the camera frame
-of `omnitof.mirrors` (z = optical axis, up into the mirrors; metres):
+A calibration (`Calibration`) is an estimated rig (`omnitof.sensor.rig.Rig`: camera, mirror
+planes with names, mount) plus what only a calibration has: the masks, the residuals
+(`quality`) and how it was made (`provenance`). It holds what the paper's sec. II-C
+determines, in the camera frame of `omnitof.sensor.mirrors` (z = optical axis, up into the
+mirrors; metres):
 
-- the intrinsics (`omnitof.camera.Camera`: K and the distortion), from a checkerboard seen
+- the intrinsics (`omnitof.sensor.camera.Camera`: K and the distortion), from a checkerboard seen
   without the mirrors (`omnitof.calibration.intrinsics`);
 - one plane {x : n·x = d} per mirror (n away from the camera, d > 0), from the four-dot target
   seen directly and through the mirror (`omnitof.calibration.mirror_planes`; paper eq. 5);
@@ -12,7 +15,8 @@ of `omnitof.mirrors` (z = optical axis, up into the mirrors; metres):
   the calibrated geometry or from hand-drawn image polygons (`omnitof.calibration.masks`);
 - the mount robot_T_camera, which the paper does not calibrate: taken from the rig's design.
 
-The file (`save_calibration` / `load_calibration`) is one YAML document:
+The file (`save_calibration` / `load_calibration`) is one YAML document; its camera, mirrors
+and robot_T_camera are the rig's YAML form (`Rig.to_dict`), read by the same code:
 
     omnitof_calibration: 1                 # format version
     camera: {width, height, fx, fy, cx, cy, dist: [k1, k2, p1, p2, k3]}
@@ -48,12 +52,12 @@ from typing import Any
 import numpy as np
 import yaml
 
-from omnitof.camera import Camera, CameraParameterError
 from omnitof.errors import InputError
 from omnitof.io.atomic import atomic_write
 from omnitof.io.plain import to_plain
-from omnitof import mirrors as _mirrors  # not `masks` by name: the submodule masks shadows it
-from omnitof.mirrors import Mirror, MirrorParameterError, MirrorPlane, camera_mount
+from omnitof.sensor.camera import Camera
+from omnitof.sensor.mirrors import MirrorParameterError, MirrorPlane
+from omnitof.sensor.rig import Rig, RigError, camera_to_dict
 
 __all__ = [
     "FORMAT_VERSION",
@@ -74,14 +78,12 @@ class CalibrationError(InputError):
 
 @dataclass(eq=False)
 class Calibration:
-    """Intrinsics, mirror planes, masks and mount of one sensor (see the module docstring).
+    """An estimated rig plus its masks, residuals and provenance (see the module docstring).
 
     Attributes:
-        camera: intrinsics (pixels, OpenCV's distortion order).
-        planes: one MirrorPlane per mirror, camera frame, metres.
-        names: the mirrors' names (e.g. "front"), same order as planes.
-        labels: (H, W) int32, index into planes per pixel, −1 = not used.
-        robot_T_camera: 4×4 float64 mount (maps camera-frame points to the robot frame).
+        rig: the estimated sensor: camera (pixels, OpenCV's distortion order), one MirrorPlane
+            and name per mirror (camera frame, metres; no outlines), robot_T_camera (4×4).
+        labels: (H, W) int32, index into the rig's planes per pixel, −1 = not used.
         polygons: per mirror name, an (K, 2) float64 image polygon (u, v pixels) the mask was
             drawn from, if it was drawn from one; editable.
         edge_margin_px: margin the masks keep from region boundaries (as `mirrors.masks`).
@@ -90,25 +92,14 @@ class Calibration:
         provenance: free-form description of how the calibration was made.
     """
 
-    camera: Camera
-    planes: list[MirrorPlane]
-    names: list[str]
+    rig: Rig
     labels: np.ndarray
-    robot_T_camera: np.ndarray = field(default_factory=camera_mount)
     polygons: dict[str, np.ndarray] = field(default_factory=dict)
     edge_margin_px: float = 2.0
     quality: dict[str, Any] = field(default_factory=dict)
     provenance: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.planes = list(self.planes)
-        self.names = [str(n) for n in self.names]
-        if len(self.names) != len(self.planes):
-            raise CalibrationError(
-                f"Calibration: {len(self.planes)} planes but {len(self.names)} names"
-            )
-        if len(set(self.names)) != len(self.names):
-            raise CalibrationError(f"Calibration: mirror names must differ, got {self.names}")
         labels = np.asarray(self.labels)
         if labels.shape != self.camera.shape:
             raise CalibrationError(
@@ -121,32 +112,55 @@ class Calibration:
                 f"got [{labels.min()}, {labels.max()}]"
             )
         self.labels = labels.astype(np.int32)
-        mount = np.asarray(self.robot_T_camera, dtype=np.float64)
-        if mount.shape != (4, 4):
-            raise CalibrationError(f"Calibration.robot_T_camera must be 4×4, got {mount.shape}")
-        self.robot_T_camera = mount
         self.polygons = {
             str(k): np.asarray(v, dtype=np.float64).reshape(-1, 2) for k, v in self.polygons.items()
         }
 
     @classmethod
-    def from_rig(
+    def estimated(
         cls,
         camera: Camera,
-        mirrors: Sequence[Mirror],
-        robot_T_camera: np.ndarray | None = None,
-        edge_margin_px: float = 2.0,
+        planes: Sequence[MirrorPlane],
+        names: Sequence[str],
+        robot_T_camera: np.ndarray,
+        labels: np.ndarray,
+        **rest: Any,
     ) -> Calibration:
-        """The true geometry of a rig: its planes, names and `mirrors.masks` as labels."""
+        """A calibration from estimated parts (rest: polygons, edge_margin_px, quality,
+        provenance); CalibrationError if the parts do not fit together."""
+        try:
+            rig = Rig(camera, tuple(planes), tuple(names), robot_T_camera)
+        except (MirrorParameterError, ValueError) as err:
+            raise CalibrationError(f"Calibration: {err}") from None
+        return cls(rig, labels, **rest)
+
+    @classmethod
+    def from_rig(cls, rig: Rig, edge_margin_px: float = 2.0) -> Calibration:
+        """The true geometry of a designed rig: its planes, names, and `mirrors.masks` as
+        labels (the outlines are dropped: a calibration does not measure them)."""
         return cls(
-            camera=camera,
-            planes=[m.plane for m in mirrors],
-            names=[m.name for m in mirrors],
-            labels=_mirrors.masks(camera, mirrors, edge_margin_px),
-            robot_T_camera=camera_mount() if robot_T_camera is None else robot_T_camera,
+            rig=Rig(rig.camera, rig.planes, rig.names, rig.robot_T_camera, sensor=rig.sensor),
+            labels=rig.masks(edge_margin_px),
             edge_margin_px=float(edge_margin_px),
             provenance={"source": "rig design (true geometry)"},
         )
+
+    @property
+    def camera(self) -> Camera:
+        return self.rig.camera
+
+    @property
+    def planes(self) -> tuple[MirrorPlane, ...]:
+        """The rig's planes (a tuple: change them through `with_rig`)."""
+        return self.rig.planes
+
+    @property
+    def names(self) -> list[str]:
+        return list(self.rig.names)
+
+    @property
+    def robot_T_camera(self) -> np.ndarray:
+        return self.rig.robot_T_camera
 
     @property
     def P(self) -> np.ndarray:
@@ -167,6 +181,11 @@ class Calibration:
             return self.names.index(name)
         except ValueError:
             raise CalibrationError(f"no mirror named {name!r}; mirrors: {self.names}") from None
+
+    def with_rig(self, rig: Rig) -> Calibration:
+        """The same masks and records with another rig (e.g. a refined one)."""
+        return Calibration(rig, self.labels, dict(self.polygons), self.edge_margin_px,
+                           dict(self.quality), dict(self.provenance))
 
 
 # --- run-length rows -----------------------------------------------------------------------
@@ -246,15 +265,7 @@ def calibration_to_dict(cal: Calibration) -> dict[str, Any]:
     }
     return {
         "omnitof_calibration": FORMAT_VERSION,
-        "camera": {
-            "width": cam.width,
-            "height": cam.height,
-            "fx": cam.fx,
-            "fy": cam.fy,
-            "cx": cam.cx,
-            "cy": cam.cy,
-            "dist": list(cam.dist),
-        },
+        "camera": camera_to_dict(cam),
         "robot_T_camera": _floats(cal.robot_T_camera),
         "mirrors": mirrors,
         "masks": mask,
@@ -293,18 +304,6 @@ def _field(data: Mapping, key: str, where: str, path: Path) -> Any:
     return data[key]
 
 
-def _array(value: Any, shape: tuple[int, ...], where: str, path: Path) -> np.ndarray:
-    try:
-        out = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise CalibrationError(f"{where}: expected numbers of shape {shape}", path) from None
-    if out.shape != shape or not np.all(np.isfinite(out)):
-        raise CalibrationError(
-            f"{where}: expected finite numbers of shape {shape}, got shape {out.shape}", path
-        )
-    return out
-
-
 def calibration_from_dict(data: Any, path: str | Path = "<calibration>") -> Calibration:
     """Parse the YAML document (plain data) of a calibration; errors name `path` and the field."""
     path = Path(path)
@@ -315,36 +314,15 @@ def calibration_from_dict(data: Any, path: str | Path = "<calibration>") -> Cali
         raise CalibrationError(
             f"omnitof_calibration: expected format version {FORMAT_VERSION}, got {version!r}", path
         )
-    cam = _field(data, "camera", "", path)
     try:
-        camera = Camera(
-            width=_field(cam, "width", "camera.", path),
-            height=_field(cam, "height", "camera.", path),
-            fx=_field(cam, "fx", "camera.", path),
-            fy=_field(cam, "fy", "camera.", path),
-            cx=_field(cam, "cx", "camera.", path),
-            cy=_field(cam, "cy", "camera.", path),
-            dist=tuple(_array(_field(cam, "dist", "camera.", path), (5,), "camera.dist", path)),
-        )
-    except (CameraParameterError, TypeError, ValueError) as err:
-        raise CalibrationError(f"camera: {err}", path) from None
-    mount = _array(data.get("robot_T_camera", camera_mount()), (4, 4), "robot_T_camera", path)
-    entries = _field(data, "mirrors", "", path)
-    if not isinstance(entries, list) or not entries:
-        raise CalibrationError("mirrors: expected a non-empty list of mirrors", path)
-    planes, names, mirror_quality = [], [], {}
-    for k, entry in enumerate(entries):
-        where = f"mirrors[{k}]."
-        name = str(_field(entry, "name", where, path))
-        normal = _array(_field(entry, "normal", where, path), (3,), where + "normal", path)
-        try:
-            d = float(_field(entry, "d", where, path))
-            planes.append(MirrorPlane(normal, d))
-        except (MirrorParameterError, TypeError, ValueError) as err:
-            raise CalibrationError(f"{where[:-1]} ({name}): {err}", path) from None
-        names.append(name)
-        if isinstance(entry, Mapping) and entry.get("quality"):
-            mirror_quality[name] = entry["quality"]
+        rig = Rig.from_dict({k: v for k, v in data.items() if k in ("camera", "mirrors", "robot_T_camera")}, path)
+    except RigError as err:
+        raise CalibrationError(err.reason, path) from None
+    camera, planes, names = rig.camera, list(rig.planes), list(rig.names)
+    mirror_quality = {
+        str(entry["name"]): entry["quality"]
+        for entry in data["mirrors"] if isinstance(entry, Mapping) and entry.get("quality")
+    }
     mask = _field(data, "masks", "", path)
     if not isinstance(mask, Mapping):
         raise CalibrationError("masks: expected a mapping with edge_margin_px, rows", path)
@@ -377,11 +355,8 @@ def calibration_from_dict(data: Any, path: str | Path = "<calibration>") -> Cali
         quality["mirrors"] = mirror_quality
     try:
         return Calibration(
-            camera=camera,
-            planes=planes,
-            names=names,
+            rig=rig,
             labels=labels,
-            robot_T_camera=mount,
             polygons=polygons,
             edge_margin_px=margin,
             quality=quality,

@@ -15,9 +15,7 @@ between mirrors' medians, is the check.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -142,34 +140,6 @@ def edge_heights(
     medians = [v[0] for v in per_mirror.values()]
     spread = float(max(medians) - min(medians)) if len(medians) > 1 else 0.0
     return HeightCheck(per_mirror, spread, points[keep], owners[keep], band)
-
-
-def plot_side_view(path: str | Path, check: HeightCheck, names: Sequence[str], dpi: int = 150):
-    """Side view like the paper's Fig. 6: horizontal range against height of the objects'
-    points, one colour per mirror, with each mirror's median upper edge drawn (PNG, atomic)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    from omnitof.io.atomic import atomic_write
-
-    fig = Figure(figsize=(7.0, 4.0), dpi=dpi)
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
-    horizontal = np.hypot(check.points[:, 0], check.points[:, 1])
-    for index, name in enumerate(names):
-        sel = check.owners == index
-        colour = f"C{index % 10}"
-        ax.scatter(horizontal[sel], check.points[sel, 2], s=2, color=colour, label=name)
-        if name in check.per_mirror:
-            ax.axhline(check.per_mirror[name][0], color=colour, linewidth=0.8)
-    ax.set_xlabel("horizontal range [m]")
-    ax.set_ylabel("height above floor [m]")
-    ax.set_title(f"upper edges per mirror; difference {1000 * check.spread:.1f} mm")
-    ax.legend(markerscale=4, fontsize=8)
-    fig.tight_layout()
-    with atomic_write(path, "wb") as handle:
-        fig.savefig(handle, format="png", dpi=dpi)
-    return fig
 
 
 def plane_errors(estimated: Calibration, truth: Calibration) -> dict[str, tuple[float, float]]:

@@ -1,7 +1,7 @@
 """Camera intrinsics from amplitude images of a checkerboard, with OpenCV (paper sec. II-C: the
 camera is calibrated without the mirrors first, for its lens distortion and P = K[I|0]).
 
-Images come from disk (`load_images`): PNG/PGM/TIFF amplitude images, `.npz` files with
+Images come from disk (`calibration.images.load_images`): PNG/PGM/TIFF amplitude images, `.npz` files with
 `amplitude` (and `distance`) arrays as `render_calibration_images` writes them, or ROS bags
 (every frame's amplitude image, via `omnitof.io.rosbag.read_tof_bag`).
 
@@ -14,19 +14,17 @@ cv2.findChessboardCornersSB; cv2.calibrateCamera fits K and (k1, k2, p1, p2[, k3
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import cv2
 import numpy as np
 
 from omnitof.calibration import CalibrationError
+from omnitof.calibration.images import AmplitudeImage
 from omnitof.calibration.targets import Checkerboard
-from omnitof.camera import Camera
+from omnitof.sensor.camera import Camera
 
-IMAGE_SUFFIXES = (".png", ".pgm", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
-BAG_SUFFIXES = (".bag", ".mcap", ".db3")
 # Percentile of the amplitude that maps to 255 when an image is scaled to 8 bits.
 _SCALE_PERCENTILE = 99.5
 # At least this many boards are needed for a calibration with distortion.
@@ -35,81 +33,6 @@ MIN_VIEWS = 3
 # MIN_OUTLIER_PX) is rejected as an outlier and the calibration repeated without it.
 OUTLIER_FACTOR = 3.0
 MIN_OUTLIER_PX = 0.2
-
-
-@dataclass
-class AmplitudeImage:
-    """One input image: a name for messages (file, or bag:frame), the amplitude (H, W) float32,
-    and the distance (H, W) float32 metres when known (ToF sources), else None."""
-
-    name: str
-    amplitude: np.ndarray
-    distance: np.ndarray | None = None
-
-
-def load_images(paths: Iterable[str | Path]) -> list[AmplitudeImage]:
-    """Read amplitude (and distance) images from files, folders of them, and ROS bags.
-
-    A folder that is a ROS 2 bag (has metadata.yaml) is read as a bag; another folder is read
-    as the sorted image and .npz files inside it (x.npz rather than x.png when both exist). Raises CalibrationError naming the file for
-    an unreadable or unknown input.
-    """
-    out: list[AmplitudeImage] = []
-    for raw in paths:
-        path = Path(raw)
-        if path.is_dir() and not (path / "metadata.yaml").exists():
-            members = sorted(
-                p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES + (".npz",)
-            )
-            # An image saved both ways (render-targets writes x.png and x.npz): the .npz only,
-            # which has the distances too.
-            npz = {p.stem for p in members if p.suffix.lower() == ".npz"}
-            members = [p for p in members if p.suffix.lower() == ".npz" or p.stem not in npz]
-            if not members:
-                raise CalibrationError("folder holds no images (.png, .npz, ...)", path)
-            out.extend(load_images(members))
-        elif path.is_dir() or path.suffix.lower() in BAG_SUFFIXES:
-            out.extend(_bag_images(path))
-        elif path.suffix.lower() == ".npz":
-            out.append(_npz_image(path))
-        elif path.suffix.lower() in IMAGE_SUFFIXES:
-            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            if image is None:
-                raise CalibrationError("cannot read the image", path)
-            if image.ndim == 3:
-                image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-            out.append(AmplitudeImage(str(path), image.astype(np.float32)))
-        else:
-            raise CalibrationError(
-                f"unknown input: expected an image ({', '.join(IMAGE_SUFFIXES)}), .npz, or a "
-                "ROS bag",
-                path,
-            )
-    return out
-
-
-def _npz_image(path: Path) -> AmplitudeImage:
-    try:
-        with np.load(path) as data:
-            if "amplitude" not in data:
-                raise CalibrationError("npz file has no 'amplitude' array", path)
-            amplitude = np.asarray(data["amplitude"], dtype=np.float32)
-            distance = np.asarray(data["distance"], dtype=np.float32) if "distance" in data else None
-    except (OSError, ValueError) as err:
-        raise CalibrationError(f"cannot read the npz file: {err}", path) from None
-    if amplitude.ndim != 2 or (distance is not None and distance.shape != amplitude.shape):
-        raise CalibrationError("npz images must be (H, W), amplitude and distance alike", path)
-    return AmplitudeImage(str(path), amplitude, distance)
-
-
-def _bag_images(path: Path) -> list[AmplitudeImage]:
-    from omnitof.io.rosbag import read_tof_bag
-
-    bag = read_tof_bag(path, require_odometry=False)
-    return [
-        AmplitudeImage(f"{path}:frame{k}", frame.amplitude, frame.distance)
-        for k, frame in enumerate(bag.frames(samples=False))
-    ]
 
 
 def to_uint8(amplitude: np.ndarray) -> np.ndarray:

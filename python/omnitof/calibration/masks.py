@@ -28,9 +28,9 @@ from matplotlib.path import Path as MplPath
 from scipy.ndimage import distance_transform_edt
 
 from omnitof.calibration import CalibrationError
-from omnitof.camera import Camera
+from omnitof.sensor.camera import Camera
 from omnitof.io.atomic import atomic_write
-from omnitof.mirrors import MirrorPlane
+from omnitof.sensor.mirrors import MirrorPlane
 
 
 def erode_labels(labels: np.ndarray, edge_margin_px: float) -> np.ndarray:
@@ -60,7 +60,7 @@ def labels_from_planes(
 
     Args:
         outside: (H, W) bool, pixels that see past the mirrors' outer edges (−1), e.g.
-            `omnitof.mirrors.assign_pixels(camera, design_mirrors) < 0`.
+            `omnitof.sensor.mirrors.assign_pixels(camera, design_mirrors) < 0`.
     """
     rays = camera.pixel_grid_rays().reshape(-1, 3)
     normals = np.array([p.normal for p in planes]).reshape(-1, 3)

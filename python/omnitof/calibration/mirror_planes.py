@@ -23,7 +23,7 @@ Steps, per mirror (`estimate_mirror`):
    RMS distance of a placement's four dots from their centroid is spacing/√2, whatever their
    order) or from the ToF distances of the dots (|X| for the direct view, |X'| for the mirrored
    one: their mean point lies on the plane, paper sec. II-C).
-The result gives D and Pv = P·D of eq. 6 (`omnitof.mirrors.MirrorPlane`).
+The result gives D and Pv = P·D of eq. 6 (`omnitof.sensor.mirrors.MirrorPlane`).
 """
 
 from __future__ import annotations
@@ -39,10 +39,10 @@ from scipy.ndimage import grey_dilation
 from scipy.optimize import least_squares
 
 from omnitof.calibration import CalibrationError
-from omnitof.calibration.intrinsics import AmplitudeImage
+from omnitof.calibration.images import AmplitudeImage
 from omnitof.calibration.targets import DotTarget
-from omnitof.camera import Camera
-from omnitof.mirrors import MirrorPlane
+from omnitof.sensor.camera import Camera
+from omnitof.sensor.mirrors import MirrorPlane
 
 # A pixel belongs to a card if its amplitude exceeds this fraction of the image's 99.5th
 # percentile (the cards are the nearest, brightest surfaces; the room is ≥ 10× dimmer).

@@ -20,7 +20,7 @@ from omnitof.calibration.intrinsics import calibrate_intrinsics
 from omnitof.calibration.masks import labels_from_planes
 from omnitof.calibration.mirror_planes import calibrate_mirrors
 from omnitof.calibration.targets import render_checkerboard_images, render_dot_images
-from omnitof.mirrors import assign_pixels
+from omnitof.sensor.mirrors import assign_pixels
 
 # 30 boards pin the principal point to ~0.2 px at 176×144 (15: ~0.4 px), which is what limits
 # the mirror normals once the intrinsics are estimated (benchmarks/calibration.py: the worst
@@ -45,7 +45,7 @@ def calibrate_from_simulation(
     plane distance (mm), with what the robust steps rejected.
     """
     camera, mirrors = renderer.camera, list(renderer.mirrors)
-    truth = truth or Calibration.from_rig(camera, mirrors, renderer.robot_T_camera, edge_margin_px)
+    truth = truth or Calibration.from_rig(renderer.rig, edge_margin_px)
     board_images, _ = render_checkerboard_images(camera, boards, seed, sensor=renderer.sensor)
     intrinsics = calibrate_intrinsics(board_images)
     dot_images, _ = render_dot_images(camera, mirrors, placements, seed, sensor=renderer.sensor)
@@ -55,9 +55,9 @@ def calibrate_from_simulation(
     )
     labels = labels_from_planes(intrinsics.camera, result.planes, outside=design_labels < 0,
                                 edge_margin_px=edge_margin_px)
-    calibration = Calibration(
-        camera=intrinsics.camera, planes=result.planes, names=[m.name for m in mirrors], labels=labels,
-        robot_T_camera=np.asarray(renderer.robot_T_camera), edge_margin_px=edge_margin_px,
+    calibration = Calibration.estimated(
+        intrinsics.camera, result.planes, [m.name for m in mirrors], np.asarray(renderer.robot_T_camera),
+        labels, edge_margin_px=edge_margin_px,
         quality={**intrinsics.quality(), "mirrors": result.report()},
         provenance={"source": f"simulated targets, seed {seed}: {boards} boards, {placements} placements per mirror"},
     )

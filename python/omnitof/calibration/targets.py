@@ -24,7 +24,7 @@ integration time, so, like the camera's auto-exposure, every image's light is sc
 for the active and the ambient light, i.e. the integration time) so that its brightest
 expected sample is EXPOSURE_TARGET of full well.
 
-Frames: everything in the camera frame of `omnitof.mirrors` (z up along the optical axis,
+Frames: everything in the camera frame of `omnitof.sensor.mirrors` (z up along the optical axis,
 metres). A target's pose is camera_T_target (4×4): the card lies in its frame's z = 0 plane; it
 is printed alike on both sides (a thin card), so which side faces the camera does not matter.
 """
@@ -41,11 +41,12 @@ import cv2
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
-from omnitof.camera import Camera
+from omnitof.calibration.images import AmplitudeImage
+from omnitof.sensor.camera import Camera
 from omnitof.io.atomic import atomic_write
-from omnitof.mirrors import Mirror, assign_pixels, project_via
+from omnitof.sensor.mirrors import Mirror, assign_pixels, project_via
 from omnitof.sim.render import DEFAULT_MIRROR_REFLECTIVITY, sub_ray_directions
-from omnitof.tof import SensorNoise, ToFFrame, decode, path_to_phase
+from omnitof.sensor.tof import SensorNoise, ToFFrame, decode, path_to_phase
 
 # The brightest expected sample of an image is scaled to this fraction of full well.
 EXPOSURE_TARGET = 0.6
@@ -233,7 +234,7 @@ def render_target(
         )
         frame = decode(a0, a1, a2, a3, sensor.f_mod, saturated=saturated)
     else:
-        from omnitof.tof import ideal_samples
+        from omnitof.sensor.tof import ideal_samples
 
         offset = ambient + np.maximum(active, np.abs(p_pix))
         b0, b1, b2, b3 = (q.astype(np.float32) for q in ideal_samples(p_pix, offset))
@@ -536,8 +537,6 @@ def render_checkerboard_images(
 ) -> tuple[list, list[np.ndarray]]:
     """(images, poses): n noisy amplitude/distance images (AmplitudeImage, named board_00, ...)
     of a checkerboard seen by the camera without mirrors, and the boards' true poses."""
-    from omnitof.calibration.intrinsics import AmplitudeImage
-
     poses = checkerboard_poses(camera, board, n, seed)
     images = []
     for i, pose in enumerate(poses):
@@ -560,8 +559,6 @@ def render_dot_images(
 ) -> tuple[list, list[tuple[int, np.ndarray]]]:
     """`placements` images of the dot target per mirror (named <mirror>_00, ...), noisy, and
     their (mirror index, true pose)."""
-    from omnitof.calibration.intrinsics import AmplitudeImage
-
     images, truth = [], []
     for k, mirror in enumerate(mirrors):
         if only is not None and k not in only:
@@ -612,12 +609,13 @@ def render_calibration_images(
     (float32, metres).
     """
     from omnitof.calibration import Calibration, save_calibration
-    from omnitof.design import default_rig
+    from omnitof.sensor.design import default_rig
+    from omnitof.sensor.rig import Rig
 
     if camera is None or mirrors is None:
-        default_camera, default_mirrors = default_rig()
-        camera = camera or default_camera
-        mirrors = mirrors if mirrors is not None else default_mirrors
+        default = default_rig()
+        camera = camera or default.camera
+        mirrors = mirrors if mirrors is not None else default.mirrors
     room = room_of_world(world) if world is not None else Room()
     out = Path(out_dir)
     (out / "intrinsics").mkdir(parents=True, exist_ok=True)
@@ -637,7 +635,7 @@ def render_calibration_images(
             with atomic_write(base.with_suffix(".npz"), "wb") as handle:
                 np.savez_compressed(handle, amplitude=image.amplitude, distance=image.distance)
             written.append(base)
-    truth = Calibration.from_rig(camera, mirrors)
+    truth = Calibration.from_rig(Rig.from_mirrors(camera, mirrors))
     truth.provenance = {
         "source": "simulated rig (true geometry)",
         "seed": seed,

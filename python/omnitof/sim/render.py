@@ -10,7 +10,7 @@ and their decoding (`tof.decode`: distance, amplitude, offset).
 
 Frames and units: robot poses (x, y, θ) in the world frame, metres and radians; the camera sits
 at robot_T_camera (default `mirrors.camera_mount()`), mirrors and sub-ray directions are in the
-camera frame (see `omnitof.mirrors`). Images are (rows, cols) = (H, W); phasors, amplitudes and
+camera frame (see `omnitof.sensor.mirrors`). Images are (rows, cols) = (H, W); phasors, amplitudes and
 offsets are in the camera's sample units; distances are one-way metres, wrapped at the
 unambiguous range c/(2·f_mod).
 
@@ -30,20 +30,17 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Any
 
 import numpy as np
 
 from omnitof import _core
-from omnitof.camera import Camera
-from omnitof.design import DEFAULT_RIG_MIRRORS, DEFAULT_RIG_TILT_DEG, DEFAULT_RIG_YAW_DEG, default_rig
+from omnitof.sensor.camera import Camera
+from omnitof.sensor.design import DEFAULT_RIG_MIRRORS, DEFAULT_RIG_TILT_DEG, DEFAULT_RIG_YAW_DEG, default_rig
 from omnitof.errors import ConfigError
-from omnitof.mirrors import Mirror, camera_mount, mount_rotation, pyramid
+from omnitof.sensor.mirrors import Mirror, camera_mount, mount_rotation, pyramid
+from omnitof.sensor.rig import Rig
 from omnitof.sim.worlds import World
-from omnitof.tof import SensorNoise, ToFFrame, decode
-
-# The compiled renderer; private, so not (yet) described in _core.pyi.
-_CoreRenderer: Any = getattr(_core, "_Renderer")
+from omnitof.sensor.tof import SensorNoise, ToFFrame, decode
 
 # Front-surface mirrors of protected aluminium reflect about 0.86–0.9 at 850 nm (an assumption
 # for the paper's mirrors, which it does not specify).
@@ -166,7 +163,8 @@ class Renderer:
 
     def __post_init__(self) -> None:
         if self.camera is None and self.mirrors is None:
-            self.camera, self.mirrors = default_rig()
+            rig = default_rig()
+            self.camera, self.mirrors = rig.camera, rig.mirrors
         elif self.camera is None:
             raise RenderConfigError("mirrors were given without the camera they belong to")
         elif self.mirrors is None:
@@ -180,6 +178,17 @@ class Renderer:
         self.robot_T_camera = mount
         self._directions = sub_ray_directions(self.camera, self.settings.sub_rays, self.settings.seed)
         self._core = self._build_core()
+
+    @classmethod
+    def of_rig(cls, world: World, rig: Rig, settings: RenderSettings | None = None) -> Renderer:
+        """A renderer of `rig` (which needs its mirror outlines) in `world`."""
+        return cls(world, rig.camera, rig.mirrors, rig.robot_T_camera, rig.sensor,
+                   settings if settings is not None else RenderSettings())
+
+    @property
+    def rig(self) -> Rig:
+        """The rig this renderer renders (camera, mirrors with outlines, mount, sensor)."""
+        return Rig.from_mirrors(self.camera, self.mirrors, self.robot_T_camera, self.sensor)  # type: ignore[arg-type]
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -242,7 +251,7 @@ class Renderer:
             frames.append(Frame(poses[i].copy(), ph.phasor[i], np.stack([a0, a1, a2, a3]), decoded))
         return frames
 
-    def _build_core(self) -> Any:
+    def _build_core(self) -> _core._Renderer:
         world, settings = self.world, self.settings
         names, table = world.material_table()
         self._material_names = names
@@ -253,7 +262,7 @@ class Renderer:
             np.concatenate([m.polygon for m in mirrors]) if mirrors else np.zeros((0, 3))
         )
         h, w, s, _ = self._directions.shape
-        return _CoreRenderer(
+        return _core._Renderer(
             walls=np.ascontiguousarray(world.quads),
             wall_materials=np.array([index[m] for m in world.quad_materials], dtype=np.uint32),
             boxes=np.ascontiguousarray(world.boxes),

@@ -13,7 +13,7 @@ truth. Three steps, each usable alone:
    `laser2d.simulate_odometry`), so that raw odometry visibly fails to close the loop.
 3. `render_sequence`: the frames, streamed in batches from the renderer (`sim.render`), and
    `simulate_bag`, which writes everything as a ROS 2 bag (`io.rosbag.write_tof_bag`) with the
-   true rig in the sidecar (`rig_sidecar`; `rig_from_sidecar` reads it back).
+   true rig in the sidecar (`rig_sidecar`; `Rig.from_dict` reads it back).
 
 Defaults: 0.4 m/s (a Pioneer-class robot driven through an office, and the pace at which the
 odometry model's defaults were set, ~4 cm per frame) and at most 0.6 rad/s (34°/s) of turning,
@@ -36,14 +36,12 @@ from typing import Any
 
 import numpy as np
 
-from omnitof.camera import Camera
-from omnitof.errors import ConfigError, InputError
+from omnitof.errors import ConfigError
 from omnitof.io.rosbag import DEFAULT_STORAGE, ToFFrameStamped, write_tof_bag
-from omnitof.mirrors import Mirror, MirrorPlane
 from omnitof.sim import laser2d
 from omnitof.sim.render import Renderer, RenderSettings
 from omnitof.sim.worlds import World, WorldError
-from omnitof.tof import SensorNoise
+from omnitof.sensor.tof import SensorNoise
 from omnitof.types import Trajectory
 
 # The smoothed path must keep this far (m) from anything the robot would touch: half the width
@@ -225,23 +223,12 @@ def render_sequence(
 
 
 def rig_sidecar(renderer: Renderer, sequence: Sequence | None = None) -> dict[str, Any]:
-    """A YAML-ready dict of the true rig (camera, mirrors in the camera frame, mount), the
-    sensor and renderer settings, and, if given, how the sequence was made."""
-    camera = renderer.camera
-    assert camera is not None and renderer.mirrors is not None and renderer.robot_T_camera is not None
+    """A YAML-ready dict of the true rig (its YAML form, `Rig.to_dict`: camera, mirrors with
+    outlines, mount, sensor), the renderer settings, and, if given, how the sequence was made.
+    `Rig.from_dict` reads the rig back."""
     out: dict[str, Any] = {
         "omnitof_sidecar": SIDECAR_VERSION,
-        "camera": {
-            "width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy,
-            "cx": camera.cx, "cy": camera.cy, "dist": list(camera.dist),
-        },
-        "mirrors": [
-            {"name": m.name, "normal": m.plane.normal.tolist(), "d": m.plane.d,
-             "polygon": np.asarray(m.polygon).tolist()}
-            for m in renderer.mirrors
-        ],
-        "robot_T_camera": np.asarray(renderer.robot_T_camera).tolist(),
-        "sensor": asdict(renderer.sensor),
+        **renderer.rig.to_dict(),
         "render": {k: v for k, v in asdict(renderer.settings).items() if k != "threads"},
         "world": {"name": renderer.world.name,
                   "source": None if renderer.world.source is None else str(renderer.world.source)},
@@ -256,38 +243,6 @@ def rig_sidecar(renderer: Renderer, sequence: Sequence | None = None) -> dict[st
                                 "alphas": list(sequence.odometry_errors.alphas)},
         }
     return out
-
-
-@dataclass(frozen=True, eq=False)
-class Rig:
-    """The true rig read back from a sidecar: camera, mirrors (camera frame), robot_T_camera
-    (4×4), sensor settings."""
-
-    camera: Camera
-    mirrors: list[Mirror]
-    robot_T_camera: np.ndarray
-    sensor: SensorNoise
-
-
-def rig_from_sidecar(sidecar: dict | None, source: str | Path | None = None) -> Rig:
-    """The rig that `rig_sidecar` wrote; InputError naming the field if something is missing."""
-    if not isinstance(sidecar, dict) or "camera" not in sidecar or "mirrors" not in sidecar:
-        raise InputError("no omnitof sidecar with the rig (camera, mirrors) next to this bag", source)
-    field_name = "camera"
-    try:
-        camera = Camera(**{k: (tuple(v) if k == "dist" else v) for k, v in sidecar["camera"].items()})
-        mirrors = []
-        for i, m in enumerate(sidecar["mirrors"]):
-            field_name = f"mirrors[{i}]"
-            mirrors.append(Mirror(MirrorPlane(np.array(m["normal"], dtype=float), float(m["d"])),
-                                  np.array(m["polygon"], dtype=float), str(m["name"])))
-        field_name = "robot_T_camera"
-        mount = np.array(sidecar.get("robot_T_camera", np.eye(4)), dtype=np.float64).reshape(4, 4)
-        field_name = "sensor"
-        sensor = SensorNoise(**sidecar.get("sensor", {}))
-    except (KeyError, TypeError, ValueError) as err:
-        raise InputError(f"sidecar field {field_name}: {err}", source) from None
-    return Rig(camera, mirrors, mount, sensor)
 
 
 # --- everything to a bag --------------------------------------------------------------------

@@ -14,7 +14,7 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from omnitof.io.atomic import atomic_write
+from omnitof.viz import save_figure
 from omnitof.types import OccupancyMap
 
 UNKNOWN_SHADE = 0.5  # mid-grey for cells never observed
@@ -64,8 +64,7 @@ def plot_map(
     ax.set_title(title)
     if trajectories:
         ax.legend(loc="best")
-    with atomic_write(path, "wb") as f:
-        fig.savefig(f, format="png", dpi=dpi)
+    save_figure(fig, path, dpi=dpi, tight_layout=False)
     return fig
 
 

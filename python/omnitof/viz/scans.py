@@ -17,7 +17,7 @@ from matplotlib.collections import LineCollection
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 
-from omnitof.io.atomic import atomic_write
+from omnitof.viz import save_figure
 from omnitof.types import OccupancyMap
 from omnitof.viz.maps import map_shades
 
@@ -69,9 +69,7 @@ def plot_scan(
     ax.set_title(title or f"range readings, 1° bins ({100.0 * (1.0 - ok.mean()):.0f} % without reading)")
     if truth is not None:
         ax.legend(loc="lower right", fontsize=8)
-    fig.tight_layout()
-    with atomic_write(path, "wb") as handle:
-        fig.savefig(handle, format="png", dpi=dpi)
+    save_figure(fig, path, dpi=dpi)
     return fig
 
 
@@ -110,9 +108,7 @@ def plot_slice_overlay(
     ax.set_xlabel("u [px]")
     ax.set_ylabel("v [px]")
     ax.set_title(title or f"pixels in the slice {s.height:.2f} ± {s.band:.2f} m: {len(pts.rows)}")
-    fig.tight_layout()
-    with atomic_write(path, "wb") as handle:
-        fig.savefig(handle, format="png", dpi=dpi)
+    save_figure(fig, path, dpi=dpi)
     return fig
 
 
@@ -164,7 +160,5 @@ def plot_floorplan_overlay(
     ax.set_ylabel("y [m]")
     ax.set_title(title or "map and floor plan")
     ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    with atomic_write(path, "wb") as handle:
-        fig.savefig(handle, format="png", dpi=dpi)
+    save_figure(fig, path, dpi=dpi)
     return fig

@@ -23,24 +23,19 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-from matplotlib.ticker import MaxNLocator
 
 from omnitof import _core
-from omnitof.camera import Camera
-from omnitof.errors import ConfigError, InputError
-from omnitof.io.atomic import atomic_write
-from omnitof.mirrors import Mirror, MirrorPlane, mount_rotation
+from omnitof.sensor.camera import Camera
+from omnitof.errors import ConfigError
+from omnitof.sensor.mirrors import Mirror, MirrorPlane, mount_rotation
 from omnitof.sim.worlds import World
-from omnitof.tof import DEFAULT_F_MOD, unambiguous_range
+from omnitof.sensor.tof import DEFAULT_F_MOD, unambiguous_range
 
 DEFAULT_RESOLUTION = 0.1  # metres: the paper's Fig. 11(b) grid
-# The same increments and limits as the 2D grid (omnitof.config, MapConfig defaults).
+# The same increments and limits as the 2D grid (omnitof.slam.config, MapConfig defaults).
 DEFAULT_L_OCC = 0.9
 DEFAULT_L_FREE = -0.4
 DEFAULT_L_MIN = -2.0
@@ -235,209 +230,14 @@ def backproject_frame(
     return o @ rotation.T + shift, p @ rotation.T + shift
 
 
-# --- PLY ------------------------------------------------------------------------------------
-
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-
-
-def write_ply(
-    path: str | Path,
-    points: np.ndarray,
-    colors: np.ndarray | None = None,
-    *,
-    binary: bool = True,
-    comment: str = "omnitof occupied voxel centres, metres, world frame (z up)",
-) -> None:
-    """Write points (N, 3) (and colours (N, 3) uint8 RGB) as a PLY vertex cloud, atomically.
-
-    Format: PLY 1.0, `binary_little_endian` (default) or `ascii`; one `vertex` element with
-    float (float32) x, y, z and, with colours, uchar red, green, blue — what MeshLab,
-    CloudCompare, Open3D and Blender read.
-    """
-    pts = _points(points, "points")
-    cols = None
-    if colors is not None:
-        cols = np.asarray(colors)
-        if cols.shape != pts.shape:
-            raise Map3DError(f"colors must have shape {pts.shape}, got {cols.shape}")
-        if cols.dtype != np.uint8:
-            raise Map3DError(f"colors must be uint8 RGB, got {cols.dtype}")
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    if cols is not None:
-        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-    rows = np.empty(len(pts), dtype=fields)
-    for a, name in enumerate("xyz"):
-        rows[name] = pts[:, a]
-    if cols is not None:
-        for a, name in enumerate(("red", "green", "blue")):
-            rows[name] = cols[:, a]
-    header = [
-        "ply",
-        f"format {'binary_little_endian' if binary else 'ascii'} 1.0",
-        *(f"comment {line}" for line in comment.splitlines()),
-        f"element vertex {len(pts)}",
-        "property float x",
-        "property float y",
-        "property float z",
-    ]
-    if cols is not None:
-        header += ["property uchar red", "property uchar green", "property uchar blue"]
-    header.append("end_header")
-    with atomic_write(path, "wb") as handle:
-        handle.write(("\n".join(header) + "\n").encode("ascii"))
-        if binary:
-            handle.write(rows.tobytes())
-        else:
-            # %.9g: enough digits to give back every float32 exactly.
-            table = np.column_stack([rows[n].astype(np.float64) for n in rows.dtype.names or ()])
-            fmt = " ".join(["%.9g"] * 3 + (["%d"] * 3 if cols is not None else []))
-            if len(table):
-                np.savetxt(handle, table, fmt=fmt, newline="\n")
-
-
-def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Read a PLY vertex cloud (ascii or binary_little_endian, scalar vertex properties, no
-    other elements): (points (N, 3) float64, colours (N, 3) uint8 or None)."""
-    path = Path(path)
-    data = path.read_bytes()
-    end = data.find(b"end_header\n")
-    if not data.startswith(b"ply\n") or end < 0:
-        raise InputError("not a PLY file (no 'ply' magic or 'end_header')", path)
-    fmt, count, fields = None, None, []
-    for number, line in enumerate(data[:end].decode("ascii").splitlines(), start=1):
-        words = line.split()
-        if not words or words[0] in ("ply", "comment", "obj_info"):
-            continue
-        if words[0] == "format":
-            fmt = words[1]
-            if fmt not in ("ascii", "binary_little_endian"):
-                raise InputError(f"unsupported PLY format {fmt!r}", path, number)
-        elif words[0] == "element":
-            if words[1] != "vertex" or count is not None:
-                raise InputError(
-                    f"only one 'vertex' element is supported, got {line!r}", path, number
-                )
-            count = int(words[2])
-        elif words[0] == "property":
-            if words[1] not in _PLY_TYPES or len(words) != 3:
-                raise InputError(f"unsupported PLY property {line!r}", path, number)
-            fields.append((words[2], "<" + _PLY_TYPES[words[1]]))
-        else:
-            raise InputError(f"unexpected PLY header line {line!r}", path, number)
-    names = [f[0] for f in fields]
-    if fmt is None or count is None or not {"x", "y", "z"} <= set(names):
-        raise InputError("PLY header lacks format, vertex count or x/y/z", path)
-    body = data[end + len(b"end_header\n"):]
-    dtype = np.dtype(fields)
-    if fmt == "binary_little_endian":
-        if len(body) < count * dtype.itemsize:
-            raise InputError(f"PLY body holds fewer than {count} vertices", path)
-        rows = np.frombuffer(body, dtype=dtype, count=count)
-        table = {n: rows[n] for n in names}
-    else:
-        values = np.array(body.split(), dtype=np.float64)
-        if values.size != count * len(names):
-            raise InputError(
-                f"PLY body has {values.size} values, expected {count}×{len(names)}", path
-            )
-        grid = values.reshape(count, len(names))
-        # Through each property's own type, as a binary file would store it.
-        table = {n: grid[:, i].astype(dtype[n]) for i, n in enumerate(names)}
-    points = np.stack([table[a].astype(np.float64) for a in "xyz"], axis=1).reshape(-1, 3)
-    colors = None
-    if {"red", "green", "blue"} <= set(names):
-        colors = np.stack([table[c] for c in ("red", "green", "blue")], axis=1).astype(np.uint8)
-    return points, colors
-
-
-def height_colors(
-    points: np.ndarray, cmap: str = "viridis", z_range: tuple[float, float] | None = None
-) -> np.ndarray:
-    """(N, 3) uint8 RGB colours of points (N, 3) by height z (low dark, high bright), over
-    z_range (default: the points' own range)."""
-    import matplotlib
-
-    pts = _points(points, "points")
-    lo, hi = z_range if z_range is not None else (_z_range(pts))
-    t = np.clip((pts[:, 2] - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
-    rgba = matplotlib.colormaps[cmap](t)
-    return np.round(rgba[:, :3] * 255.0).astype(np.uint8)
-
-
-# --- figure ---------------------------------------------------------------------------------
-
-
-def plot_voxels(
-    path: str | Path,
-    points: np.ndarray,
-    *,
-    resolution: float = DEFAULT_RESOLUTION,
-    trajectory: np.ndarray | None = None,
-    title: str = "",
-    z_limits: tuple[float, float] | None = None,
-    max_points_3d: int = 40_000,
-    dpi: int = 120,
-) -> Figure:
-    """Draw occupied voxel centres (N, 3) as a PNG at `path` (atomically): left, the top view,
-    each column of voxels coloured by its highest occupied voxel; right, a perspective view of
-    the voxels coloured by height (at most max_points_3d, an even subsample), its height
-    exaggerated (and the factor shown) where the map is much wider than high. `trajectory`
-    (K, 3) poses (x, y, θ) is drawn on the top view. `z_limits` (zmin, zmax) metres draws only
-    the voxels between (e.g. without the floor and ceiling layers)."""
-    pts = _points(points, "points")
-    if z_limits is not None:
-        pts = pts[(pts[:, 2] >= z_limits[0]) & (pts[:, 2] <= z_limits[1])]
-    fig = Figure(figsize=(14.0, 6.5), dpi=dpi)
-    FigureCanvasAgg(fig)
-    top = fig.add_subplot(1, 2, 1)
-    side = fig.add_subplot(1, 2, 2, projection="3d")
-    zlo, zhi = _z_range(pts)
-    if len(pts):
-        ij = np.floor(pts[:, :2] / resolution).astype(np.int64)
-        i0, j0 = ij.min(axis=0)
-        ni, nj = ij.max(axis=0) - (i0, j0) + 1
-        image = np.full((nj, ni), np.nan)
-        order = np.argsort(pts[:, 2], kind="stable")  # the highest voxel of a column wins
-        image[ij[order, 1] - j0, ij[order, 0] - i0] = pts[order, 2]
-        extent = (i0 * resolution, (i0 + ni) * resolution, j0 * resolution, (j0 + nj) * resolution)
-        shown = top.imshow(image, origin="lower", extent=extent, cmap="viridis", vmin=zlo, vmax=zhi,
-                           interpolation="nearest")
-        fig.colorbar(shown, ax=top, label="highest occupied voxel z [m]", shrink=0.8)
-        step = max(1, math.ceil(len(pts) / max_points_3d))
-        sub = pts[::step]
-        side.scatter(
-            sub[:, 0], sub[:, 1], sub[:, 2], c=sub[:, 2], cmap="viridis", vmin=zlo, vmax=zhi,
-            s=2.0, marker="s", linewidths=0, depthshade=False,
-        )
-        span = np.maximum(pts.max(axis=0) - pts.min(axis=0), resolution)
-        exaggeration = max(1.0, 0.2 * float(span[:2].max()) / float(span[2]))
-        side.set_box_aspect((span[0], span[1], span[2] * exaggeration))
-        side.zaxis.set_major_locator(MaxNLocator(3))
-        if exaggeration > 1.05:
-            side.set_title(f"perspective view (height ×{exaggeration:.1f})")
-    if trajectory is not None:
-        traj = np.asarray(trajectory, dtype=np.float64).reshape(-1, 3)
-        top.plot(traj[:, 0], traj[:, 1], color="red", linewidth=1.2, label="trajectory")
-        top.legend(loc="best")
-    top.set_aspect("equal")
-    top.set_xlabel("x [m]")
-    top.set_ylabel("y [m]")
-    top.set_title("top view")
-    side.set_xlabel("x [m]")
-    side.set_ylabel("y [m]")
-    side.set_zlabel("z [m]")
-    side.view_init(elev=35.0, azim=-60.0)
-    if not side.get_title():
-        side.set_title("perspective view")
-    fig.suptitle(title or f"{len(pts)} occupied voxels of {resolution:g} m")
-    with atomic_write(path, "wb") as handle:
-        fig.savefig(handle, format="png", dpi=dpi)
-    return fig
+def voxel_map_from_clouds(poses: np.ndarray, clouds: list[np.ndarray], **options: float) -> VoxelMap:
+    """A VoxelMap (options: its constructor's) from kept clouds (`scan.ToFScans.clouds`, (M, 6)
+    origin and end point per ray, robot frame) at their frames' poses (K, 3)."""
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    if len(poses) != len(clouds):
+        raise Map3DError(f"{len(poses)} poses for {len(clouds)} clouds")
+    rays = ((c[:, :3].astype(np.float64), c[:, 3:].astype(np.float64)) for c in clouds)
+    return build_voxel_map(poses, rays, VoxelMap(**options))
 
 
 # --- ground truth of simulated worlds --------------------------------------------------------
@@ -494,9 +294,3 @@ def _points(array: np.ndarray, name: str) -> np.ndarray:
         raise Map3DError(f"{name} must have shape (N, 3), got {pts.shape}")
     return pts
 
-
-def _z_range(pts: np.ndarray) -> tuple[float, float]:
-    if len(pts) == 0:
-        return 0.0, 1.0
-    lo, hi = float(pts[:, 2].min()), float(pts[:, 2].max())
-    return (lo, hi) if hi > lo else (lo, lo + 1.0)

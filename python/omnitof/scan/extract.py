@@ -36,7 +36,7 @@ Per frame, the paper's steps and what this module does for each:
    median error and 99 % within 5 cm; 25th percentile 0.7 cm and 97 %; minimum 2.5 cm and 81 %. A bin with fewer than `min_points` points, or whose value exceeds
    `max_range`, is "no reading": +inf (the ScanSequence convention; never 0, never NaN).
 
-Frames: robot frame x forward, y left, z up (see `omnitof.mirrors`); robot_T_camera maps camera
+Frames: robot frame x forward, y left, z up (see `omnitof.sensor.mirrors`); robot_T_camera maps camera
 points to robot points. Units: metres and radians.
 """
 
@@ -49,9 +49,10 @@ from typing import Any, NamedTuple
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from omnitof.camera import Camera
+from omnitof.sensor.camera import Camera
 from omnitof.errors import ConfigError, InputError
-from omnitof.mirrors import Mirror, MirrorPlane
+from omnitof.sensor.mirrors import Mirror, MirrorPlane
+from omnitof.sensor.rig import Rig
 from omnitof.types import ScanSequence
 
 N_BINS = 360  # one-degree bins of bearing
@@ -235,26 +236,13 @@ class ScanExtractor:
         return cls(cal.camera, cal.planes, cal.labels, cal.robot_T_camera, **settings)
 
     @classmethod
-    def from_rig(
-        cls,
-        camera: Camera | None = None,
-        mirrors: Sequence[Mirror] | None = None,
-        robot_T_camera: np.ndarray | None = None,
-        *,
-        edge_margin_px: float = 2.0,
-        **settings: Any,
-    ) -> ScanExtractor:
-        """From a designed rig (default `design.default_rig()` on `mirrors.camera_mount()`),
-        labels from `mirrors.masks` with the given edge margin: what the simulator renders."""
-        from omnitof.design import default_rig
-        from omnitof.mirrors import camera_mount, masks
+    def from_rig(cls, rig: Rig | None = None, *, edge_margin_px: float = 2.0, **settings: Any) -> ScanExtractor:
+        """From a designed rig (default `design.default_rig()`), labels from its outlines
+        (`Rig.masks`) with the given edge margin: what the simulator renders."""
+        from omnitof.sensor.design import default_rig
 
-        if camera is None or mirrors is None:
-            if camera is not None or mirrors is not None:
-                raise ScanConfigError("give both camera and mirrors, or neither (the default rig)")
-            camera, mirrors = default_rig()
-        mount = camera_mount() if robot_T_camera is None else robot_T_camera
-        return cls(camera, list(mirrors), masks(camera, mirrors, edge_margin_px), mount, **settings)
+        rig = default_rig() if rig is None else rig
+        return cls(rig.camera, list(rig.planes), rig.masks(edge_margin_px), rig.robot_T_camera, **settings)
 
     # --- results -----------------------------------------------------------------------------
 

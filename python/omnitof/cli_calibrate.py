@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -76,7 +77,6 @@ def add_calibrate_parser(sub) -> None:
 
 def _board(text: str):
     from omnitof.calibration import CalibrationError
-    from omnitof.calibration.targets import Checkerboard
 
     try:
         cols, rows = (int(v) for v in text.lower().split("x"))
@@ -87,18 +87,19 @@ def _board(text: str):
 
 def _design_outside(camera) -> np.ndarray:
     """Pixels that see past the default rig's mirrors (the mirrors' outer edges)."""
-    from omnitof.design import default_rig
-    from omnitof.mirrors import assign_pixels
+    from omnitof.sensor.design import default_rig
+    from omnitof.sensor.mirrors import assign_pixels
 
-    return assign_pixels(camera, default_rig()[1]) < 0
+    return assign_pixels(camera, default_rig().mirrors) < 0
 
 
 def cmd_intrinsics(args: argparse.Namespace) -> int:
     from omnitof.calibration import Calibration, load_calibration, save_calibration
-    from omnitof.calibration.intrinsics import calibrate_intrinsics, load_images
+    from omnitof.calibration.images import load_images
+    from omnitof.calibration.intrinsics import calibrate_intrinsics
     from omnitof.calibration.masks import labels_from_planes
     from omnitof.calibration.targets import Checkerboard
-    from omnitof.design import default_rig
+    from omnitof.sensor.design import default_rig
 
     cols, rows = _board(args.board)
     board = Checkerboard(cols=cols, rows=rows, square=args.square)
@@ -108,10 +109,9 @@ def cmd_intrinsics(args: argparse.Namespace) -> int:
     camera = result.camera
     if args.out.exists():
         cal = load_calibration(args.out)
-        cal.camera = camera
+        cal = cal.with_rig(replace(cal.rig, camera=camera))
     else:
-        _, mirrors = default_rig()
-        cal = Calibration.from_rig(camera, mirrors)
+        cal = Calibration.from_rig(replace(default_rig(), camera=camera))
         cal.provenance = {"mirrors": "rig design (not calibrated yet: run `calibrate mirrors`)"}
     cal.labels = labels_from_planes(camera, cal.planes, _design_outside(camera), cal.edge_margin_px)
     cal.quality.update(result.quality())
@@ -131,7 +131,7 @@ def cmd_intrinsics(args: argparse.Namespace) -> int:
 
 def cmd_mirrors(args: argparse.Namespace) -> int:
     from omnitof.calibration import load_calibration, save_calibration
-    from omnitof.calibration.intrinsics import load_images
+    from omnitof.calibration.images import load_images
     from omnitof.calibration.masks import labels_from_planes
     from omnitof.calibration.mirror_planes import calibrate_mirrors
     from omnitof.calibration.targets import DotTarget
@@ -145,10 +145,11 @@ def cmd_mirrors(args: argparse.Namespace) -> int:
     result = calibrate_mirrors(cal.camera, images, cal.names, cal.planes, regions,
                                target=target, scale=args.scale, mirror=args.mirror)
     mirror_quality = dict(cal.quality.get("mirrors", {}))
+    planes = list(cal.planes)
     for estimate in result.estimates:
-        index = cal.names.index(estimate.name)
-        cal.planes[index] = estimate.plane
+        planes[cal.names.index(estimate.name)] = estimate.plane
         mirror_quality[estimate.name] = estimate.quality()
+    cal = cal.with_rig(replace(cal.rig, planes=tuple(planes)))
     cal.quality["mirrors"] = mirror_quality
     if args.margin is not None:
         cal.edge_margin_px = args.margin
@@ -181,21 +182,23 @@ def cmd_render_targets(args: argparse.Namespace) -> int:
 
 def cmd_check(args: argparse.Namespace) -> int:
     from omnitof.calibration import load_calibration
-    from omnitof.calibration.check import edge_heights, plane_errors, plot_side_view, render_check_frame
-    from omnitof.design import default_rig
+    from omnitof.calibration.check import edge_heights, plane_errors, render_check_frame
+    from omnitof.viz.calibration import plot_side_view
+    from omnitof.sensor.design import default_rig
 
     cal = load_calibration(args.calibration)
     truth = load_calibration(args.truth) if args.truth is not None else None
     if args.frame is not None:
         from omnitof.calibration import CalibrationError
-        from omnitof.calibration.intrinsics import load_images
+        from omnitof.calibration.images import load_images
 
         frames = load_images([args.frame])
         if not frames or frames[0].distance is None:
             raise CalibrationError("the check needs a distance image (.npz or a ROS bag)", args.frame)
         distance = frames[0].distance
     else:
-        camera, mirrors = default_rig()
+        rig = default_rig()
+        camera, mirrors = rig.camera, rig.mirrors
         if truth is not None:
             camera = truth.camera  # the simulated rig is the design's (render-targets renders it)
         distance = render_check_frame(camera, mirrors, seed=args.seed).distance
@@ -240,7 +243,9 @@ def cmd_masks(args: argparse.Namespace) -> int:
         cal.polygons = polygons
         changed = True
     if args.figure:
-        _plot_labels(args.figure, cal)
+        from omnitof.viz.calibration import plot_calibration_masks
+
+        plot_calibration_masks(args.figure, cal)
         print(f"wrote {args.figure}")
     counts = {name: int((cal.labels == k).sum()) for k, name in enumerate(cal.names)}
     print("pixels per mirror: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
@@ -251,32 +256,3 @@ def cmd_masks(args: argparse.Namespace) -> int:
     return 0
 
 
-def _plot_labels(path: Path, cal) -> None:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.colors import to_rgba
-    from matplotlib.figure import Figure
-
-    from omnitof.io.atomic import atomic_write
-
-    fig = Figure(figsize=(6.4, 5.6), dpi=120)
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
-    colours = np.zeros((*cal.labels.shape, 4))
-    colours[..., 3] = 1.0
-    for k, name in enumerate(cal.names):
-        colours[cal.labels == k] = to_rgba(f"C{k % 10}")
-        rows, cols = np.nonzero(cal.labels == k)
-        if len(rows):
-            ax.text(cols.mean(), rows.mean(), name.upper(), ha="center", va="center", fontsize=9,
-                    bbox={"facecolor": "white", "alpha": 0.8, "linewidth": 0})
-    h, w = cal.labels.shape
-    ax.imshow(colours, extent=(-0.5, w - 0.5, h - 0.5, -0.5), interpolation="nearest")
-    for k, (name, poly) in enumerate(cal.polygons.items()):
-        closed = np.vstack([poly, poly[:1]])
-        ax.plot(closed[:, 0], closed[:, 1], color="white", linewidth=1)
-    ax.set_xlabel("u [px]")
-    ax.set_ylabel("v [px]")
-    ax.set_title(f"mirror masks, {cal.edge_margin_px:g} px edge margin")
-    fig.tight_layout()
-    with atomic_write(path, "wb") as handle:
-        fig.savefig(handle, format="png")

@@ -1,8 +1,8 @@
 """How good is a mirror rig? Bearing coverage, elevation bands and resolution, and sweeps of them.
 
-A rig is a camera, its mirrors (camera frame, see `omnitof.mirrors`) and the mount
+A rig is a camera, its mirrors (camera frame, see `omnitof.sensor.mirrors`) and the mount
 robot_T_camera. Every number here comes from tracing each pixel's central ray through the rig
-(`omnitof.mirrors.viewing_rays`), keeping only the pixels of `omnitof.mirrors.masks` (mixed
+(`omnitof.sensor.mirrors.viewing_rays`), keeping only the pixels of `omnitof.sensor.mirrors.masks` (mixed
 pixels along mirror edges left out), and expressing the reflected rays in the robot frame:
 
 - bearing: atan2(y, x) in degrees, counter-clockwise from the driving direction, in [0, 360),
@@ -24,15 +24,12 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 
-from omnitof.camera import Camera
-from omnitof.io.atomic import atomic_write
-from omnitof.mirrors import (
+from omnitof.sensor.camera import Camera
+from omnitof.sensor.rig import Rig
+from omnitof.sensor.mirrors import (
     DEFAULT_APEX_HEIGHT,
     Mirror,
     MirrorParameterError,
@@ -189,7 +186,7 @@ def design_report(
 class SweepRow:
     """One rig of a sweep: its parameters and the DesignReport's headline numbers.
 
-    size_m is the pyramid's size (see omnitof.mirrors.pyramid), chosen to fill the lens's view.
+    size_m is the pyramid's size (see omnitof.sensor.mirrors.pyramid), chosen to fill the lens's view.
     Coverages are shares 0–1; elevations in degrees.
     """
 
@@ -253,59 +250,7 @@ def format_sweep(rows: Sequence[SweepRow]) -> str:
     return "\n".join(lines)
 
 
-def plot_sweep(
-    path: str | Path, rows: Sequence[SweepRow], *, title: str = "", dpi: int = 120
-) -> Figure:
-    """Draw the trade-off of a sweep against tilt and write it as a PNG (atomically).
-
-    Four panels share the tilt axis: coverage within the elevation band, coverage at any
-    elevation, pixels per degree of bearing, and the elevation range (min to max, with the
-    median as a line). One curve per (lens, mirror count, yaw): colour by lens and mirror
-    count, line style by yaw.
-
-    Returns:
-        The matplotlib Figure (Agg canvas, no pyplot).
-    """
-    fig = Figure(figsize=(11.0, 8.0), dpi=dpi)
-    FigureCanvasAgg(fig)
-    axes = fig.subplots(2, 2, sharex=True)
-    groups = _groups(rows)
-    styles = ["-", "--", ":", "-."]
-    yaws = sorted({r.yaw_deg for r in rows})
-    colours = {key[:2]: f"C{i % 10}" for i, key in enumerate(dict.fromkeys(k[:2] for k in groups))}
-    for (lens, count, yaw), group in groups.items():
-        tilt = np.array([r.tilt_deg for r in group])
-        style = {
-            "color": colours[(lens, count)],
-            "linestyle": styles[yaws.index(yaw) % len(styles)],
-            "label": f"{lens}, {count} mirrors, yaw {yaw:g}°",
-        }
-        axes[0, 0].plot(tilt, [100 * r.coverage for r in group], **style)
-        axes[0, 1].plot(tilt, [100 * r.coverage_any_elevation for r in group], **style)
-        axes[1, 0].plot(tilt, [r.pixels_per_degree for r in group], **style)
-        axes[1, 1].plot(tilt, [r.median_elevation_deg for r in group], **style)
-        axes[1, 1].fill_between(
-            tilt, [r.elevation_min_deg for r in group], [r.elevation_max_deg for r in group],
-            color=style["color"], alpha=0.08,
-        )
-    axes[0, 0].set_ylabel("bearings seen in the elevation band [%]")
-    axes[0, 1].set_ylabel("bearings seen at any elevation [%]")
-    axes[1, 0].set_ylabel("in-band pixels per degree of bearing")
-    axes[1, 1].set_ylabel("elevation: median, min–max [deg]")
-    axes[1, 1].axhline(0.0, color="black", linewidth=0.8)
-    for ax in axes[1]:
-        ax.set_xlabel("mirror tilt from the optical axis [deg]")
-    for ax in axes.ravel():
-        ax.grid(True, alpha=0.3)
-    axes[0, 0].legend(fontsize=7, loc="best")
-    fig.suptitle(title or "mirror pyramid design sweep")
-    fig.tight_layout()
-    with atomic_write(path, "wb") as handle:
-        fig.savefig(handle, format="png", dpi=dpi)
-    return fig
-
-
-def default_rig() -> tuple[Camera, list[Mirror]]:
+def default_rig() -> Rig:
     """The rig omnitof assumes: the SR4000 with its wide (69°) lens, four mirrors tilted 56°
     from the optical axis, yaw 0° (faces looking front, left, back, right: the names of the
     paper's Fig. 3), apex 0.10 m above the lens, sized to fill the view; mount camera_mount().
@@ -335,7 +280,7 @@ def default_rig() -> tuple[Camera, list[Mirror]]:
     mirrors = pyramid(
         DEFAULT_RIG_MIRRORS, DEFAULT_RIG_TILT_DEG, yaw_deg=DEFAULT_RIG_YAW_DEG, camera=camera
     )
-    return camera, mirrors
+    return Rig.from_mirrors(camera, mirrors)
 
 
 # --- internals -----------------------------------------------------------------------------
@@ -392,7 +337,8 @@ def _row(lens: str, count: int, tilt: float, yaw: float, size: float, r: DesignR
     )
 
 
-def _groups(rows: Sequence[SweepRow]) -> dict[tuple[str, int, float], list[SweepRow]]:
+def sweep_groups(rows: Sequence[SweepRow]) -> dict[tuple[str, int, float], list[SweepRow]]:
+    """Rows by (lens, mirror count, yaw), each group ordered by tilt: one curve of a sweep plot."""
     groups: dict[tuple[str, int, float], list[SweepRow]] = {}
     for r in rows:
         groups.setdefault((r.lens, r.n_mirrors, r.yaw_deg), []).append(r)

@@ -8,7 +8,6 @@ particle's state into a map and a trajectory with a pose for every scan.
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -16,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from omnitof import _core
-from omnitof.config import SlamConfig
+from omnitof.slam.config import SlamConfig
 from omnitof.geometry import compose, relative
 from omnitof.types import OccupancyMap, ScanSequence, Trajectory
 
@@ -66,54 +65,12 @@ def fill_trajectory(odometry: np.ndarray, integrated: np.ndarray, corrected: np.
 
 
 def _make_filter(scans: ScanSequence, cfg: SlamConfig) -> "_core.ParticleFilter":
-    f, m, s, g = cfg.filter, cfg.motion, cfg.sensor_model, cfg.map
-    lf, sm = cfg.likelihood_field, cfg.scan_matcher
+    """The core's filter for a configuration and a sensor. The core takes every section whole,
+    as one keyword each, and derives what it needs (radians, ranges capped by the sensor's,
+    threads); only the scan selection (`select_scans`) is done here and kept out of it."""
+    sections = cfg.model_dump(exclude={"filter": {"linear_update", "angular_update_deg"}})
     return _core.ParticleFilter(
-        n_particles=f.particles,
-        seed=f.seed,
-        threads=f.threads or (os.cpu_count() or 1),
-        alphas=[m.alpha1, m.alpha2, m.alpha3, m.alpha4],
-        z_hit=s.z_hit,
-        z_short=s.z_short,
-        z_max=s.z_max,
-        z_rand=s.z_rand,
-        sigma_hit=s.sigma_hit,
-        lambda_short=s.lambda_short,
-        max_range=min(s.max_range, scans.max_range),
-        occupied_threshold=g.occupied_threshold,
-        beam_stride=s.beam_stride,
-        effective_beams=s.effective_beams,
-        l_occ=g.l_occ,
-        l_free=g.l_free,
-        l_min=g.l_min,
-        l_max=g.l_max,
-        resolution=g.resolution,
-        map_max_range=min(g.max_range, scans.max_range),
-        clear_no_echo=g.clear_no_echo,
-        resample_threshold=f.resample_threshold,
-        angles=scans.angles,
-        sensor_pose=scans.sensor_pose,
-        proposal=f.proposal,
-        observation=s.model,
-        field_sigma=lf.sigma,
-        field_z_hit=lf.z_hit,
-        field_z_rand=lf.z_rand,
-        field_window=lf.window_cells,
-        field_fit_walls=lf.fit_walls,
-        match_step_xy=sm.step_xy,
-        match_step_theta=math.radians(sm.step_deg),
-        match_refinements=sm.refinements,
-        match_gauss_newton=sm.gauss_newton,
-        match_sample_xy=sm.sample_xy,
-        match_sample_theta=math.radians(sm.sample_deg),
-        match_min_matched=sm.min_matched,
-        match_odometry_prior=sm.odometry_prior,
-        match_climb_from_sample=sm.climb_from_sample,
-        search_xy=sm.search_xy,
-        search_theta=math.radians(sm.search_deg),
-        search_step_xy=sm.search_step_xy,
-        search_step_theta=math.radians(sm.search_step_deg),
-        search_below=sm.search_below,
+        **sections, angles=scans.angles, sensor_pose=scans.sensor_pose, scan_max_range=scans.max_range
     )
 
 

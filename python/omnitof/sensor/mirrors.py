@@ -7,7 +7,7 @@ points in a):
 - Robot frame: x forward (the driving direction), y left, z up; origin on the floor below the
   camera's optical centre. A bearing is atan2(y, x) of a direction in this frame,
   counter-clockwise from the driving direction; an elevation is its angle above the horizontal.
-- Camera frame: `omnitof.camera`'s: x right in the image (growing u), y down (growing v),
+- Camera frame: `omnitof.sensor.camera`'s: x right in the image (growing u), y down (growing v),
   z along the optical axis, which in this sensor points straight up into the mirrors.
 - robot_T_camera (`camera_mount`): camera x = robot +y (left), camera y = robot −x (back),
   camera z = robot +z (up), i.e. a rotation of +90° about z, and the optical centre at
@@ -48,18 +48,13 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.colors import to_rgba
-from matplotlib.figure import Figure
 from scipy.ndimage import distance_transform_edt
 
-from omnitof.camera import Camera
+from omnitof.sensor.camera import Camera
 from omnitof.errors import ConfigError
-from omnitof.io.atomic import atomic_write
 
 # Assumed mounting of the paper's rig; the paper gives no numbers. The camera sits on top of a
 # Pioneer-class robot (body ≈ 0.28 m high, Fig. 1(b)), so its optical centre is about 0.4 m above
@@ -501,56 +496,6 @@ def project_via(camera: Camera, mirror: Mirror, points: np.ndarray) -> np.ndarra
     return pixels
 
 
-def plot_mirror_regions(
-    path: str | Path,
-    camera: Camera,
-    mirrors: Sequence[Mirror],
-    image: np.ndarray | None = None,
-    *,
-    edge_margin_px: float = 2.0,
-    title: str = "",
-    dpi: int = 150,
-) -> Figure:
-    """Draw the mirror masks like the paper's Fig. 3 and write them as a PNG (atomically).
-
-    Each mirror's region (from `masks`) is filled with its colour (matplotlib's "C<index>")
-    and labelled with its name at its most interior pixel; pixels left out stay black. With
-    `image` ((H, W) amplitude or depth, NaN allowed) the regions are drawn translucent over it
-    in grey. Axes are pixel columns and rows (u, v), v growing downwards as in the image.
-
-    Returns:
-        The matplotlib Figure (Agg canvas, no pyplot).
-    """
-    labels = masks(camera, mirrors, edge_margin_px)
-    fig = Figure(figsize=(6.4, 6.4 * camera.height / camera.width + 0.6), dpi=dpi)
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
-    extent = (-0.5, camera.width - 0.5, camera.height - 0.5, -0.5)  # pixel edges, v down
-    colours = np.zeros((*camera.shape, 4))
-    colours[..., 3] = 1.0  # opaque black where no mirror is kept
-    for index in range(len(mirrors)):
-        colours[labels == index] = to_rgba(f"C{index % 10}")
-    if image is not None:
-        grey = np.asarray(image, dtype=np.float64)
-        if grey.shape != camera.shape:
-            raise MirrorParameterError(f"image must have shape {camera.shape}, got {grey.shape}")
-        ax.imshow(grey, cmap="gray", extent=extent, interpolation="nearest")
-        colours[..., 3] = np.where(labels >= 0, 0.35, 0.0)
-    ax.imshow(colours, extent=extent, interpolation="nearest")
-    for index, mirror in enumerate(mirrors):
-        spot = _interior_pixel(labels == index)
-        if spot is not None:
-            ax.text(spot[1], spot[0], mirror.name.upper(), ha="center", va="center",
-                    fontsize=9, bbox={"facecolor": "white", "alpha": 0.8, "linewidth": 0})
-    ax.set_xlabel("u [px]")
-    ax.set_ylabel("v [px]")
-    ax.set_title(title or f"mirror regions, {edge_margin_px:g} px edge margin")
-    fig.tight_layout()
-    with atomic_write(path, "wb") as handle:
-        fig.savefig(handle, format="png", dpi=dpi)
-    return fig
-
-
 # --- internals -----------------------------------------------------------------------------
 
 
@@ -650,7 +595,7 @@ def _unique_names(bearings: np.ndarray) -> list[str]:
     return [f"{name}-{b:05.1f}deg" for name, b in zip(names, bearings)]
 
 
-def _interior_pixel(region: np.ndarray) -> tuple[int, int] | None:
+def interior_pixel(region: np.ndarray) -> tuple[int, int] | None:
     """(row, col) of the region's pixel farthest from its boundary (None if it is empty)."""
     if not region.any():
         return None

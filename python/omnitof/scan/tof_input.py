@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from omnitof.errors import InputError
-from omnitof.scan import ScanExtractor, ScanSettings, scans_from_frames
+from omnitof.scan.extract import ScanExtractor, ScanSettings, scans_from_frames
 from omnitof.types import ScanSequence
 
 
@@ -98,15 +98,13 @@ def extractor_for_bag(
                 f"{bag.camera.width}×{bag.camera.height}", calibration,
             )
         return ScanExtractor.from_calibration(cal, settings=settings), f"calibration {calibration}"
-    if bag.sidecar is not None and "mirrors" in bag.sidecar:
-        from omnitof.sim.sequence import rig_from_sidecar
-
-        rig = rig_from_sidecar(bag.sidecar, bag.path)
+    rig = bag.rig
+    if rig is not None:
         warnings.warn(
             f"{bag.path}: no --calibration given; using the true rig from the simulator's sidecar",
             ToFInputWarning, stacklevel=2,
         )
-        extractor = ScanExtractor.from_rig(rig.camera, rig.mirrors, rig.robot_T_camera, settings=settings)
+        extractor = ScanExtractor.from_rig(rig, settings=settings)
         return extractor, "the bag's sidecar (true rig)"
     raise InputError(
         "a ToF bag needs the rig's geometry: give --calibration FILE (see `omnitof calibrate`)", bag.path
@@ -144,32 +142,3 @@ def frame_count(path: str | Path) -> int:
     from omnitof.io.rosbag import read_tof_bag
 
     return read_tof_bag(path).n_frames
-
-
-# --- the 3D map of a run ------------------------------------------------------------------
-
-
-def voxel_map_from_clouds(poses: np.ndarray, clouds: list[np.ndarray], **options: Any) -> Any:
-    """A `map3d.VoxelMap` (options: its constructor's) from the kept clouds (`ToFScans.clouds`,
-    (M, 6) origin and end point per ray, robot frame) at their frames' poses (K, 3)."""
-    from omnitof.map3d import VoxelMap, build_voxel_map
-
-    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-    if len(poses) != len(clouds):
-        raise ValueError(f"{len(poses)} poses for {len(clouds)} clouds")
-    rays = ((c[:, :3].astype(np.float64), c[:, 3:].astype(np.float64)) for c in clouds)
-    return build_voxel_map(poses, rays, VoxelMap(**options))
-
-
-def write_voxel_outputs(vmap: Any, out_dir: str | Path, *, trajectory: np.ndarray | None = None,
-                        title: str = "") -> dict[str, Path]:
-    """map3d.ply (occupied voxel centres, coloured by height) and map3d.png in `out_dir`."""
-    from omnitof.map3d import height_colors, plot_voxels, write_ply
-
-    out = Path(out_dir)
-    occupied = vmap.occupied()
-    paths = {"map3d_ply": out / "map3d.ply", "map3d_png": out / "map3d.png"}
-    write_ply(paths["map3d_ply"], occupied, height_colors(occupied) if len(occupied) else None)
-    plot_voxels(paths["map3d_png"], occupied, resolution=vmap.resolution, trajectory=trajectory,
-                title=title or "3D occupancy (occupied voxels)")
-    return paths

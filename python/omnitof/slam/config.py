@@ -3,6 +3,11 @@
 One pydantic model per stage. Angles are in degrees here (the user's edge) and in radians
 everywhere inside. A configuration file may give only some fields; the others keep their
 defaults. Presets live in `omnitof/presets/*.yaml` and are loaded by name.
+
+The Rust core reads every section as a dict, field by field (`config_section!` in
+rust/src/lib.rs), and refuses a key it does not know: a new option is a field here plus the
+same field there (and its use). Only the scan selection (`filter.linear_update`,
+`filter.angular_update_deg`) stays in Python (omnitof.slam.driver).
 """
 
 from __future__ import annotations

@@ -1,0 +1,141 @@
+"""PLY vertex clouds (the occupied voxels of a 3D map): what MeshLab, CloudCompare, Open3D and
+Blender read. Written atomically; read back for tests and for users' own tools."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from omnitof.errors import ConfigError, InputError
+from omnitof.io.atomic import atomic_write
+
+
+class PlyError(ConfigError, ValueError):
+    """Points or colours that cannot be written as a PLY cloud."""
+
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+
+
+def write_ply(
+    path: str | Path,
+    points: np.ndarray,
+    colors: np.ndarray | None = None,
+    *,
+    binary: bool = True,
+    comment: str = "omnitof occupied voxel centres, metres, world frame (z up)",
+) -> None:
+    """Write points (N, 3) (and colours (N, 3) uint8 RGB) as a PLY vertex cloud, atomically.
+
+    Format: PLY 1.0, `binary_little_endian` (default) or `ascii`; one `vertex` element with
+    float (float32) x, y, z and, with colours, uchar red, green, blue — what MeshLab,
+    CloudCompare, Open3D and Blender read.
+    """
+    pts = _points(points)
+    cols = None
+    if colors is not None:
+        cols = np.asarray(colors)
+        if cols.shape != pts.shape:
+            raise PlyError(f"colors must have shape {pts.shape}, got {cols.shape}")
+        if cols.dtype != np.uint8:
+            raise PlyError(f"colors must be uint8 RGB, got {cols.dtype}")
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if cols is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    rows = np.empty(len(pts), dtype=fields)
+    for a, name in enumerate("xyz"):
+        rows[name] = pts[:, a]
+    if cols is not None:
+        for a, name in enumerate(("red", "green", "blue")):
+            rows[name] = cols[:, a]
+    header = [
+        "ply",
+        f"format {'binary_little_endian' if binary else 'ascii'} 1.0",
+        *(f"comment {line}" for line in comment.splitlines()),
+        f"element vertex {len(pts)}",
+        "property float x",
+        "property float y",
+        "property float z",
+    ]
+    if cols is not None:
+        header += ["property uchar red", "property uchar green", "property uchar blue"]
+    header.append("end_header")
+    with atomic_write(path, "wb") as handle:
+        handle.write(("\n".join(header) + "\n").encode("ascii"))
+        if binary:
+            handle.write(rows.tobytes())
+        else:
+            # %.9g: enough digits to give back every float32 exactly.
+            table = np.column_stack([rows[n].astype(np.float64) for n in rows.dtype.names or ()])
+            fmt = " ".join(["%.9g"] * 3 + (["%d"] * 3 if cols is not None else []))
+            if len(table):
+                np.savetxt(handle, table, fmt=fmt, newline="\n")
+
+
+def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read a PLY vertex cloud (ascii or binary_little_endian, scalar vertex properties, no
+    other elements): (points (N, 3) float64, colours (N, 3) uint8 or None)."""
+    path = Path(path)
+    data = path.read_bytes()
+    end = data.find(b"end_header\n")
+    if not data.startswith(b"ply\n") or end < 0:
+        raise InputError("not a PLY file (no 'ply' magic or 'end_header')", path)
+    fmt, count, fields = None, None, []
+    for number, line in enumerate(data[:end].decode("ascii").splitlines(), start=1):
+        words = line.split()
+        if not words or words[0] in ("ply", "comment", "obj_info"):
+            continue
+        if words[0] == "format":
+            fmt = words[1]
+            if fmt not in ("ascii", "binary_little_endian"):
+                raise InputError(f"unsupported PLY format {fmt!r}", path, number)
+        elif words[0] == "element":
+            if words[1] != "vertex" or count is not None:
+                raise InputError(
+                    f"only one 'vertex' element is supported, got {line!r}", path, number
+                )
+            count = int(words[2])
+        elif words[0] == "property":
+            if words[1] not in _PLY_TYPES or len(words) != 3:
+                raise InputError(f"unsupported PLY property {line!r}", path, number)
+            fields.append((words[2], "<" + _PLY_TYPES[words[1]]))
+        else:
+            raise InputError(f"unexpected PLY header line {line!r}", path, number)
+    names = [f[0] for f in fields]
+    if fmt is None or count is None or not {"x", "y", "z"} <= set(names):
+        raise InputError("PLY header lacks format, vertex count or x/y/z", path)
+    body = data[end + len(b"end_header\n"):]
+    dtype = np.dtype(fields)
+    if fmt == "binary_little_endian":
+        if len(body) < count * dtype.itemsize:
+            raise InputError(f"PLY body holds fewer than {count} vertices", path)
+        rows = np.frombuffer(body, dtype=dtype, count=count)
+        table = {n: rows[n] for n in names}
+    else:
+        values = np.array(body.split(), dtype=np.float64)
+        if values.size != count * len(names):
+            raise InputError(
+                f"PLY body has {values.size} values, expected {count}×{len(names)}", path
+            )
+        grid = values.reshape(count, len(names))
+        # Through each property's own type, as a binary file would store it.
+        table = {n: grid[:, i].astype(dtype[n]) for i, n in enumerate(names)}
+    points = np.stack([table[a].astype(np.float64) for a in "xyz"], axis=1).reshape(-1, 3)
+    colors = None
+    if {"red", "green", "blue"} <= set(names):
+        colors = np.stack([table[c] for c in ("red", "green", "blue")], axis=1).astype(np.uint8)
+    return points, colors
+
+
+
+def _points(array: np.ndarray) -> np.ndarray:
+    pts = np.ascontiguousarray(array, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise PlyError(f"points must have shape (N, 3), got {pts.shape}")
+    return pts

@@ -1,0 +1,456 @@
+"""The bag access shared by ToF bags (`tof`) and LaserScan bags (`laserscan`).
+
+Everything goes through `rosbags` (pure Python; no ROS installation is needed): opening a bag
+of any kind for reading (`bag_message_types`, and the private helpers that open a reader,
+stream decoded messages and pick topics by name or type), the message types (`IMAGE`,
+`ODOMETRY`, ...) and typestores (ROS 2 Humble, ROS 1 Noetic), header and Odometry messages,
+nav_msgs/Odometry topics read into Trajectories, the sidecar file and the atomic write.
+
+ROS 2 bags are written with MCAP storage by default (`DEFAULT_STORAGE`; "sqlite3" on request),
+rosbag2 metadata version 8. Odometry poses are planar: position (x, y, 0), orientation the
+quaternion of a rotation by θ about +z, covariances and twist left zero (unknown).
+
+The sidecar YAML (true mirror geometry, camera, world name: whatever dict the caller gives) is
+stored *inside* the bag folder as `<bag>/omnitof.yaml` (`SIDECAR_NAME`), so that it travels with
+the bag and is written by the same final rename; ROS 2 tools ignore files they do not list in
+metadata.yaml. A bag given as a single file (a ROS 1 `.bag`, a bare `.mcap`) has its sidecar
+beside it as `<file>.omnitof.yaml`.
+
+Writing is all-or-nothing: a bag is written under a hidden temporary name beside its target
+(`.<name>.<random>.tmp/`) and renamed into place only when complete, so an interrupted write
+leaves no valid-looking bag. Times are ROS times (sec, nanosec) made from float seconds with
+`to_ros_time` (nearest nanosecond) and read back with `from_ros_time`; they must be >= 0.
+Units and frames follow omnitof.types: metres, radians, seconds; θ counter-clockwise from +x.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import secrets
+import shutil
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager, suppress
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import yaml
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from omnitof.errors import InputError, OmnitofError
+from omnitof.geometry import quaternion_to_yaw, yaw_to_quaternion
+from omnitof.io.plain import to_plain
+from omnitof.types import Trajectory
+
+__all__ = [
+    "DEFAULT_STORAGE",
+    "SIDECAR_NAME",
+    "BagExistsError",
+    "RosbagWarning",
+    "bag_message_types",
+    "from_ros_time",
+    "to_ros_time",
+]
+
+# rosbags writes MCAP since 0.10; fall back to sqlite3 with an older one.
+DEFAULT_STORAGE = "mcap" if hasattr(StoragePlugin, "MCAP") else "sqlite3"
+SIDECAR_NAME = "omnitof.yaml"
+
+# rosbag2 metadata version 8 is read by ROS 2 Iron and later; rosbags writes 8 or 9 only.
+_ROSBAG2_VERSION: Literal[8] = 8
+
+IMAGE = "sensor_msgs/msg/Image"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+ODOMETRY = "nav_msgs/msg/Odometry"
+LASER_SCAN = "sensor_msgs/msg/LaserScan"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+
+# Frame ids written into headers (REP 105 names where there is one).
+ODOM_FRAME = "odom"
+WORLD_FRAME = "world"
+BASE_FRAME = "base_link"
+CAMERA_FRAME = "tof_optical_frame"
+LASER_FRAME = "laser"
+
+_NS = 1_000_000_000
+_LISTED_TOPICS = 20  # how many topics an error message lists
+
+
+class BagExistsError(OmnitofError, FileExistsError):
+    """The target of a bag writer exists and `overwrite` was not given."""
+
+
+class RosbagWarning(UserWarning):
+    """Data read from a bag were usable but not as expected (dropped scans, no laser pose)."""
+
+
+# --- time ----------------------------------------------------------------------------------
+
+
+def to_ros_time(t: float) -> tuple[int, int]:
+    """(sec, nanosec) of a time in float seconds, to the nearest nanosecond; t must be >= 0.
+
+    The whole seconds are split off exactly before rounding, so epoch times (~1.7e9 s) keep the
+    full precision of their float.
+    """
+    return divmod(_to_ns(t), _NS)
+
+
+def from_ros_time(sec: int, nanosec: int) -> float:
+    """Float seconds of a ROS time (sec, nanosec)."""
+    return int(sec) + int(nanosec) / 1e9
+
+
+def _to_ns(t: float) -> int:
+    t = float(t)
+    if not math.isfinite(t) or t < 0.0:
+        raise ValueError(f"a ROS bag time must be finite and >= 0 s, got {t!r}")
+    sec = math.floor(t)
+    return sec * _NS + round((t - sec) * 1e9)  # t - floor(t) is exact for floats
+
+
+def _stamp_ns(stamp: Any) -> int:
+    return int(stamp.sec) * _NS + int(stamp.nanosec)
+
+
+def _ns_to_s(ns: int) -> float:
+    sec, nanosec = divmod(ns, _NS)
+    return from_ros_time(sec, nanosec)
+
+
+# --- messages ------------------------------------------------------------------------------
+
+
+@lru_cache(maxsize=1)
+def _ros2_store() -> Any:
+    return get_typestore(Stores.ROS2_HUMBLE)
+
+
+@lru_cache(maxsize=1)
+def _ros1_store() -> Any:
+    store = get_typestore(Stores.ROS1_NOETIC)
+    # rosbags' Noetic store lacks tf2_msgs; this is its definition (md5 94810edd…, as in ROS).
+    store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", TF_MESSAGE))
+    return store
+
+
+def _serialize(store: Any, msg: Any, msgtype: str, ros1: bool) -> Any:
+    return store.serialize_ros1(msg, msgtype) if ros1 else store.serialize_cdr(msg, msgtype)
+
+
+def _header(store: Any, ns: int, frame_id: str, *, ros1: bool = False) -> Any:
+    sec, nanosec = divmod(ns, _NS)
+    stamp = store.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+    header_cls = store.types["std_msgs/msg/Header"]
+    if ros1:
+        return header_cls(seq=0, stamp=stamp, frame_id=frame_id)
+    return header_cls(stamp=stamp, frame_id=frame_id)
+
+
+def _odometry_msg(
+    store: Any, ns: int, pose: np.ndarray, frame_id: str, child_frame_id: str, *, ros1: bool
+) -> Any:
+    types = store.types
+    qx, qy, qz, qw = (float(v) for v in yaw_to_quaternion(pose[2]))
+    zero = types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+    return types[ODOMETRY](
+        header=_header(store, ns, frame_id, ros1=ros1),
+        child_frame_id=child_frame_id,
+        pose=types["geometry_msgs/msg/PoseWithCovariance"](
+            pose=types["geometry_msgs/msg/Pose"](
+                position=types["geometry_msgs/msg/Point"](
+                    x=float(pose[0]), y=float(pose[1]), z=0.0
+                ),
+                orientation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+            ),
+            covariance=np.zeros(36),
+        ),
+        twist=types["geometry_msgs/msg/TwistWithCovariance"](
+            twist=types["geometry_msgs/msg/Twist"](linear=zero, angular=zero),
+            covariance=np.zeros(36),
+        ),
+    )
+
+
+class _PoseStream:
+    """Writes a trajectory's Odometry messages in time order, interleaved with other topics."""
+
+    def __init__(
+        self, writer: Any, connection: Any, store: Any, trajectory: Trajectory,
+        frame_id: str, child_frame_id: str, *, ros1: bool,
+    ) -> None:  # fmt: skip
+        self.writer, self.connection, self.store = writer, connection, store
+        self.stamps = [_to_ns(t) for t in trajectory.timestamps]
+        self.poses = trajectory.poses
+        self.frame_id, self.child_frame_id, self.ros1 = frame_id, child_frame_id, ros1
+        self.next = 0
+
+    def write_until(self, ns: int | None) -> None:
+        """Write every pose stamped at or before `ns` (all that remain for None)."""
+        while self.next < len(self.stamps) and (ns is None or self.stamps[self.next] <= ns):
+            stamp = self.stamps[self.next]
+            msg = _odometry_msg(
+                self.store, stamp, self.poses[self.next], self.frame_id, self.child_frame_id,
+                ros1=self.ros1,
+            )  # fmt: skip
+            data = _serialize(self.store, msg, ODOMETRY, self.ros1)
+            self.writer.write(self.connection, stamp, data)
+            self.next += 1
+
+
+# --- reading helpers -----------------------------------------------------------------------
+
+
+def bag_message_types(path: str | Path) -> set[str]:
+    """The message types (e.g. "sensor_msgs/msg/Image") of every topic in a bag; InputError
+    if it is not a readable bag. For telling a ToF bag from a LaserScan bag."""
+    path = Path(path)
+    with _opened(path) as reader:
+        return {c.msgtype for c in reader.connections}
+
+
+@contextmanager
+def _opened(path: Path) -> Iterator[AnyReader]:
+    """An open AnyReader on `path`; anything that is not a readable bag is an InputError."""
+    if not path.exists():
+        raise InputError("no such bag (expected a ROS 1 .bag file or a ROS 2 bag folder)", path)
+    try:
+        reader = AnyReader([path], default_typestore=_ros2_store())
+        reader.open()
+    except Exception as err:  # rosbags raises several kinds; all mean "not a readable bag"
+        raise InputError(
+            f"not a readable ROS bag ({err}); a ROS 1 bag is a file ending in '.bag', a ROS 2 "
+            "bag a folder with metadata.yaml (or a bare .mcap / .db3 file)",
+            path,
+        ) from None
+    try:
+        yield reader
+    finally:
+        with suppress(Exception):
+            reader.close()
+
+
+def _messages(
+    reader: AnyReader, path: Path, connections: Sequence[Any]
+) -> Iterator[tuple[Any, Any]]:
+    """(connection, deserialised message) of `connections` in bag order; errors name the bag."""
+    if not connections:
+        return
+    stream = reader.messages(connections=connections)
+    while True:
+        try:
+            conn, _, raw = next(stream)
+        except StopIteration:
+            return
+        except Exception as err:
+            raise InputError(f"cannot read the bag's messages: {err}", path) from err
+        try:
+            msg = reader.deserialize(raw, conn.msgtype)
+        except Exception as err:
+            raise InputError(
+                f"topic {conn.topic}: cannot decode a {conn.msgtype} message: {err}", path
+            ) from err
+        yield conn, msg
+
+
+def _topic_listing(reader: AnyReader) -> str:
+    items = sorted({(c.topic, c.msgtype) for c in reader.connections})
+    text = ", ".join(f"{t} ({m})" for t, m in items[:_LISTED_TOPICS])
+    if len(items) > _LISTED_TOPICS:
+        text += f", … ({len(items) - _LISTED_TOPICS} more)"
+    return text or "no topics at all"
+
+
+def _connections(
+    reader: AnyReader, path: Path, topic: str, msgtype: str, *, required: bool = True
+) -> list[Any] | None:
+    """The connections of `topic`, checked to carry `msgtype`; None if absent and optional."""
+    conns = [c for c in reader.connections if c.topic == topic]
+    if not conns:
+        if required:
+            raise InputError(
+                f"topic {topic} ({msgtype}) is missing; the bag has: {_topic_listing(reader)}",
+                path,
+            )
+        return None
+    wrong = sorted({c.msgtype for c in conns if c.msgtype != msgtype})
+    if wrong:
+        raise InputError(f"topic {topic} has type {', '.join(wrong)}, expected {msgtype}", path)
+    return conns
+
+
+def _pick_topic(
+    reader: AnyReader, path: Path, msgtype: str, topic: str | None, conventional: str,
+    argument: str, *, exclude: Iterable[str] = (),
+) -> list[Any]:  # fmt: skip
+    """The connections of `topic`, or of the one topic of type `msgtype` when topic is None."""
+    if topic is not None:
+        conns = _connections(reader, path, topic, msgtype)
+        assert conns is not None  # required topics are never None
+        return conns
+    candidates = sorted(
+        {c.topic for c in reader.connections if c.msgtype == msgtype} - set(exclude)
+    )
+    if len(candidates) > 1 and conventional in candidates:
+        candidates = [conventional]
+    if not candidates:
+        raise InputError(
+            f"no {msgtype} topic; the bag has: {_topic_listing(reader)}", path
+        )
+    if len(candidates) > 1:
+        raise InputError(
+            f"several {msgtype} topics: {', '.join(candidates)}; choose one with {argument}=",
+            path,
+        )
+    return [c for c in reader.connections if c.topic == candidates[0]]
+
+
+class _Trajectories(dict):
+    """Trajectory per topic, plus the child_frame_id each topic's first message named."""
+
+    child_frames: dict[str, str]
+
+
+def _read_trajectories(
+    reader: AnyReader, path: Path, connections: Sequence[Any]
+) -> _Trajectories:
+    """nav_msgs/Odometry messages → one Trajectory per topic (header stamps must not decrease)."""
+    stamps: dict[str, list[int]] = {}
+    poses: dict[str, list[tuple[float, float, float]]] = {}
+    result = _Trajectories()
+    result.child_frames = {}
+    for conn, msg in _messages(reader, path, connections):
+        topic = conn.topic
+        ns = _stamp_ns(msg.header.stamp)
+        previous = stamps.setdefault(topic, [])
+        if previous and ns < previous[-1]:
+            raise InputError(
+                f"topic {topic}: timestamps go backwards: a pose stamped {_ns_to_s(ns):.9f} s "
+                f"follows one stamped {_ns_to_s(previous[-1]):.9f} s",
+                path,
+            )
+        previous.append(ns)
+        p, q = msg.pose.pose.position, msg.pose.pose.orientation
+        yaw = float(quaternion_to_yaw(np.array([q.x, q.y, q.z, q.w])))
+        poses.setdefault(topic, []).append((float(p.x), float(p.y), yaw))
+        result.child_frames.setdefault(topic, _frame_name(msg.child_frame_id))
+    for conn in connections:
+        if conn.topic not in stamps:
+            raise InputError(f"topic {conn.topic}: has no message", path)
+    for topic, ns_list in stamps.items():
+        result[topic] = Trajectory(
+            np.array([_ns_to_s(ns) for ns in ns_list], dtype=np.float64),
+            np.array(poses[topic], dtype=np.float64),
+        )
+    return result
+
+
+def _frame_name(frame_id: str) -> str:
+    return str(frame_id).lstrip("/")  # ROS 1 tf frames may carry a leading slash
+
+
+# --- sidecar, storage, atomic writing ------------------------------------------------------
+
+
+def _sidecar_path(path: Path) -> Path:
+    return path / SIDECAR_NAME if path.is_dir() else path.with_name(path.name + "." + SIDECAR_NAME)
+
+
+def _read_sidecar(path: Path) -> dict | None:
+    sidecar = _sidecar_path(path)
+    if not sidecar.is_file():
+        return None
+    try:
+        data = yaml.safe_load(sidecar.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
+        raise InputError(f"cannot read the bag's sidecar: {err}", sidecar) from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise InputError(
+            f"the sidecar must hold a mapping, got a {type(data).__name__}", sidecar
+        )
+    return data
+
+
+def _sidecar_text(sidecar: dict) -> str:
+    if not isinstance(sidecar, dict):
+        raise ValueError(f"sidecar must be a dict, got {type(sidecar).__name__}")
+    try:
+        body = yaml.safe_dump(to_plain(sidecar), sort_keys=False, allow_unicode=True)
+    except yaml.YAMLError as err:
+        raise ValueError(f"sidecar is not YAML-serialisable: {err}") from None
+    return (
+        "# omnitof sidecar of the ROS 2 bag in this folder (omnitof.io.rosbag): the data the\n"
+        "# bag's messages cannot carry. Metres, radians, seconds.\n" + body
+    )
+
+
+def _storage_plugin(storage: str) -> StoragePlugin:
+    names = {"sqlite3": "SQLITE3", "mcap": "MCAP"}
+    if storage not in names or not hasattr(StoragePlugin, names[storage]):
+        available = [s for s, n in names.items() if hasattr(StoragePlugin, n)]
+        raise ValueError(f"storage must be one of {available}, got {storage!r}")
+    return getattr(StoragePlugin, names[storage])
+
+
+def _fsync_tree(path: Path) -> None:
+    """fsync every file under `path` (or the file itself) and the folders holding them."""
+    paths = [path] if path.is_file() else [*sorted(path.rglob("*")), path]
+    for p in paths:
+        if p.is_file():
+            with open(p, "rb") as handle:
+                os.fsync(handle.fileno())
+    for folder in {p if p.is_dir() else p.parent for p in paths}:
+        _fsync_dir(folder)
+
+
+def _fsync_dir(folder: Path) -> None:
+    with suppress(OSError):  # not every platform / file system lets a folder be fsync'ed
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+@contextmanager
+def _atomic_path(path: Path, overwrite: bool) -> Iterator[Path]:
+    """Yield a not-yet-existing path to build a bag (file or folder) at; rename it to `path`.
+
+    The bag is built as `.<name>.<random>.tmp/<name>` beside `path` (its inner name is the final
+    one, so a ROS 2 bag's storage file is called `<name>.mcap`), synced to disk, and renamed
+    into place only if the block succeeds; otherwise the staging folder is removed and `path`
+    is left as it was.
+    """
+    if path.exists() and not overwrite:
+        raise BagExistsError(f"{path} exists already; pass overwrite=True to replace it")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        staging = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
+        try:
+            staging.mkdir()
+            break
+        except FileExistsError:
+            continue
+    try:
+        inner = staging / path.name
+        yield inner
+        _fsync_tree(inner)
+        old = staging / ".replaced"
+        had_old = path.exists() or path.is_symlink()
+        if had_old:
+            os.replace(path, old)
+        try:
+            os.replace(inner, path)
+        except BaseException:
+            if had_old:
+                os.replace(old, path)
+            raise
+        _fsync_dir(path.parent)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)

@@ -1,0 +1,437 @@
+"""Laser-scan bags (`read_laserscan_bag`, `write_laserscan_bag`): planar scans and odometry.
+
+ROS 1 (`.bag` files) or ROS 2 bags with sensor_msgs/LaserScan and nav_msgs/Odometry, read into
+a ScanSequence and written from one.
+
+The static transform base_link → laser (tf2_msgs/TFMessage on /tf_static) carries the
+ScanSequence's sensor_pose. Opening bags, the all-or-nothing write and the time conversions are
+those of `omnitof.io.rosbag.common`. Units and frames follow omnitof.types: metres, radians,
+seconds; θ counter-clockwise from +x; a range of +inf means no echo.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import Writer as Writer2
+
+from omnitof.errors import InputError
+from omnitof.geometry import interpolate_poses, yaw_to_quaternion
+from omnitof.io.rosbag.common import (
+    _ROSBAG2_VERSION,
+    BASE_FRAME,
+    DEFAULT_STORAGE,
+    LASER_FRAME,
+    LASER_SCAN,
+    ODOM_FRAME,
+    ODOMETRY,
+    TF_MESSAGE,
+    WORLD_FRAME,
+    RosbagWarning,
+    _atomic_path,
+    _frame_name,
+    _header,
+    _messages,
+    _ns_to_s,
+    _opened,
+    _pick_topic,
+    _PoseStream,
+    _read_trajectories,
+    _ros1_store,
+    _ros2_store,
+    _serialize,
+    _stamp_ns,
+    _storage_plugin,
+    _to_ns,
+)
+from omnitof.types import ScanSequence, Trajectory
+
+__all__ = ["read_laserscan_bag", "write_laserscan_bag"]
+
+# A laser whose plane is tilted more than this is still read, with a warning.
+_MAX_LASER_TILT_RAD = math.radians(5.0)
+# Beam geometry (angles in rad, range limits in m) must agree this well across scans; also the
+# tolerance on evenly spaced beams when writing (LaserScan stores angle_min + i·increment).
+_GEOMETRY_TOLERANCE = 1e-6
+
+
+# --- reading -------------------------------------------------------------------------------
+
+
+def read_laserscan_bag(
+    path: str | Path,
+    *,
+    scan_topic: str | None = None,
+    odom_topic: str | None = None,
+    ground_truth_topic: str | None = "/ground_truth",
+    tf_static_topic: str = "/tf_static",
+) -> ScanSequence:
+    """Read sensor_msgs/LaserScan and nav_msgs/Odometry from a ROS 1 or ROS 2 bag.
+
+    - Topics: when not given, found by type. Several candidates are ambiguous unless one is
+      the conventional name ("/scan", "/odom"); the ground-truth topic is never taken for
+      odometry. The error lists the candidates.
+    - Ranges: NaN, ±inf and values outside [range_min, range_max] become +inf (no echo).
+      Beam i is at angle_min + i·angle_increment; max_range = range_max; intensities become
+      `remissions` when every scan has one per beam. Beam geometry must not change.
+    - Time: each scan's header stamp; stamps must not decrease. The odometry (its header
+      stamps must not decrease either) is interpolated to each scan's stamp (linear in x, y,
+      shorter arc in θ); scans outside the odometry's time span are dropped with a
+      RosbagWarning.
+    - Ground truth: Odometry messages on `ground_truth_topic`, interpolated the same way, when
+      the topic exists and covers every kept scan (else None, with a warning).
+    - sensor_pose: base → laser from the static transforms on `tf_static_topic`, where base is
+      the odometry's child_frame_id (default base_link) and laser the scans' frame_id, chained
+      through intermediate frames and projected to the plane (x, y, yaw). An upside-down laser
+      gets its angles negated. Without such a transform: zeros and a RosbagWarning.
+
+    Raises:
+        InputError: naming the bag and topic: not a bag, no or ambiguous topics, changing beam
+            geometry, timestamps that go backwards, no scan within the odometry's span.
+    """
+    path = Path(path)
+    with _opened(path) as reader:
+        scan_conns = _pick_topic(reader, path, LASER_SCAN, scan_topic, "/scan", "scan_topic")
+        exclude = {ground_truth_topic} if ground_truth_topic else set()
+        odom_conns = _pick_topic(
+            reader, path, ODOMETRY, odom_topic, "/odom", "odom_topic", exclude=exclude
+        )
+        # Optional topics are used only when they carry the expected type.
+        truth_conns = [
+            c for c in reader.connections
+            if c.topic == ground_truth_topic and c.topic != odom_conns[0].topic
+            and c.msgtype == ODOMETRY
+        ]  # fmt: skip
+        tf_conns = [
+            c for c in reader.connections if c.topic == tf_static_topic and c.msgtype == TF_MESSAGE
+        ]
+        scan_name, odom_name = scan_conns[0].topic, odom_conns[0].topic
+
+        trajectories = _read_trajectories(reader, path, odom_conns + truth_conns)
+        base_frame = trajectories.child_frames.get(odom_name) or BASE_FRAME
+        static = _read_static_transforms(reader, path, tf_conns)
+
+        stamps: list[int] = []
+        ranges: list[np.ndarray] = []
+        intensities: list[np.ndarray] = []
+        geometry: tuple[float, float, int, float, float] | None = None
+        laser_frame = ""
+        for _, msg in _messages(reader, path, scan_conns):
+            ns = _stamp_ns(msg.header.stamp)
+            if stamps and ns < stamps[-1]:
+                raise InputError(
+                    f"topic {scan_name}: timestamps go backwards: a scan stamped "
+                    f"{_ns_to_s(ns):.9f} s follows one stamped {_ns_to_s(stamps[-1]):.9f} s",
+                    path,
+                )
+            r = np.array(msg.ranges, dtype=np.float32)
+            this = (
+                float(msg.angle_min), float(msg.angle_increment), len(r),
+                float(msg.range_min), float(msg.range_max),
+            )  # fmt: skip
+            if geometry is None:
+                geometry, laser_frame = this, _frame_name(msg.header.frame_id)
+                if not (math.isfinite(this[4]) and this[4] > 0.0):
+                    raise InputError(
+                        f"topic {scan_name}: range_max must be a positive number, got {this[4]}",
+                        path,
+                    )
+            elif this[2] != geometry[2] or not np.allclose(
+                this, geometry, rtol=0.0, atol=_GEOMETRY_TOLERANCE
+            ):
+                raise InputError(
+                    f"topic {scan_name}: the scan at {_ns_to_s(ns):.9f} s has beam geometry "
+                    f"(angle_min, angle_increment, beams, range_min, range_max) = {this}, "
+                    f"the first had {geometry}; one ScanSequence needs one geometry",
+                    path,
+                )
+            with np.errstate(invalid="ignore"):
+                valid = (r >= geometry[3]) & (r <= geometry[4])  # False for NaN
+            r[~valid] = np.inf
+            stamps.append(ns)
+            ranges.append(r)
+            intensities.append(np.asarray(msg.intensities, dtype=np.float32))
+    if geometry is None:
+        raise InputError(f"topic {scan_name}: has no message", path)
+
+    angle_min, increment, n_beams, _, range_max = geometry
+    angles = angle_min + increment * np.arange(n_beams, dtype=np.float64)
+    t = np.array([_ns_to_s(ns) for ns in stamps], dtype=np.float64)
+    odometry = trajectories[odom_name]
+    poses = interpolate_poses(odometry, t)
+    keep = ~np.isnan(poses[:, 0])
+    if not keep.any():
+        raise InputError(
+            f"topic {odom_name}: no scan on {scan_name} lies within the odometry's time span "
+            f"{_span(odometry)}",
+            path,
+        )
+    if not keep.all():
+        warnings.warn(
+            f"{path}: dropped {int((~keep).sum())} of {len(t)} scans on {scan_name} that lie "
+            f"outside the odometry's time span {_span(odometry)} (topic {odom_name})",
+            RosbagWarning,
+            stacklevel=2,
+        )
+    ground_truth = None
+    if truth_conns:
+        truth = trajectories[truth_conns[0].topic]
+        ground_truth = interpolate_poses(truth, t[keep])
+        if np.isnan(ground_truth[:, 0]).any():
+            warnings.warn(
+                f"{path}: topic {ground_truth_topic} does not cover every scan "
+                f"(its span is {_span(truth)}); ground truth left out",
+                RosbagWarning,
+                stacklevel=2,
+            )
+            ground_truth = None
+
+    scan_ranges = np.stack(ranges)[keep]
+    remissions = None
+    if all(len(i) == n_beams for i in intensities):
+        remissions = np.stack(intensities)[keep]
+    sensor_pose, flipped = _laser_pose(static, base_frame, laser_frame, path, tf_static_topic)
+    if flipped:
+        angles = -angles
+    return ScanSequence(
+        timestamps=t[keep],
+        ranges=scan_ranges,
+        angles=angles,
+        odometry=poses[keep],
+        sensor_pose=sensor_pose,
+        max_range=range_max,
+        remissions=remissions,
+        ground_truth=ground_truth,
+        source=str(path),
+    )
+
+
+def _read_static_transforms(
+    reader: AnyReader, path: Path, connections: Sequence[Any]
+) -> dict[str, tuple[str, np.ndarray]]:
+    """child frame → (parent frame, parent_T_child 4×4) from tf2_msgs/TFMessage messages."""
+    edges: dict[str, tuple[str, np.ndarray]] = {}
+    for _, msg in _messages(reader, path, connections):
+        for tf in msg.transforms:
+            t, q = tf.transform.translation, tf.transform.rotation
+            matrix = np.eye(4)
+            matrix[:3, :3] = _rotation_matrix(q.x, q.y, q.z, q.w)
+            matrix[:3, 3] = (t.x, t.y, t.z)
+            edges[_frame_name(tf.child_frame_id)] = (_frame_name(tf.header.frame_id), matrix)
+    return edges
+
+
+def _laser_pose(
+    edges: dict[str, tuple[str, np.ndarray]], base: str, laser: str, path: Path, topic: str
+) -> tuple[np.ndarray, bool]:
+    """(robot_T_sensor (x, y, yaw), upside down?) from static transforms; zeros if unknown."""
+    if not laser or laser == base:
+        return np.zeros(3), False
+
+    def to_root(frame: str) -> tuple[str, np.ndarray]:
+        matrix, seen = np.eye(4), {frame}
+        while frame in edges:
+            parent, parent_T_child = edges[frame]
+            if parent in seen:
+                break  # a cycle: tf is a tree, so give up on it
+            matrix, frame = parent_T_child @ matrix, parent
+            seen.add(frame)
+        return frame, matrix
+
+    root_laser, root_T_laser = to_root(laser)
+    root_base, root_T_base = to_root(base)
+    if root_laser != root_base:
+        warnings.warn(
+            f"{path}: no static transform {base} → {laser} on {topic}; the laser is assumed "
+            "at the robot's origin, facing forward (sensor_pose = 0)",
+            RosbagWarning,
+            stacklevel=3,
+        )
+        return np.zeros(3), False
+    base_T_laser = np.linalg.inv(root_T_base) @ root_T_laser
+    rotation = base_T_laser[:3, :3]
+    flipped = rotation[2, 2] < 0.0  # the laser's z axis points down: its angles run clockwise
+    tilt = math.acos(min(1.0, abs(rotation[2, 2])))
+    if tilt > _MAX_LASER_TILT_RAD:
+        warnings.warn(
+            f"{path}: the laser frame {laser} is tilted {math.degrees(tilt):.1f}° from the "
+            f"plane of {base}; its scans are used as if they were level",
+            RosbagWarning,
+            stacklevel=3,
+        )
+    yaw = math.atan2(rotation[1, 0], rotation[0, 0])  # the laser's x axis, in the plane
+    return np.array([base_T_laser[0, 3], base_T_laser[1, 3], yaw]), bool(flipped)
+
+
+def _rotation_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
+    q = np.array([x, y, z, w], dtype=np.float64)
+    norm = np.linalg.norm(q)
+    if not norm > 0.0:
+        return np.eye(3)
+    x, y, z, w = q / norm
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _span(trajectory: Trajectory) -> str:
+    return f"[{trajectory.timestamps[0]:.9f}, {trajectory.timestamps[-1]:.9f}] s"
+
+
+# --- writing -------------------------------------------------------------------------------
+
+
+def write_laserscan_bag(
+    path: str | Path,
+    scans: ScanSequence,
+    *,
+    version: int = 2,
+    storage: str = DEFAULT_STORAGE,
+    scan_topic: str = "/scan",
+    odom_topic: str = "/odom",
+    ground_truth_topic: str = "/ground_truth",
+    tf_static_topic: str = "/tf_static",
+    overwrite: bool = False,
+) -> None:
+    """Write a ScanSequence as a ROS 1 (version=1) or ROS 2 (version=2) bag.
+
+    Per scan, in time order: the odometry pose (nav_msgs/Odometry odom → base_link), the ground
+    truth when the sequence has it (world → base_link), and the scan (sensor_msgs/LaserScan in
+    frame "laser", range_min 0, range_max = max_range, +inf kept for no echo, intensities from
+    remissions), all with the scan's stamp. One static transform base_link → laser from
+    sensor_pose on /tf_static (latched in ROS 1). Readings beyond max_range stay in the bag as
+    they are; readers (this one too) take them for no echo.
+
+    Args:
+        path: a ".bag" file for version 1 (ROS 1 readers recognise bags by it); a folder not
+            ending in ".bag" for version 2.
+        scans: evenly spaced beams (LaserScan stores angle_min + i·angle_increment, in
+            float32), timestamps non-decreasing and >= 0.
+        storage: ROS 2 storage, "mcap" or "sqlite3".
+        overwrite: replace an existing bag at `path`.
+
+    Raises:
+        BagExistsError: `path` exists and overwrite is False.
+        ValueError: uneven beams, timestamps going backwards, a bad path or version.
+    """
+    path = Path(path)
+    if version not in (1, 2):
+        raise ValueError(f"version must be 1 (ROS 1) or 2 (ROS 2), got {version!r}")
+    if version == 1 and path.suffix != ".bag":
+        raise ValueError(f"{path}: a ROS 1 bag must end in '.bag' (readers recognise it so)")
+    if version == 2 and path.suffix == ".bag":
+        raise ValueError(
+            f"{path}: a ROS 2 bag folder must not end in '.bag' (readers take that for ROS 1)"
+        )
+    plugin = _storage_plugin(storage)
+    angle_min, increment = _even_beams(scans.angles)
+    stamps = [_to_ns(t) for t in scans.timestamps]
+    if any(b < a for a, b in zip(stamps, stamps[1:])):
+        raise ValueError("write_laserscan_bag: scan timestamps must not decrease")
+    if not len(scans):
+        raise ValueError("write_laserscan_bag needs at least one scan")
+    if not (math.isfinite(scans.max_range) and scans.max_range > 0.0):
+        raise ValueError(f"max_range must be a positive number, got {scans.max_range}")
+    ros1 = version == 1
+    store = _ros1_store() if ros1 else _ros2_store()
+    intensities = (
+        scans.remissions if scans.remissions is not None else np.zeros((len(scans), 0), np.float32)
+    )
+
+    with _atomic_path(path, overwrite) as staging:
+        writer: Any = (
+            Writer1(staging)
+            if ros1
+            else Writer2(staging, version=_ROSBAG2_VERSION, storage_plugin=plugin)
+        )
+        with writer:
+            add = _adder(writer, store, ros1)
+            conn_tf = add(tf_static_topic, TF_MESSAGE, latching=True)
+            conn_scan = add(scan_topic, LASER_SCAN)
+            conn_odom = add(odom_topic, ODOMETRY)
+            streams = [
+                _PoseStream(
+                    writer, conn_odom, store, Trajectory(scans.timestamps, scans.odometry),
+                    ODOM_FRAME, BASE_FRAME, ros1=ros1,
+                )
+            ]  # fmt: skip
+            if scans.ground_truth is not None:
+                conn_truth = add(ground_truth_topic, ODOMETRY)
+                streams.append(
+                    _PoseStream(
+                        writer, conn_truth, store,
+                        Trajectory(scans.timestamps, scans.ground_truth),
+                        WORLD_FRAME, BASE_FRAME, ros1=ros1,
+                    )
+                )  # fmt: skip
+            tf = _tf_static_msg(store, stamps[0], scans.sensor_pose, ros1=ros1)
+            writer.write(conn_tf, stamps[0], _serialize(store, tf, TF_MESSAGE, ros1))
+            scan_cls = store.types[LASER_SCAN]
+            for k, ns in enumerate(stamps):
+                for stream in streams:
+                    stream.write_until(ns)
+                msg = scan_cls(
+                    header=_header(store, ns, LASER_FRAME, ros1=ros1),
+                    angle_min=angle_min,
+                    angle_max=angle_min + increment * (scans.n_beams - 1),
+                    angle_increment=increment,
+                    time_increment=0.0,
+                    scan_time=0.0,
+                    range_min=0.0,
+                    range_max=float(scans.max_range),
+                    ranges=np.ascontiguousarray(scans.ranges[k], dtype=np.float32),
+                    intensities=np.ascontiguousarray(intensities[k], dtype=np.float32),
+                )
+                writer.write(conn_scan, ns, _serialize(store, msg, LASER_SCAN, ros1))
+
+
+def _adder(writer: Any, store: Any, ros1: bool) -> Any:
+    def add(topic: str, msgtype: str, *, latching: bool = False) -> Any:
+        if ros1:
+            return writer.add_connection(
+                topic, msgtype, typestore=store, latching=1 if latching else None
+            )
+        return writer.add_connection(topic, msgtype, typestore=store)
+
+    return add
+
+
+def _tf_static_msg(store: Any, ns: int, sensor_pose: np.ndarray, *, ros1: bool) -> Any:
+    types = store.types
+    qx, qy, qz, qw = (float(v) for v in yaw_to_quaternion(sensor_pose[2]))
+    transform = types["geometry_msgs/msg/TransformStamped"](
+        header=_header(store, ns, BASE_FRAME, ros1=ros1),
+        child_frame_id=LASER_FRAME,
+        transform=types["geometry_msgs/msg/Transform"](
+            translation=types["geometry_msgs/msg/Vector3"](
+                x=float(sensor_pose[0]), y=float(sensor_pose[1]), z=0.0
+            ),
+            rotation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+        ),
+    )
+    return types[TF_MESSAGE](transforms=[transform])
+
+
+def _even_beams(angles: np.ndarray) -> tuple[float, float]:
+    """(angle_min, angle_increment) of evenly spaced beams, else ValueError."""
+    n = len(angles)
+    if n == 0:
+        raise ValueError("a LaserScan needs at least one beam")
+    increment = 0.0 if n == 1 else (angles[-1] - angles[0]) / (n - 1)
+    error = np.max(np.abs(angles - (angles[0] + increment * np.arange(n))))
+    if error > _GEOMETRY_TOLERANCE:
+        raise ValueError(
+            f"a LaserScan needs evenly spaced beams; these deviate by up to {error:.3g} rad"
+        )
+    return float(angles[0]), float(increment)

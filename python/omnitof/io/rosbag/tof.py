@@ -1,0 +1,604 @@
+"""ToF bags (`write_tof_bag`, `read_tof_bag`): ToF images, camera info and odometry.
+
+A ToF bag is a ROS 2 bag folder, MCAP storage by default (`DEFAULT_STORAGE`; "sqlite3" on
+request), rosbag2 metadata version 8, message definitions from ROS 2 Humble (identical in later
+distributions for the types used here); the reader takes ROS 1 bags too. Default topics
+(`ToFTopics`):
+
+    /tof/distance     sensor_msgs/Image       32FC1, metres: the camera's one-way radial distance
+                                              (what the ToF measures), not the depth z
+    /tof/amplitude    sensor_msgs/Image       32FC1, the amplitude A of paper eq. 3, sample units
+    /tof/samples      sensor_msgs/Image       32FC4, optional: the raw samples, interleaved per
+                                              pixel, channel k = A_k (one topic, not four)
+    /tof/camera_info  sensor_msgs/CameraInfo  one per frame: width, height, K, R = I, P = [K|0],
+                                              D "plumb_bob" (k1, k2, p1, p2, k3): OpenCV's order
+    /odom             nav_msgs/Odometry       odom → base_link, at the trajectory's own timestamps
+    /ground_truth     nav_msgs/Odometry       world → base_link, optional (simulation)
+
+The images and the camera info of one frame share one header stamp: that stamp *is* the frame's
+timestamp, and the reader groups a frame's images by it. Each message's bag (log) time equals its
+header stamp. Images are little-endian, rows packed (step = width · 4 · channels), pixel
+[row, col] as in omnitof.sensor.camera. Odometry poses are planar: position (x, y, 0),
+orientation the quaternion of a rotation by θ about +z, covariances and twist left zero
+(unknown).
+
+The sidecar (`<bag>/omnitof.yaml`), the all-or-nothing write and the time conversions are those
+of `omnitof.io.rosbag.common`.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections import OrderedDict
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from typing import Any
+
+import numpy as np
+from rosbags.rosbag2 import Writer as Writer2
+
+from omnitof.errors import InputError
+from omnitof.geometry import interpolate_poses
+from omnitof.io.rosbag.common import (
+    _ROSBAG2_VERSION,
+    BASE_FRAME,
+    CAMERA_FRAME,
+    CAMERA_INFO,
+    DEFAULT_STORAGE,
+    IMAGE,
+    ODOM_FRAME,
+    ODOMETRY,
+    SIDECAR_NAME,
+    WORLD_FRAME,
+    RosbagWarning,
+    _atomic_path,
+    _connections,
+    _header,
+    _messages,
+    _ns_to_s,
+    _opened,
+    _PoseStream,
+    _read_sidecar,
+    _read_trajectories,
+    _ros2_store,
+    _sidecar_text,
+    _stamp_ns,
+    _storage_plugin,
+    _to_ns,
+)
+from omnitof.sensor.camera import Camera, CameraParameterError
+from omnitof.sensor.rig import Rig
+from omnitof.types import Trajectory
+
+__all__ = ["ToFBag", "ToFFrameStamped", "ToFTopics", "read_tof_bag", "write_tof_bag"]
+
+# Images of one frame that wait for their partners; more means a topic stopped publishing.
+_MAX_PENDING_FRAMES = 64
+
+
+# --- plain types ---------------------------------------------------------------------------
+
+
+@dataclass
+class ToFFrameStamped:
+    """One ToF camera frame with its time.
+
+    Attributes:
+        timestamp: seconds (ROS time), the header stamp of the frame's images.
+        distance: (H, W) float32, metres, one-way radial distance per pixel.
+        amplitude: (H, W) float32, sample units.
+        samples: (4, H, W) float32 raw samples A0..A3, or None.
+        odometry: (3,) float64 odometry pose (x, y, θ) at `timestamp`, interpolated by
+            `ToFBag.frames`; None outside the odometry's time span or when the bag has none.
+            Ignored by `write_tof_bag`, which takes the whole trajectory.
+        ground_truth: (3,) float64 true pose at `timestamp`, likewise.
+    """
+
+    timestamp: float
+    distance: np.ndarray
+    amplitude: np.ndarray
+    samples: np.ndarray | None = None
+    odometry: np.ndarray | None = None
+    ground_truth: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.timestamp = float(self.timestamp)
+        self.distance = np.asarray(self.distance, dtype=np.float32)
+        self.amplitude = np.asarray(self.amplitude, dtype=np.float32)
+        if self.distance.ndim != 2:
+            raise ValueError(f"distance must be an (H, W) image, got shape {self.distance.shape}")
+        if self.amplitude.shape != self.distance.shape:
+            raise ValueError(
+                f"amplitude must have the shape of distance {self.distance.shape}, "
+                f"got {self.amplitude.shape}"
+            )
+        if self.samples is not None:
+            self.samples = np.asarray(self.samples, dtype=np.float32)
+            if self.samples.shape != (4, *self.distance.shape):
+                raise ValueError(
+                    f"samples must have shape (4, H, W) = {(4, *self.distance.shape)}, "
+                    f"got {self.samples.shape}"
+                )
+
+
+@dataclass(frozen=True)
+class ToFTopics:
+    """Topic names of a ToF bag (the defaults are what `write_tof_bag` writes)."""
+
+    distance: str = "/tof/distance"
+    amplitude: str = "/tof/amplitude"
+    samples: str = "/tof/samples"
+    camera_info: str = "/tof/camera_info"
+    odometry: str = "/odom"
+    ground_truth: str = "/ground_truth"
+
+
+# --- writing ToF bags ----------------------------------------------------------------------
+
+
+def write_tof_bag(
+    path: str | Path,
+    frames: Iterable[ToFFrameStamped],
+    *,
+    camera: Camera,
+    odometry: Trajectory,
+    ground_truth: Trajectory | None = None,
+    sidecar: dict | None = None,
+    storage: str = DEFAULT_STORAGE,
+    topics: ToFTopics = ToFTopics(),
+    overwrite: bool = False,
+) -> int:
+    """Write a ToF sequence as a ROS 2 bag folder (layout in the module docstring).
+
+    `frames` is consumed one at a time, so a long sequence can be generated on the fly and
+    never held in memory. Odometry and ground-truth messages are interleaved with the frames in
+    time order. Raw samples are written when the first frame has them (then every frame must).
+
+    Args:
+        path: the bag folder to create (ROS 2 bags are folders; not ending in ".bag", which
+            readers take for a ROS 1 bag file).
+        frames: ToFFrameStamped with strictly increasing timestamps, images of camera.shape.
+        camera: the intrinsics written to every camera_info message.
+        odometry: odometry poses (odom → base_link) with non-decreasing timestamps.
+        ground_truth: true poses (world → base_link), or None.
+        sidecar: a YAML-serialisable dict (numpy arrays and scalars are converted) written to
+            `<bag>/omnitof.yaml`, or None for no sidecar.
+        storage: "mcap" or "sqlite3".
+        topics: topic names.
+        overwrite: replace an existing bag at `path` (the old one is moved aside only once the
+            new one is complete, and restored if the final rename fails).
+
+    Returns:
+        The number of frames written.
+
+    Raises:
+        BagExistsError: `path` exists and overwrite is False.
+        ValueError: bad frames, trajectories or arguments (nothing is left at `path`).
+    """
+    path = Path(path)
+    plugin = _storage_plugin(storage)
+    if path.suffix == ".bag":
+        raise ValueError(
+            f"{path}: a ROS 2 bag folder must not end in '.bag' (readers take that for ROS 1)"
+        )
+    odometry = _checked_trajectory(odometry, "odometry")
+    if ground_truth is not None:
+        ground_truth = _checked_trajectory(ground_truth, "ground_truth")
+    sidecar_text = None if sidecar is None else _sidecar_text(sidecar)
+    store = _ros2_store()
+
+    count = 0
+    with _atomic_path(path, overwrite) as staging:
+        with Writer2(staging, version=_ROSBAG2_VERSION, storage_plugin=plugin) as writer:
+            conn_distance = writer.add_connection(topics.distance, IMAGE, typestore=store)
+            conn_amplitude = writer.add_connection(topics.amplitude, IMAGE, typestore=store)
+            conn_info = writer.add_connection(topics.camera_info, CAMERA_INFO, typestore=store)
+            conn_samples = None
+            pose_streams = [
+                _PoseStream(
+                    writer,
+                    writer.add_connection(topics.odometry, ODOMETRY, typestore=store),
+                    store, odometry, ODOM_FRAME, BASE_FRAME, ros1=False,
+                )
+            ]  # fmt: skip
+            if ground_truth is not None:
+                conn_truth = writer.add_connection(topics.ground_truth, ODOMETRY, typestore=store)
+                pose_streams.append(
+                    _PoseStream(
+                        writer, conn_truth, store, ground_truth, WORLD_FRAME, BASE_FRAME,
+                        ros1=False,
+                    )
+                )  # fmt: skip
+            has_samples = False
+            previous_ns = -1
+            for frame in frames:
+                if not isinstance(frame, ToFFrameStamped):
+                    raise ValueError(
+                        f"frames must be ToFFrameStamped, got {type(frame).__name__} "
+                        f"(frame {count})"
+                    )
+                if frame.distance.shape != camera.shape:
+                    raise ValueError(
+                        f"frame {count} (t = {frame.timestamp} s): image shape "
+                        f"{frame.distance.shape} is not the camera's (height, width) = "
+                        f"{camera.shape}"
+                    )
+                ns = _to_ns(frame.timestamp)
+                if ns <= previous_ns:
+                    raise ValueError(
+                        f"frame timestamps must increase: frame {count} at {frame.timestamp} s "
+                        f"follows {_ns_to_s(previous_ns)} s"
+                    )
+                if count == 0:
+                    has_samples = frame.samples is not None
+                    if has_samples:
+                        conn_samples = writer.add_connection(topics.samples, IMAGE, typestore=store)
+                elif (frame.samples is not None) != has_samples:
+                    raise ValueError(
+                        f"frame {count} (t = {frame.timestamp} s) "
+                        f"{'lacks' if has_samples else 'has'} raw samples, unlike frame 0: "
+                        "either every frame has them or none"
+                    )
+                for stream in pose_streams:
+                    stream.write_until(ns)
+                header = _header(store, ns, CAMERA_FRAME)
+                writer.write(conn_info, ns, _camera_info_cdr(store, header, camera))
+                writer.write(conn_distance, ns, _image_cdr(store, header, frame.distance, "32FC1"))
+                writer.write(
+                    conn_amplitude, ns, _image_cdr(store, header, frame.amplitude, "32FC1")
+                )
+                if conn_samples is not None and frame.samples is not None:
+                    interleaved = np.moveaxis(frame.samples, 0, -1)  # (H, W, 4): A0..A3/pixel
+                    writer.write(conn_samples, ns, _image_cdr(store, header, interleaved, "32FC4"))
+                previous_ns = ns
+                count += 1
+            if count == 0:
+                raise ValueError("write_tof_bag needs at least one frame")
+            for stream in pose_streams:
+                stream.write_until(None)
+        if sidecar_text is not None:
+            (staging / SIDECAR_NAME).write_text(sidecar_text, encoding="utf-8")
+    return count
+
+
+def _image_cdr(store: Any, header: Any, image: np.ndarray, encoding: str) -> Any:
+    data = np.ascontiguousarray(image, dtype="<f4")
+    height, width = data.shape[:2]
+    channels = 1 if data.ndim == 2 else data.shape[2]
+    msg = store.types[IMAGE](
+        header=header,
+        height=height,
+        width=width,
+        encoding=encoding,
+        is_bigendian=0,
+        step=width * 4 * channels,
+        data=data.reshape(-1).view(np.uint8),
+    )
+    return store.serialize_cdr(msg, IMAGE)
+
+
+def _camera_info_cdr(store: Any, header: Any, camera: Camera) -> Any:
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+    roi = store.types["sensor_msgs/msg/RegionOfInterest"](
+        x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+    )
+    msg = store.types[CAMERA_INFO](
+        header=header,
+        height=camera.height,
+        width=camera.width,
+        distortion_model="plumb_bob",
+        d=np.array(camera.dist, dtype=np.float64),
+        k=camera.K.reshape(-1),
+        r=np.eye(3).reshape(-1),
+        p=np.array([fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0]),
+        binning_x=0,
+        binning_y=0,
+        roi=roi,
+    )
+    return store.serialize_cdr(msg, CAMERA_INFO)
+
+
+def _checked_trajectory(trajectory: Trajectory, name: str) -> Trajectory:
+    if not isinstance(trajectory, Trajectory):
+        raise ValueError(f"{name} must be a Trajectory, got {type(trajectory).__name__}")
+    if not np.all(np.isfinite(trajectory.poses)) or not np.all(
+        np.isfinite(trajectory.timestamps)
+    ):
+        raise ValueError(f"{name} has non-finite poses or timestamps")
+    if len(trajectory) == 0:
+        raise ValueError(f"{name} has no pose")
+    if np.any(np.diff(trajectory.timestamps) < 0):
+        raise ValueError(f"{name} timestamps must not decrease")
+    return trajectory
+
+
+# --- reading ToF bags ----------------------------------------------------------------------
+
+
+@dataclass
+class ToFBag:
+    """A ToF bag opened by `read_tof_bag`: metadata, trajectories and a streaming frame reader.
+
+    Attributes:
+        path: the bag.
+        camera: intrinsics from the first camera_info message.
+        odometry: the odometry poses as recorded (their own timestamps), or None when the bag
+            has none and read_tof_bag was told not to require it.
+        ground_truth: the ground-truth poses as recorded, or None.
+        sidecar: the sidecar dict (`<bag>/omnitof.yaml`), or None when there is none.
+        topics: the topic names used.
+        n_frames: the number of distance images in the bag.
+        has_samples: whether the bag has the raw-samples topic.
+    """
+
+    path: Path
+    camera: Camera
+    odometry: Trajectory | None
+    ground_truth: Trajectory | None
+    sidecar: dict | None
+    topics: ToFTopics
+    n_frames: int
+    has_samples: bool
+    _timestamps: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
+
+    @property
+    def rig(self) -> Rig | None:
+        """The rig the sidecar describes (a simulated bag's true rig), or None without one;
+        RigError naming the field if the sidecar's rig is broken."""
+        if self.sidecar is None or "mirrors" not in self.sidecar:
+            return None
+        return Rig.from_dict(self.sidecar, self.path)
+
+    def __len__(self) -> int:
+        return self.n_frames
+
+    def __iter__(self) -> Iterator[ToFFrameStamped]:
+        return self.frames()
+
+    def frames(self, *, samples: bool = True) -> Iterator[ToFFrameStamped]:
+        """Stream the frames in time order, each with its interpolated odometry pose.
+
+        Opens the bag anew on every call, holds only a few frames at a time, and closes it when
+        the iteration ends or the iterator is dropped. A frame whose images are incomplete (one
+        topic dropped that stamp) is skipped with a RosbagWarning.
+
+        Args:
+            samples: also read the raw samples when the bag has them (False saves I/O).
+
+        Raises:
+            InputError: naming the bag and topic, for a wrong encoding, an image whose size is
+                not camera_info's, timestamps that go backwards, or a topic that stops.
+        """
+        roles = {self.topics.distance: "distance", self.topics.amplitude: "amplitude"}
+        if samples and self.has_samples:
+            roles[self.topics.samples] = "samples"
+        formats = {"distance": ("32FC1", 1), "amplitude": ("32FC1", 1), "samples": ("32FC4", 4)}
+        shape = self.camera.shape
+        last_ns = dict.fromkeys(roles.values(), -1)
+        pending: OrderedDict[int, dict[str, np.ndarray]] = OrderedDict()
+        emitted_ns = -1
+        dropped: list[int] = []
+        with _opened(self.path) as reader:
+            connections = [c for c in reader.connections if c.topic in roles]
+            for conn, msg in _messages(reader, self.path, connections):
+                role = roles[conn.topic]
+                ns = _stamp_ns(msg.header.stamp)
+                if ns <= last_ns[role]:
+                    raise InputError(
+                        f"topic {conn.topic}: timestamps go backwards: an image stamped "
+                        f"{_ns_to_s(ns):.9f} s follows one stamped {_ns_to_s(last_ns[role]):.9f} s",
+                        self.path,
+                    )
+                last_ns[role] = ns
+                encoding, channels = formats[role]
+                pending.setdefault(ns, {})[role] = _decode_image(
+                    msg, self.path, conn.topic, encoding, channels, shape,
+                    self.topics.camera_info,
+                )  # fmt: skip
+                while pending:
+                    stamp, parts = next(iter(pending.items()))
+                    missing = [r for r in last_ns if r not in parts]
+                    if missing and not all(last_ns[r] > stamp for r in missing):
+                        break  # its missing images may still come
+                    del pending[stamp]
+                    if missing:
+                        dropped.append(stamp)
+                        continue
+                    if stamp <= emitted_ns:
+                        raise InputError(
+                            f"topic {self.topics.distance}: timestamps go backwards: the frame "
+                            f"at {_ns_to_s(stamp):.9f} s completes after the frame at "
+                            f"{_ns_to_s(emitted_ns):.9f} s",
+                            self.path,
+                        )
+                    emitted_ns = stamp
+                    yield self._frame(stamp, parts)
+                if len(pending) > _MAX_PENDING_FRAMES:
+                    stamp, parts = next(iter(pending.items()))
+                    missing = [t for t, r in roles.items() if r not in parts]
+                    raise InputError(
+                        f"topic {', '.join(missing)}: no image for the frame at "
+                        f"{_ns_to_s(stamp):.9f} s while {len(pending)} frames wait for it; "
+                        "the images of one frame must share one header stamp",
+                        self.path,
+                    )
+        dropped.extend(pending)
+        if dropped:
+            warnings.warn(
+                f"{self.path}: skipped {len(dropped)} frame(s) whose images were incomplete "
+                f"(first at {_ns_to_s(dropped[0]):.9f} s)",
+                RosbagWarning,
+                stacklevel=2,
+            )
+
+    def frame_timestamps(self) -> np.ndarray:
+        """(N,) float64 header stamps of the distance images, seconds (one pass, cached)."""
+        if self._timestamps is None:
+            stamps = []
+            with _opened(self.path) as reader:
+                connections = [c for c in reader.connections if c.topic == self.topics.distance]
+                for _, msg in _messages(reader, self.path, connections):
+                    stamps.append(_stamp_ns(msg.header.stamp))
+            self._timestamps = np.array([_ns_to_s(ns) for ns in stamps], dtype=np.float64)
+        return self._timestamps
+
+    def odometry_at(self, timestamps: np.ndarray | float) -> np.ndarray:
+        """Odometry poses (N, 3) at `timestamps` (see interpolate_poses); NaN outside its span."""
+        if self.odometry is None:
+            return np.full((np.size(timestamps), 3), np.nan)
+        return interpolate_poses(self.odometry, timestamps)
+
+    def frame_odometry(self) -> Trajectory:
+        """The odometry pose at every frame's timestamp, interpolated (InputError outside)."""
+        return self._at_frames(self.odometry, self.topics.odometry)
+
+    def frame_ground_truth(self) -> Trajectory | None:
+        """The true pose at every frame's timestamp, interpolated; None without ground truth."""
+        if self.ground_truth is None:
+            return None
+        return self._at_frames(self.ground_truth, self.topics.ground_truth)
+
+    def _at_frames(self, trajectory: Trajectory | None, topic: str) -> Trajectory:
+        if trajectory is None:
+            raise InputError(f"topic {topic}: the bag has no odometry", self.path)
+        t = self.frame_timestamps()
+        poses = interpolate_poses(trajectory, t)
+        outside = np.flatnonzero(np.isnan(poses[:, 0]))
+        if outside.size:
+            raise InputError(
+                f"topic {topic}: frame {outside[0]} at {t[outside[0]]:.9f} s is outside the "
+                f"poses' time span [{trajectory.timestamps[0]:.9f}, "
+                f"{trajectory.timestamps[-1]:.9f}] s",
+                self.path,
+            )
+        return Trajectory(t, poses)
+
+    def _frame(self, ns: int, parts: dict[str, np.ndarray]) -> ToFFrameStamped:
+        t = _ns_to_s(ns)
+        samples = parts.get("samples")
+        if samples is not None:
+            samples = np.ascontiguousarray(np.moveaxis(samples, -1, 0))
+        odometry = ground_truth = None
+        if self.odometry is not None:
+            pose = interpolate_poses(self.odometry, t)[0]
+            odometry = None if np.isnan(pose[0]) else pose
+        if self.ground_truth is not None:
+            pose = interpolate_poses(self.ground_truth, t)[0]
+            ground_truth = None if np.isnan(pose[0]) else pose
+        return ToFFrameStamped(
+            t, parts["distance"], parts["amplitude"], samples, odometry, ground_truth
+        )
+
+
+def read_tof_bag(
+    path: str | Path, *, topics: ToFTopics = ToFTopics(), require_odometry: bool = True
+) -> ToFBag:
+    """Open a ToF bag: read its camera, trajectories and sidecar; stream frames on demand.
+
+    Reads any ROS 1 or ROS 2 bag with the topics of `topics` (the layout of the module
+    docstring). Reading the frames is left to `ToFBag.frames()`, which streams them.
+
+    Args:
+        path: a ROS 2 bag folder (or bare .mcap/.db3 file), or a ROS 1 .bag file.
+        topics: topic names.
+        require_odometry: when False, a bag without the odometry topic is accepted (odometry
+            None), e.g. a recording of a calibration target.
+
+    Raises:
+        InputError: naming the bag (and the topic): not a bag, a missing topic or one of the
+            wrong type, a camera_info omnitof's Camera cannot represent, odometry timestamps
+            that go backwards, an unreadable sidecar.
+    """
+    path = Path(path)
+    with _opened(path) as reader:
+        _connections(reader, path, topics.distance, IMAGE)
+        _connections(reader, path, topics.amplitude, IMAGE)
+        info = _connections(reader, path, topics.camera_info, CAMERA_INFO) or []
+        samples = _connections(reader, path, topics.samples, IMAGE, required=False)
+        odometry = _connections(
+            reader, path, topics.odometry, ODOMETRY, required=require_odometry
+        )
+        truth = _connections(reader, path, topics.ground_truth, ODOMETRY, required=False)
+        n_frames = sum(c.msgcount for c in reader.connections if c.topic == topics.distance)
+        camera = None
+        for _, msg in _messages(reader, path, info):
+            camera = _camera_from_info(msg, path, topics.camera_info)
+            break
+        if camera is None:
+            raise InputError(f"topic {topics.camera_info}: has no message", path)
+        trajectories = _read_trajectories(reader, path, (odometry or []) + (truth or []))
+    return ToFBag(
+        path=path,
+        camera=camera,
+        odometry=trajectories.get(topics.odometry) if odometry else None,
+        ground_truth=trajectories.get(topics.ground_truth) if truth else None,
+        sidecar=_read_sidecar(path),
+        topics=topics,
+        n_frames=n_frames,
+        has_samples=samples is not None,
+    )
+
+
+def _decode_image(
+    msg: Any, path: Path, topic: str, encoding: str, channels: int,
+    shape: tuple[int, int], info_topic: str,
+) -> np.ndarray:  # fmt: skip
+    """(H, W) or (H, W, channels) float32 pixels of a sensor_msgs/Image, checked."""
+    if msg.encoding != encoding:
+        raise InputError(
+            f"topic {topic}: image encoding {msg.encoding!r}, expected {encoding!r}", path
+        )
+    height, width = int(msg.height), int(msg.width)
+    if (height, width) != shape:
+        raise InputError(
+            f"topic {topic}: image of {width}×{height} pixels at "
+            f"{_ns_to_s(_stamp_ns(msg.header.stamp)):.9f} s, but {info_topic} says "
+            f"{shape[1]}×{shape[0]}",
+            path,
+        )
+    row = width * 4 * channels
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if msg.step < row or data.size != msg.step * height:
+        raise InputError(
+            f"topic {topic}: image step {msg.step} and {data.size} data bytes do not fit "
+            f"{width}×{height} {encoding} pixels",
+            path,
+        )
+    rows = data.reshape(height, msg.step)[:, :row].copy()  # copy: detach from the bag's buffer
+    pixels = rows.view(">f4" if msg.is_bigendian else "<f4").astype(np.float32, copy=False)
+    return pixels.reshape((height, width) if channels == 1 else (height, width, channels))
+
+
+def _camera_from_info(msg: Any, path: Path, topic: str) -> Camera:
+    """omnitof's Camera from a sensor_msgs/CameraInfo (plumb_bob, no skew)."""
+    k = np.asarray(msg.k, dtype=np.float64)
+    d = [float(v) for v in msg.d]
+    model = str(msg.distortion_model)
+    if model in ("plumb_bob", "rational_polynomial") and len(d) in (5, 8):
+        if any(d[5:]):
+            raise InputError(
+                f"topic {topic}: rational_polynomial coefficients k4..k6 = {d[5:]} are not "
+                "supported (omnitof's Camera has k1, k2, p1, p2, k3)",
+                path,
+            )
+        dist = tuple(d[:5])
+    elif len(d) == 0 or not any(d):
+        dist = (0.0,) * 5
+    else:
+        raise InputError(
+            f"topic {topic}: distortion model {model!r} with {len(d)} coefficients is not "
+            "supported; expected plumb_bob (k1, k2, p1, p2, k3)",
+            path,
+        )
+    if k[1] != 0.0 or k[3] != 0.0 or tuple(k[6:]) != (0.0, 0.0, 1.0):
+        raise InputError(
+            f"topic {topic}: K = {k.tolist()} is not [fx 0 cx; 0 fy cy; 0 0 1] (no skew)", path
+        )
+    try:
+        return Camera(
+            int(msg.width), int(msg.height), k[0], k[4], k[2], k[5], dist  # type: ignore[arg-type]
+        )
+    except CameraParameterError as err:
+        raise InputError(f"topic {topic}: {err}", path) from None
