@@ -71,6 +71,14 @@ class ScanSequence:
     def n_beams(self) -> int:
         return len(self.angles)
 
+    def scan_angles(self, i: int) -> np.ndarray:
+        """(B_i,) bearings of scan i's beams (sensor frame, radians)."""
+        return self.angles
+
+    def scan_ranges(self, i: int) -> np.ndarray:
+        """(B_i,) ranges of scan i (metres, +inf = no echo), one per `scan_angles(i)`."""
+        return self.ranges[i]
+
     def slice(self, start: int | None = None, stop: int | None = None) -> "ScanSequence":
         """The scans start..stop (a view-free copy with the same metadata)."""
         s = np.s_[start:stop]
