@@ -7,6 +7,7 @@ import numpy.typing as npt
 __all__ = [
     "OccupancyGrid",
     "ParticleFilter",
+    "Submap",
     "VoxelGrid",
     "beam_likelihood",
     "low_variance_resample",
@@ -38,6 +39,11 @@ class ParticleFilter:
         scan_max_range: float,
     ) -> ParticleFilter: ...
     def step(self, odom_prev: _F64, odom_cur: _F64, ranges: _F32, scan: int) -> tuple[float, bool, bool]: ...
+    def match_scan(
+        self, start: _F64, ranges: _F32, angles: _F64 | None = None
+    ) -> tuple[list[float], float] | None: ...
+    def best_pose(self) -> _F64 | None: ...
+    def reset(self, pose: _F64, scan: int, grid: OccupancyGrid) -> None: ...
     def best_trajectory(self) -> tuple[_U64, _F64]: ...
     def best_map(self) -> tuple[_F32, int, int]: ...
     def map_of(self, index: int) -> tuple[_F32, int, int]: ...
@@ -83,6 +89,47 @@ class OccupancyGrid:
         gauss_newton: int = 10,
     ) -> tuple[list[float], float]: ...
     def expected_ranges(self, sensor_pose: _F64, angles: _F64, max_range: float, occupied_threshold: float) -> _F64: ...
+
+@final
+class Submap:
+    def __new__(
+        cls,
+        resolution: float,
+        l_occ: float,
+        l_free: float,
+        l_min: float,
+        l_max: float,
+        max_range: float,
+        *,
+        clear_no_echo: bool = False,
+        unknown_probability: float = ...,
+        depth: int = ...,
+        threads: int | None = None,
+    ) -> Submap: ...
+    def insert(self, pose: _F64, ranges: _F32, angles: _F64, sensor_pose: _F64 | None = None) -> None: ...
+    def finish(self) -> None: ...
+    @property
+    def finished(self) -> bool: ...
+    @property
+    def num_scans(self) -> int: ...
+    @property
+    def origin(self) -> _F64 | None: ...
+    @property
+    def resolution(self) -> float: ...
+    def memory_bytes(self) -> int: ...
+    def to_dense(self) -> tuple[_F32, int, int]: ...
+    def match_scan(
+        self,
+        ranges: _F32,
+        angles: _F64,
+        initial_pose: _F64,
+        linear_window: float,
+        angular_window: float,
+        min_score: float,
+        sensor_pose: _F64 | None = None,
+        refine: bool = True,
+        field_sigma: float | None = None,
+    ) -> tuple[_F64, float, _F64] | None: ...
 
 @final
 class VoxelGrid:

@@ -73,7 +73,9 @@ def cmd_slam(args: argparse.Namespace) -> int:
     tof = is_tof_bag(args.log)
     if not tof and (args.calibration is not None or args.map3d):
         raise OmnitofError(f"{args.log}: --calibration and --map3d need a bag of ToF images")
-    cfg = _config_from_args(args, default_preset="tof" if tof else None)
+    # Without --preset: the scan-matching filter with the pose-graph back end, for either kind of
+    # input (the paper's filter is `--preset paper` / `--preset tof`).
+    cfg = _config_from_args(args, default_preset="tof-scanmatch" if tof else "laser180-scanmatch")
     if tof:
         tof_data = _read_tof_input(args, cloud_every=args.map3d_every if args.map3d else 0,
                                    max_frames=args.max_scans)

@@ -1,10 +1,12 @@
 """The results folder of a SLAM run, so that a run can be inspected and reproduced:
 
     map.pgm, map.yaml     the best particle's map (ROS map_server format)
-    trajectory.tum        the corrected pose at every scan (TUM: timestamp x y z qx qy qz qw)
+    trajectory.tum        the corrected pose at every scan (TUM: timestamp x y z qx qy qz qw); with
+                          the back end, the optimised one
     odometry.tum          the raw odometry at every scan
     config.yaml           the configuration actually used
     map.png               the map with the SLAM and odometry trajectories drawn over it
+    pose_graph.png        with the back end: its nodes and loop closures over the map
     summary.yaml          counts, timings and any evaluation
     map3d.ply, map3d.png  the 3D voxel map of a ToF run, when asked (`write_voxel_outputs`)
 
@@ -27,7 +29,7 @@ from omnitof.io.tum import write_tum
 from omnitof.slam import SlamResult
 from omnitof.map3d import VoxelMap
 from omnitof.types import Trajectory
-from omnitof.viz.maps import plot_map
+from omnitof.viz.maps import plot_map, plot_pose_graph
 from omnitof.viz.map3d import height_colors, plot_voxels
 from omnitof.io.ply import write_ply
 
@@ -63,6 +65,10 @@ def write_results(
         write_tum(out / "ground_truth.tum", Trajectory(result.trajectory.timestamps, ground_truth), sort=True)
         paths["ground_truth"] = out / "ground_truth.tum"
     plot_map(paths["figure"], result.map, drawn, title=title)
+    if result.graph is not None:
+        paths["pose_graph"] = out / "pose_graph.png"
+        plot_pose_graph(paths["pose_graph"], result.map, result.graph["nodes"], result.graph["closures"],
+                        result.graph["rejected"], title=f"pose graph: {title}" if title else "")
     summary = {"run": result.stats, **(extra or {})}
     with atomic_write(paths["summary"]) as f:
         yaml.safe_dump(summary, f, sort_keys=False)

@@ -19,7 +19,7 @@ use rayon::prelude::*;
 
 use crate::grid::{LogOddsModel, TiledGrid};
 use crate::motion::OdometryMotion;
-use crate::scan_match::{check_odometry, endpoints, propose, LikelihoodField, MatcherParams};
+use crate::scan_match::{check_odometry, endpoints, local_match, propose, LikelihoodField, MatcherParams};
 use crate::sensor_model::{integrate_scan, BeamModel, ScanGeometry};
 
 /// Where a particle's new pose is drawn from.
@@ -114,6 +114,11 @@ pub struct ParticleFilter {
     best: usize,
     pool: rayon::ThreadPool,
 }
+
+/// First steps (m, rad) of the climb that poses a scan between integrated ones.
+const BETWEEN_STEP_XY: f64 = 0.01;
+const BETWEEN_STEP_THETA: f64 = 0.005;
+const BETWEEN_GAUSS_NEWTON: u32 = 4;
 
 /// SplitMix64 finaliser: decorrelates generator seeds built from (seed, step, particle).
 fn mix(mut z: u64) -> u64 {
@@ -285,6 +290,41 @@ impl ParticleFilter {
             self.best = best;
         }
         StepInfo { neff: n_eff, resampled, fallbacks, odometry_corrected: corrected.is_some() }
+    }
+
+    /// One local match, from `start`, of a scan in the best particle's map (with the filter's
+    /// likelihood field and matcher): the pose of a scan taken between integrated scans, and
+    /// the share of its end points that found an obstacle of the map. None before the first scan.
+    pub fn match_in_best(&self, start: [f64; 3], ranges: &[f32], angles: Option<&[f64]>) -> Option<([f64; 3], f64)> {
+        let best = self.best()?;
+        let p = &self.params;
+        let geom = ScanGeometry { angles: angles.unwrap_or(&self.angles), sensor: self.sensor };
+        let pts = endpoints(&geom, ranges, p.beam_stride, p.field.max_range);
+        if pts.is_empty() {
+            return Some((start, 0.0));
+        }
+        // The start is already good (the previous scan's pose plus the odometry since, a few
+        // centimetres of motion): a short, fine climb and then Gauss-Newton suffice.
+        let fine = MatcherParams {
+            step_xy: BETWEEN_STEP_XY.min(p.matcher.step_xy),
+            step_theta: BETWEEN_STEP_THETA.min(p.matcher.step_theta),
+            refinements: 1,
+            gauss_newton: p.matcher.gauss_newton.min(BETWEEN_GAUSS_NEWTON),
+            ..p.matcher
+        };
+        let (pose, _, matched) = local_match(&p.field, &fine, &best.map, &geom, &pts, start, None);
+        Some((pose, matched as f64 / pts.len() as f64))
+    }
+
+    /// Restart every particle at `pose` with `map` (shared between them, copy-on-write), equal
+    /// weights, and a trajectory that begins at scan `scan`: how a pose-graph back end feeds a
+    /// correction back. The step counter goes on, so the random streams stay those of the
+    /// steps to come and the run stays deterministic.
+    pub fn reset(&mut self, pose: [f64; 3], scan: u64, map: TiledGrid) {
+        let root = Arc::new(TrajectoryNode { pose, scan, parent: None });
+        let first = Particle { pose, log_weight: 0.0, map, trajectory: root };
+        self.particles = vec![first; self.params.n_particles];
+        self.best = 0;
     }
 
     /// The particle with the highest weight (after a resampling, a copy of the one that had it).

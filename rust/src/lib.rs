@@ -4,6 +4,8 @@
 pub mod correlative;
 pub mod filter;
 pub mod grid;
+pub mod loop_closure;
+mod loop_closure_bindings;
 pub mod motion;
 pub mod raycast;
 pub mod render;
@@ -327,6 +329,56 @@ impl PyParticleFilter {
         let inner = &mut self.inner;
         let info = py.detach(|| inner.step(prev, cur, ranges, scan));
         Ok((info.neff, info.resampled, info.odometry_corrected))
+    }
+
+    /// (pose, matched share) of one local match of a scan in the best particle's map from
+    /// `start` (see ParticleFilter::match_in_best); None before the first scan.
+    #[pyo3(signature = (start, ranges, angles=None))]
+    fn match_scan(
+        &self,
+        py: Python<'_>,
+        start: PyReadonlyArray1<f64>,
+        ranges: PyReadonlyArray1<f32>,
+        angles: Option<PyReadonlyArray1<f64>>,
+    ) -> PyResult<Option<([f64; 3], f64)>> {
+        let start = pose3(start.as_slice()?, "start")?;
+        if !start.iter().all(|v| v.is_finite()) {
+            return Err(PyValueError::new_err("start must be a finite pose"));
+        }
+        let ranges = ranges.as_slice()?;
+        let angles = match &angles {
+            Some(a) => Some(a.as_slice()?),
+            None => None,
+        };
+        let n = angles.map_or(self.inner.n_beams(), |a| a.len());
+        if ranges.len() != n {
+            return Err(PyValueError::new_err(format!("scan has {} ranges for {} beam angles", ranges.len(), n)));
+        }
+        let inner = &self.inner;
+        Ok(py.detach(|| inner.match_in_best(start, ranges, angles)))
+    }
+
+    /// The best particle's pose (x, y, theta), or None before the first scan.
+    fn best_pose<'py>(&self, py: Python<'py>) -> Option<Bound<'py, PyArray1<f64>>> {
+        self.inner.best().map(|p| PyArray1::from_vec(py, p.pose.to_vec()))
+    }
+
+    /// Restart every particle at `pose` with a copy of `grid`'s map, trajectories beginning at
+    /// scan `scan` (a correction fed back from the pose graph).
+    fn reset(&mut self, pose: PyReadonlyArray1<f64>, scan: u64, grid: PyRef<'_, PyOccupancyGrid>) -> PyResult<()> {
+        let pose = pose3(pose.as_slice()?, "pose")?;
+        if !pose.iter().all(|v| v.is_finite()) {
+            return Err(PyValueError::new_err("pose must be finite"));
+        }
+        if grid.grid.resolution != self.inner.params.resolution {
+            return Err(PyValueError::new_err(format!(
+                "the grid's resolution {} differs from the filter's {}",
+                grid.grid.resolution,
+                self.inner.params.resolution
+            )));
+        }
+        self.inner.reset(pose, scan, grid.grid.clone());
+        Ok(())
     }
 
     /// (scan indices (K,), poses (K, 3)) of the best particle's integrated scans.
@@ -653,5 +705,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(neff, m)?)?;
     m.add_function(wrap_pyfunction!(low_variance_resample, m)?)?;
     render_bindings::register(m)?;
+    loop_closure_bindings::register(m)?;
     Ok(())
 }

@@ -163,9 +163,65 @@ class FilterConfig(_Section):
         0.5, gt=0, le=1, description="resample when Neff (eq. 10) falls below this fraction of the particles"
     )
     linear_update: float = Field(0.5, ge=0, description="integrate a scan after the robot moved this far (m)")
+    match_between: bool = Field(
+        False,
+        description="pose every scan between integrated ones by one local match in the best map (else by odometry)",
+    )
     angular_update_deg: float = Field(25.0, ge=0, description="... or turned this much (deg)")
     seed: int = Field(0, ge=0, lt=2**63, description="seed of every random draw; same seed, same map")
     threads: int = Field(0, ge=0, description="worker threads; 0 uses every core (results do not depend on it)")
+
+
+class BackendConfig(_Section):
+    """The pose-graph back end behind the filter (Hess et al., ICRA 2016; omnitof.slam.backend).
+
+    Every `submap_length` metres of the front end's trajectory closes a submap, a local grid of
+    the scans integrated meanwhile. Each integrated scan is searched in the finished submaps
+    near it by branch and bound (`linear_window`, `angular_window_deg`), and a match scoring at
+    least `min_score` becomes a loop-closure edge of a pose graph whose nodes are the
+    integrated scans and whose other edges are the front end's own motions. GTSAM optimises
+    the graph (Levenberg-Marquardt) with a robust kernel on the closures, so that a false one
+    cannot bend the map; where the optimum moves the robot's pose by more than `feedback_xy`
+    or `feedback_deg`, the filter continues from the corrected pose and a map rebuilt from the
+    optimised poses. The map written at the end is built from the optimised poses.
+    """
+
+    enabled: bool = Field(False, description="run the pose-graph back end")
+    submap_length: float = Field(
+        6.0, gt=0, description="metres of trajectory per submap: long enough to hold a corner, short enough to stay straight"
+    )
+    search_every: int = Field(3, ge=1, description="search loop closures from every n-th integrated scan")
+    search_radius: float = Field(
+        10.0, gt=0, description="search the submaps whose centre lies within this (m) of the scan's estimated pose"
+    )
+    linear_window: float = Field(2.5, gt=0, description="half-width (m) of the search window around the estimated pose")
+    angular_window_deg: float = Field(25.0, gt=0, le=180, description="half-width (deg) of the search window's heading")
+    min_score: float = Field(
+        0.65, gt=0, lt=1, description="accept a match whose mean end-point occupancy probability reaches this"
+    )
+    max_closures_per_scan: int = Field(1, ge=1, description="search at most this many submaps (the nearest) per scan")
+    skip_recent_submaps: int = Field(
+        1, ge=0, description="never search the submap being built nor this many finished ones before it"
+    )
+    global_search_after: int = Field(
+        0, ge=0, description="after this many integrated scans without a closure, search all submaps (0: never)"
+    )
+    global_min_score: float = Field(0.7, gt=0, lt=1, description="min_score of the global search")
+    odometry_sigma_xy: float = Field(0.005, gt=0, description="front-end edge: position sigma (m) plus ...")
+    odometry_sigma_xy_per_m: float = Field(0.01, ge=0, description="... this much per metre moved")
+    odometry_sigma_deg: float = Field(0.1, gt=0, description="front-end edge: heading sigma (deg) plus ...")
+    odometry_sigma_deg_per_m: float = Field(0.2, ge=0, description="... this much per metre moved")
+    closure_sigma_xy_min: float = Field(0.02, gt=0, description="smallest position sigma (m) of a closure edge")
+    closure_sigma_deg_min: float = Field(0.5, gt=0, description="smallest heading sigma (deg) of a closure edge")
+    robust_kernel: Literal["cauchy", "huber", "none"] = Field(
+        "cauchy", description="M-estimator on closure edges: cauchy | huber | none"
+    )
+    kernel_width: float = Field(1.0, gt=0, description="the kernel's width, in standard deviations of the closure")
+    optimize_every: int = Field(
+        20, ge=1, description="optimise at most every n-th integrated scan that brought a new closure"
+    )
+    feedback_xy: float = Field(0.25, ge=0, description="feed the correction back when it moves the pose this far (m) ...")
+    feedback_deg: float = Field(2.5, ge=0, description="... or turns it this much (deg)")
 
 
 class SlamConfig(_Section):
@@ -177,6 +233,7 @@ class SlamConfig(_Section):
     likelihood_field: LikelihoodFieldConfig = LikelihoodFieldConfig()
     scan_matcher: ScanMatcherConfig = ScanMatcherConfig()
     map: MapConfig = MapConfig()
+    backend: BackendConfig = BackendConfig()
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.model_dump(), sort_keys=False)

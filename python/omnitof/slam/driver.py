@@ -1,13 +1,16 @@
 """Run the paper's Rao-Blackwellized particle filter (section IV) over a stream of range scans.
 
 The filter itself (motion sampling, beam-model weights, log-odds maps, resampling) runs in the
-Rust core; this module decides which scans to integrate, feeds them, and turns the best
-particle's state into a map and a trajectory with a pose for every scan.
+Rust core; this module decides which scans to integrate, feeds them, hands each integrated
+scan to the pose-graph back end when it is on (`omnitof.slam.backend`), and turns the result
+into a map and a trajectory with a pose for every scan: the best particle's, or with the back
+end the optimised graph's, whose poses also build the map.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -15,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from omnitof import _core
+from omnitof.slam.backend import PoseGraphBackend
 from omnitof.slam.config import SlamConfig
 from omnitof.geometry import compose, relative
 from omnitof.types import OccupancyMap, ScanSequence, Trajectory
@@ -29,8 +33,11 @@ class SlamResult:
         motion since (so every scan of the log has a pose).
     odometry: the raw odometry pose at every scan, for comparison.
     integrated: indices of the scans the filter integrated.
-    map: the best particle's occupancy grid.
+    map: the best particle's occupancy grid, or with the back end the grid of every integrated
+        scan at its optimised pose.
     stats: counts and timings of the run.
+    graph: with the back end, its nodes' optimised poses (K, 3) (the integrated scans, in
+        order) and the accepted and rejected loop closures as (K_c, 2) node index pairs.
     """
 
     trajectory: Trajectory
@@ -38,6 +45,7 @@ class SlamResult:
     integrated: np.ndarray
     map: OccupancyMap
     stats: dict = field(default_factory=dict)
+    graph: dict | None = None
 
 
 def select_scans(odometry: np.ndarray, linear: float, angular: float) -> np.ndarray:
@@ -68,10 +76,60 @@ def _make_filter(scans: ScanSequence, cfg: SlamConfig) -> "_core.ParticleFilter"
     """The core's filter for a configuration and a sensor. The core takes every section whole,
     as one keyword each, and derives what it needs (radians, ranges capped by the sensor's,
     threads); only the scan selection (`select_scans`) is done here and kept out of it."""
-    sections = cfg.model_dump(exclude={"filter": {"linear_update", "angular_update_deg"}})
+    sections = cfg.model_dump(
+        exclude={"filter": {"linear_update", "angular_update_deg", "match_between"}, "backend": True}
+    )
     return _core.ParticleFilter(
         **sections, angles=scans.angles, sensor_pose=scans.sensor_pose, scan_max_range=scans.max_range
     )
+
+
+class _Between:
+    """Poses of the scans between integrated ones, each from one local match in the best
+    particle's map, started where the previous scan's pose and the odometry put it; where too
+    few of its end points find the map (fewer than `scan_matcher.min_matched`), the odometry's
+    prediction stands. Each pose is kept relative to the front end's pose of the integrated scan
+    before it, so that it follows that scan's final (or optimised) pose."""
+
+    def __init__(self, scans: ScanSequence, cfg: SlamConfig):
+        self.scans = scans
+        self.min_matched = cfg.scan_matcher.min_matched
+        self.relative = np.zeros((len(scans), 3))
+        self.next = 0  # first scan not yet posed
+        self.matched = 0
+        self.by_odometry = 0
+
+    def match_up_to(self, pf: "_core.ParticleFilter", stop: int) -> None:
+        """Pose the scans from the last integrated one up to (not including) `stop`, in the map
+        as it is now (it holds every scan integrated before them)."""
+        anchor_pose = pf.best_pose()
+        if anchor_pose is None:
+            self.next = stop + 1
+            return
+        odom = self.scans.odometry
+        pose = anchor_pose
+        for i in range(self.next, stop):
+            start = compose(pose, relative(odom[i - 1], odom[i]))
+            found = pf.match_scan(start, self.scans.scan_ranges(i), self._angles(i))
+            if found is not None and found[1] >= self.min_matched:
+                pose = np.asarray(found[0])
+                self.matched += 1
+            else:
+                pose = start
+                self.by_odometry += 1
+            self.relative[i] = relative(anchor_pose, pose)
+        self.next = stop + 1
+
+    def _angles(self, i: int) -> np.ndarray | None:
+        angles = self.scans.scan_angles(i)
+        return None if angles is self.scans.angles else angles
+
+    def trajectory(self, integrated: np.ndarray, corrected: np.ndarray) -> np.ndarray:
+        """Every scan's pose: integrated scans at `corrected`, the others after their anchor."""
+        last = np.searchsorted(integrated, np.arange(len(self.scans)), side="right") - 1
+        poses = compose(corrected[last], self.relative)
+        poses[integrated] = corrected
+        return poses
 
 
 def dense_to_map(log_odds: np.ndarray, ix0: int, iy0: int, resolution: float) -> OccupancyMap:
@@ -100,24 +158,48 @@ def run_slam(
         scans.odometry, cfg.filter.linear_update, math.radians(cfg.filter.angular_update_deg)
     )
     pf = _make_filter(scans, cfg)
+    backend = None
+    if cfg.backend.enabled:
+        threads = cfg.filter.threads or (os.cpu_count() or 1)
+        backend = PoseGraphBackend(cfg.backend, cfg.map, cfg.likelihood_field.sigma, scans, threads)
     prev = scans.odometry[integrated[0]]
     done = 0
     corrected_scans = []
+    between = _Between(scans, cfg) if cfg.filter.match_between else None
     for k in integrated:
+        if between is not None:
+            between.match_up_to(pf, int(k))
         cur = scans.odometry[k]
         if pf.step(prev, cur, scans.ranges[k], int(k))[2]:
             corrected_scans.append(int(k))
         prev = cur
+        if backend is not None:
+            backend.add_node(int(k), pf)
         if progress is not None:
             progress(int(k) + 1 - done)
             done = int(k) + 1
+    if between is not None:
+        between.match_up_to(pf, len(scans))
     if progress is not None and done < len(scans):
         progress(len(scans) - done)
-    scan_idx, corrected = pf.best_trajectory()
-    assert np.array_equal(scan_idx, integrated)
-    poses = fill_trajectory(scans.odometry, integrated, corrected)
-    log_odds, ix0, iy0 = pf.best_map()
     unique_tiles, tile_refs = pf.tile_counts()
+    graph = None
+    if backend is None:
+        scan_idx, corrected = pf.best_trajectory()
+        assert np.array_equal(scan_idx, integrated)
+        log_odds, ix0, iy0 = pf.best_map()
+    else:
+        corrected = backend.finish(pf)
+        log_odds, ix0, iy0 = backend.build_grid().to_dense()
+        graph = {
+            "nodes": corrected,
+            "closures": np.array([[c.anchor, c.node] for c in backend.closures if c.accepted], dtype=np.int64).reshape(-1, 2),
+            "rejected": np.array([[c.anchor, c.node] for c in backend.closures if not c.accepted], dtype=np.int64).reshape(-1, 2),
+        }
+    if between is None:
+        poses = fill_trajectory(scans.odometry, integrated, corrected)
+    else:
+        poses = between.trajectory(integrated, corrected)
     stats = {
         "scans": len(scans),
         "integrated": int(len(integrated)),
@@ -131,11 +213,18 @@ def run_slam(
         "map_tiles_referenced": int(tile_refs),
         "map_bytes": int(unique_tiles * _core.ParticleFilter.tile_bytes()),
     }
+    if between is not None:
+        stats["between_scans_matched"] = between.matched
+        stats["between_scans_by_odometry"] = between.by_odometry
+    if backend is not None:
+        stats["backend"] = backend.stats()
+        stats["loop_closures"] = backend.closure_table()
     return SlamResult(
         trajectory=Trajectory(scans.timestamps, poses),
         odometry=Trajectory(scans.timestamps, scans.odometry),
         integrated=integrated,
         map=dense_to_map(log_odds, ix0, iy0, cfg.map.resolution),
         stats=stats,
+        graph=graph,
     )
 

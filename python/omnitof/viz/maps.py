@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.axes import Axes
+from matplotlib.collections import LineCollection
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
@@ -66,6 +67,41 @@ def plot_map(
         ax.legend(loc="best")
     save_figure(fig, path, dpi=dpi, tight_layout=False)
     return fig
+
+
+def plot_pose_graph(
+    path: str | Path,
+    occ: OccupancyMap,
+    nodes: np.ndarray,
+    closures: np.ndarray,
+    rejected: np.ndarray | None = None,
+    *,
+    title: str = "",
+    dpi: int = 150,
+    figsize: tuple[float, float] = DEFAULT_FIGSIZE,
+) -> Figure:
+    """Draw the pose graph over the map as a PNG at `path` (atomically): the nodes (K, 3) joined
+    in order by the front end's edges, the accepted loop closures (pairs of node indices (C, 2))
+    in green and the rejected ones in red."""
+    fig = Figure(figsize=figsize, dpi=dpi)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    _draw_map(ax, occ)
+    nodes = np.asarray(nodes, dtype=np.float64).reshape(-1, 3)
+    ax.plot(nodes[:, 0], nodes[:, 1], color="C0", linewidth=0.8, label=f"nodes ({len(nodes)})")
+    ax.plot(nodes[:, 0], nodes[:, 1], ".", color="C0", markersize=2)
+    for pairs, colour, name in ((closures, "green", "loop closures"), (rejected, "red", "rejected closures")):
+        pairs = np.zeros((0, 2), dtype=np.int64) if pairs is None else np.asarray(pairs).reshape(-1, 2)
+        if len(pairs):
+            segments = np.stack([nodes[pairs[:, 0], :2], nodes[pairs[:, 1], :2]], axis=1)
+            ax.add_collection(LineCollection(segments, colors=colour, linewidths=0.6, alpha=0.7,
+                                             label=f"{name} ({len(pairs)})"))
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(title or "pose graph")
+    ax.legend(loc="best")
+    return save_figure(fig, path, dpi=dpi, tight_layout=False)
 
 
 def _draw_map(ax: Axes, occ: OccupancyMap) -> None:

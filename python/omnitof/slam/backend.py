@@ -1,0 +1,443 @@
+"""The pose-graph back end behind the particle filter: submaps, loop closures, optimisation, and
+the correction fed back to the filter.
+
+The filter (either proposal) stays the front end: it integrates scans and, at each integrated
+scan, its best particle gives a pose. Behind it, as in Cartographer (Hess, Kohler, Rapp, Andor,
+"Real-Time Loop Closure in 2D LIDAR SLAM", ICRA 2016):
+
+- **Nodes** are the integrated scans. **Front-end edges** join consecutive nodes with the
+  relative motion of the best particle's trajectory (one lineage, so the edges agree with each
+  other), with a standard deviation that grows with the distance moved.
+- **Submaps**: every `submap_length` metres the scans integrated meanwhile, at the front end's
+  poses, make one local grid (`_core.Submap`). A finished submap precomputes its branch-and-
+  bound grids once (rust/src/loop_closure.rs).
+- **Loop closures**: each new node's scan is searched in the finished submaps near its
+  estimated pose, in a window around it, by branch and bound over precomputed max-grids
+  (Hess et al. sec. V-C; Olson, ICRA 2009) and refined below the cell size. A match whose
+  score reaches `min_score` gives an edge between the submap's first node and the new node,
+  with the covariance of the score surface. The matched pose is then refined as the front end
+  matches its own scans (the likelihood field of the cells' mean end points), so that a
+  closure is as precise as the front end's steps. After `global_search_after` nodes without any
+  closure the robot may be lost, and a node is searched in every finished submap, whole.
+- **Optimisation**: GTSAM's Levenberg-Marquardt on the Pose2 graph (Dellaert & Kaess,
+  "Factor Graphs for Robot Perception", 2017): GTSAM because it is the field's maintained
+  library for exactly this (sparse elimination, robust noise models) with wheels on PyPI,
+  where writing a sparse solver here would be a toy. The closures carry a robust kernel
+  (Cauchy by default) so that one false closure cannot bend the map; the front-end edges do
+  not (they are what the filter measured). A batch optimisation of a few thousand nodes takes
+  milliseconds, so the graph is optimised whenever a new closure came in (at most every
+  `optimize_every` nodes), and a repaired map exists while the run goes on.
+- **Feedback**: where the optimum moves the newest node by more than `feedback_xy` /
+  `feedback_deg`, every particle restarts at the optimised pose with a map rebuilt from all
+  nodes at their optimised poses (`ParticleFilter.reset`). The front end's trajectory then
+  begins anew at that node (a new *segment*); the edges of the segment before are kept as
+  they were, and the submap in progress is closed, since its scans were placed in the frame
+  before the correction.
+
+Everything is deterministic: the search and the core are bit-identical for any thread count,
+and the graph is optimised in node order on one thread.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from omnitof import _core
+from omnitof.geometry import compose, relative, wrap_angle
+from omnitof.slam.config import BackendConfig, MapConfig
+from omnitof.types import ScanSequence
+
+CHI2_PROBABILITY = 0.99
+CHI2_3DOF_99 = 11.345  # the CHI2_PROBABILITY quantile of chi-square with 3 degrees of freedom
+
+
+@dataclass
+class Closure:
+    """One loop-closure search that found a match: node `node` (an integrated scan) seen in the
+    submap whose first node is `anchor`; `measured` is the node's pose relative to the anchor's;
+    `accepted` says whether the optimisation kept it (its robust weight stayed high)."""
+
+    node: int
+    anchor: int
+    submap: int
+    measured: np.ndarray
+    score: float
+    covariance: np.ndarray
+    search: str  # "local" or "global"
+    accepted: bool = True
+
+
+@dataclass
+class _Submap:
+    grid: _core.Submap
+    first: int  # first node
+    nodes: list[int] = field(default_factory=list)
+    poses: list[np.ndarray] = field(default_factory=list)  # insertion poses of its nodes
+    length: float = 0.0
+
+    @property
+    def anchor_pose(self) -> np.ndarray:
+        return self.poses[0]
+
+    @property
+    def centre(self) -> np.ndarray:
+        """Mean insertion position (x, y) of its nodes."""
+        return np.mean(np.asarray(self.poses)[:, :2], axis=0)
+
+
+class PoseGraphBackend:
+    """Submaps, loop closures and the pose graph of one run (see the module docstring)."""
+
+    def __init__(self, cfg: BackendConfig, map_cfg: MapConfig, field_sigma: float, scans: ScanSequence,
+                 threads: int):
+        self.cfg = cfg
+        self.field_sigma = field_sigma
+        self.map_cfg = map_cfg
+        self.scans = scans
+        self.threads = max(1, threads)
+        self.max_range = min(map_cfg.max_range, scans.max_range)
+        self.scan_of: list[int] = []  # node -> scan index
+        self.frontend: list[np.ndarray] = []  # node -> front-end pose (its segment's frame)
+        self.odometry_edges: list[np.ndarray] = []  # edge j-1 -> j, for j >= 1
+        self.estimate: list[np.ndarray] = []  # node -> best estimate (optimised or propagated)
+        self.segment_start = 0  # first node of the current front-end segment
+        self.submaps: list[_Submap] = []
+        self.closures: list[Closure] = []
+        self.rejected_searches = 0
+        self.searches = 0
+        self.optimisations = 0
+        self.feedbacks = 0
+        self.optimised_up_to = -1
+        self._pending = 0  # closures added since the last optimisation
+        self._since_closure = 0
+        self._searched_globally = False
+        self._last_optimised_node = -10**9
+        self.seconds = {"submaps": 0.0, "search": 0.0, "optimise": 0.0, "feedback": 0.0}
+
+    # --- the run ----------------------------------------------------------------------------
+
+    def add_node(self, scan: int, pf: _core.ParticleFilter) -> None:
+        """Take the filter's state after integrating scan `scan`: add the node, insert it into the
+        current submap, search loop closures, optimise and feed back where it pays."""
+        pose = np.asarray(pf.best_pose(), dtype=np.float64)
+        j = len(self.scan_of)
+        self.scan_of.append(scan)
+        self.frontend.append(pose)
+        if j == 0:
+            self.estimate.append(pose.copy())
+        else:
+            self.odometry_edges.append(relative(self.frontend[j - 1], pose))
+            # Propagate from the previous node's best estimate along the front end's motion.
+            self.estimate.append(compose(self.estimate[j - 1], self.odometry_edges[-1]))
+        clock = time.perf_counter()
+        self._insert(j, pose, pf)
+        found = 0
+        if j % self.cfg.search_every == 0:
+            clock = self._lap("submaps", clock)
+            found = self._search(j)
+            self._lap("search", clock)
+        # A global search that found nothing waits as long again before the next one.
+        self._since_closure = 0 if found or self._searched_globally else self._since_closure + 1
+        self._pending += found
+        if self._pending and j - self._last_optimised_node >= self.cfg.optimize_every:
+            clock = time.perf_counter()
+            self._refresh_segment(pf)
+            self.optimise()
+            clock = self._lap("optimise", clock)
+            self._feed_back(j, pf)
+            self._lap("feedback", clock)
+
+    def _lap(self, what: str, since: float) -> float:
+        now = time.perf_counter()
+        self.seconds[what] += now - since
+        return now
+
+    def finish(self, pf: _core.ParticleFilter) -> np.ndarray:
+        """The optimised pose of every node (K, 3), after a last optimisation."""
+        if not self.scan_of:
+            return np.zeros((0, 3))
+        self._refresh_segment(pf)
+        if self.closures:
+            self.optimise()
+        else:
+            self.estimate = self._chain()
+        return np.asarray(self.estimate)
+
+    # --- submaps ----------------------------------------------------------------------------
+
+    def _new_submap(self, first: int) -> _Submap:
+        m = self.map_cfg
+        grid = _core.Submap(m.resolution, m.l_occ, m.l_free, m.l_min, m.l_max, self.max_range,
+                            clear_no_echo=m.clear_no_echo, threads=self.threads)
+        sub = _Submap(grid, first)
+        self.submaps.append(sub)
+        return sub
+
+    def _insert(self, j: int, pose: np.ndarray, pf: _core.ParticleFilter) -> None:
+        """Count node j into the submap in progress; once it is `submap_length` long, build and
+        finish it. It is built only then, from the best particle's lineage as it is then: the
+        front end may still have revised the poses of its first nodes after they came in."""
+        current = self.submaps[-1] if self.submaps and not self.submaps[-1].grid.finished else None
+        if current is None:
+            current = self._new_submap(j)
+        elif current.nodes:
+            current.length += float(np.hypot(*(pose[:2] - self.frontend[current.nodes[-1]][:2])))
+        current.nodes.append(j)
+        if current.length >= self.cfg.submap_length:
+            self._build(current, pf)
+
+    def _build(self, sub: _Submap, pf: _core.ParticleFilter) -> None:
+        self._refresh_segment(pf)
+        for j in sub.nodes:
+            k = self.scan_of[j]
+            sub.grid.insert(self.frontend[j], self.scans.scan_ranges(k), self.scans.scan_angles(k),
+                            self.scans.sensor_pose)
+            sub.poses.append(self.frontend[j].copy())
+        sub.grid.finish()
+
+    def _close_current_submap(self, pf: _core.ParticleFilter) -> None:
+        """Finish the submap in progress (before a correction moves the front end's frame)."""
+        if self.submaps and not self.submaps[-1].grid.finished:
+            self._build(self.submaps[-1], pf)
+
+    # --- loop closures ----------------------------------------------------------------------
+
+    def _candidates(self, j: int, radius: float) -> list[int]:
+        """Finished submaps far enough back in time whose centre is within `radius` of node j's
+        estimate, nearest first."""
+        current = len(self.submaps) - (0 if self.submaps[-1].grid.finished else 1)
+        last = current - self.cfg.skip_recent_submaps
+        out = []
+        for s in range(max(0, last)):
+            sub = self.submaps[s]
+            if not sub.grid.finished:
+                continue
+            centre = self._submap_centre_estimate(sub)
+            d = float(np.hypot(*(centre - self.estimate[j][:2])))
+            if d <= radius:
+                out.append((d, s))
+        return [s for _, s in sorted(out)]
+
+    def _submap_centre_estimate(self, sub: _Submap) -> np.ndarray:
+        local = relative(sub.anchor_pose, np.array([*sub.centre, 0.0]))
+        return compose(self.estimate[sub.first], local)[:2]
+
+    def _search(self, j: int) -> int:
+        """Search node j in the submaps near it (or, when lost, in all); returns the number of
+        closures found."""
+        self._searched_globally = False
+        if not self.submaps:
+            return 0
+        k = self.scan_of[j]
+        ranges, angles = self.scans.scan_ranges(k), self.scans.scan_angles(k)
+        cfg = self.cfg
+        lost = cfg.global_search_after > 0 and self._since_closure >= cfg.global_search_after
+        self._searched_globally = lost
+        if lost:
+            candidates, kind = self._candidates(j, math.inf), "global"
+        else:
+            candidates, kind = self._candidates(j, cfg.search_radius)[: cfg.max_closures_per_scan], "local"
+        found = 0
+        for s in candidates:
+            sub = self.submaps[s]
+            initial = compose(sub.anchor_pose, relative(self.estimate[sub.first], self.estimate[j]))
+            if lost:
+                # Anywhere in the submap: around its centre, as far as its scans reach.
+                initial = np.array([*sub.centre, initial[2]])
+                linear = min(self.max_range, cfg.search_radius) + 0.5 * sub.length
+                angular, min_score = math.pi, cfg.global_min_score
+            else:
+                linear, angular, min_score = cfg.linear_window, math.radians(cfg.angular_window_deg), cfg.min_score
+            self.searches += 1
+            match = sub.grid.match_scan(ranges, angles, initial, linear, angular, min_score,
+                                        sensor_pose=self.scans.sensor_pose, field_sigma=self.field_sigma)
+            if match is None:
+                self.rejected_searches += 1
+                continue
+            pose, score, covariance = match
+            self.closures.append(Closure(
+                node=j, anchor=sub.first, submap=s, measured=relative(sub.anchor_pose, np.asarray(pose)),
+                score=float(score), covariance=np.asarray(covariance), search=kind,
+            ))
+            found += 1
+        return found
+
+    # --- the graph --------------------------------------------------------------------------
+
+    def _refresh_segment(self, pf: _core.ParticleFilter) -> None:
+        """Front-end poses and edges of the current segment from the best particle's lineage,
+        which is consistent with itself (the best particle may have changed since a node was
+        added)."""
+        scans, poses = pf.best_trajectory()
+        node_of = {s: j for j, s in enumerate(self.scan_of[self.segment_start:], start=self.segment_start)}
+        for s, p in zip(scans.tolist(), poses):
+            j = node_of.get(int(s))
+            if j is not None:
+                self.frontend[j] = np.asarray(p, dtype=np.float64)
+        for j in range(self.segment_start + 1, len(self.scan_of)):
+            self.odometry_edges[j - 1] = relative(self.frontend[j - 1], self.frontend[j])
+
+    def _chain(self) -> list[np.ndarray]:
+        """Node poses from the first node along the front-end edges only."""
+        out = [self.estimate[0]]
+        for edge in self.odometry_edges:
+            out.append(compose(out[-1], edge))
+        return out
+
+    def _odometry_noise(self, edge: np.ndarray) -> gtsam.noiseModel.Base:
+        cfg = self.cfg
+        moved = float(np.hypot(edge[0], edge[1]))
+        sxy = cfg.odometry_sigma_xy + cfg.odometry_sigma_xy_per_m * moved
+        sth = math.radians(cfg.odometry_sigma_deg + cfg.odometry_sigma_deg_per_m * moved)
+        return gtsam.noiseModel.Diagonal.Sigmas(np.array([sxy, sxy, sth]))
+
+    def _closure_noise(self, c: Closure) -> gtsam.noiseModel.Base:
+        """The match's covariance (world-aligned in the submap's frame) turned into the anchor's
+        frame, with floors, and the robust kernel."""
+        cfg = self.cfg
+        base = gtsam.noiseModel.Gaussian.Covariance(self._closure_covariance(c))
+        if cfg.robust_kernel == "none":
+            return base
+        if cfg.robust_kernel == "huber":
+            kernel = gtsam.noiseModel.mEstimator.Huber.Create(cfg.kernel_width)
+        else:
+            kernel = gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.kernel_width)
+        return gtsam.noiseModel.Robust.Create(kernel, base)
+
+    def _closure_covariance(self, c: Closure) -> np.ndarray:
+        """The match's covariance, found in the submap's frame, turned into the anchor node's
+        frame (where `measured` lives), with the configured floors added."""
+        rot = _rotation(-float(self.submaps[c.submap].anchor_pose[2]))
+        cov = c.covariance.copy()
+        cov[:2, :2] = rot @ cov[:2, :2] @ rot.T
+        cov[:2, 2] = rot @ cov[:2, 2]
+        cov[2, :2] = cov[:2, 2]
+        cfg = self.cfg
+        return cov + np.diag([cfg.closure_sigma_xy_min**2] * 2 + [math.radians(cfg.closure_sigma_deg_min) ** 2])
+
+    def optimise(self) -> None:
+        """Optimise the whole graph from the current estimates.
+
+        Where every closure agrees with the current estimate (within the chi-square bound), one
+        Levenberg-Marquardt run with the robust kernel on the closures suffices. Where some do
+        not, the front end may have gone wrong, and a robust kernel started from the wrong
+        estimate would discount exactly the closures that could repair it. Then graduated
+        non-convexity decides (GTSAM's GncLMOptimizer with the truncated-least-squares loss;
+        Yang, Antonante, Tzoumas, Carlone, RA-L 2020): it starts from the convex problem, where
+        a consistent group of closures outweighs a few false ones, and turns the loss down to
+        truncation step by step; the front-end edges are known inliers. The closures it keeps
+        then go into the robust Levenberg-Marquardt run.
+        """
+        if not all(self._agrees(c) for c in self.closures):
+            kept = self._graduated()
+        else:
+            kept = [True] * len(self.closures)
+        graph, values = self._graph(robust=True, use=kept)
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(50)
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        self.estimate = [_pose(result.atPose2(j)) for j in range(len(self.estimate))]
+        for c in self.closures:
+            c.accepted = self._agrees(c)
+        self.optimisations += 1
+        self.optimised_up_to = len(self.estimate) - 1
+        self._last_optimised_node = self.optimised_up_to
+        self._pending = 0
+
+    def _graduated(self) -> list[bool]:
+        """Which closures graduated non-convexity keeps as inliers (see `optimise`)."""
+        graph, values = self._graph(robust=False, use=[True] * len(self.closures))
+        params = gtsam.GncLMParams()
+        params.setLossType(gtsam.GncLossType.TLS)
+        n_fixed = 1 + len(self.odometry_edges)  # the prior and the front-end edges
+        params.setKnownInliers(list(range(n_fixed)))
+        gnc = gtsam.GncLMOptimizer(graph, values, params)
+        gnc.setInlierCostThresholdsAtProbability(CHI2_PROBABILITY)
+        gnc.optimize()
+        weights = np.asarray(gnc.getWeights())
+        return [bool(w > 0.5) for w in weights[n_fixed:]]
+
+    def _graph(self, *, robust: bool, use: list[bool]) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        """The prior on the first node, the front-end edges, then the closures in `use`."""
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*self.estimate[0]), gtsam.noiseModel.Constrained.All(3)))
+        for j, edge in enumerate(self.odometry_edges, start=1):
+            graph.add(gtsam.BetweenFactorPose2(j - 1, j, gtsam.Pose2(*edge), self._odometry_noise(edge)))
+        for c, keep in zip(self.closures, use):
+            if keep:
+                noise = self._closure_noise(c) if robust else gtsam.noiseModel.Gaussian.Covariance(self._closure_covariance(c))
+                graph.add(gtsam.BetweenFactorPose2(c.anchor, c.node, gtsam.Pose2(*c.measured), noise))
+        for j, pose in enumerate(self.estimate):
+            values.insert(j, gtsam.Pose2(*pose))
+        return graph, values
+
+    def _agrees(self, c: Closure) -> bool:
+        """Whether the current estimate agrees with closure c: its squared Mahalanobis distance
+        within the CHI2_PROBABILITY quantile of chi-square with 3 degrees of freedom."""
+        predicted = relative(self.estimate[c.anchor], self.estimate[c.node])
+        error = np.array([*(predicted[:2] - c.measured[:2]), wrap_angle(predicted[2] - c.measured[2])])
+        return bool(error @ np.linalg.solve(self._closure_covariance(c), error) <= CHI2_3DOF_99)
+
+    # --- feedback ---------------------------------------------------------------------------
+
+    def _feed_back(self, j: int, pf: _core.ParticleFilter) -> None:
+        corrected = self.estimate[j]
+        d = relative(self.frontend[j], corrected)
+        if math.hypot(d[0], d[1]) < self.cfg.feedback_xy and abs(d[2]) < math.radians(self.cfg.feedback_deg):
+            return
+        self._close_current_submap(pf)
+        pf.reset(corrected, self.scan_of[j], self.build_grid())
+        self.feedbacks += 1
+        self.frontend[j] = corrected.copy()
+        self.segment_start = j
+
+    def build_grid(self) -> _core.OccupancyGrid:
+        """A grid of every node's scan at its current estimate (the corrected map)."""
+        m = self.map_cfg
+        grid = _core.OccupancyGrid(m.resolution, m.l_occ, m.l_free, m.l_min, m.l_max)
+        for j, pose in enumerate(self.estimate):
+            k = self.scan_of[j]
+            grid.integrate(pose, self.scans.scan_angles(k), self.scans.scan_ranges(k), self.max_range,
+                           m.clear_no_echo, self.scans.sensor_pose)
+        return grid
+
+    # --- reporting --------------------------------------------------------------------------
+
+    def stats(self) -> dict:
+        accepted = [c for c in self.closures if c.accepted]
+        return {
+            "nodes": len(self.scan_of),
+            "submaps": len(self.submaps),
+            "searches": self.searches,
+            "closures_found": len(self.closures),
+            "closures_accepted": len(accepted),
+            "closures_rejected": len(self.closures) - len(accepted),
+            "searches_without_match": self.rejected_searches,
+            "global_closures": sum(c.search == "global" for c in self.closures),
+            "optimisations": self.optimisations,
+            "feedbacks": self.feedbacks,
+            "seconds": {k: round(v, 2) for k, v in self.seconds.items()},
+        }
+
+    def closure_table(self) -> list[dict]:
+        """Every closure found, for summary.yaml: scans, score, whether it was kept."""
+        return [
+            {"scan": int(self.scan_of[c.node]), "anchor_scan": int(self.scan_of[c.anchor]),
+             "score": round(c.score, 3), "search": c.search, "accepted": c.accepted}
+            for c in self.closures
+        ]
+
+
+def _pose(p: gtsam.Pose2) -> np.ndarray:
+    return np.array([p.x(), p.y(), p.theta()])
+
+
+def _rotation(theta: float) -> np.ndarray:
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s], [s, c]])
