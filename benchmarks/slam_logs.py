@@ -2,12 +2,15 @@
 
     python benchmarks/slam_logs.py [--data DIR] [--logs intel fr079] [--particles 30 200]
                                    [--seeds 0 1 2] [--preset laser180] [--scan-delay fr079=auto]
+                                   [--set backend.enabled=false ...]
 
 Each run is a fresh child process so that its peak memory (ru_maxrss) is its own. Prints one
 Markdown row per run and, per log and particle count, the median time and the mean ± std of the
 relations metric over the seeds. The data folder defaults to $OMNITOF_DATA. `--scan-delay LOG=S`
 re-times a log's odometry (seconds, or `auto`: estimated from the log, see omnitof.slam.timing)
-before the filter runs; the estimate is not part of the timed SLAM run.
+before the filter runs; the estimate is not part of the timed SLAM run. `--set SECTION.FIELD=VALUE`
+overrides one configuration field over the preset (VALUE read as YAML), e.g. to compare a preset
+with and without its back end.
 """
 
 from __future__ import annotations
@@ -23,7 +26,20 @@ import time
 from pathlib import Path
 
 
-def single_run(log: Path, relations: Path, preset: str, particles: int, seed: int, delay: str) -> dict:
+def overrides_of(items: list[str]) -> dict:
+    """{"section": {"field": value}} from SECTION.FIELD=VALUE items (values parsed as YAML)."""
+    import yaml
+
+    out: dict = {}
+    for item in items:
+        key, value = item.split("=", 1)
+        section, name = key.split(".", 1)
+        out.setdefault(section, {})[name] = yaml.safe_load(value)
+    return out
+
+
+def single_run(log: Path, relations: Path, preset: str, particles: int, seed: int, delay: str,
+               settings: list[str]) -> dict:
     from omnitof.slam.config import load_config
     from omnitof.eval.relations import evaluate_relations, read_relations
     from omnitof.io.carmen import read_carmen
@@ -33,7 +49,9 @@ def single_run(log: Path, relations: Path, preset: str, particles: int, seed: in
     scans = read_carmen(log).scans
     seconds_delay = estimate_scan_delay(scans).delay if delay == "auto" else float(delay)
     scans = retime_odometry(scans, seconds_delay)
-    cfg = load_config(preset=preset, overrides={"filter": {"particles": particles, "seed": seed}})
+    overrides = overrides_of(settings)
+    overrides.setdefault("filter", {}).update({"particles": particles, "seed": seed})
+    cfg = load_config(preset=preset, overrides=overrides)
     start = time.perf_counter()
     result = run_slam(scans, cfg)
     seconds = time.perf_counter() - start
@@ -52,6 +70,7 @@ def single_run(log: Path, relations: Path, preset: str, particles: int, seed: in
         "matched": rel.n_matched,
         "odometry_trans_mean": odo.trans_mean,
         "scan_delay": seconds_delay,
+        "closures": (result.stats.get("backend") or {}).get("closures_accepted", 0),
     }
 
 
@@ -64,6 +83,8 @@ def main() -> None:
     parser.add_argument("--preset", default="laser180")
     parser.add_argument("--scan-delay", nargs="*", default=[], metavar="LOG=SECONDS|auto",
                         help="re-time a log's odometry by its scan delay")
+    parser.add_argument("--set", nargs="*", default=[], metavar="SECTION.FIELD=VALUE",
+                        help="override configuration fields over the preset")
     parser.add_argument("--single", nargs=4, metavar=("LOG", "PARTICLES", "SEED", "DELAY"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.data is None:
@@ -71,11 +92,11 @@ def main() -> None:
     if args.single:
         name, particles, seed, delay = args.single
         out = single_run(args.data / f"{name}.clf.bz2", args.data / f"{name}.relations",
-                         args.preset, int(particles), int(seed), delay)
+                         args.preset, int(particles), int(seed), delay, args.set)
         print(json.dumps(out))
         return
     delays = dict(item.split("=", 1) for item in args.scan_delay)
-    print(f"preset {args.preset}; scan delays {delays or 'none'}; {os.cpu_count()} cores; "
+    print(f"preset {args.preset} {' '.join(args.set)}; scan delays {delays or 'none'}; {os.cpu_count()} cores; "
           f"{time.strftime('%Y-%m-%d %H:%M')}")
     print("| log | particles | seed | wall s | integrated | resamplings | particle-scans/s | peak MiB "
           "| trans err m (mean ± std) | rot err deg (mean ± std) |")
@@ -86,7 +107,7 @@ def main() -> None:
             runs = []
             for seed in args.seeds:
                 cmd = [sys.executable, __file__, "--data", str(args.data), "--preset", args.preset,
-                       "--single", name, str(particles), str(seed), delays.get(name, "0")]
+                       "--single", name, str(particles), str(seed), delays.get(name, "0"), "--set", *args.set]
                 r = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
                 runs.append(r)
                 print(f"| {name} | {particles} | {seed} | {r['seconds']:.1f} | {r['integrated']} | "

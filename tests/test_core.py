@@ -190,9 +190,10 @@ def test_low_variance_resampling_properties():
 
 def test_particle_filter_takes_configuration_sections_and_refuses_unknown_or_missing_fields():
     from omnitof.slam.config import SlamConfig
+    from omnitof.slam.driver import core_sections
 
-    # As omnitof.slam.driver passes them: every section whole, less the driver's scan selection.
-    sections = SlamConfig().model_dump(exclude={"filter": {"linear_update", "angular_update_deg"}})
+    # As omnitof.slam.driver passes them: every section whole, less what the driver uses itself.
+    sections = core_sections(SlamConfig())
     sensor = dict(angles=np.linspace(-1.5, 1.5, 181), sensor_pose=np.zeros(3), scan_max_range=80.0)
     assert _core.ParticleFilter(**sections, **sensor).steps == 0
     extra = {**sections, "scan_matcher": {**sections["scan_matcher"], "step_size": 0.1}}

@@ -80,7 +80,8 @@ def test_cli_slam_on_a_simulated_tof_bag(tmp_path, capsys):
     assert "trajectory error" in printed
     summary = yaml.safe_load((out / "summary.yaml").read_text())
     assert summary["input"]["kind"] == "tof-rosbag"
-    assert summary["run"]["particles"] == 200  # preset tof: the paper's filter
+    # Without --preset a ToF bag runs tof-scanmatch (the paper's filter is --preset tof).
+    assert summary["run"]["particles"] == 30 and summary["run"]["proposal"] == "scanmatch"
     assert summary["trajectory_error"]["slam"]["final"] < 0.3
     for name in ("map.yaml", "trajectory.tum", "map3d.ply", "map3d.png"):
         assert (out / name).exists(), name

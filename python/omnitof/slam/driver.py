@@ -72,15 +72,21 @@ def fill_trajectory(odometry: np.ndarray, integrated: np.ndarray, corrected: np.
     return compose(corrected[last], relative(odometry[anchor], odometry))
 
 
+def core_sections(cfg: SlamConfig) -> dict:
+    """The configuration's sections as the core's filter takes them: every section but the
+    back end's, less the fields this driver uses itself (which scans to integrate, the poses of
+    the others)."""
+    return cfg.model_dump(
+        exclude={"filter": {"linear_update", "angular_update_deg", "match_between"}, "backend": True}
+    )
+
+
 def _make_filter(scans: ScanSequence, cfg: SlamConfig) -> "_core.ParticleFilter":
     """The core's filter for a configuration and a sensor. The core takes every section whole,
     as one keyword each, and derives what it needs (radians, ranges capped by the sensor's,
     threads); only the scan selection (`select_scans`) is done here and kept out of it."""
-    sections = cfg.model_dump(
-        exclude={"filter": {"linear_update", "angular_update_deg", "match_between"}, "backend": True}
-    )
     return _core.ParticleFilter(
-        **sections, angles=scans.angles, sensor_pose=scans.sensor_pose, scan_max_range=scans.max_range
+        **core_sections(cfg), angles=scans.angles, sensor_pose=scans.sensor_pose, scan_max_range=scans.max_range
     )
 
 
