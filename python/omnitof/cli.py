@@ -165,9 +165,9 @@ def cmd_scans(args: argparse.Namespace) -> int:
         from omnitof.viz.scans import plot_scan
 
         i = len(scans) // 2
-        plot_scan(args.figure, scans.ranges[i], scans.angles, max_range=scans.max_range,
+        plot_scan(args.figure, scans.scan_ranges(i), scans.scan_angles(i), max_range=scans.max_range,
                   title=f"frame {i} of {Path(args.log).name}")
-    filled = float(np.isfinite(scans.ranges).mean()) if len(scans) else 0.0
+    filled = float(np.isfinite(scans.ranges[scans.beam_mask]).mean()) if len(scans) else 0.0
     print(f"{len(scans)} scans of 360 bins ({100 * filled:.1f} % with a reading; rig from {data.rig_source}) "
           f"written as a {kind}: {out}")
     return 0

@@ -70,7 +70,7 @@ def _make_filter(scans: ScanSequence, cfg: SlamConfig) -> "_core.ParticleFilter"
     threads); only the scan selection (`select_scans`) is done here and kept out of it."""
     sections = cfg.model_dump(exclude={"filter": {"linear_update", "angular_update_deg"}})
     return _core.ParticleFilter(
-        **sections, angles=scans.angles, sensor_pose=scans.sensor_pose, scan_max_range=scans.max_range
+        **sections, angles=scans.scan_angles(0), sensor_pose=scans.sensor_pose, scan_max_range=scans.max_range
     )
 
 
@@ -105,7 +105,8 @@ def run_slam(
     corrected_scans = []
     for k in integrated:
         cur = scans.odometry[k]
-        if pf.step(prev, cur, scans.ranges[k], int(k))[2]:
+        own = scans.scan_angles(k) if scans.per_scan_geometry else None  # else the filter's
+        if pf.step(prev, cur, scans.scan_ranges(k), int(k), angles=own)[2]:
             corrected_scans.append(int(k))
         prev = cur
         if progress is not None:
