@@ -149,20 +149,65 @@ def test_fov_from_keyword_and_param(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "param, expected",
+    "param, expected, rule",
     [
-        ("PARAM robot_front_laser_max 50.0 1.0 merci 1.0", 50.0),
-        ("PARAM laser_front_laser_max_range 8.0 nohost 0", 8.0),
-        ("# no parameter", 80.0),
+        ("PARAM robot_front_laser_max 50.0 1.0 merci 1.0", 50.0, "PARAM robot_front_laser_max = 50"),
+        ("PARAM laser_front_laser_max_range 8.0 nohost 0", 8.0, "PARAM laser_front_laser_max_range = 8"),
+        ("# no parameter", 80.0, "default 80 m (2 readings at or beyond it)"),
     ],
 )
-def test_old_format_max_range(tmp_path, param, expected):
+def test_old_format_max_range(tmp_path, param, expected, rule):
     path = write(tmp_path, [param, flaser([7.9, 8.0, 49.0, 50.0, 81.91, 80.0], 1.0)])
     scans = read_carmen(path).scans
-    assert scans.max_range == expected
+    assert scans.max_range == expected and scans.max_range_rule == rule
     raw = np.array([7.9, 8.0, 49.0, 50.0, 81.91, 80.0])
     want = np.where(raw >= expected, np.inf, raw).astype(np.float32)
     np.testing.assert_array_equal(scans.ranges[0], want)
+
+
+def walls_log(tmp_path, *, code=None, share=0.03, seed=0, extra=()):
+    """60 FLASER scans of 180 readings at 1 cm: walls anywhere in 0.5 … 49.99 m, the SICK code
+    81.83 now and then, and (if given) the laser's own no-echo `code` in `share` of the beams."""
+    rng = np.random.default_rng(seed)
+    ranges = np.round(rng.uniform(0.5, 49.99, (60, 180)), 2)
+    ranges[rng.random(ranges.shape) < 0.01] = 81.83
+    if code is not None:
+        ranges[rng.random(ranges.shape) < share] = code
+    lines = [*extra, *(flaser(list(r), 10.0 + 0.1 * i) for i, r in enumerate(ranges))]
+    return write(tmp_path, lines), ranges
+
+
+def test_a_repeated_top_value_is_the_lasers_no_echo(tmp_path):
+    path, raw = walls_log(tmp_path, code=50.0)
+    count = int(np.sum(raw == 50.0))
+    with pytest.warns(CarmenWarning, match=f"{count} readings of exactly 50.00 m"):
+        scans = read_carmen(path).scans
+    assert scans.max_range == 50.0
+    assert scans.max_range_rule == f"repeated top value 50.00 m ({count} readings)"
+    walls = raw < 50.0
+    np.testing.assert_array_equal(scans.ranges[walls], raw[walls].astype(np.float32))  # kept
+    assert np.isinf(scans.ranges[~walls]).all()  # the code and SICK's 81.83
+
+
+@pytest.mark.parametrize("code, share", [(None, 0.0), (50.0, 0.002), (3.0, 0.2)])
+def test_no_repeated_top_value_drops_nothing(tmp_path, code, share):
+    # No code; one too rare to be a code (0.2 %, 20 readings); a value that repeats but is
+    # not the top one (a wall the robot stared at).
+    path, raw = walls_log(tmp_path, code=code, share=share)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scans = read_carmen(path).scans
+    assert scans.max_range == 80.0
+    assert scans.max_range_rule == f"default 80 m ({int(np.sum(raw >= 80))} readings at or beyond it)"
+    walls = raw < 80.0
+    np.testing.assert_array_equal(scans.ranges[walls], raw[walls].astype(np.float32))
+
+
+def test_a_param_wins_over_a_repeated_top_value(tmp_path):
+    path, raw = walls_log(tmp_path, code=50.0, extra=["PARAM robot_front_laser_max 81.0 nohost 0"])
+    scans = read_carmen(path).scans
+    assert scans.max_range == 81.0 and scans.max_range_rule == "PARAM robot_front_laser_max = 81"
+    assert np.sum(np.isfinite(scans.ranges)) == np.sum(raw < 81.0)
 
 
 def test_sensor_pose_from_params(tmp_path):
@@ -430,19 +475,58 @@ def test_skip_bad_lines(tmp_path):
 
 
 def test_different_beam_counts(tmp_path):
-    path, line = _with_line(tmp_path, flaser([1.0, 2.0, 3.0], 10.2), position=12)
-    with pytest.raises(InputError) as excinfo:
-        read_carmen(path, skip_bad_lines=True)  # not a malformed line: never skipped
-    rejects(excinfo, path, line, "3 beams here but 4 in the first scan (line 6)")
+    # Old format: each scan's angles follow CARMEN's convention for its own count.
+    path, _ = _with_line(tmp_path, flaser([1.0, 2.0, 3.0], 10.15), position=12)
+    scans = read_carmen(path).scans
+    assert scans.per_scan_geometry and scans.n_beams == 4
+    np.testing.assert_array_equal(scans.beam_counts, [4, 4, 3, 4])
+    np.testing.assert_allclose(scans.scan_angles(2), np.array([-90, 0, 90]) * DEG, atol=1e-12)
+    np.testing.assert_allclose(scans.scan_angles(0), np.array([-90, -45, 0, 45]) * DEG, atol=1e-12)
+    np.testing.assert_array_equal(scans.scan_ranges(2), [1.0, 2.0, 3.0])
+
+
+def interlaced_lines(n=8, max_range=81.9):
+    """ROBOTLASER1 lines as the Freiburg hospital's interlaced SICK logs them: 181 beams from -90°,
+    then 180 beams from -89.75°, -89.5°, -89.25°, in turn, all at 1°."""
+    lines = []
+    for i in range(n):
+        offset = [0.0, 0.75, 0.25, 0.5][i % 4]
+        count = 181 if offset == 0.0 else 180
+        ranges = [round(1.0 + 0.01 * b + i, 3) for b in range(count)]
+        ranges[5] = 81.91  # no echo
+        lines.append(robotlaser(ranges, [], 10.0 + 0.1 * i, (0.1 * i, 0, 0), (0.1 * i, 0, 0),
+                                start=(-90 + offset) * DEG, max_range=max_range))  # fmt: skip
+    return lines
 
 
 def test_geometry_change_in_new_format(tmp_path):
-    lines = [robotlaser([1.0, 2.0], [], t, (0, 0, 0), (0, 0, 0), res=res)
-             for t, res in ((1.0, DEG), (2.0, 2 * DEG))]  # fmt: skip
-    path = write(tmp_path, lines)
-    with pytest.raises(InputError) as excinfo:
-        read_carmen(path)
-    rejects(excinfo, path, 2, "beam geometry must not change")
+    path = write(tmp_path, interlaced_lines())
+    scans = read_carmen(path).scans
+    assert scans.per_scan_geometry and scans.n_beams == 181 and len(scans) == 8
+    np.testing.assert_array_equal(scans.beam_counts, [181, 180, 180, 180] * 2)
+    first = [np.degrees(scans.scan_angles(i)[0]) for i in range(4)]
+    np.testing.assert_allclose(first, [-90.0, -89.25, -89.75, -89.5], atol=1e-9)
+    np.testing.assert_allclose(np.degrees(scans.scan_angles(1)[-1]), 89.75, atol=1e-9)
+    assert scans.ranges[1, 180] == np.inf and np.isnan(scans.angles[1, 180])  # padding
+    assert np.isinf(scans.ranges[:, 5]).all()  # 81.91 >= the message's 81.9: no echo
+    np.testing.assert_array_equal(scans.scan_ranges(3)[:3], np.float32([4.0, 4.01, 4.02]))
+    assert scans.max_range == 81.9 and scans.max_range_rule == "ROBOTLASER1 maximum_range field"
+
+
+def test_varying_geometry_round_trip(tmp_path):
+    from omnitof.io.carmen import write_carmen
+
+    scans = read_carmen(write(tmp_path, interlaced_lines())).scans
+    path = tmp_path / "again.clf.gz"
+    write_carmen(path, scans)
+    back = read_carmen(path).scans
+    np.testing.assert_array_equal(back.beam_counts, scans.beam_counts)
+    np.testing.assert_allclose(back.angles, scans.angles, atol=1e-12)  # NaN padding too
+    np.testing.assert_array_equal(back.ranges, scans.ranges)
+    np.testing.assert_allclose(back.odometry, scans.odometry, atol=1e-9)
+    # A log whose scans share one geometry reads back with one (B,) angles.
+    fixed = read_carmen(write(tmp_path, [interlaced_lines()[0], interlaced_lines(5)[4]])).scans
+    assert not fixed.per_scan_geometry and fixed.n_beams == 181
 
 
 def test_timestamps_going_backwards(tmp_path):

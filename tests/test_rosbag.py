@@ -553,6 +553,57 @@ def test_laserscan_round_trip(tmp_path: Path, version: int, name: str) -> None:
     assert_poses(back.sensor_pose[None], scans.sensor_pose[None])
 
 
+def interlaced_sequence(n: int = 12, seed: int = 0) -> ScanSequence:
+    """scan_sequence's scans with per-scan geometry: 181 beams from -90°, then 180 beams from
+    -89.75°, -89.5°, -89.25° in turn, all at 1° (an interlaced SICK)."""
+    from omnitof.types import evenly_spaced_beams
+
+    base = scan_sequence(n, beams=181, seed=seed)
+    offsets = np.array([0.0, 0.25, 0.5, 0.75])[np.arange(n) % 4]
+    counts = np.where(offsets == 0.0, 181, 180)
+    angles, beam_counts = evenly_spaced_beams(np.radians(-90 + offsets), np.full(n, np.radians(1.0)),
+                                              counts, tolerance=1e-9)
+    return ScanSequence(base.timestamps, base.ranges, angles, base.odometry, sensor_pose=base.sensor_pose,
+                        max_range=base.max_range, remissions=base.remissions, ground_truth=base.ground_truth,
+                        beam_counts=beam_counts)
+
+
+@pytest.mark.parametrize("version, name", [(1, "scans.bag"), (2, "scans")])
+def test_laserscan_round_trip_with_varying_geometry(tmp_path: Path, version: int, name: str) -> None:
+    scans = interlaced_sequence()
+    path = tmp_path / name
+    write_laserscan_bag(path, scans, version=version)
+    back = read_laserscan_bag(path)
+    assert back.per_scan_geometry
+    np.testing.assert_array_equal(back.beam_counts, scans.beam_counts)
+    np.testing.assert_array_equal(back.ranges, scans.ranges)  # padding is +inf on both sides
+    np.testing.assert_array_equal(back.remissions, scans.remissions)
+    np.testing.assert_allclose(back.angles, scans.angles, rtol=0, atol=1e-6)  # NaN padding equal
+    for i in (0, 1, 5):
+        assert len(back.scan_angles(i)) == len(back.scan_ranges(i)) == scans.beam_counts[i]
+    assert back.max_range == np.float32(7.5) and back.max_range_rule == "LaserScan range_max"
+    assert_poses(back.odometry, scans.odometry)
+
+
+def test_laserscan_bag_with_changing_beams_and_range_max(tmp_path: Path) -> None:
+    # Another tool's bag: the count, start angle and range_max change between messages.
+    messages: list[tuple[str, str, object]] = []
+    for k in range(4):
+        ns = 1000 * NS + k * NS // 10
+        messages.append(("/odom", ODOM, odometry_msg(HUMBLE, ns, (0.1 * k, 0, 0))))
+        beams = [3.0] * (4 + k % 2)
+        messages.append(("/scan", SCAN, scan_msg(HUMBLE, ns, beams, angle_min=-1.0 + 0.25 * (k % 2),
+                                                 rmax=4.0 if k < 3 else 2.5)))  # fmt: skip
+    with pytest.warns(RosbagWarning, match="no static transform"):
+        scans = read_laserscan_bag(write_raw(tmp_path / "varying", messages))
+    np.testing.assert_array_equal(scans.beam_counts, [4, 5, 4, 5])
+    np.testing.assert_allclose(scans.scan_angles(1), -0.75 + 0.5 * np.arange(5), atol=1e-7)
+    np.testing.assert_allclose(scans.scan_angles(2), -1.0 + 0.5 * np.arange(4), atol=1e-7)
+    np.testing.assert_array_equal(scans.scan_ranges(2), np.float32([3.0] * 4))
+    assert np.isinf(scans.scan_ranges(3)).all()  # 3 m > that scan's range_max of 2.5 m
+    assert scans.max_range == 4.0 and scans.max_range_rule == "LaserScan range_max (2.5 to 4 m)"
+
+
 def test_laserscan_writer_checks(tmp_path: Path) -> None:
     scans = scan_sequence(n=3)
     with pytest.raises(ValueError, match="'.bag'"):
@@ -674,12 +725,12 @@ def test_laserscan_errors(tmp_path: Path) -> None:
     no_odom = write_raw(tmp_path / "a", [("/scan", SCAN, scan_msg(store, NS, [1.0]))])
     with pytest.raises(InputError, match="no nav_msgs/msg/Odometry topic; the bag has: /scan"):
         read_laserscan_bag(no_odom)
-    changing = write_raw(tmp_path / "b", odom + [
+    no_range = write_raw(tmp_path / "b", odom + [
         ("/scan", SCAN, scan_msg(store, NS, [1.0, 2.0])),
-        ("/scan", SCAN, scan_msg(store, NS + 1, [1.0, 2.0, 3.0])),
+        ("/scan", SCAN, scan_msg(store, NS + 1, [1.0, 2.0, 3.0], rmax=math.nan)),
     ])  # fmt: skip
-    with pytest.raises(InputError, match="topic /scan: the scan at 1.000000001 s has beam geom"):
-        read_laserscan_bag(changing)
+    with pytest.raises(InputError, match="topic /scan: the scan at 1.000000001 s has range_max nan"):
+        read_laserscan_bag(no_range)
     backwards = write_raw(tmp_path / "c", odom + [
         ("/scan", SCAN, scan_msg(store, 2 * NS, [1.0])),
         ("/scan", SCAN, scan_msg(store, NS, [1.0])),

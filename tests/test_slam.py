@@ -125,3 +125,71 @@ def test_sensor_offset_is_honoured(corridor_loop):
 def test_empty_input_is_refused(corridor_loop):
     with pytest.raises(ValueError, match="no scans"):
         run_slam(corridor_loop.slice(0, 0), load_config())
+
+
+def interlaced_loop(loop):
+    """The corridor loop seen by an interlaced laser (as the Freiburg hospital's SICK): 181 beams
+    from -90°, then 180 beams from -89.75°, -89.5°, -89.25°, in turn, all at 1°."""
+    from omnitof.sim.laser2d import simulate_scans
+    from omnitof.types import ScanSequence, evenly_spaced_beams
+
+    n = len(loop)
+    offsets = np.radians([0.0, 0.75, 0.25, 0.5])[np.arange(n) % 4]
+    counts = np.where(offsets == 0.0, 181, 180)
+    full = -np.pi / 2 + offsets[:, None] + np.radians(1.0) * np.arange(181)  # one beam too many
+    ranges = simulate_scans(corridor_loop_world(), loop.ground_truth, full, max_range=loop.max_range, seed=5)
+    angles, beam_counts = evenly_spaced_beams(-np.pi / 2 + offsets, np.full(n, np.radians(1.0)), counts,
+                                              tolerance=1e-9)
+    return ScanSequence(loop.timestamps, ranges, angles, loop.odometry, max_range=loop.max_range,
+                        ground_truth=loop.ground_truth, beam_counts=beam_counts)
+
+
+def test_per_scan_geometry_shared_by_all_scans_gives_the_same_bytes(corridor_loop):
+    from omnitof.types import ScanSequence
+
+    scans = corridor_loop.slice(0, 400)
+    tiled = ScanSequence(scans.timestamps, scans.ranges, np.tile(scans.angles, (len(scans), 1)),
+                         scans.odometry, max_range=scans.max_range)
+    assert tiled.per_scan_geometry  # so every step hands the filter the scan's own angles
+    for proposal in ("odometry", "scanmatch"):
+        fixed, own = (small_run(s, seed=3, proposal=proposal) for s in (scans, tiled))
+        assert fixed.stats["resamplings"] > 0
+        assert np.array_equal(fixed.map.log_odds, own.map.log_odds)
+        assert np.array_equal(fixed.trajectory.poses, own.trajectory.poses)
+
+
+def test_slam_with_an_interlaced_laser(corridor_loop):
+    scans = interlaced_loop(corridor_loop)
+    assert set(scans.beam_counts) == {180, 181}
+    result = run_slam(scans, load_config(preset="sim2d"))
+    slam = absolute_trajectory_error(result.trajectory.poses, scans.ground_truth)
+    odom = absolute_trajectory_error(scans.odometry, scans.ground_truth)
+    assert slam.mean < 0.35 * odom.mean and slam.final < 0.15
+    walls = wall_agreement(result.map, corridor_loop_world().distance_to_walls, tolerance=0.1)
+    assert walls.near_fraction > 0.6 and walls.median_distance < 0.1
+
+
+def test_interlaced_laser_same_result_for_one_and_two_threads(corridor_loop):
+    scans = interlaced_loop(corridor_loop).slice(0, 500)
+    one = small_run(scans, threads=1, seed=4)
+    two = small_run(scans, threads=2, seed=4)
+    assert one.stats["resamplings"] > 0
+    assert np.array_equal(one.map.log_odds, two.map.log_odds)
+    assert np.array_equal(one.trajectory.poses, two.trajectory.poses)
+
+
+def test_filter_step_checks_a_scans_own_angles(corridor_loop):
+    from omnitof import _core
+    from omnitof.slam.driver import _make_filter
+
+    scans = corridor_loop.slice(0, 2)
+    pf = _make_filter(scans, load_config(preset="sim2d"))
+    pose = scans.odometry[0]
+    with pytest.raises(ValueError, match="scan has 181 ranges but 180 angles"):
+        pf.step(pose, pose, scans.scan_ranges(0), 0, angles=scans.angles[:180])
+    with pytest.raises(ValueError, match="angles must be finite"):
+        pf.step(pose, pose, scans.scan_ranges(0), 0, angles=np.full(181, np.nan))
+    with pytest.raises(ValueError, match="the filter was made for 181"):
+        pf.step(pose, pose, scans.scan_ranges(0)[:180], 0)
+    pf.step(pose, pose, scans.scan_ranges(0)[:180], 0, angles=scans.angles[1:])  # its own beams
+    assert pf.steps == 1 and isinstance(pf, _core.ParticleFilter)

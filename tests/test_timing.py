@@ -120,3 +120,59 @@ def test_slam_command_refuses_a_delay_for_a_jittering_clock(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["slam", str(log), "--out", str(tmp_path / "run"), "--scan-delay", "soon"])
     assert "expected seconds or 'auto'" in capsys.readouterr().err
+
+
+def run_slam_command(tmp_path, scans, *flags):
+    """`omnitof slam` on `scans` written as a CARMEN log; (summary's scan_delay, stdout lines)."""
+    import yaml
+
+    from omnitof.cli import main
+    from omnitof.io.carmen import write_carmen
+
+    log = tmp_path / "log.clf"
+    write_carmen(log, scans)
+    out = tmp_path / "run"
+    assert main(["slam", str(log), "--out", str(out), "--preset", "sim2d", "--particles", "3", "--quiet",
+                 *flags]) == 0
+    summary = yaml.safe_load((out / "summary.yaml").read_text())
+    return summary["input"]["scan_delay"], summary
+
+
+def test_the_delay_is_estimated_by_default(tmp_path, capsys):
+    scans, _ = delayed_log(0.13)
+    recorded, summary = run_slam_command(tmp_path, scans)
+    assert "scan delay estimated from" in capsys.readouterr().out
+    assert abs(recorded["seconds"] - 0.13) < 0.02 and recorded["estimated_from_pairs"] >= 20
+    assert recorded["how"] == "default --scan-delay auto: estimated from the log"
+    assert summary["input"]["max_range"] == {"metres": 15.0, "rule": "ROBOTLASER1 maximum_range field"}
+
+
+def test_a_given_delay_overrides_the_default(tmp_path, capsys):
+    scans, _ = delayed_log(0.13)
+    recorded, _ = run_slam_command(tmp_path, scans, "--scan-delay", "0")
+    assert recorded == {"seconds": 0.0, "how": "--scan-delay: given"}
+    assert "scan delay" not in capsys.readouterr().out
+
+
+@pytest.mark.filterwarnings("ignore:.*timestamps are earlier than the one before")
+def test_no_delay_where_the_clock_jitters(tmp_path, capsys):
+    # The run goes on with delay 0 and says why, on the terminal and in the summary.
+    scans, _ = delayed_log(0.0)
+    stamps = scans.timestamps.copy()
+    stamps[10], stamps[11] = stamps[11], stamps[10]
+    jittery = ScanSequence(stamps, scans.ranges, scans.angles, scans.odometry, max_range=15.0)
+    recorded, _ = run_slam_command(tmp_path, jittery)
+    assert "scan delay 0 s: not estimated" in capsys.readouterr().out
+    assert recorded["seconds"] == 0.0 and "timestamps go backwards" in recorded["reason"]
+    assert recorded["how"] == "default --scan-delay auto: not estimated, so none applied"
+
+
+def test_no_delay_without_turns(tmp_path, capsys):
+    scans, _ = delayed_log(0.0)
+    straight = scans.odometry.copy()
+    straight[:, 2] = 0.0  # the odometry never turns: no scan pair to estimate from
+    recorded, _ = run_slam_command(tmp_path, ScanSequence(scans.timestamps, scans.ranges, scans.angles,
+                                                          straight, max_range=15.0), "--scan-delay", "auto")
+    assert "scan delay 0 s: not estimated" in capsys.readouterr().out
+    assert recorded["seconds"] == 0.0 and "only 0 scan pairs" in recorded["reason"]
+    assert recorded["how"] == "--scan-delay: not estimated, so none applied"

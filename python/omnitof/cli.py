@@ -86,8 +86,11 @@ def cmd_slam(args: argparse.Namespace) -> int:
         data = read_scans(args.log, skip_bad_lines=args.skip_bad_lines)
         scans = data.scans if args.max_scans is None else data.scans.slice(0, args.max_scans)
         extra = {"input": {"path": str(args.log), "kind": data.kind, "bad_lines_skipped": data.bad_lines}}
-    if args.scan_delay is not None:
-        scans, extra["input"]["scan_delay"] = _retimed(scans, args.scan_delay)
+    extra["input"]["max_range"] = {"metres": float(scans.max_range), "rule": scans.max_range_rule or "given"}
+    # Laser logs are stamped when the reading arrives, so their delay is estimated by default.
+    delay = args.scan_delay if args.scan_delay is not None or tof else "auto"
+    if delay is not None:
+        scans, extra["input"]["scan_delay"] = _retimed(scans, delay, given=args.scan_delay is not None)
     with _progress_bar(len(scans), not args.quiet, "slam") as bar:
         result = run_slam(scans, cfg, progress=bar.update)
     if args.relations is not None:
@@ -131,18 +134,26 @@ def _scan_delay(text: str) -> str | float:
         raise argparse.ArgumentTypeError(f"expected seconds or 'auto', got {text!r}") from None
 
 
-def _retimed(scans: ScanSequence, delay: str | float) -> tuple[ScanSequence, dict]:
+def _retimed(scans: ScanSequence, delay: str | float, *, given: bool) -> tuple[ScanSequence, dict]:
     """The scans with their odometry re-timed by `delay` (seconds, or "auto": estimated), and
-    what to record of it."""
+    what to record of it. Where the log does not allow an estimate (a clock that steps back, too
+    few scans taken while turning), the delay is 0 and the record says why; a delay in seconds
+    that cannot be applied is an error."""
     from omnitof.slam.timing import estimate_scan_delay, retime_odometry
 
-    try:
-        if delay == "auto":
+    option = "--scan-delay" if given else "default --scan-delay auto"
+    if delay == "auto":
+        try:
             estimate = estimate_scan_delay(scans)
-            print(f"scan delay estimated from {estimate.pairs} scan pairs: {estimate.delay:.3f} s")
-            record = {"seconds": estimate.delay, "estimated_from_pairs": estimate.pairs}
-        else:
-            record = {"seconds": float(delay)}
+        except ValueError as err:
+            print(f"scan delay 0 s: not estimated ({err})")
+            return scans, {"seconds": 0.0, "how": f"{option}: not estimated, so none applied", "reason": str(err)}
+        print(f"scan delay estimated from {estimate.pairs} scan pairs: {estimate.delay:.3f} s")
+        record = {"seconds": estimate.delay, "how": f"{option}: estimated from the log",
+                  "estimated_from_pairs": estimate.pairs}
+    else:
+        record = {"seconds": float(delay), "how": "--scan-delay: given"}
+    try:
         return retime_odometry(scans, record["seconds"]), record
     except ValueError as err:
         raise OmnitofError(f"--scan-delay: {err}") from None
@@ -167,9 +178,9 @@ def cmd_scans(args: argparse.Namespace) -> int:
         from omnitof.viz.scans import plot_scan
 
         i = len(scans) // 2
-        plot_scan(args.figure, scans.ranges[i], scans.angles, max_range=scans.max_range,
+        plot_scan(args.figure, scans.scan_ranges(i), scans.scan_angles(i), max_range=scans.max_range,
                   title=f"frame {i} of {Path(args.log).name}")
-    filled = float(np.isfinite(scans.ranges).mean()) if len(scans) else 0.0
+    filled = float(np.isfinite(scans.ranges[scans.beam_mask]).mean()) if len(scans) else 0.0
     print(f"{len(scans)} scans of 360 bins ({100 * filled:.1f} % with a reading; rig from {data.rig_source}) "
           f"written as a {kind}: {out}")
     return 0
@@ -279,7 +290,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--skip-bad-lines", action="store_true", help="skip and count malformed log lines")
     p.add_argument("--scan-delay", type=_scan_delay, metavar="SECONDS|auto",
                    help="the scans were taken this long before their timestamps: take each scan's odometry "
-                   "from then; 'auto' estimates it from the data (omnitof.slam.timing)")
+                   "from then; 'auto' (the default for laser logs and LaserScan bags) estimates it from the data "
+                   "(omnitof.slam.timing), or uses 0 where the timestamps do not allow it")
     p.add_argument("--calibration", type=Path, help="ToF bags: the rig's calibration YAML (omnitof calibrate); "
                    "default: the true rig of a simulated bag")
     p.add_argument("--height", type=float, help="ToF bags: height of the scan slice above the floor (m)")

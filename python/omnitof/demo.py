@@ -258,9 +258,9 @@ def _figures(world: Any, renderer: Any, extractor: Any, sequence: Any, scans: An
                         np.log10(np.maximum(frame.amplitude, 1.0)), title="amplitude (log) and mirror regions")
     plot_mirror_regions(out / "fig3_depth.png", renderer.camera, renderer.mirrors, frame.distance,
                         title="distance and mirror regions")
-    truth = world.horizontal_distance(sequence.ground_truth[i, :2], sequence.ground_truth[i, 2] + scans.angles,
+    truth = world.horizontal_distance(sequence.ground_truth[i, :2], sequence.ground_truth[i, 2] + scans.scan_angles(i),
                                       extractor.settings.height)
-    plot_scan(out / "scan.png", scans.ranges[i], scans.angles, truth=truth, max_range=scans.max_range,
+    plot_scan(out / "scan.png", scans.scan_ranges(i), scans.scan_angles(i), truth=truth, max_range=scans.max_range,
               title=f"frame {i}: 360° range reading (truth grey)")
     plot_slice_overlay(out / "slice.png", extractor, frame.distance, frame.amplitude,
                        title=f"frame {i}: pixels that fed the slice")

@@ -15,18 +15,32 @@ import numpy as np
 class ScanSequence:
     """A stream of planar range scans with the odometry pose of the robot at each scan.
 
+    Beam geometry. Most sensors keep one geometry: `angles` is (B,) and every scan has its B
+    beams. Some change it from scan to scan (CARMEN ROBOTLASER and ROS LaserScan messages state
+    it per scan; the Freiburg hospital's interlaced SICK alternates 181 beams from -90° with 180
+    beams from -89.75°, -89.5° or -89.25°): then `angles` is (N, B), B the largest beam count,
+    and `beam_counts[i]` says how many beams scan i has. Its beams are the first beam_counts[i]
+    columns of angles[i] and ranges[i]; the columns after them are padding (angles NaN, ranges
+    +inf, remissions 0) and never used. `scan_angles(i)` and `scan_ranges(i)` give one scan's
+    beams without padding: use them wherever a single scan's beams are needed.
+
     Attributes:
         timestamps: (N,) float64, seconds, in the order the scans were taken. Real logs may step
             back a little where their clock did (the Intel log does; see io.carmen).
-        ranges: (N, B) float32, metres; +inf where the beam returned no echo.
+        ranges: (N, B) float32, metres; +inf where the beam returned no echo (and in padding).
         angles: (B,) float64, bearing of each beam in the sensor frame, radians, counter-clockwise
-            from the sensor's +x axis (the driving direction for a forward-facing laser).
+            from the sensor's +x axis (the driving direction for a forward-facing laser); or
+            (N, B), one row per scan, for per-scan geometry (see above).
         odometry: (N, 3) float64, the robot's odometry pose (x, y, theta) at each scan.
         sensor_pose: (3,) float64, robot_T_sensor: the sensor's pose in the robot frame.
         max_range: the sensor's maximum range in metres; readings at or beyond it are no echo.
         remissions: (N, B) float32 or None, reflectance values where the log has them.
         ground_truth: (N, 3) float64 or None, true robot poses where known (simulation).
         source: where the data came from (a file name), for messages and reports.
+        beam_counts: (N,) int64 for per-scan geometry (None for a fixed one; given None with
+            (N, B) angles, every scan has B beams).
+        max_range_rule: how max_range was found (a reader says which rule it applied, e.g.
+            "PARAM robot_front_laser_max = 80.99"), for reports.
     """
 
     timestamps: np.ndarray
@@ -38,6 +52,8 @@ class ScanSequence:
     remissions: np.ndarray | None = None
     ground_truth: np.ndarray | None = None
     source: str = ""
+    beam_counts: np.ndarray | None = None
+    max_range_rule: str = ""
 
     def __post_init__(self) -> None:
         self.timestamps = np.ascontiguousarray(self.timestamps, dtype=np.float64)
@@ -46,10 +62,14 @@ class ScanSequence:
         self.odometry = np.ascontiguousarray(self.odometry, dtype=np.float64)
         self.sensor_pose = np.ascontiguousarray(self.sensor_pose, dtype=np.float64)
         n = len(self.timestamps)
-        if self.ranges.ndim != 2 or self.ranges.shape != (n, len(self.angles)):
+        if self.angles.ndim not in (1, 2):
+            raise ValueError(f"angles must have shape (beams,) or (scans, beams), got {self.angles.shape}")
+        beams = self.angles.shape[-1]
+        if self.angles.ndim == 2 and self.angles.shape[0] != n:
+            raise ValueError(f"per-scan angles must have shape (scans, beams) = ({n}, B), got {self.angles.shape}")
+        if self.ranges.ndim != 2 or self.ranges.shape != (n, beams):
             raise ValueError(
-                f"ranges must have shape (scans, beams) = ({n}, {len(self.angles)}), "
-                f"got {self.ranges.shape}"
+                f"ranges must have shape (scans, beams) = ({n}, {beams}), got {self.ranges.shape}"
             )
         if self.odometry.shape != (n, 3):
             raise ValueError(f"odometry must have shape ({n}, 3), got {self.odometry.shape}")
@@ -63,36 +83,119 @@ class ScanSequence:
             self.remissions = np.ascontiguousarray(self.remissions, dtype=np.float32)
             if self.remissions.shape != self.ranges.shape:
                 raise ValueError("remissions must have the shape of ranges")
+        if self.angles.ndim == 1:
+            if self.beam_counts is not None:
+                raise ValueError("beam_counts needs per-scan angles (scans, beams)")
+        else:
+            self._check_per_scan_geometry()
+
+    def _check_per_scan_geometry(self) -> None:
+        """Check the beam counts and set the padding to NaN angles, +inf ranges, 0 remissions
+        (on copies: the caller's arrays are not changed)."""
+        n, beams = self.ranges.shape
+        if self.beam_counts is None:
+            self.beam_counts = np.full(n, beams, dtype=np.int64)
+        counts = np.asarray(self.beam_counts)
+        if counts.shape != (n,) or not np.issubdtype(counts.dtype, np.integer):
+            raise ValueError(f"beam_counts must be ({n},) whole numbers, got {counts.dtype} {counts.shape}")
+        if n and (counts.min() < 0 or counts.max() > beams):
+            raise ValueError(f"beam_counts must lie in 0..{beams} (the columns of angles)")
+        self.beam_counts = counts.astype(np.int64)
+        used = self.beam_mask
+        if not np.isfinite(self.angles[used]).all():
+            raise ValueError("angles must be finite for every beam a scan has")
+        pad = ~used
+        if not pad.any():
+            return
+        if not np.isnan(self.angles[pad]).all():
+            self.angles = self.angles.copy()
+            self.angles[pad] = np.nan
+        if not np.isposinf(self.ranges[pad]).all():
+            self.ranges = self.ranges.copy()
+            self.ranges[pad] = np.inf
+        if self.remissions is not None and np.any(self.remissions[pad] != 0):
+            self.remissions = self.remissions.copy()
+            self.remissions[pad] = 0.0
 
     def __len__(self) -> int:
         return len(self.timestamps)
 
     @property
+    def per_scan_geometry(self) -> bool:
+        """Whether each scan has its own beams (angles (N, B), beam_counts) or all share angles (B,)."""
+        return self.angles.ndim == 2
+
+    @property
     def n_beams(self) -> int:
-        return len(self.angles)
+        """Columns of `ranges`: the beam count, or the largest one for per-scan geometry."""
+        return self.ranges.shape[1]
+
+    @property
+    def beam_mask(self) -> np.ndarray:
+        """(N, B) bool: True where an entry of `ranges` is a beam of its scan, False in padding."""
+        if self.beam_counts is None:
+            return np.ones(self.ranges.shape, dtype=bool)
+        return np.arange(self.n_beams) < self.beam_counts[:, None]
 
     def scan_angles(self, i: int) -> np.ndarray:
         """(B_i,) bearings of scan i's beams (sensor frame, radians)."""
-        return self.angles
+        if self.beam_counts is None:
+            return self.angles
+        return self.angles[i, : self.beam_counts[i]]
 
     def scan_ranges(self, i: int) -> np.ndarray:
         """(B_i,) ranges of scan i (metres, +inf = no echo), one per `scan_angles(i)`."""
-        return self.ranges[i]
+        if self.beam_counts is None:
+            return self.ranges[i]
+        return self.ranges[i, : self.beam_counts[i]]
 
     def slice(self, start: int | None = None, stop: int | None = None) -> "ScanSequence":
         """The scans start..stop (a view-free copy with the same metadata)."""
         s = np.s_[start:stop]
+        per_scan = self.per_scan_geometry
         return ScanSequence(
             timestamps=self.timestamps[s].copy(),
             ranges=self.ranges[s].copy(),
-            angles=self.angles,
+            angles=self.angles[s].copy() if per_scan else self.angles,
             odometry=self.odometry[s].copy(),
             sensor_pose=self.sensor_pose,
             max_range=self.max_range,
             remissions=None if self.remissions is None else self.remissions[s].copy(),
             ground_truth=None if self.ground_truth is None else self.ground_truth[s].copy(),
             source=self.source,
+            beam_counts=self.beam_counts[s].copy() if per_scan else None,
+            max_range_rule=self.max_range_rule,
         )
+
+
+def evenly_spaced_beams(
+    starts: np.ndarray, steps: np.ndarray, counts: np.ndarray, *, tolerance: float
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """ScanSequence `angles` and `beam_counts` of scans whose beam j lies at starts[i] + j·steps[i]:
+    (B,) and None when every scan has the first one's beams (same count; first and last beam
+    within `tolerance` rad), else (N, B) padded with NaN and the counts (N,)."""
+    starts = np.asarray(starts, dtype=np.float64)
+    steps = np.asarray(steps, dtype=np.float64)
+    counts = np.asarray(counts, dtype=np.int64)
+    last = starts + steps * (counts - 1)
+    if (
+        np.all(counts == counts[0])
+        and np.abs(starts - starts[0]).max() <= tolerance
+        and np.abs(last - last[0]).max() <= tolerance
+    ):
+        return starts[0] + steps[0] * np.arange(counts[0]), None
+    columns = np.arange(counts.max())
+    angles = starts[:, None] + steps[:, None] * columns
+    angles[columns >= counts[:, None]] = np.nan
+    return angles, counts
+
+
+def pad_rows(rows: list[np.ndarray], fill: float, dtype: type) -> np.ndarray:
+    """(N, B) array of rows of different lengths (B the longest), `fill` after each row's end."""
+    counts = np.array([len(r) for r in rows], dtype=np.int64)
+    out = np.full((len(rows), int(counts.max(initial=0))), fill, dtype=dtype)
+    out[np.arange(out.shape[1]) < counts[:, None]] = np.concatenate(rows) if rows else []
+    return out
 
 
 @dataclass

@@ -192,32 +192,28 @@ impl ParticleFilter {
         self.angles.len()
     }
 
-    fn geometry(&self) -> ScanGeometry<'_> {
-        ScanGeometry { angles: &self.angles, sensor: self.sensor }
-    }
-
-    /// Start every particle at `pose` with the first scan written into one shared map.
-    fn initialise(&mut self, pose: [f64; 3], ranges: &[f32], scan: u64) {
-        let p = &self.params;
+    /// Every particle at `pose` with the first scan written into one shared map.
+    fn initial_particles(p: &FilterParams, geom: &ScanGeometry, pose: [f64; 3], ranges: &[f32], scan: u64) -> Vec<Particle> {
         let mut map = TiledGrid::new(p.resolution);
-        integrate_scan(&mut map, &p.log_odds, &self.geometry(), pose, ranges, p.map_max_range, p.clear_no_echo);
+        integrate_scan(&mut map, &p.log_odds, geom, pose, ranges, p.map_max_range, p.clear_no_echo);
         let root = Arc::new(TrajectoryNode { pose, scan, parent: None });
         let first = Particle { pose, log_weight: 0.0, map, trajectory: root };
-        self.particles = vec![first; p.n_particles];
+        vec![first; p.n_particles]
     }
 
     /// Integrate one scan taken at odometry pose `odom_cur`, the robot having moved there from
     /// odometry pose `odom_prev` since the last integrated scan. The first call only starts the
-    /// map, at `odom_cur`.
-    pub fn step(&mut self, odom_prev: [f64; 3], odom_cur: [f64; 3], ranges: &[f32], scan: u64) -> StepInfo {
+    /// map, at `odom_cur`. `angles` are this scan's beam bearings where its geometry is its own
+    /// (one per range); None: the filter's.
+    pub fn step(&mut self, odom_prev: [f64; 3], odom_cur: [f64; 3], ranges: &[f32], angles: Option<&[f64]>, scan: u64) -> StepInfo {
         let step_index = self.steps;
         self.steps += 1;
-        if self.particles.is_empty() {
-            self.initialise(odom_cur, ranges, scan);
-            return StepInfo { neff: self.params.n_particles as f64, resampled: false, fallbacks: 0, odometry_corrected: false };
-        }
         let p = &self.params;
-        let geom = ScanGeometry { angles: &self.angles, sensor: self.sensor };
+        let geom = ScanGeometry { angles: angles.unwrap_or(&self.angles), sensor: self.sensor };
+        if self.particles.is_empty() {
+            self.particles = Self::initial_particles(p, &geom, odom_cur, ranges, scan);
+            return StepInfo { neff: p.n_particles as f64, resampled: false, fallbacks: 0, odometry_corrected: false };
+        }
         let seed = p.seed;
         let pts = endpoints(&geom, ranges, p.beam_stride, p.field.max_range);
         let corrected = match (p.proposal, self.particles.get(self.best)) {

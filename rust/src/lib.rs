@@ -56,6 +56,17 @@ fn scan_geometry<'a>(
     Ok(ScanGeometry { angles, sensor })
 }
 
+/// A scan's own beam bearings: one finite angle per range.
+fn scan_angles(angles: &[f64], n_ranges: usize) -> PyResult<&[f64]> {
+    if angles.len() != n_ranges {
+        return Err(PyValueError::new_err(format!("scan has {n_ranges} ranges but {} angles", angles.len())));
+    }
+    if !angles.iter().all(|a| a.is_finite()) {
+        return Err(PyValueError::new_err("scan angles must be finite"));
+    }
+    Ok(angles)
+}
+
 type DenseGrid<'py> = (Bound<'py, PyArray2<f32>>, i32, i32);
 
 fn dense<'py>(py: Python<'py>, grid: &TiledGrid) -> DenseGrid<'py> {
@@ -307,7 +318,9 @@ impl PyParticleFilter {
     }
 
     /// Integrate one scan; returns (Neff before any resampling, whether it resampled, whether the
-    /// wide search replaced the step's odometry increment).
+    /// wide search replaced the step's odometry increment). `angles`: this scan's own beam
+    /// bearings, one per range, where the geometry changes from scan to scan; None: the filter's.
+    #[pyo3(signature = (odom_prev, odom_cur, ranges, scan, angles=None))]
     fn step(
         &mut self,
         py: Python<'_>,
@@ -315,19 +328,24 @@ impl PyParticleFilter {
         odom_cur: PyReadonlyArray1<f64>,
         ranges: PyReadonlyArray1<f32>,
         scan: u64,
+        angles: Option<PyReadonlyArray1<f64>>,
     ) -> PyResult<(f64, bool, bool)> {
         let prev = pose3(odom_prev.as_slice()?, "odom_prev")?;
         let cur = pose3(odom_cur.as_slice()?, "odom_cur")?;
         let ranges = ranges.as_slice()?;
-        if ranges.len() != self.inner.n_beams() {
-            return Err(PyValueError::new_err(format!(
-                "scan has {} ranges, the filter was made for {}",
-                ranges.len(),
-                self.inner.n_beams()
-            )));
-        }
+        let angles = match &angles {
+            Some(a) => Some(scan_angles(a.as_slice()?, ranges.len())?),
+            None if ranges.len() != self.inner.n_beams() => {
+                return Err(PyValueError::new_err(format!(
+                    "scan has {} ranges, the filter was made for {} (give the scan's own angles)",
+                    ranges.len(),
+                    self.inner.n_beams()
+                )))
+            }
+            None => None,
+        };
         let inner = &mut self.inner;
-        let info = py.detach(|| inner.step(prev, cur, ranges, scan));
+        let info = py.detach(|| inner.step(prev, cur, ranges, angles, scan));
         Ok((info.neff, info.resampled, info.odometry_corrected))
     }
 

@@ -41,7 +41,7 @@ import numpy as np
 
 from omnitof.errors import ConfigError, InputError
 from omnitof.geometry import relative, wrap_angle
-from omnitof.types import ScanSequence, Trajectory
+from omnitof.types import ScanSequence, Trajectory, evenly_spaced_beams, pad_rows
 
 __all__ = ["CarmenLog", "CarmenWarning", "old_format_angles", "read_carmen", "write_carmen"]
 
@@ -51,12 +51,21 @@ TRAILER = "ipc_timestamp ipc_hostname logger_timestamp"
 # codes in the bundled logs (81.83 in intel, 81.91 in fr079).
 DEFAULT_MAX_RANGE = 80.0
 
+# The no-echo code of a laser whose log does not state its range (see _repeated_top_value):
+# the top reading below DEFAULT_MAX_RANGE counts as that code when it holds this share of all
+# readings, at least this many of them, and this many times the count of any other value
+# within TOP_VALUE_BAND (relative) below it.
+TOP_VALUE_SHARE = 0.005
+TOP_VALUE_MIN_COUNT = 100
+TOP_VALUE_DOMINANCE = 10
+TOP_VALUE_BAND = 0.05
+
 # A laser bolted to the robot keeps its offset; CARMEN prints poses to 1e-6, so these tolerances
 # only catch real inconsistencies (a corrected laser pose next to raw odometry, say).
 OFFSET_TOLERANCE_M = 0.01
 OFFSET_TOLERANCE_RAD = math.radians(0.5)
 
-# Beam geometry of new-format messages must not change between the scans of one log.
+# Scans whose first and last beams agree with the first scan's to this (rad) share its geometry.
 GEOMETRY_TOLERANCE = 1e-6
 
 _KINDS = {  # laser side -> (old format, new format with poses, new format without poses)
@@ -128,6 +137,9 @@ def read_carmen(
     `fov_deg`. (CARMEN itself always starts at -90° and, for beam counts it does not know, uses
     180°/(n - 1); GMapping's log reader places 180 beams at ±1°..±90° with no beam at 0°; MRPT
     spreads them evenly over -90°..+90°. The disagreement is at most one step.)
+    The geometry may change from scan to scan (count, start angle, resolution: the Freiburg
+    hospital's interlaced SICK alternates four start angles); the ScanSequence then carries it per
+    scan (`angles` (N, B), `beam_counts`), else one `angles` (B,) for the whole log.
 
     Sensor pose (ScanSequence.sensor_pose, robot_T_sensor). From the per-message laser and robot
     poses of FLASER/ROBOTLASER when they differ: the laser pose in the robot's frame in the
@@ -141,8 +153,11 @@ def read_carmen(
     linear in x and y, shortest arc in theta).
 
     No echo. A range >= the maximum range or <= 0 becomes +inf. The maximum is the message's
-    maximum_range in the new format; for FLASER/RLASER it is the PARAM `robot_front_laser_max`
-    (`robot_rear_laser_max`), else `laser_front_laser_max_range`, else 80 m.
+    maximum_range in the new format (each scan its own); for FLASER/RLASER it is the PARAM
+    `robot_front_laser_max` (`robot_rear_laser_max`), else `laser_front_laser_max_range`, else
+    80 m, lowered to a value that repeats at the top of the readings below 80 m (a laser's own
+    no-echo code, such as 50.00 m; see `_repeated_top_value`), with a CarmenWarning.
+    `ScanSequence.max_range_rule` says which rule gave it.
 
     Time order. Scans are kept in file order with their logged timestamps (the benchmark
     relations refer to them). Equal consecutive timestamps are accepted. A timestamp earlier than
@@ -162,10 +177,9 @@ def read_carmen(
     Raises:
         InputError: naming the file, and the line where there is one: a malformed line (unless
             skip_bad_lines), a missing or unreadable file, a file that is not a CARMEN log, no
-            scans of the chosen laser, old- and new-format scans of the same laser, scans with
-            different beam counts or geometry, scan timestamps going backwards by more than
-            max_time_reversal, a laser offset that changes over the log, RAWLASER scans outside
-            the time span of the odometry.
+            scans of the chosen laser, old- and new-format scans of the same laser, scan
+            timestamps going backwards by more than max_time_reversal, a laser offset that
+            changes over the log, RAWLASER scans outside the time span of the odometry.
         ConfigError: for a bad `laser`, `fov_deg` or `max_time_reversal`.
     """
     _check_options(laser, fov_deg, max_time_reversal)
@@ -548,7 +562,7 @@ def _choose_kind(ctx: _Context, raw: _RawLog, laser: str) -> str:
 
 
 def _parse_scans(ctx: _Context, kind: str, lines: list[tuple[int, str]]) -> list[_Scan]:
-    """Parse the chosen laser's lines; beam count and geometry must not change."""
+    """Parse the chosen laser's lines (each with its own beam count and geometry)."""
     scans: list[_Scan] = []
     for number, text in lines:
         try:
@@ -557,30 +571,10 @@ def _parse_scans(ctx: _Context, kind: str, lines: list[tuple[int, str]]) -> list
             ctx.reject(str(exc), number)
             continue
         scan.line = number
-        if scans:
-            _check_same_geometry(ctx, kind, scans[0], scan)
         scans.append(scan)
     if not scans:
         raise ctx.error(f"no well-formed {kind} scan in the log")
     return scans
-
-
-def _check_same_geometry(ctx: _Context, kind: str, first: _Scan, scan: _Scan) -> None:
-    if len(scan.ranges) != len(first.ranges):
-        raise ctx.error(
-            f"{kind} has {len(scan.ranges)} beams here but {len(first.ranges)} in the first "
-            f"scan (line {first.line}); all scans of one laser must have the same beam count",
-            scan.line,
-        )
-    if first.geometry is not None and scan.geometry is not None:
-        change = max(abs(a - b) for a, b in zip(scan.geometry, first.geometry))
-        if change > GEOMETRY_TOLERANCE:
-            raise ctx.error(
-                f"{kind} start_angle, angular_resolution, maximum_range = {scan.geometry} here "
-                f"but {first.geometry} in the first scan (line {first.line}); the beam geometry "
-                "must not change within a log",
-                scan.line,
-            )
 
 
 # --------------------------------------------------------------------------------------------
@@ -597,14 +591,22 @@ def _build_sequence(
     odom_lines: np.ndarray,
     fov_deg: float,
 ) -> ScanSequence:
-    n = len(scans[0].ranges)
+    counts = np.array([len(s.ranges) for s in scans])
     stamps = np.array([s.stamp for s in scans])
+    raw = pad_rows([s.ranges for s in scans], np.inf, np.float64)  # padding: no echo
     if scans[0].geometry is not None:
-        start, resolution, max_range = scans[0].geometry
-        angles = start + resolution * np.arange(n)
+        starts, steps, max_ranges = np.array([s.geometry for s in scans]).T
+        max_range, rule = float(max_ranges.max()), f"{kind} maximum_range field"
+        if max_ranges.min() < max_range:
+            rule += f" ({max_ranges.min():g} to {max_range:g} m)"
+        no_echo = max_ranges[:, None]  # each scan its own
     else:
-        angles = old_format_angles(n, _fov_deg(ctx, laser, params, fov_deg))
-        max_range = _old_format_max_range(ctx, laser, params)
+        fov = math.radians(_fov_deg(ctx, laser, params, fov_deg))
+        starts = np.full(len(scans), -0.5 * fov)  # as old_format_angles, each scan its count
+        steps = _old_format_step(counts, fov)
+        max_range, rule = _old_format_max_range(ctx, laser, params, raw)
+        no_echo = max_range
+    angles, beam_counts = evenly_spaced_beams(starts, steps, counts, tolerance=GEOMETRY_TOLERANCE)
     if scans[0].robot_pose is not None:
         robot_poses = np.array([s.robot_pose for s in scans])
         laser_poses = np.array([s.laser_pose for s in scans])
@@ -616,13 +618,15 @@ def _build_sequence(
             sensor_pose = np.zeros(3)
     return ScanSequence(
         timestamps=stamps,
-        ranges=_no_echo_to_inf(np.array([s.ranges for s in scans]), max_range),
+        ranges=_no_echo_to_inf(raw, no_echo),
         angles=angles,
         odometry=robot_poses,
         sensor_pose=sensor_pose,
         max_range=float(max_range),
         remissions=_remissions(scans),
         source=str(ctx.path),
+        beam_counts=beam_counts,
+        max_range_rule=rule,
     )
 
 
@@ -634,8 +638,13 @@ def old_format_angles(n_beams: int, fov_deg: float) -> np.ndarray:
     both ends. So 180 beams over 180° are -90°, -89°, ..., +89°.
     """
     fov = math.radians(fov_deg)
-    gaps = n_beams if n_beams % 2 == 0 else max(n_beams - 1, 1)
-    return -0.5 * fov + (fov / gaps) * np.arange(n_beams)
+    return -0.5 * fov + _old_format_step(n_beams, fov) * np.arange(n_beams)
+
+
+def _old_format_step(n_beams: int | np.ndarray, fov: float) -> float | np.ndarray:
+    """The beam step (rad) of old-format scans of `n_beams` over `fov` rad (see above)."""
+    gaps = np.where(np.asarray(n_beams) % 2 == 0, n_beams, np.maximum(np.asarray(n_beams) - 1, 1))
+    return fov / gaps
 
 
 def _param_float(ctx: _Context, params: dict[str, tuple[str, int]], name: str) -> float | None:
@@ -659,17 +668,60 @@ def _fov_deg(
     return fov
 
 
-def _old_format_max_range(ctx: _Context, laser: str, params: dict[str, tuple[str, int]]) -> float:
+def _old_format_max_range(
+    ctx: _Context, laser: str, params: dict[str, tuple[str, int]], ranges: np.ndarray
+) -> tuple[float, str]:
+    """(maximum range, the rule that gave it) of old-format scans: a PARAM, else a no-echo code
+    found in the readings, else the default."""
     for name in (f"robot_{laser}_laser_max", f"laser_{laser}_laser_max_range"):
         value = _param_float(ctx, params, name)
         if value is not None:
             if value <= 0.0:
                 raise ctx.error(f"PARAM {name} is {value}; it must be positive", params[name][1])
-            return value
-    return DEFAULT_MAX_RANGE
+            return value, f"PARAM {name} = {value:g}"
+    top = _repeated_top_value(ranges[np.isfinite(ranges)])
+    if top is not None:
+        value, count = top
+        warnings.warn(
+            f"{ctx.path}: {count} readings of exactly {value:.2f} m, the largest below "
+            f"{DEFAULT_MAX_RANGE:g} m, are taken for the laser's no-echo value (the log states no "
+            f"maximum range; PARAM robot_{laser}_laser_max would)",
+            CarmenWarning,
+            stacklevel=4,
+        )
+        return value, f"repeated top value {value:.2f} m ({count} readings)"
+    beyond = int(np.count_nonzero(ranges >= DEFAULT_MAX_RANGE))
+    return DEFAULT_MAX_RANGE, f"default {DEFAULT_MAX_RANGE:g} m ({beyond} readings at or beyond it)"
 
 
-def _no_echo_to_inf(ranges: np.ndarray, max_range: float) -> np.ndarray:
+def _repeated_top_value(readings: np.ndarray) -> tuple[float, int] | None:
+    """(value, count) of a laser's own no-echo code among `readings`, or None.
+
+    A laser that saw nothing reports a fixed value: SICK's codes (81.83, 81.91 m) lie above the
+    80 m default, but a driver may log its range limit instead (one log holds 11,139 readings of
+    exactly 50.00 m). Such a code is one exact value at the very top of the readings, repeated far
+    more often than any real distance: walls spread over many values (noise, the 1 cm print
+    resolution), a code does not. So the largest reading below the default counts as the code
+    when it holds at least TOP_VALUE_SHARE of all readings and TOP_VALUE_MIN_COUNT of them, and
+    at least TOP_VALUE_DOMINANCE times as many as any other value within TOP_VALUE_BAND below it.
+    A wall that is merely the farthest thing seen fails the count; a range limit that readings
+    pile up against without a code fails the dominance test.
+    """
+    below = readings[(readings > 0.0) & (readings < DEFAULT_MAX_RANGE)]
+    if below.size == 0:
+        return None
+    top = below.max()
+    count = int(np.count_nonzero(below == top))
+    if count < max(TOP_VALUE_MIN_COUNT, TOP_VALUE_SHARE * readings.size):
+        return None
+    near = below[(below >= top * (1.0 - TOP_VALUE_BAND)) & (below < top)]
+    runner_up = int(np.unique(near, return_counts=True)[1].max(initial=0))
+    if count < TOP_VALUE_DOMINANCE * runner_up:
+        return None
+    return float(top), count
+
+
+def _no_echo_to_inf(ranges: np.ndarray, max_range: float | np.ndarray) -> np.ndarray:
     """float32 ranges with +inf where the laser saw nothing (>= max range, or <= 0)."""
     out = ranges.astype(np.float32)
     out[(ranges >= max_range) | (ranges <= 0.0)] = np.inf
@@ -677,10 +729,10 @@ def _no_echo_to_inf(ranges: np.ndarray, max_range: float) -> np.ndarray:
 
 
 def _remissions(scans: list[_Scan]) -> np.ndarray | None:
-    """Remissions only if every scan has one per beam."""
+    """Remissions only if every scan has one per beam (padded with 0 like its ranges)."""
     if any(s.remissions is None for s in scans):
         return None
-    return np.array([s.remissions for s in scans], dtype=np.float32)
+    return pad_rows([s.remissions for s in scans], 0.0, np.float32)
 
 
 def _param_sensor_pose(
@@ -818,23 +870,22 @@ def _check_time_order(
 def write_carmen(path: str | Path, scans: ScanSequence, *, hostname: str = "omnitof") -> None:
     """Write scans as a new-format CARMEN log (ROBOTLASER1 per scan, ODOM before each), so that
     other SLAM tools can read them; `read_carmen` reads it back to the same arrays (to the
-    printed precision: 1 mm ranges, 1e-6 poses, microsecond timestamps).
+    printed precision: 1 mm ranges, 1e-6 poses, microsecond timestamps), per-scan geometry too.
 
-    The beams must be evenly spaced (ROBOTLASER1 states start angle and step only). No-echo
-    readings are written as the maximum range. gzip or bzip2 compression follows the suffix
+    Each scan's beams must be evenly spaced (ROBOTLASER1 states start angle and step only).
+    No-echo readings are written as the maximum range. gzip or bzip2 compression follows the suffix
     (.gz, .bz2). The file is written atomically.
     """
     from omnitof.geometry import compose
     from omnitof.io.atomic import atomic_write
 
-    angles = scans.angles
-    step = float(angles[1] - angles[0]) if len(angles) > 1 else 0.0
-    if len(angles) > 2 and not np.allclose(np.diff(angles), step, atol=1e-9):
-        raise ValueError("ROBOTLASER1 needs evenly spaced beams")
+    if scans.per_scan_geometry:
+        geometry = [_robotlaser_geometry(scans.scan_angles(i)) for i in range(len(scans))]
+    else:
+        geometry = [_robotlaser_geometry(scans.angles)] * len(scans)
     laser_poses = compose(scans.odometry, scans.sensor_pose)
     max_range = float(scans.max_range)
     ranges = np.where(np.isfinite(scans.ranges), scans.ranges, max_range)
-    fov = step * (len(angles) - 1)  # the span from the first to the last beam
     header = (
         "# CARMEN Logfile written by omnitof\n"
         "# ODOM x y theta tv rv accel\n"
@@ -847,12 +898,14 @@ def write_carmen(path: str | Path, scans: ScanSequence, *, hostname: str = "omni
     for i in range(len(scans)):
         t = scans.timestamps[i]
         o, lp = scans.odometry[i], laser_poses[i]
+        start, step, n = geometry[i]
+        fov = step * (n - 1)  # the span from the first to the last beam
         trailer = f"{t:.6f} {hostname} {t - scans.timestamps[0]:.6f}"
         lines.append(f"ODOM {o[0]:.6f} {o[1]:.6f} {o[2]:.6f} 0 0 0 {trailer}\n")
-        r = " ".join(f"{v:.3f}" for v in ranges[i])
+        r = " ".join(f"{v:.3f}" for v in ranges[i, :n])
         lines.append(
-            f"ROBOTLASER1 0 {angles[0]:.17g} {fov:.17g} {step:.17g} {max_range:.3f} 0.01 0 "
-            f"{len(angles)} {r} 0 {lp[0]:.6f} {lp[1]:.6f} {lp[2]:.6f} {o[0]:.6f} {o[1]:.6f} "
+            f"ROBOTLASER1 0 {start:.17g} {fov:.17g} {step:.17g} {max_range:.3f} 0.01 0 "
+            f"{n} {r} 0 {lp[0]:.6f} {lp[1]:.6f} {lp[2]:.6f} {o[0]:.6f} {o[1]:.6f} "
             f"{o[2]:.6f} 0 0 0 0 0 {trailer}\n"
         )
     text = "".join(lines).encode()
@@ -863,3 +916,11 @@ def write_carmen(path: str | Path, scans: ScanSequence, *, hostname: str = "omni
         text = bz2.compress(text)
     with atomic_write(path, "wb") as f:
         f.write(text)
+
+
+def _robotlaser_geometry(angles: np.ndarray) -> tuple[float, float, int]:
+    """(start_angle, angular_resolution, beams) of evenly spaced beams, else ValueError."""
+    step = float(angles[1] - angles[0]) if len(angles) > 1 else 0.0
+    if len(angles) > 2 and not np.allclose(np.diff(angles), step, atol=1e-9):
+        raise ValueError("ROBOTLASER1 needs evenly spaced beams")
+    return float(angles[0]), step, len(angles)

@@ -539,4 +539,5 @@ def scans_from_frames(
         max_range=extractor.settings.max_range,
         ground_truth=ground_truth,
         source=source,
+        max_range_rule="the scan extraction's max_range",
     )

@@ -675,7 +675,8 @@ def simulate_scans(
 ) -> np.ndarray:
     """Laser ranges (N, B) float32 in metres from robot poses (N, 3).
 
-    Each beam leaves world_T_robot ⊕ robot_T_sensor at the sensor-frame bearing angles[b]. The
+    Each beam leaves world_T_robot ⊕ robot_T_sensor at the sensor-frame bearing angles[b] (or
+    angles[i, b]: (N, B) angles give each scan its own beams, as an interlaced laser has). The
     true distance gets zero-mean Gaussian noise of std range_noise (metres); a noisy reading at or
     beyond max_range, a beam that hits nothing, and (with probability dropout, independently per
     beam) a lost echo all read +inf.
@@ -684,12 +685,12 @@ def simulate_scans(
     if poses.ndim != 2 or poses.shape[1] != 3:
         raise ValueError(f"poses must have shape (N, 3), got {poses.shape}")
     angles = np.asarray(angles, dtype=np.float64)
-    if angles.ndim != 1:
-        raise ValueError(f"angles must have shape (B,), got {angles.shape}")
+    if not (angles.ndim == 1 or (angles.ndim == 2 and len(angles) == len(poses))):
+        raise ValueError(f"angles must have shape (B,) or ({len(poses)}, B), got {angles.shape}")
     if not (max_range > 0.0 and range_noise >= 0.0 and 0.0 <= dropout <= 1.0):
         raise ConfigError("need max_range > 0, range_noise >= 0 and 0 <= dropout <= 1")
     world_T_sensor = compose(poses, np.asarray(sensor_pose, dtype=np.float64))
-    bearings = world_T_sensor[:, 2:3] + angles[None, :]
+    bearings = world_T_sensor[:, 2:3] + angles
     # Cast a little beyond max_range so that noise can carry a wall just outside it inside.
     reach = max_range + 6.0 * range_noise
     true = world.raycast(world_T_sensor[:, :2], bearings, max_range=reach)
@@ -750,4 +751,5 @@ def make_loop_dataset(
         max_range=max_range,
         ground_truth=path.poses,
         source="corridor-loop (simulated)",
+        max_range_rule="the simulated laser's max_range",
     )

@@ -86,7 +86,8 @@ def _make_filter(scans: ScanSequence, cfg: SlamConfig) -> "_core.ParticleFilter"
     as one keyword each, and derives what it needs (radians, ranges capped by the sensor's,
     threads); only the scan selection (`select_scans`) is done here and kept out of it."""
     return _core.ParticleFilter(
-        **core_sections(cfg), angles=scans.angles, sensor_pose=scans.sensor_pose, scan_max_range=scans.max_range
+        **core_sections(cfg), angles=scans.scan_angles(0), sensor_pose=scans.sensor_pose,
+        scan_max_range=scans.max_range,
     )
 
 
@@ -127,8 +128,7 @@ class _Between:
         self.next = stop + 1
 
     def _angles(self, i: int) -> np.ndarray | None:
-        angles = self.scans.scan_angles(i)
-        return None if angles is self.scans.angles else angles
+        return self.scans.scan_angles(i) if self.scans.per_scan_geometry else None  # else the filter's
 
     def trajectory(self, integrated: np.ndarray, corrected: np.ndarray) -> np.ndarray:
         """Every scan's pose: integrated scans at `corrected`, the others after their anchor."""
@@ -176,7 +176,8 @@ def run_slam(
         if between is not None:
             between.match_up_to(pf, int(k))
         cur = scans.odometry[k]
-        if pf.step(prev, cur, scans.ranges[k], int(k))[2]:
+        own = scans.scan_angles(k) if scans.per_scan_geometry else None  # else the filter's
+        if pf.step(prev, cur, scans.scan_ranges(k), int(k), angles=own)[2]:
             corrected_scans.append(int(k))
         prev = cur
         if backend is not None:

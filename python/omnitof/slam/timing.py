@@ -99,10 +99,11 @@ def estimate_scan_delay(
     matched_turn, used = [], []
     for k in candidates:
         grid = _core.OccupancyGrid(0.05, 0.9, -0.4, -2.0, 3.5)
-        grid.integrate(np.zeros(3), scans.angles, scans.ranges[k], max_range, False, scans.sensor_pose)
+        grid.integrate(np.zeros(3), scans.scan_angles(k), scans.scan_ranges(k), max_range, False, scans.sensor_pose)
         predicted = relative(scans.odometry[k], scans.odometry[k + 1])
         pose, score = grid.match_scan(
-            predicted, scans.angles, scans.ranges[k + 1], sensor_pose=scans.sensor_pose, max_range=max_range
+            predicted, scans.scan_angles(k + 1), scans.scan_ranges(k + 1), sensor_pose=scans.sensor_pose,
+            max_range=max_range,
         )
         if score >= 0.5:
             matched_turn.append(pose[2])

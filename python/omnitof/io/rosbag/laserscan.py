@@ -51,14 +51,14 @@ from omnitof.io.rosbag.common import (
     _storage_plugin,
     _to_ns,
 )
-from omnitof.types import ScanSequence, Trajectory
+from omnitof.types import ScanSequence, Trajectory, evenly_spaced_beams, pad_rows
 
 __all__ = ["read_laserscan_bag", "write_laserscan_bag"]
 
 # A laser whose plane is tilted more than this is still read, with a warning.
 _MAX_LASER_TILT_RAD = math.radians(5.0)
-# Beam geometry (angles in rad, range limits in m) must agree this well across scans; also the
-# tolerance on evenly spaced beams when writing (LaserScan stores angle_min + i·increment).
+# Scans whose first and last beams agree with the first scan's to this (rad) share its geometry;
+# also the tolerance on evenly spaced beams when writing (LaserScan stores angle_min + i·increment).
 _GEOMETRY_TOLERANCE = 1e-6
 
 
@@ -78,9 +78,11 @@ def read_laserscan_bag(
     - Topics: when not given, found by type. Several candidates are ambiguous unless one is
       the conventional name ("/scan", "/odom"); the ground-truth topic is never taken for
       odometry. The error lists the candidates.
-    - Ranges: NaN, ±inf and values outside [range_min, range_max] become +inf (no echo).
-      Beam i is at angle_min + i·angle_increment; max_range = range_max; intensities become
-      `remissions` when every scan has one per beam. Beam geometry must not change.
+    - Ranges: NaN, ±inf and values outside [range_min, range_max] (each message its own) become
+      +inf (no echo). Beam i is at angle_min + i·angle_increment; max_range = the largest
+      range_max; intensities become `remissions` when every scan has one per beam. Where
+      angle_min, angle_increment or the beam count change from scan to scan, the ScanSequence
+      has per-scan geometry (`angles` (N, B), `beam_counts`).
     - Time: each scan's header stamp; stamps must not decrease. The odometry (its header
       stamps must not decrease either) is interpolated to each scan's stamp (linear in x, y,
       shorter arc in θ); scans outside the odometry's time span are dropped with a
@@ -93,8 +95,9 @@ def read_laserscan_bag(
       gets its angles negated. Without such a transform: zeros and a RosbagWarning.
 
     Raises:
-        InputError: naming the bag and topic: not a bag, no or ambiguous topics, changing beam
-            geometry, timestamps that go backwards, no scan within the odometry's span.
+        InputError: naming the bag and topic: not a bag, no or ambiguous topics, a range_max
+            that is not a positive number, timestamps that go backwards, no scan within the
+            odometry's span.
     """
     path = Path(path)
     with _opened(path) as reader:
@@ -121,7 +124,7 @@ def read_laserscan_bag(
         stamps: list[int] = []
         ranges: list[np.ndarray] = []
         intensities: list[np.ndarray] = []
-        geometry: tuple[float, float, int, float, float] | None = None
+        geometry: list[tuple[float, float, int, float]] = []  # angle_min, increment, beams, range_max
         laser_frame = ""
         for _, msg in _messages(reader, path, scan_conns):
             ns = _stamp_ns(msg.header.stamp)
@@ -131,38 +134,26 @@ def read_laserscan_bag(
                     f"{_ns_to_s(ns):.9f} s follows one stamped {_ns_to_s(stamps[-1]):.9f} s",
                     path,
                 )
+            if not stamps:
+                laser_frame = _frame_name(msg.header.frame_id)
             r = np.array(msg.ranges, dtype=np.float32)
-            this = (
-                float(msg.angle_min), float(msg.angle_increment), len(r),
-                float(msg.range_min), float(msg.range_max),
-            )  # fmt: skip
-            if geometry is None:
-                geometry, laser_frame = this, _frame_name(msg.header.frame_id)
-                if not (math.isfinite(this[4]) and this[4] > 0.0):
-                    raise InputError(
-                        f"topic {scan_name}: range_max must be a positive number, got {this[4]}",
-                        path,
-                    )
-            elif this[2] != geometry[2] or not np.allclose(
-                this, geometry, rtol=0.0, atol=_GEOMETRY_TOLERANCE
-            ):
+            range_min, range_max = float(msg.range_min), float(msg.range_max)
+            if not (math.isfinite(range_max) and range_max > 0.0):
                 raise InputError(
-                    f"topic {scan_name}: the scan at {_ns_to_s(ns):.9f} s has beam geometry "
-                    f"(angle_min, angle_increment, beams, range_min, range_max) = {this}, "
-                    f"the first had {geometry}; one ScanSequence needs one geometry",
+                    f"topic {scan_name}: the scan at {_ns_to_s(ns):.9f} s has range_max "
+                    f"{range_max}; it must be a positive number",
                     path,
                 )
             with np.errstate(invalid="ignore"):
-                valid = (r >= geometry[3]) & (r <= geometry[4])  # False for NaN
+                valid = (r >= range_min) & (r <= range_max)  # False for NaN
             r[~valid] = np.inf
             stamps.append(ns)
             ranges.append(r)
             intensities.append(np.asarray(msg.intensities, dtype=np.float32))
-    if geometry is None:
+            geometry.append((float(msg.angle_min), float(msg.angle_increment), len(r), range_max))
+    if not stamps:
         raise InputError(f"topic {scan_name}: has no message", path)
 
-    angle_min, increment, n_beams, _, range_max = geometry
-    angles = angle_min + increment * np.arange(n_beams, dtype=np.float64)
     t = np.array([_ns_to_s(ns) for ns in stamps], dtype=np.float64)
     odometry = trajectories[odom_name]
     poses = interpolate_poses(odometry, t)
@@ -193,10 +184,19 @@ def read_laserscan_bag(
             )
             ground_truth = None
 
-    scan_ranges = np.stack(ranges)[keep]
+    kept = np.flatnonzero(keep)
+    angle_min, increment, counts, range_max = (np.array(g)[kept] for g in zip(*geometry))
+    angles, beam_counts = evenly_spaced_beams(
+        angle_min, increment, counts, tolerance=_GEOMETRY_TOLERANCE
+    )
+    scan_ranges = pad_rows([ranges[i] for i in kept], np.inf, np.float32)
     remissions = None
-    if all(len(i) == n_beams for i in intensities):
-        remissions = np.stack(intensities)[keep]
+    if all(len(intensities[i]) == len(ranges[i]) for i in kept):
+        remissions = pad_rows([intensities[i] for i in kept], 0.0, np.float32)
+    max_range = float(range_max.max())
+    rule = "LaserScan range_max"
+    if range_max.min() < max_range:
+        rule += f" ({range_max.min():g} to {max_range:g} m)"
     sensor_pose, flipped = _laser_pose(static, base_frame, laser_frame, path, tf_static_topic)
     if flipped:
         angles = -angles
@@ -206,10 +206,12 @@ def read_laserscan_bag(
         angles=angles,
         odometry=poses[keep],
         sensor_pose=sensor_pose,
-        max_range=range_max,
+        max_range=max_range,
         remissions=remissions,
         ground_truth=ground_truth,
         source=str(path),
+        beam_counts=beam_counts,
+        max_range_rule=rule,
     )
 
 
@@ -316,8 +318,9 @@ def write_laserscan_bag(
     Args:
         path: a ".bag" file for version 1 (ROS 1 readers recognise bags by it); a folder not
             ending in ".bag" for version 2.
-        scans: evenly spaced beams (LaserScan stores angle_min + i·angle_increment, in
-            float32), timestamps non-decreasing and >= 0.
+        scans: evenly spaced beams in each scan (LaserScan stores angle_min +
+            i·angle_increment, in float32; per-scan geometry gives each message its own),
+            timestamps non-decreasing and >= 0.
         storage: ROS 2 storage, "mcap" or "sqlite3".
         overwrite: replace an existing bag at `path`.
 
@@ -335,7 +338,10 @@ def write_laserscan_bag(
             f"{path}: a ROS 2 bag folder must not end in '.bag' (readers take that for ROS 1)"
         )
     plugin = _storage_plugin(storage)
-    angle_min, increment = _even_beams(scans.angles)
+    if scans.per_scan_geometry:
+        geometry = [_even_beams(scans.scan_angles(k)) for k in range(len(scans))]
+    else:
+        geometry = [_even_beams(scans.angles)] * len(scans)
     stamps = [_to_ns(t) for t in scans.timestamps]
     if any(b < a for a, b in zip(stamps, stamps[1:])):
         raise ValueError("write_laserscan_bag: scan timestamps must not decrease")
@@ -381,17 +387,19 @@ def write_laserscan_bag(
             for k, ns in enumerate(stamps):
                 for stream in streams:
                     stream.write_until(ns)
+                angle_min, increment = geometry[k]
+                ranges = scans.scan_ranges(k)
                 msg = scan_cls(
                     header=_header(store, ns, LASER_FRAME, ros1=ros1),
                     angle_min=angle_min,
-                    angle_max=angle_min + increment * (scans.n_beams - 1),
+                    angle_max=angle_min + increment * (len(ranges) - 1),
                     angle_increment=increment,
                     time_increment=0.0,
                     scan_time=0.0,
                     range_min=0.0,
                     range_max=float(scans.max_range),
-                    ranges=np.ascontiguousarray(scans.ranges[k], dtype=np.float32),
-                    intensities=np.ascontiguousarray(intensities[k], dtype=np.float32),
+                    ranges=np.ascontiguousarray(ranges, dtype=np.float32),
+                    intensities=np.ascontiguousarray(intensities[k, : len(ranges)], dtype=np.float32),
                 )
                 writer.write(conn_scan, ns, _serialize(store, msg, LASER_SCAN, ros1))
 
