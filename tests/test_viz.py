@@ -92,3 +92,21 @@ def test_bad_trajectory_shape_writes_nothing(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="trajectory 'xy'"):
         plot_map(tmp_path / "x.png", None, {"xy": np.zeros((4, 2))})
     assert list(tmp_path.iterdir()) == []
+
+
+def test_huge_maps_are_drawn_by_blocks_that_keep_thin_walls():
+    from omnitof.viz.maps import UNKNOWN_SHADE, _at_most
+
+    rng = np.random.default_rng(0)
+    shades = rng.uniform(0.6, 1.0, size=(7, 10))
+    shades[3, :] = 0.0  # a one-cell wall
+    reduced = _at_most(shades, 4)  # k = 3: 3×4 blocks, the last ones padded as unknown
+    assert reduced.shape == (3, 4)
+    for r in range(3):
+        for c in range(4):
+            block = shades[3 * r:3 * r + 3, 3 * c:3 * c + 3]
+            padded = block.size < 9
+            expected = min(block.min(), UNKNOWN_SHADE) if padded else block.min()
+            assert reduced[r, c] == expected
+    assert np.all(reduced[1, :] == 0.0)  # the wall survives
+    assert _at_most(shades, 10) is shades  # small maps are drawn as they are

@@ -20,6 +20,7 @@ from omnitof.types import OccupancyMap
 
 UNKNOWN_SHADE = 0.5  # mid-grey for cells never observed
 DEFAULT_FIGSIZE = (8.0, 8.0)  # inches; the PNG is figsize * dpi pixels
+MAX_DRAWN_CELLS = 3000  # larger maps are drawn by blocks (about twice the figure's pixels)
 
 
 def map_shades(occ: OccupancyMap) -> np.ndarray:
@@ -107,7 +108,7 @@ def plot_pose_graph(
 def _draw_map(ax: Axes, occ: OccupancyMap) -> None:
     # origin="lower": row 0 of the grid is the lowest y. "nearest" keeps cells crisp.
     ax.imshow(
-        map_shades(occ),
+        _at_most(map_shades(occ), MAX_DRAWN_CELLS),
         cmap="gray",
         vmin=0.0,
         vmax=1.0,
@@ -115,6 +116,19 @@ def _draw_map(ax: Axes, occ: OccupancyMap) -> None:
         extent=occ.extent,
         interpolation="nearest",
     )
+
+
+def _at_most(shades: np.ndarray, cells: int) -> np.ndarray:
+    """Shades of a map with more than `cells` cells on a side, reduced by whole k×k blocks to
+    their darkest cell (so thin walls stay visible): matplotlib would otherwise resample the
+    full array, gigabytes for a map of hundreds of metres, for a figure of a thousand pixels."""
+    k = -(-max(shades.shape) // cells)
+    if k <= 1:
+        return shades
+    h, w = shades.shape
+    padded = np.full((-(-h // k) * k, -(-w // k) * k), UNKNOWN_SHADE)
+    padded[:h, :w] = shades
+    return padded.reshape(padded.shape[0] // k, k, padded.shape[1] // k, k).min(axis=(1, 3))
 
 
 def _draw_trajectory(ax: Axes, name: str, poses: np.ndarray, *, color: str) -> None:
