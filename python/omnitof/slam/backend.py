@@ -52,6 +52,11 @@ from omnitof.geometry import compose, relative, wrap_angle
 from omnitof.slam.config import BackendConfig, MapConfig
 from omnitof.types import ScanSequence
 
+LM_ITERATIONS = 20
+LM_RELATIVE_TOLERANCE = 1e-4
+# Levenberg-Marquardt iterations per step of graduated non-convexity: the weights settle long
+# before each step's optimum does, and the final robust run polishes the estimate.
+GNC_INNER_ITERATIONS = 10
 CHI2_PROBABILITY = 0.99
 CHI2_3DOF_99 = 11.345  # the CHI2_PROBABILITY quantile of chi-square with 3 degrees of freedom
 
@@ -69,7 +74,7 @@ class Closure:
     score: float
     covariance: np.ndarray
     search: str  # "local" or "global"
-    accepted: bool = True
+    accepted: bool | None = None  # None until an optimisation has judged it
 
 
 @dataclass
@@ -112,6 +117,7 @@ class PoseGraphBackend:
         self.searches = 0
         self.optimisations = 0
         self.feedbacks = 0
+        self.graduated = 0  # optimisations that needed graduated non-convexity
         self.optimised_up_to = -1
         self._pending = 0  # closures added since the last optimisation
         self._since_closure = 0
@@ -211,21 +217,18 @@ class PoseGraphBackend:
         """Finished submaps far enough back in time whose centre is within `radius` of node j's
         estimate, nearest first."""
         current = len(self.submaps) - (0 if self.submaps[-1].grid.finished else 1)
-        last = current - self.cfg.skip_recent_submaps
-        out = []
-        for s in range(max(0, last)):
-            sub = self.submaps[s]
-            if not sub.grid.finished:
-                continue
-            centre = self._submap_centre_estimate(sub)
-            d = float(np.hypot(*(centre - self.estimate[j][:2])))
-            if d <= radius:
-                out.append((d, s))
-        return [s for _, s in sorted(out)]
-
-    def _submap_centre_estimate(self, sub: _Submap) -> np.ndarray:
-        local = relative(sub.anchor_pose, np.array([*sub.centre, 0.0]))
-        return compose(self.estimate[sub.first], local)[:2]
+        eligible = [s for s in range(max(0, current - self.cfg.skip_recent_submaps)) if self.submaps[s].grid.finished]
+        if not eligible:
+            return []
+        subs = [self.submaps[s] for s in eligible]
+        # Each centre, kept relative to its submap's first node, follows that node's estimate.
+        anchors = np.array([sub.anchor_pose for sub in subs])
+        centres = np.array([[*sub.centre, 0.0] for sub in subs])
+        firsts = np.array([self.estimate[sub.first] for sub in subs])
+        where = compose(firsts, relative(anchors, centres))[:, :2]
+        d = np.hypot(*(where - self.estimate[j][:2]).T)
+        order = np.argsort(d, kind="stable")
+        return [eligible[k] for k in order if d[k] <= radius]
 
     def _search(self, j: int) -> int:
         """Search node j in the submaps near it (or, when lost, in all); returns the number of
@@ -279,11 +282,14 @@ class PoseGraphBackend:
             j = node_of.get(int(s))
             if j is not None:
                 self.frontend[j] = np.asarray(p, dtype=np.float64)
-        for j in range(self.segment_start + 1, len(self.scan_of)):
-            self.odometry_edges[j - 1] = relative(self.frontend[j - 1], self.frontend[j])
+        start = self.segment_start
+        if len(self.scan_of) > start + 1:
+            poses = np.asarray(self.frontend[start:])
+            self.odometry_edges[start:] = list(relative(poses[:-1], poses[1:]))
 
     def _chain(self) -> list[np.ndarray]:
         """Node poses from the first node along the front-end edges only."""
+        # Sequential by nature: each pose is the one before it moved by the edge.
         out = [self.estimate[0]]
         for edge in self.odometry_edges:
             out.append(compose(out[-1], edge))
@@ -323,27 +329,36 @@ class PoseGraphBackend:
     def optimise(self) -> None:
         """Optimise the whole graph from the current estimates.
 
-        Where every closure agrees with the current estimate (within the chi-square bound), one
-        Levenberg-Marquardt run with the robust kernel on the closures suffices. Where some do
-        not, the front end may have gone wrong, and a robust kernel started from the wrong
+        Where every new closure agrees with the current estimate (within the chi-square bound),
+        one Levenberg-Marquardt run with the robust kernel on the kept closures suffices. Where a
+        new one does not, the front end may have gone wrong, and a robust kernel started from the wrong
         estimate would discount exactly the closures that could repair it. Then graduated
         non-convexity decides (GTSAM's GncLMOptimizer with the truncated-least-squares loss;
         Yang, Antonante, Tzoumas, Carlone, RA-L 2020): it starts from the convex problem, where
         a consistent group of closures outweighs a few false ones, and turns the loss down to
-        truncation step by step; the front-end edges are known inliers. The closures it keeps
-        then go into the robust Levenberg-Marquardt run.
+        truncation step by step; the front-end edges are known inliers. Its verdict on every
+        closure (old ones too, so a wrongly kept one can still go) stands until the next such
+        run; the closures it keeps go into the robust Levenberg-Marquardt run.
         """
-        if not all(self._agrees(c) for c in self.closures):
-            kept = self._graduated()
+        new = [c for c in self.closures if c.accepted is None]
+        if all(self._agrees(c) for c in new):
+            for c in new:
+                c.accepted = True
         else:
-            kept = [True] * len(self.closures)
-        graph, values = self._graph(robust=True, use=kept)
+            self.graduated += 1
+            for c, keep in zip(self.closures, self._graduated()):
+                c.accepted = keep
+        graph, values = self._graph(robust=True, use=[bool(c.accepted) for c in self.closures])
         params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(50)
+        params.setMaxIterations(LM_ITERATIONS)
+        # Started from the last optimum, the graph is near its minimum; a millimetre-level
+        # change of the cost is all the accuracy the map can show.
+        params.setRelativeErrorTol(LM_RELATIVE_TOLERANCE)
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
         self.estimate = [_pose(result.atPose2(j)) for j in range(len(self.estimate))]
         for c in self.closures:
-            c.accepted = self._agrees(c)
+            if c.accepted and not self._agrees(c):
+                c.accepted = False  # the robust kernel discounted it
         self.optimisations += 1
         self.optimised_up_to = len(self.estimate) - 1
         self._last_optimised_node = self.optimised_up_to
@@ -352,7 +367,9 @@ class PoseGraphBackend:
     def _graduated(self) -> list[bool]:
         """Which closures graduated non-convexity keeps as inliers (see `optimise`)."""
         graph, values = self._graph(robust=False, use=[True] * len(self.closures))
-        params = gtsam.GncLMParams()
+        inner = gtsam.LevenbergMarquardtParams()
+        inner.setMaxIterations(GNC_INNER_ITERATIONS)
+        params = gtsam.GncLMParams(inner)
         params.setLossType(gtsam.GncLossType.TLS)
         n_fixed = 1 + len(self.odometry_edges)  # the prior and the front-end edges
         params.setKnownInliers(list(range(n_fixed)))
@@ -421,6 +438,7 @@ class PoseGraphBackend:
             "searches_without_match": self.rejected_searches,
             "global_closures": sum(c.search == "global" for c in self.closures),
             "optimisations": self.optimisations,
+            "graduated_optimisations": self.graduated,
             "feedbacks": self.feedbacks,
             "seconds": {k: round(v, 2) for k, v in self.seconds.items()},
         }
