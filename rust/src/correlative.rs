@@ -165,27 +165,7 @@ mod tests {
             [0.0, 6.0, 0.0, 0.0],
             [2.0, 2.0, 2.5, 2.0],
         ];
-        angles
-            .iter()
-            .map(|a| {
-                let (dx, dy) = ((at[2] + a).cos(), (at[2] + a).sin());
-                let mut best = f64::INFINITY;
-                for w in &walls {
-                    let (ex, ey) = (w[2] - w[0], w[3] - w[1]);
-                    let den = dx * ey - dy * ex;
-                    if den.abs() < 1e-12 {
-                        continue;
-                    }
-                    let (fx, fy) = (w[0] - at[0], w[1] - at[1]);
-                    let t = (fx * ey - fy * ex) / den;
-                    let u = (fx * dy - fy * dx) / den;
-                    if t > 0.0 && (0.0..=1.0).contains(&u) {
-                        best = best.min(t);
-                    }
-                }
-                best as f32
-            })
-            .collect()
+        crate::test_support::cast_walls(&walls, at, angles)
     }
 
     #[test]

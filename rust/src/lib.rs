@@ -12,6 +12,8 @@ pub mod render;
 mod render_bindings;
 pub mod scan_match;
 pub mod sensor_model;
+#[cfg(test)]
+mod test_support;
 pub mod voxel;
 
 use numpy::ndarray::Array2;
@@ -27,6 +29,19 @@ use grid::{LogOddsModel, TiledGrid};
 use motion::OdometryMotion;
 use sensor_model::{integrate_scan, BeamModel, ScanGeometry};
 use voxel::VoxelGrid;
+
+/// A rayon pool of `threads` workers, or None (rayon's global pool) when not given.
+pub(crate) fn optional_pool(threads: Option<usize>) -> PyResult<Option<rayon::ThreadPool>> {
+    match threads {
+        Some(0) => Err(PyValueError::new_err("threads must be >= 1")),
+        Some(n) => rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build()
+            .map(Some)
+            .map_err(|e| PyValueError::new_err(e.to_string())),
+        None => Ok(None),
+    }
+}
 
 fn pose3(v: &[f64], what: &str) -> PyResult<[f64; 3]> {
     if v.len() != 3 {

@@ -74,16 +74,7 @@ impl PySubmap {
             depth,
         };
         let inner = Submap::new(params).map_err(PyValueError::new_err)?;
-        let pool = match threads {
-            Some(0) => return Err(PyValueError::new_err("threads must be >= 1")),
-            Some(n) => Some(
-                rayon::ThreadPoolBuilder::new()
-                    .num_threads(n)
-                    .build()
-                    .map_err(|e| PyValueError::new_err(e.to_string()))?,
-            ),
-            None => None,
-        };
+        let pool = crate::optional_pool(threads)?;
         Ok(PySubmap { inner, pool })
     }
 

@@ -153,16 +153,7 @@ impl PyRenderer {
             return Err(PyValueError::new_err("f_mod and amplitude_at_1m must be > 0, min_gain >= 0"));
         }
         let params = RenderParams { f_mod, amplitude_at_1m, max_bounces, min_gain };
-        let pool = match threads {
-            Some(0) => return Err(PyValueError::new_err("threads must be >= 1")),
-            Some(n) => Some(
-                rayon::ThreadPoolBuilder::new()
-                    .num_threads(n)
-                    .build()
-                    .map_err(|e| PyValueError::new_err(e.to_string()))?,
-            ),
-            None => None,
-        };
+        let pool = crate::optional_pool(threads)?;
         Ok(PyRenderer { scene, rig, params, pool })
     }
 
