@@ -157,3 +157,19 @@ def test_slam_reads_a_laserscan_ros2_bag(tmp_path, corridor_loop, capsys):
     assert summary["input"]["kind"] == "rosbag"
     traj = read_tum(out / "trajectory.tum")
     assert len(traj) == 300
+
+
+@pytest.mark.parametrize("option, value, message", [
+    ("--scan-delay", "nan", "within"), ("--scan-delay", "inf", "within"), ("--scan-delay", "1e6", "within"),
+    ("--scan-delay", "soon", "seconds or 'auto'"), ("--max-scans", "0", "at least 1"),
+    ("--max-scans", "-5", "at least 1"), ("--max-scans", "1.5", "whole number"),
+])
+def test_slam_refuses_numbers_outside_their_domain(tmp_path, capsys, option, value, message):
+    log = tmp_path / "x.clf"
+    log.write_text("")
+    with pytest.raises(SystemExit) as exit_:
+        main(["slam", str(log), "--out", str(tmp_path / "out"), option, value])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert option in err and message in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()

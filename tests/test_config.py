@@ -63,3 +63,20 @@ def test_defaults_are_documented():
     for section in SlamConfig.model_fields.values():
         for name, field in section.annotation.model_fields.items():
             assert field.description, f"{section.annotation.__name__}.{name} has no description"
+
+
+@pytest.mark.parametrize("text, got", [("filter: 5\n", "int"), ("filter:\n", "nothing"),
+                                       ("map: [0.05]\n", "list")])
+def test_a_section_that_is_not_a_mapping_is_refused(tmp_path, text, got):
+    # Before, such a section vanished under the defaults without a word.
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=rf"c\.yaml: section \w+: expected a mapping of fields, got {got}"):
+        load_config(path, overrides={"filter": {}})
+
+
+def test_a_file_that_is_not_text_is_refused_with_its_name(tmp_path):
+    path = tmp_path / "map.png"
+    path.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\xff\xfe")
+    with pytest.raises(ConfigError, match=r"map\.png: not a text file"):
+        load_config(path)

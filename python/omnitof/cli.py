@@ -125,13 +125,31 @@ def cmd_slam(args: argparse.Namespace) -> int:
     return 0
 
 
+# A laser's scan delay is a fraction of a second; seconds beyond this are a mistake, not a delay.
+MAX_SCAN_DELAY_S = 10.0
+
+
 def _scan_delay(text: str) -> str | float:
     if text == "auto":
         return text
     try:
-        return float(text)
+        value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected seconds or 'auto', got {text!r}") from None
+    if not (math.isfinite(value) and abs(value) <= MAX_SCAN_DELAY_S):
+        raise argparse.ArgumentTypeError(
+            f"expected a delay within ±{MAX_SCAN_DELAY_S:g} s or 'auto', got {text!r}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected at least 1, got {value}")
+    return value
 
 
 def _retimed(scans: ScanSequence, delay: str | float, *, given: bool) -> tuple[ScanSequence, dict]:
@@ -286,7 +304,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="results folder")
     _add_config_options(p)
     p.add_argument("--relations", type=Path, help="benchmark relations file to score the trajectory with")
-    p.add_argument("--max-scans", type=int, help="process only the first N scans")
+    p.add_argument("--max-scans", type=_positive_int, help="process only the first N scans")
     p.add_argument("--skip-bad-lines", action="store_true", help="skip and count malformed log lines")
     p.add_argument("--scan-delay", type=_scan_delay, metavar="SECONDS|auto",
                    help="the scans were taken this long before their timestamps: take each scan's odometry "
@@ -309,7 +327,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calibration", type=Path, help="the rig's calibration YAML (default: a simulated bag's true rig)")
     p.add_argument("--height", type=float, help="height of the scan slice above the floor (m)")
     p.add_argument("--band", type=float, help="half-thickness of the scan slice (m)")
-    p.add_argument("--max-frames", type=int, help="only the first N frames")
+    p.add_argument("--max-frames", type=_positive_int, help="only the first N frames")
     p.add_argument("--figure", type=Path, help="draw the middle frame's scan (PNG)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bag")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -350,7 +368,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="fixes the odometry noise, the sensor noise and the sub-ray jitter")
     p.add_argument("--speed", type=float, default=0.4, help="driving speed (m/s)")
     p.add_argument("--samples", action="store_true", help="also write the raw samples A0..A3 (3x the size)")
-    p.add_argument("--max-frames", type=int, help="write only the first N frames")
+    p.add_argument("--max-frames", type=_positive_int, help="write only the first N frames")
     p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="ROS 2 bag storage")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bag")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -365,7 +383,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="SLAM preset: tof-scanmatch (the scan-matching proposal) or tof (the paper's filter)")
     p.add_argument("--particles", type=int, default=200, help="number of particles (default 200)")
     p.add_argument("--true-rig", action="store_true", help="skip the calibration and use the true rig")
-    p.add_argument("--max-frames", type=int, help="stop after N frames (a quick look)")
+    p.add_argument("--max-frames", type=_positive_int, help="stop after N frames (a quick look)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_demo)
     from omnitof.cli_calibrate import add_calibrate_parser

@@ -264,6 +264,11 @@ def _read_yaml(text: str, source: str) -> dict[str, Any]:
         return {}
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: a configuration must be a mapping of sections")
+    for section, fields in data.items():
+        # A scalar, list or empty section would otherwise vanish under the defaults.
+        if not isinstance(fields, dict):
+            got = "nothing" if fields is None else type(fields).__name__
+            raise ConfigError(f"{source}: section {section}: expected a mapping of fields, got {got}")
     return data
 
 
@@ -301,9 +306,11 @@ def load_config(
     if path is not None:
         path = Path(path)
         try:
-            text = path.read_text()
+            text = path.read_text(encoding="utf-8")
         except OSError as err:
             raise ConfigError(f"{path}: cannot read configuration: {err.strerror}") from None
+        except UnicodeDecodeError:
+            raise ConfigError(f"{path}: not a text file (a YAML configuration is UTF-8 text)") from None
         data = _merge(data, _read_yaml(text, str(path)))
         source = str(path)
     if overrides:
