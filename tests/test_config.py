@@ -80,3 +80,19 @@ def test_a_file_that_is_not_text_is_refused_with_its_name(tmp_path):
     path.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\xff\xfe")
     with pytest.raises(ConfigError, match=r"map\.png: not a text file"):
         load_config(path)
+
+
+def test_world_calibration_and_polygon_files_that_are_not_text_are_refused_with_their_name(tmp_path):
+    # A PNG given by mistake: one line naming the file, not a UnicodeDecodeError.
+    from omnitof.calibration import CalibrationError, load_calibration
+    from omnitof.calibration.masks import read_polygon_file
+    from omnitof.sim.worlds import WorldError, load_world
+
+    png = tmp_path / "picture.png"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\xff\xfe")
+    with pytest.raises(WorldError, match=r"picture\.png: not a text file"):
+        load_world(png)
+    with pytest.raises(CalibrationError, match=r"picture\.png: not a text file"):
+        load_calibration(png)
+    with pytest.raises(CalibrationError, match=r"picture\.png: not a text file"):
+        read_polygon_file(png)

@@ -373,6 +373,8 @@ def load_calibration(path: str | Path) -> Calibration:
         text = path.read_text(encoding="utf-8")
     except OSError as err:
         raise CalibrationError(f"cannot read the calibration: {err.strerror or err}", path) from None
+    except UnicodeDecodeError:
+        raise CalibrationError("not a text file (a calibration is a UTF-8 YAML file)", path) from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as err:

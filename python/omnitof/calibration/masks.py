@@ -134,6 +134,8 @@ def read_polygon_file(path: str | Path) -> dict[str, np.ndarray]:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except OSError as err:
         raise CalibrationError(f"cannot read the polygon file: {err.strerror or err}", path) from None
+    except UnicodeDecodeError:
+        raise CalibrationError("not a text file (polygons are a UTF-8 YAML file)", path) from None
     except yaml.YAMLError as err:
         raise CalibrationError(f"not valid YAML: {err}", path) from None
     if isinstance(data, Mapping) and "polygons" in data:

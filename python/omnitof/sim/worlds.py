@@ -507,6 +507,8 @@ def _read_merged(path: Path, chain: tuple[Path, ...]) -> dict:
         raise WorldError("extends: the files extend each other in a cycle", path)
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise WorldError("not a text file (a world is a UTF-8 YAML file)", path) from None
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         line = mark.line + 1 if mark is not None else None
