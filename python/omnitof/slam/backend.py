@@ -119,7 +119,6 @@ class PoseGraphBackend:
         self.optimisations = 0
         self.feedbacks = 0
         self.graduated = 0  # optimisations that needed graduated non-convexity
-        self.optimised_up_to = -1
         self._pending = 0  # closures added since the last optimisation
         self._since_closure = 0
         self._searched_globally = False
@@ -365,8 +364,7 @@ class PoseGraphBackend:
             if c.accepted and not self._agrees(c):
                 c.accepted = False  # the robust kernel discounted it
         self.optimisations += 1
-        self.optimised_up_to = len(self.estimate) - 1
-        self._last_optimised_node = self.optimised_up_to
+        self._last_optimised_node = len(self.estimate) - 1
         self._pending = 0
 
     def _graduated(self) -> list[bool]:
