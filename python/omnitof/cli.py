@@ -12,29 +12,31 @@ import sys
 import numpy as np
 import warnings
 from pathlib import Path
-from typing import Any
 
 from omnitof import __version__
 from omnitof.errors import OmnitofError
-from omnitof.types import ScanSequence
 
 
 def _config_from_args(args: argparse.Namespace, default_preset: str | None = None):
-    from omnitof.slam.config import load_config
+    from omnitof.slam.config import parse_setting
+    from omnitof.slam_run import slam_config
 
-    overrides: dict[str, Any] = {"filter": {}}
-    for name in ("particles", "seed", "threads"):
-        value = getattr(args, name, None)
-        if value is not None:
-            overrides["filter"][name] = value
     preset = args.preset if args.preset is not None or args.config is not None else default_preset
-    return load_config(args.config, preset=preset, overrides=overrides)
+    settings = dict(parse_setting(item) for item in (getattr(args, "set", None) or []))
+    return slam_config(preset=preset, config=args.config, settings=settings,
+                       particles=getattr(args, "particles", None), seed=getattr(args, "seed", None),
+                       threads=getattr(args, "threads", None))
 
 
 def _progress_bar(total: int, enabled: bool, desc: str, unit: str = "scan"):
     from omnitof.io.terminal import progress_bar
 
     return progress_bar(total, enabled=enabled, desc=desc, unit=unit)
+
+
+def _bar_factory(args: argparse.Namespace):
+    """Progress bars for the library's stages (omnitof.slam_run.BarFactory); none with --quiet."""
+    return lambda total, desc, unit: _progress_bar(total, not args.quiet, desc, unit)
 
 
 def _summary_line(stats: dict) -> str:
@@ -45,83 +47,24 @@ def _summary_line(stats: dict) -> str:
     )
 
 
-def _scan_settings(args: argparse.Namespace):
-    from omnitof.scan import scan_settings
-
-    given = {k: getattr(args, k) for k in ("height", "band") if getattr(args, k, None) is not None}
-    return scan_settings(**given)
-
-
-def _read_tof_input(args: argparse.Namespace, *, cloud_every: int, max_frames: int | None):
-    from omnitof.scan.tof_input import frame_count, read_tof_scans
-
-    total = frame_count(args.log)
-    if max_frames is not None:
-        total = min(total, max_frames)
-    with _progress_bar(total, not args.quiet, "scans", unit="frame") as bar:
-        return read_tof_scans(
-            args.log, calibration=args.calibration, settings=_scan_settings(args),
-            cloud_every=cloud_every, max_frames=max_frames, progress=bar.update,
-        )
-
-
 def cmd_slam(args: argparse.Namespace) -> int:
-    from omnitof.io.scans import is_tof_bag, read_scans
-    from omnitof.results import write_results
-    from omnitof.slam import run_slam
+    from omnitof.slam_run import SlamRequest, default_preset, slam_to_folder
 
-    tof = is_tof_bag(args.log)
-    if not tof and (args.calibration is not None or args.map3d):
-        raise OmnitofError(f"{args.log}: --calibration and --map3d need a bag of ToF images")
-    # Without --preset: the scan-matching filter with the pose-graph back end, for either kind of
-    # input (the paper's filter is `--preset paper` / `--preset tof`).
-    cfg = _config_from_args(args, default_preset="tof-scanmatch" if tof else "laser180-scanmatch")
-    if tof:
-        tof_data = _read_tof_input(args, cloud_every=args.map3d_every if args.map3d else 0,
-                                   max_frames=args.max_scans)
-        scans = tof_data.scans
-        extra = {"input": {"path": str(args.log), "kind": "tof-rosbag", "rig": tof_data.rig_source,
-                           "scan": tof_data.extractor.settings.model_dump()}}
-    else:
-        data = read_scans(args.log, skip_bad_lines=args.skip_bad_lines)
-        scans = data.scans if args.max_scans is None else data.scans.slice(0, args.max_scans)
-        extra = {"input": {"path": str(args.log), "kind": data.kind, "bad_lines_skipped": data.bad_lines}}
-    extra["input"]["max_range"] = {"metres": float(scans.max_range), "rule": scans.max_range_rule or "given"}
-    # Laser logs are stamped when the reading arrives, so their delay is estimated by default.
-    delay = args.scan_delay if args.scan_delay is not None or tof else "auto"
-    if delay is not None:
-        scans, extra["input"]["scan_delay"] = _retimed(scans, delay, given=args.scan_delay is not None)
-    with _progress_bar(len(scans), not args.quiet, "slam") as bar:
-        result = run_slam(scans, cfg, progress=bar.update)
-    if args.relations is not None:
-        from omnitof.eval.relations import evaluate_relations, read_relations
-
-        rel = evaluate_relations(result.trajectory, read_relations(args.relations))
-        extra["relations"] = rel.to_dict()
-    if scans.ground_truth is not None:
-        from omnitof.eval.trajectory import absolute_trajectory_error
-
-        extra["trajectory_error"] = {
-            "slam": absolute_trajectory_error(result.trajectory.poses, scans.ground_truth).to_dict(),
-            "odometry": absolute_trajectory_error(scans.odometry, scans.ground_truth).to_dict(),
-        }
-    paths = write_results(args.out, result, cfg, title=f"{Path(args.log).name}", extra=extra,
-                          ground_truth=scans.ground_truth)
-    if tof and args.map3d:
-        from omnitof.map3d import voxel_map_from_clouds
-        from omnitof.results import write_voxel_outputs
-
-        vmap = voxel_map_from_clouds(result.trajectory.poses[tof_data.cloud_frames], tof_data.clouds)
-        for name, path in write_voxel_outputs(vmap, args.out, trajectory=result.trajectory.poses).items():
-            paths[name] = path
-    print(_summary_line(result.stats))
-    if args.relations is not None:
-        print(rel.format())
-    if "trajectory_error" in extra:
-        te = extra["trajectory_error"]
+    cfg = _config_from_args(args, default_preset=default_preset(args.log))
+    request = SlamRequest(
+        log=args.log, relations=args.relations, max_scans=args.max_scans, skip_bad_lines=args.skip_bad_lines,
+        scan_delay=args.scan_delay, calibration=args.calibration, height=args.height, band=args.band,
+        map3d=args.map3d, map3d_every=args.map3d_every,
+    )
+    run = slam_to_folder(request, cfg, args.out, bar=_bar_factory(args))
+    print(_summary_line(run.result.stats))
+    if run.relations is not None:
+        print(run.relations.format())
+    if "trajectory_error" in run.extra:
+        te = run.extra["trajectory_error"]
         print(f"trajectory error (mean, final): SLAM {te['slam']['mean']:.3f} m, {te['slam']['final']:.3f} m; "
               f"odometry {te['odometry']['mean']:.3f} m, {te['odometry']['final']:.3f} m")
-    print(f"results in {paths['summary'].parent}")
+    print(f"results in {run.paths['summary'].parent}")
     return 0
 
 
@@ -152,33 +95,11 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _retimed(scans: ScanSequence, delay: str | float, *, given: bool) -> tuple[ScanSequence, dict]:
-    """The scans with their odometry re-timed by `delay` (seconds, or "auto": estimated), and
-    what to record of it. Where the log does not allow an estimate (a clock that steps back, too
-    few scans taken while turning), the delay is 0 and the record says why; a delay in seconds
-    that cannot be applied is an error."""
-    from omnitof.slam.timing import estimate_scan_delay, retime_odometry
-
-    option = "--scan-delay" if given else "default --scan-delay auto"
-    if delay == "auto":
-        try:
-            estimate = estimate_scan_delay(scans)
-        except ValueError as err:
-            print(f"scan delay 0 s: not estimated ({err})")
-            return scans, {"seconds": 0.0, "how": f"{option}: not estimated, so none applied", "reason": str(err)}
-        print(f"scan delay estimated from {estimate.pairs} scan pairs: {estimate.delay:.3f} s")
-        record = {"seconds": estimate.delay, "how": f"{option}: estimated from the log",
-                  "estimated_from_pairs": estimate.pairs}
-    else:
-        record = {"seconds": float(delay), "how": "--scan-delay: given"}
-    try:
-        return retime_odometry(scans, record["seconds"]), record
-    except ValueError as err:
-        raise OmnitofError(f"--scan-delay: {err}") from None
-
-
 def cmd_scans(args: argparse.Namespace) -> int:
-    data = _read_tof_input(args, cloud_every=0, max_frames=args.max_frames)
+    from omnitof.slam_run import read_tof_input
+
+    data = read_tof_input(args.log, calibration=args.calibration, height=args.height, band=args.band,
+                          max_frames=args.max_frames, bar=_bar_factory(args))
     scans = data.scans
     out = Path(args.out)
     if out.suffix in (".clf", ".log", ".txt"):
@@ -291,6 +212,9 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--particles", type=int, help="number of particles (overrides the configuration)")
     p.add_argument("--seed", type=int, help="random seed (overrides the configuration)")
     p.add_argument("--threads", type=int, help="worker threads, 0 = all cores (results do not depend on it)")
+    p.add_argument("--set", action="append", metavar="SECTION.FIELD=VALUE",
+                   help="set one configuration field, e.g. --set backend.enabled=false (VALUE read as YAML; "
+                   "repeatable; over the preset and --config, under --particles, --seed and --threads)")
 
 
 def build_parser() -> argparse.ArgumentParser:
