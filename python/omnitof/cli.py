@@ -137,6 +137,44 @@ def cmd_eval_relations(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    if args.what == "report":
+        if args.folder is None or args.out is not None:
+            raise OmnitofError("usage: omnitof bench report DIR (the folder of an experiment's --out)")
+        from omnitof.bench.table import write_tables
+
+        folder = Path(args.folder)
+        if not (folder / "runs").is_dir():
+            raise OmnitofError(f"{folder}: no runs/ folder here: not the --out folder of an experiment")
+        table = write_tables(folder)
+        print(f"{len(table.rows)} runs; table in {folder / 'table.md'} and {folder / 'table.csv'}; "
+              f"{len(table.figures)} figures")
+        return 0
+    if args.folder is not None:
+        raise OmnitofError(f"unexpected argument {args.folder!r}: omnitof bench EXPERIMENT.yaml --out DIR")
+    if args.out is None:
+        raise OmnitofError("omnitof bench EXPERIMENT.yaml needs --out DIR")
+    if args.workers is not None and args.scheduler is not None:
+        raise OmnitofError("--workers starts a local cluster, --scheduler uses a running one: give one of them")
+    from omnitof.bench import load_experiment
+    from omnitof.bench.runner import run_experiment
+    from omnitof.bench.table import write_tables
+
+    experiment = load_experiment(args.what)
+    try:
+        outcome = run_experiment(experiment, args.out, workers=args.workers, scheduler=args.scheduler,
+                                 progress=not args.quiet)
+    except KeyboardInterrupt:
+        print(f"interrupted: the runs finished so far are in {args.out}; the same command runs the rest",
+              file=sys.stderr)
+        raise
+    table = write_tables(args.out)
+    failed = sum(r["status"] != "ok" for r in table.rows)
+    print(f"{outcome.planned} runs: {outcome.skipped} were complete, {len(outcome.done)} ran now, {failed} failed; "
+          f"table in {Path(args.out) / 'table.md'} and table.csv, {len(table.figures)} figures")
+    return 1 if failed else 0
+
+
 def cmd_config(args: argparse.Namespace) -> int:
     from omnitof.slam.config import preset_names
 
@@ -264,6 +302,20 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("relations", type=Path, help="relations file: t1 t2 x y z roll pitch yaw")
     e.add_argument("--tolerance", type=float, default=1e-3, help="timestamp match tolerance (s)")
     e.set_defaults(func=cmd_eval_relations)
+
+    p = sub.add_parser("bench", help="run an experiment (inputs × presets × settings × seeds) on Dask; "
+                       "`bench report DIR` rebuilds its table and figures",
+                       description="omnitof bench EXPERIMENT.yaml --out DIR [--workers N | --scheduler ADDRESS]; "
+                       "omnitof bench report DIR. The experiment file's fields: docs/guide/bench.md.")
+    p.add_argument("what", metavar="EXPERIMENT.yaml|report", help="the experiment file, or `report`")
+    p.add_argument("folder", nargs="?", metavar="DIR", help="with `report`: the experiment's folder")
+    p.add_argument("--out", type=Path, help="the experiment's folder: one results folder per run, the table, "
+                   "the figures; an experiment run again into it runs only what is missing")
+    p.add_argument("--workers", type=_positive_int, help="worker processes of the local cluster (default: one per core)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler (tcp://host:8786) instead of a "
+                   "local cluster")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("config", help="print the configuration a run would use")
     _add_config_options(p)

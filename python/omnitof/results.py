@@ -11,7 +11,8 @@
     map3d.ply, map3d.png  the 3D voxel map of a ToF run, when asked (`write_voxel_outputs`)
 
 Every file is written to a temporary name and renamed, so an interrupted run leaves no
-half-written file.
+half-written file, and summary.yaml is written last: a folder that holds it is complete
+(`is_complete`, which `omnitof bench` uses to resume an experiment).
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ def write_results(
         "odometry": out / "odometry.tum",
         "config": out / "config.yaml",
         "figure": out / "map.png",
-        "summary": out / "summary.yaml",
+        "summary": out / SUMMARY,
     }
     write_tum(paths["trajectory"], result.trajectory, sort=True)
     write_tum(paths["odometry"], result.odometry, sort=True)
@@ -73,6 +74,14 @@ def write_results(
     with atomic_write(paths["summary"]) as f:
         yaml.safe_dump(summary, f, sort_keys=False)
     return paths
+
+
+SUMMARY = "summary.yaml"
+
+
+def is_complete(out_dir: str | Path) -> bool:
+    """Whether `out_dir` holds a complete run: its summary, the file written last."""
+    return (Path(out_dir) / SUMMARY).is_file()
 
 
 def write_voxel_outputs(vmap: VoxelMap, out_dir: str | Path, *, trajectory: np.ndarray | None = None,

@@ -37,6 +37,8 @@ class SlamRequest:
     scan_delay: seconds, "auto" (estimated from the log, `omnitof.slam.timing`) or None for the
         default: "auto" for laser logs and LaserScan bags (they are stamped when the reading
         arrives), none for ToF bags. calibration, height, band, map3d, map3d_every: ToF bags only.
+    label: the input's path as summary.yaml records it (default `log`): `omnitof bench` runs on
+        a worker's copy of the file and records the path the experiment gave.
     """
 
     log: Path
@@ -49,17 +51,20 @@ class SlamRequest:
     band: float | None = None
     map3d: bool = False
     map3d_every: int = 5
+    label: str | None = None
 
 
 @dataclass
 class SlamRun:
     """What a run made: the SLAM result, the summary's extra sections (input, relations,
-    trajectory error), the files written by name, and the relations metric when scored."""
+    trajectory error), the files written by name, the relations metric when scored, and the
+    scans as the filter saw them (re-timed)."""
 
     result: Any  # omnitof.slam.SlamResult
     extra: dict[str, Any]
     paths: dict[str, Path]
     relations: Any = None  # omnitof.eval.relations.RelationsResult
+    scans: ScanSequence | None = None
 
 
 # A progress bar factory: (total, description, unit) → a context manager whose value has
@@ -114,6 +119,7 @@ def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *,
     from omnitof.slam import run_slam
 
     log = Path(request.log)
+    label = request.label if request.label is not None else str(log)
     tof = is_tof_bag(log)
     if not tof and (request.calibration is not None or request.map3d):
         raise OmnitofError(f"{log}: --calibration and --map3d need a bag of ToF images")
@@ -122,12 +128,12 @@ def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *,
                                   cloud_every=request.map3d_every if request.map3d else 0,
                                   max_frames=request.max_scans, bar=bar)
         scans = tof_data.scans
-        extra: dict[str, Any] = {"input": {"path": str(log), "kind": "tof-rosbag", "rig": tof_data.rig_source,
+        extra: dict[str, Any] = {"input": {"path": label, "kind": "tof-rosbag", "rig": tof_data.rig_source,
                                            "scan": tof_data.extractor.settings.model_dump()}}
     else:
         data = read_scans(log, skip_bad_lines=request.skip_bad_lines)
         scans = data.scans if request.max_scans is None else data.scans.slice(0, request.max_scans)
-        extra = {"input": {"path": str(log), "kind": data.kind, "bad_lines_skipped": data.bad_lines}}
+        extra = {"input": {"path": label, "kind": data.kind, "bad_lines_skipped": data.bad_lines}}
     extra["input"]["max_range"] = {"metres": float(scans.max_range), "rule": scans.max_range_rule or "given"}
     # Laser logs are stamped when the reading arrives, so their delay is estimated by default.
     given = request.scan_delay is not None
@@ -159,7 +165,7 @@ def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *,
         vmap = voxel_map_from_clouds(result.trajectory.poses[tof_data.cloud_frames], tof_data.clouds)
         voxel_paths = write_voxel_outputs(vmap, out, trajectory=result.trajectory.poses)
     paths = write_results(out, result, cfg, title=log.name, extra=extra, ground_truth=scans.ground_truth)
-    return SlamRun(result, extra, {**paths, **voxel_paths}, rel)
+    return SlamRun(result, extra, {**paths, **voxel_paths}, rel, scans)
 
 
 def read_tof_input(log: str | Path, *, calibration: str | Path | None = None, height: float | None = None,
