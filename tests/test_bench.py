@@ -358,3 +358,27 @@ def test_the_commands_do_not_import_dask():
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "python"), os.environ.get("PYTHONPATH", "")])}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_the_table_reads_table1_and_failures_from_the_folders(tmp_path):
+    from omnitof.bench.folders import write_failure, write_run
+    from omnitof.bench.table import aggregates, read_table
+
+    def record(seed, **extra):
+        return {"status": "ok", "cell": {"input": "c1", "preset": "tof", "point": {"filter.particles": 30},
+                                         "seed": seed, "index": seed}, "metrics_collected": ["table1"],
+                "seconds": 2.0, "peak_rss_mib": 300.0, **extra}
+
+    summary = yaml.safe_dump({"run": {"seconds": 1.0, "particles": 30, "integrated": 10, "scans": 50, "resamplings": 3}})
+    places = {"1": {"offset_cm": -3.5}, "2": {"offset_cm": 12.25}}
+    write_run(tmp_path, "a", {"summary.yaml": summary.encode()}, record(0, metrics={"table1": places}))
+    write_run(tmp_path, "b", {"summary.yaml": summary.encode()},
+              record(1, metrics={"table1": {**places, "3": {"offset_cm": float("nan")}}}))
+    write_failure(tmp_path, "c", {**record(2), "status": "failed", "error": "x.clf:3: bad line"})
+    table = read_table(tmp_path)
+    assert [r["seed"] for r in table.rows] == [0, 1, 2]
+    assert table.rows[0]["table1_worst_cm"] == 12.25 and np.isnan(table.rows[1]["table1_worst_cm"])
+    assert table.rows[2]["status"] == "failed" and table.rows[2]["error"] == "x.clf:3: bad line"
+    assert table.rows[0]["particle_scans_per_s"] == 300.0 and "table1_worst_cm" in table.columns
+    (agg,) = aggregates(table)
+    assert (agg["runs"], agg["ok"]) == (3, 2) and agg["wall_s"] == (2.0, 2.0, 2.0)

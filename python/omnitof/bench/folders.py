@@ -59,8 +59,6 @@ def prepare(out: Path, experiment_text: str, runs: list[RunSpec]) -> list[RunSpe
     (out / RUNS).mkdir(parents=True, exist_ok=True)
     for leftover in (out / RUNS).glob(f".*{_PARTIAL}"):
         shutil.rmtree(leftover, ignore_errors=True)
-    with atomic_write(out / "experiment.yaml") as f:
-        f.write(experiment_text)
     todo = []
     for run in runs:
         folder = run_dir(out, run.id)
@@ -74,6 +72,8 @@ def prepare(out: Path, experiment_text: str, runs: list[RunSpec]) -> list[RunSpe
                 raise ExperimentError(
                     f"{folder}: made with another {'configuration' if key == 'config_sha256' else 'input'} "
                     f"than this experiment's; give another --out or remove the folder")
+    with atomic_write(out / "experiment.yaml") as f:
+        f.write(experiment_text)
     return todo
 
 

@@ -31,7 +31,6 @@ from typing import Any
 
 import yaml
 
-from omnitof import __version__
 from omnitof.bench import folders
 from omnitof.bench.experiment import Experiment, InputSpec, RunSpec, plan_runs
 from omnitof.bench.inputs import InputFile, input_file, prepare_world
@@ -98,22 +97,24 @@ def _dashboard(client: Any) -> str:
 
 
 def _check_workers(client: Any) -> None:
-    """Every worker runs this version of omnitof: a run made with other code is not this run."""
+    """Every worker runs this client's omnitof: a run made with other code is not this run."""
+    from omnitof.bench.task import omnitof_code
+
     try:
         client.wait_for_workers(1, timeout=WORKER_WAIT_S)
     except TimeoutError:
         raise OmnitofError(f"no worker joined the scheduler within {WORKER_WAIT_S:.0f} s") from None
-    from omnitof.bench.task import omnitof_version
-
     try:
-        versions = client.run(omnitof_version)
+        found = client.run(omnitof_code)
     except Exception as err:  # a worker without omnitof cannot even unpickle the function
         raise OmnitofError(f"the workers cannot run omnitof (install it on every worker): "
                            f"{type(err).__name__}: {err}") from None
-    wrong = {w: v for w, v in versions.items() if v != __version__}
-    if wrong:
-        w, v = next(iter(wrong.items()))
-        raise OmnitofError(f"worker {w} runs omnitof {v}, this client {__version__}: install the same on every worker")
+    mine = omnitof_code()
+    for worker, theirs in found.items():
+        if theirs["sources_sha256"] != mine["sources_sha256"]:
+            raise OmnitofError(
+                f"worker {worker} runs other omnitof code (omnitof {theirs['version']} in {theirs['path']}) than this "
+                f"client (omnitof {mine['version']} in {mine['path']}): install the same omnitof on every worker")
 
 
 def _run_all(client: Any, exp: Experiment, out: Path, todo: list[RunSpec], outcome: BenchOutcome,
@@ -131,6 +132,7 @@ def _run_all(client: Any, exp: Experiment, out: Path, todo: list[RunSpec], outco
                                key=f"run-{run.id}-{token}", retries=1, pure=False)
         futures[future] = ("run", run, label, time.time())
     bar = progress_bar(len(todo), enabled=progress, desc="runs", unit="run")
+    warned: set[str] = set()
     with bar:
         for future in as_completed(list(futures)):
             what = futures.pop(future)
@@ -138,8 +140,12 @@ def _run_all(client: Any, exp: Experiment, out: Path, todo: list[RunSpec], outco
                 _save_prepared(out, what[1], future)
                 continue
             _, run, label, submitted = what
-            ok, line = _collect(out, run, label, future, submitted)
+            ok, line, found = collect_run(out, run, label, future, submitted)
             (outcome.done if ok else outcome.failed).append(run.id)
+            for message in found:
+                if message not in warned:  # once, not once per run of the same input
+                    warned.add(message)
+                    bar.write(f"warning: {message}")
             if not ok:
                 bar.write(f"run {run.id} failed: {line}")
             # No redraw of its own: into a log file every redraw would be a line.
@@ -222,8 +228,11 @@ def _save_prepared(out: Path, name: str, future: Any) -> None:
         yaml.safe_dump(made.made or {}, f, sort_keys=False, allow_unicode=True)
 
 
-def _collect(out: Path, run: RunSpec, label: str, future: Any, submitted: float) -> tuple[bool, str]:
-    """Put the run's folder in place (or its failure); returns (ok, its one-line error)."""
+def collect_run(out: Path, run: RunSpec, label: str, future: Any,
+                submitted: float) -> tuple[bool, str, list[str]]:
+    """Put the run's folder in place (or its failure) once its task's `future` is done;
+    returns (ok, its one-line error, the warnings the run gave about its input). `label`: the input's path for the run's record (`_payload`);
+    `submitted`: when the task was submitted (time.time()), for the record's timing."""
     record: dict[str, Any] = {"status": "ok", "cell": run.cell(), "metrics_collected": list(run.metrics),
                               "command": shlex.join(run.command(label, str(folders.run_dir(out, run.id))))}
     if future.status == "finished":
@@ -233,16 +242,17 @@ def _collect(out: Path, run: RunSpec, label: str, future: Any, submitted: float)
         record.update({k: result[k] for k in ("worker", "host", "pid") if k in result})
         record["seconds"] = round(result["seconds"], 3)
         record["notes"] = result.get("notes", [])
+        record["warnings"] = result.get("warnings", [])
         if "error" in result:
             timing["collected"] = time.time()
             record.update({"status": "failed", "error": result["error"], "timing": timing})
             folders.write_failure(out, run.id, record)
-            return False, result["error"]
+            return False, result["error"], record["warnings"]
         record.update({"peak_rss_mib": result["peak_rss_mib"], "peak_rss_rule": result["peak_rss_rule"],
                        "metrics": result["metrics"], "timing": timing})
         timing["collected"] = time.time()  # the folder is written next; nothing slow follows
         folders.write_run(out, run.id, result["files"], record)
-        return True, ""
+        return True, "", record["warnings"]
     err = future.exception()
     line = _exception_line(err)
     record.update({"status": "failed", "error": line, "timing": {"submitted": submitted, "collected": time.time()}})
@@ -253,7 +263,7 @@ def _collect(out: Path, run: RunSpec, label: str, future: Any, submitted: float)
     except Exception:  # a traceback that does not travel is not worth failing the record over
         pass
     folders.write_failure(out, run.id, record)
-    return False, line
+    return False, line, []
 
 
 def _exception_line(err: BaseException | None) -> str:

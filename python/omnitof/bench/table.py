@@ -41,6 +41,7 @@ COLUMNS: list[tuple[str, str, str, str]] = [
     ("resamplings", "run", "resamplings", "d"),
     ("particle_scans_per_s", "run", "particles × integrated scans / SLAM s", ".0f"),
     ("closures", "run", "loop closures accepted by the back end", "d"),
+    ("scan_delay_s", "run", "the scan delay the odometry was re-timed by (s)", ".3f"),
     ("rel_trans_m", "relations", "relations: mean translational error (m)", ".3f"),
     ("rel_trans_std_m", "relations", "relations: its standard deviation (m)", ".3f"),
     ("rel_rot_deg", "relations", "relations: mean rotational error (deg)", ".2f"),
@@ -106,6 +107,9 @@ def _row(record: dict[str, Any], summary: dict[str, Any] | None) -> dict[str, An
         row["particle_scans_per_s"] = run["particles"] * run["integrated"] / run["seconds"]
     if "backend" in run:
         row["closures"] = run["backend"].get("closures_accepted")
+    delay = (summary.get("input") or {}).get("scan_delay")
+    if delay is not None:
+        row["scan_delay_s"] = delay["seconds"]
     rel = summary.get("relations")
     if rel:
         row.update({"rel_trans_m": rel["trans_mean"], "rel_trans_std_m": rel["trans_std"],

@@ -22,6 +22,7 @@ import resource
 import socket
 import tempfile
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +35,7 @@ def run_one(run: RunSpec, log: InputFile, relations: InputFile | None = None,
             calibration: InputFile | None = None, world: Any = None, label: str | None = None) -> dict[str, Any]:
     """Run `run` on this worker; returns {"files": {name: bytes}, ...} or {"error": line, ...}.
     `label`: the input's path as the experiment names it, recorded in summary.yaml as
-    `omnitof slam` would record it (not the scratch copy's)."""
+    `omnitof slam` would record it (not the scratch copy's) and put in messages for the copy."""
     from omnitof.slam_run import SlamRequest, slam_config, slam_to_folder
 
     started = time.time()
@@ -42,44 +43,55 @@ def run_one(run: RunSpec, log: InputFile, relations: InputFile | None = None,
     clock = time.perf_counter()
     notes: list[str] = []
     base = {"worker": _worker_address(), "host": socket.gethostname(), "pid": os.getpid(), "started": started}
-    with tempfile.TemporaryDirectory(prefix="omnitof-run-") as tmp:
-        folder = Path(tmp)
+    with tempfile.TemporaryDirectory(prefix="omnitof-run-") as tmp, warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")  # the reader's warnings about the data go to the record
+        inputs = Path(tmp) / "in"
+        # Each file in a folder of its own: a log and its relations may share a name.
+        copies = {"log": (log, label), "relations": (relations, run.input.relations),
+                  "calibration": (calibration, run.input.calibration)}
+        paths = {k: f.materialise(_mkdir(inputs / k)) if f is not None else None for k, (f, _) in copies.items()}
+        # Name the files as the experiment does, not as this worker's scratch copies.
+        renames = [(str(paths[k]), own) for k, (f, own) in copies.items() if f is not None and f.shipped and own]
+
+        def own_names(text: str) -> str:
+            for scratch, own in renames:
+                text = text.replace(scratch, own)
+            return " ".join(text.split())
+
         try:
-            inputs = folder / "in"
-            inputs.mkdir()
-            # Each file in a folder of its own: a log and its relations may share a name.
-            log_path = log.materialise(_mkdir(inputs / "log")) if log.shipped else log.materialise(inputs)
             request = SlamRequest(
-                log=log_path, relations=relations.materialise(_mkdir(inputs / "relations")) if relations else None,
-                max_scans=run.input.max_scans, skip_bad_lines=run.input.skip_bad_lines, scan_delay=run.scan_delay,
-                calibration=calibration.materialise(_mkdir(inputs / "calibration")) if calibration else None,
+                log=paths["log"], relations=paths["relations"], max_scans=run.input.max_scans,
+                skip_bad_lines=run.input.skip_bad_lines, scan_delay=run.scan_delay, calibration=paths["calibration"],
                 height=run.input.height, band=run.input.band, label=label,
             )
             cfg = slam_config(preset=run.preset, settings=run.settings, seed=run.seed, threads=run.threads)
-            out = folder / "out"
+            out = Path(tmp) / "out"
             done = slam_to_folder(request, cfg, out, echo=notes.append)
             metrics = _extra_metrics(run, done, request, world)
         except OmnitofError as err:
-            # Name the files as the experiment does, not as this worker's scratch copies.
-            line = _one_line(err)
-            for scratch, own in ((inputs / "log" / log.name, label),
-                                 (inputs / "relations" / (relations.name if relations else ""), run.input.relations),
-                                 (inputs / "calibration" / (calibration.name if calibration else ""),
-                                  run.input.calibration)):
-                if own:
-                    line = line.replace(str(scratch), own)
-            return {**base, "error": line, "notes": notes, "finished": time.time(),
-                    "seconds": time.perf_counter() - clock}
+            return {**base, "error": own_names(str(err)) or type(err).__name__, "notes": notes,
+                    "warnings": [own_names(str(w.message)) for w in caught],
+                    "finished": time.time(), "seconds": time.perf_counter() - clock}
         files = {p.name: p.read_bytes() for p in sorted(out.iterdir()) if p.is_file()}
-    return {**base, "files": files, "metrics": metrics, "notes": notes, "finished": time.time(),
+        found = [own_names(str(w.message)) for w in caught]
+    return {**base, "files": files, "metrics": metrics, "notes": notes, "warnings": found, "finished": time.time(),
             "seconds": time.perf_counter() - clock, "peak_rss_mib": _peak_mib(), "peak_rss_rule": peak_rule}
 
 
-def omnitof_version() -> str:
-    """The omnitof this worker runs (the client checks that it is its own)."""
-    from omnitof import __version__
+def omnitof_code() -> dict[str, str]:
+    """The omnitof this worker runs: its version, where it is, and a digest of its Python
+    sources (the client checks that they are its own: two checkouts of one version differ, and
+    a worker started without the client's PYTHONPATH would run another one). The compiled core
+    is left out: builds of the same source on two machines differ in their bytes."""
+    import hashlib
 
-    return __version__
+    import omnitof
+
+    root = Path(omnitof.__file__).parent
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
+    return {"version": omnitof.__version__, "path": str(root), "sources_sha256": digest.hexdigest()}
 
 
 def _extra_metrics(run: RunSpec, done: Any, request: Any, world: Any) -> dict[str, Any]:
@@ -102,12 +114,8 @@ def _extra_metrics(run: RunSpec, done: Any, request: Any, world: Any) -> dict[st
 
 
 def _mkdir(path: Path) -> Path:
-    path.mkdir()
+    path.mkdir(parents=True)
     return path
-
-
-def _one_line(err: BaseException) -> str:
-    return " ".join(str(err).split()) or type(err).__name__
 
 
 def _worker_address() -> str:
