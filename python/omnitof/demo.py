@@ -11,7 +11,7 @@
     7. write everything, with figures and a report (report.md), into one folder.
 
 `run_world` does the work and returns the summary; `benchmarks/worlds.py` calls it for every
-world. Times and the peak memory of every stage are in the summary.
+world, and `simulated_scans` (steps 1–3) makes the ToF worlds of `omnitof bench`. Times and the peak memory of every stage are in the summary.
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ class _Stages:
 @dataclass
 class DemoRun:
     """What `run_world` made: the summary (also in summary.yaml), the world and the scans (for
-    re-running SLAM with other settings, as benchmarks/worlds.py does)."""
+    re-running SLAM with other settings)."""
 
     summary: dict[str, Any]
     world: Any
