@@ -298,6 +298,7 @@ def test_a_complete_run_of_another_configuration_is_not_taken_for_this_one(grid_
     ("inputs: [{name: a, log: LOG}, {name: a, log: LOG}]", "inputs[1].name: 'a' is given twice"),
     ("inputs: []", "inputs: List should have at least 1 item"),
     ("inputs: [{name: a, log: LOG}]\npresets: [nope]", "presets[0]: unknown preset 'nope'"),
+    ("inputs: [{name: a, world: offic}]", "inputs[0].world: no bundled world 'offic'"),
     ("inputs: [{name: a, log: LOG}]\ngrid: {filter.particles: 10}", "grid.filter.particles: Input should be a valid list"),
     ("inputs: [{name: a, log: LOG}]\ngrid: {particles: [10]}", "grid: 'particles': expected SECTION.FIELD"),
     ("inputs: [{name: a, log: LOG}]\ngrid: {filter.particles: [10, 0]}", "filter.particles=0, preset laser180-scanmatch: filter.particles"),

@@ -288,8 +288,10 @@ def _resolved(spec: ExperimentSpec, source: Path) -> ExperimentSpec:
             value = getattr(item, key)
             if value is not None:
                 updates[key] = str(_path(value, source, f"inputs[{k}].{key}"))
-        if item.world is not None and item.world.endswith((".yaml", ".yml")):
-            updates["world"] = str(_path(item.world, source, f"inputs[{k}].world"))
+        if item.world is not None:
+            if item.world.endswith((".yaml", ".yml")):
+                updates["world"] = str(_path(item.world, source, f"inputs[{k}].world"))
+            _check_world(updates.get("world", item.world), source, f"inputs[{k}].world")
         inputs.append(item.model_copy(update=updates))
     return spec.model_copy(update={"inputs": inputs})
 
@@ -305,6 +307,15 @@ def _path(value: str, source: Path, name: str) -> Path:
     if not path.exists():
         raise ExperimentError(f"{source}: {name}: no such file or folder: {path}")
     return path
+
+
+def _check_world(world: str, source: Path, name: str) -> None:
+    from omnitof.sim.worlds import load_world
+
+    try:
+        load_world(world)
+    except OmnitofError as err:
+        raise ExperimentError(f"{source}: {name}: {err}") from None
 
 
 def default_preset_of(item: InputSpec) -> str:

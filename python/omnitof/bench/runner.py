@@ -63,7 +63,7 @@ def run_experiment(exp: Experiment, out: str | Path, *, workers: int | None = No
     if todo:
         with _client(workers, scheduler, echo) as client:
             _check_workers(client)
-            _run_all(client, exp, out, todo, outcome, progress, echo)
+            _run_all(client, exp, out, todo, outcome, progress)
     return outcome
 
 
@@ -118,7 +118,7 @@ def _check_workers(client: Any) -> None:
 
 
 def _run_all(client: Any, exp: Experiment, out: Path, todo: list[RunSpec], outcome: BenchOutcome,
-             progress: bool, echo: Callable[[str], None]) -> None:
+             progress: bool) -> None:
     from dask.distributed import as_completed
 
     from omnitof.io.terminal import progress_bar
@@ -134,10 +134,14 @@ def _run_all(client: Any, exp: Experiment, out: Path, todo: list[RunSpec], outco
     bar = progress_bar(len(todo), enabled=progress, desc="runs", unit="run")
     warned: set[str] = set()
     with bar:
+        for name in preparing:
+            bar.write(f"simulating world input {name} on a worker; its runs follow")
         for future in as_completed(list(futures)):
             what = futures.pop(future)
             if what[0] == "prepare":
                 _save_prepared(out, what[1], future)
+                if future.status == "finished":
+                    bar.write(f"world input {what[1]} made: {out / folders.INPUTS / what[1]}.bag")
                 continue
             _, run, label, submitted = what
             ok, line, found = collect_run(out, run, label, future, submitted)
