@@ -309,9 +309,9 @@ def build_parser() -> argparse.ArgumentParser:
                        "omnitof bench report DIR. The experiment file's fields: docs/guide/bench.md.")
     p.add_argument("what", metavar="EXPERIMENT.yaml|report", help="the experiment file, or `report`")
     p.add_argument("folder", nargs="?", metavar="DIR", help="with `report`: the experiment's folder")
-    p.add_argument("--out", type=Path, help="the experiment's folder: one results folder per run, the table, "
+    p.add_argument("--out", type=Path, metavar="DIR", help="the experiment's folder: one results folder per run, the table, "
                    "the figures; an experiment run again into it runs only what is missing")
-    p.add_argument("--workers", type=_positive_int, help="worker processes of the local cluster (default: one per core)")
+    p.add_argument("--workers", type=_positive_int, metavar="N", help="worker processes of the local cluster (default: one per core)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler (tcp://host:8786) instead of a "
                    "local cluster")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
