@@ -43,6 +43,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import gtsam
 import numpy as np
@@ -76,6 +77,7 @@ class Closure:
     covariance: np.ndarray
     search: str  # "local" or "global"
     accepted: bool | None = None  # None until an optimisation has judged it
+    information: np.ndarray | None = None  # inverse of the edge's covariance, once computed
 
 
 @dataclass
@@ -90,9 +92,9 @@ class _Submap:
     def anchor_pose(self) -> np.ndarray:
         return self.poses[0]
 
-    @property
+    @cached_property
     def centre(self) -> np.ndarray:
-        """Mean insertion position (x, y) of its nodes."""
+        """Mean insertion position (x, y) of its nodes (asked only once it is finished)."""
         return np.mean(np.asarray(self.poses)[:, :2], axis=0)
 
 
@@ -150,13 +152,26 @@ class PoseGraphBackend:
         # A global search that found nothing waits as long again before the next one.
         self._since_closure = 0 if found or self._searched_globally else self._since_closure + 1
         self._pending += found
-        if self._pending and j - self._last_optimised_node >= self.cfg.optimize_every:
+        if self._pending and j - self._last_optimised_node >= self.cfg.optimize_every and self._news_disagree():
             clock = time.perf_counter()
             self._refresh_segment(pf)
             self.optimise()
             clock = self._lap("optimise", clock)
             self._feed_back(j, pf)
             self._lap("feedback", clock)
+
+    def _news_disagree(self) -> bool:
+        """Whether a closure not yet judged disagrees with the current estimate. Those that
+        agree are accepted as they come: they confirm the estimate within its uncertainty, so
+        an optimisation would hardly move it, and it waits until one disagrees or for the end
+        of the run (Intel, seed 0: 40 optimisations instead of 54)."""
+        news = [c for c in self.closures if c.accepted is None]
+        agree = self._agreement(news)
+        for c, ok in zip(news, agree):
+            if ok:
+                c.accepted = True
+        self._pending = int((~agree).sum())
+        return bool(self._pending)
 
     def _lap(self, what: str, since: float) -> float:
         now = time.perf_counter()
@@ -357,13 +372,13 @@ class PoseGraphBackend:
         run; the closures it keeps go into the robust Levenberg-Marquardt run.
         """
         pending = [c for c in self.closures if c.accepted is None]
-        disagreeing = [c for c in pending if not self._agrees(c)]
-        for c in pending:
-            if c not in disagreeing:
+        agree = self._agreement(pending)
+        disagreeing = [c for c, ok in zip(pending, agree) if not ok]
+        for c, ok in zip(pending, agree):
+            if ok:
                 c.accepted = True
-        # One closure that disagrees proves nothing on its own (nor does it cost a graduated
-        # run, about half a second on Intel's graph): it waits, left out, for a second one or
-        # for the end of the run.
+        # One closure that disagrees proves nothing on its own: it waits, left out, for a
+        # second one or for the end of the run.
         if disagreeing and (len(disagreeing) >= GNC_MIN_DISAGREEING or final):
             self.graduated += 1
             for c, keep in zip(self.closures, self._graduated()):
@@ -376,8 +391,9 @@ class PoseGraphBackend:
         params.setRelativeErrorTol(LM_RELATIVE_TOLERANCE)
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
         self.estimate = [_pose(result.atPose2(j)) for j in range(len(self.estimate))]
-        for c in self.closures:
-            if c.accepted and not self._agrees(c):
+        kept = [c for c in self.closures if c.accepted]
+        for c, ok in zip(kept, self._agreement(kept)):
+            if not ok:
                 c.accepted = False  # the robust kernel discounted it
         self.optimisations += 1
         self._last_optimised_node = len(self.estimate) - 1
@@ -430,12 +446,21 @@ class PoseGraphBackend:
             values.insert(j, gtsam.Pose2(*pose))
         return graph, values
 
-    def _agrees(self, c: Closure) -> bool:
-        """Whether the current estimate agrees with closure c: its squared Mahalanobis distance
-        within the CHI2_PROBABILITY quantile of chi-square with 3 degrees of freedom."""
-        predicted = relative(self.estimate[c.anchor], self.estimate[c.node])
-        error = np.array([*(predicted[:2] - c.measured[:2]), wrap_angle(predicted[2] - c.measured[2])])
-        return bool(error @ np.linalg.solve(self._closure_covariance(c), error) <= CHI2_3DOF_99)
+    def _agreement(self, closures: list[Closure]) -> np.ndarray:
+        """For each closure, whether the current estimate agrees with it: its squared
+        Mahalanobis distance within the CHI2_PROBABILITY quantile of chi-square with 3 degrees
+        of freedom."""
+        if not closures:
+            return np.zeros(0, dtype=bool)
+        for c in closures:
+            if c.information is None:
+                c.information = np.linalg.inv(self._closure_covariance(c))
+        estimate = np.asarray(self.estimate)
+        predicted = relative(estimate[[c.anchor for c in closures]], estimate[[c.node for c in closures]])
+        error = predicted - np.array([c.measured for c in closures])
+        error[:, 2] = wrap_angle(error[:, 2])
+        info = np.array([c.information for c in closures])
+        return np.einsum("ki,kij,kj->k", error, info, error) <= CHI2_3DOF_99
 
     # --- feedback ---------------------------------------------------------------------------
 
