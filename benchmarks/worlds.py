@@ -2,12 +2,17 @@
 and the paper's Table I of the demo's map.
 
 For each world: `omnitof.demo.run_world` (simulate, calibrate from rendered targets, render and
-extract scans, SLAM with `tof-scanmatch` and 200 particles, 3D map, evaluation), seed 0.
+extract scans, SLAM with `tof-scanmatch` and 200 particles, 3D map, evaluation), with the drive
+seed `--drive-seed` (odometry and sensor noise, calibration images; 0 by default).
 
-    python benchmarks/worlds.py [--worlds corridor1 corridor2 office room] [--out results/worlds]
+    python benchmarks/worlds.py [--worlds corridor1 corridor2 office room] [--drive-seed 0]
+        [--out results/worlds]
 
-Prints Markdown tables for BENCHMARKS.md. Both filters on the same worlds, with every seed, are
-an experiment: `omnitof bench benchmarks/worlds.yaml --out DIR` (docs/guide/bench.md).
+Prints Markdown tables for BENCHMARKS.md. Filters on the same worlds, with every seed, other
+presets, particle counts or settings, another drive (`sim_seed`), are an experiment:
+`omnitof bench benchmarks/worlds.yaml --out DIR` (docs/guide/bench.md); what this script's
+`--runs tof:200 --set backend.enabled=true` did is `presets: [tof]`,
+`grid: {filter.particles: [200]}`, `set: {backend.enabled: true}` there.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from omnitof.demo import DemoSettings, run_world
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--worlds", nargs="+", default=["corridor1", "corridor2", "office", "room"])
+    parser.add_argument("--drive-seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path("results/worlds"))
     args = parser.parse_args(argv)
 
@@ -35,7 +41,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"# command: python benchmarks/worlds.py {' '.join(argv if argv is not None else sys.argv[1:])}")
     stage_rows, tables = [], {}
     for name in args.worlds:
-        run = run_world(DemoSettings(world=name, seed=0), args.out / name, progress=False, echo=lambda _: None)
+        run = run_world(DemoSettings(world=name, seed=args.drive_seed), args.out / name, progress=False,
+                        echo=lambda _: None)
         s = run.summary
         stages = s["stages"]
         stage_rows.append(
@@ -46,13 +53,14 @@ def main(argv: list[str] | None = None) -> int:
         if "table1_text" in s["evaluation"]:
             tables[name] = s["evaluation"]["table1_text"]
 
-    print("\n## Stages (seconds; the demo's pipeline: tof-scanmatch, 200 particles, seed 0)\n")
+    print(f"\n## Stages (seconds; the demo's pipeline: tof-scanmatch, 200 particles, drive seed {args.drive_seed})\n")
     names = list(run.summary["stages"])
     print("| world | frames | metres | " + " | ".join(names) + " | total | peak RSS (MiB) |")
     print("|---" * (len(names) + 5) + "|")
     print("\n".join(stage_rows))
     for name, text in tables.items():
-        print(f"\n## Table I, {name}, the demo's map (tof-scanmatch, 200 particles, seed 0)\n\n```\n{text}\n```")
+        print(f"\n## Table I, {name}, the demo's map (tof-scanmatch, 200 particles, drive seed {args.drive_seed})"
+              f"\n\n```\n{text}\n```")
     return 0
 
 
