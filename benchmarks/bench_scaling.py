@@ -2,6 +2,7 @@
 costs beyond its own run (issue 18).
 
     python benchmarks/bench_scaling.py [--data DIR] [--max-scans 1000] [--repeats 3] [--overhead-runs 10]
+                                       [--quiet-below LOAD]
 
 1. Scaling: one 24-run experiment (Intel's first `--max-scans` scans, shipped as the 2.2 MB
    log; laser180-scanmatch with 10, 20 and 30 particles; seeds 0-7) run by the command itself,
@@ -13,8 +14,9 @@ costs beyond its own run (issue 18).
    scans, and its results folder collected and put in place as the command does: overhead =
    (scatter + submit + wait + collect) − the task's own time on the worker. Median and max.
 
-The machine's load average (uptime) before and after is printed: this machine is shared, and
-its other jobs inflate the times. Prints Markdown for BENCHMARKS.md. The data folder defaults to
+The machine's load average (uptime) is printed before and after each command: this machine is
+shared, and its other jobs inflate the times. `--quiet-below LOAD` waits before each command
+(at most `--max-wait` seconds) until the 1-minute load average is below LOAD. Prints Markdown for BENCHMARKS.md. The data folder defaults to
 $OMNITOF_DATA.
 """
 
@@ -47,18 +49,28 @@ def load() -> str:
     return ", ".join(f"{v:.2f}" for v in os.getloadavg())
 
 
-def scaling(log: Path, max_scans: int, repeats: int, tmp: Path) -> dict[int, list[float]]:
+def wait_for_quiet(below: float | None, max_wait: float) -> None:
+    deadline = time.monotonic() + max_wait
+    while below is not None and os.getloadavg()[0] >= below and time.monotonic() < deadline:
+        time.sleep(10)
+
+
+def scaling(log: Path, max_scans: int, repeats: int, tmp: Path, quiet: float | None,
+            max_wait: float) -> dict[int, list[float]]:
     exp = tmp / "scaling.yaml"
     exp.write_text(EXPERIMENT.format(log=log, max_scans=max_scans))
     times: dict[int, list[float]] = {1: [], 2: []}
     for r in range(repeats):
         for workers in (1, 2):
             out = tmp / f"w{workers}-{r}"
+            wait_for_quiet(quiet, max_wait)
+            before = load()
             start = time.perf_counter()
             subprocess.run([sys.executable, "-m", "omnitof.cli", "bench", str(exp), "--out", str(out),
                             "--workers", str(workers), "--quiet"], check=True, capture_output=True)
             times[workers].append(time.perf_counter() - start)
-            print(f"  repeat {r}, {workers} worker(s): {times[workers][-1]:.1f} s (load {load()})", flush=True)
+            print(f"  repeat {r}, {workers} worker(s): {times[workers][-1]:.1f} s (load before {before}; after {load()})",
+                  flush=True)
     return times
 
 
@@ -103,6 +115,8 @@ def main() -> int:
     parser.add_argument("--max-scans", type=int, default=1000)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--overhead-runs", type=int, default=10)
+    parser.add_argument("--quiet-below", type=float, help="wait for a 1-minute load average below this")
+    parser.add_argument("--max-wait", type=float, default=1800.0, help="... for at most this many seconds")
     args = parser.parse_args()
     if args.data is None:
         sys.exit("set OMNITOF_DATA or pass --data: the folder holding intel.clf.bz2")
@@ -112,8 +126,11 @@ def main() -> int:
     print(f"# load average before: {load()}")
     with tempfile.TemporaryDirectory(prefix="omnitof-bench-scaling-") as tmp:
         tmp = Path(tmp)
+        wait_for_quiet(args.quiet_below, args.max_wait)
+        print(f"# overhead: load before {load()}", flush=True)
         rows = overhead(log, args.overhead_runs, tmp)
-        times = scaling(log, args.max_scans, args.repeats, tmp)
+        print(f"# overhead: load after {load()}", flush=True)
+        times = scaling(log, args.max_scans, args.repeats, tmp, args.quiet_below, args.max_wait)
     print(f"# load average after: {load()}")
     one, two = statistics.median(times[1]), statistics.median(times[2])
     print("\n| workers | wall s, each repeat | median s |\n|---|---|---|")
