@@ -33,6 +33,8 @@ import time
 from datetime import date
 from pathlib import Path
 
+import yaml
+
 EXPERIMENT = """# written by benchmarks/bench_scaling.py
 name: scaling
 inputs:
@@ -56,10 +58,11 @@ def wait_for_quiet(below: float | None, max_wait: float) -> None:
 
 
 def scaling(log: Path, max_scans: int, repeats: int, tmp: Path, quiet: float | None,
-            max_wait: float) -> dict[int, list[float]]:
+            max_wait: float) -> tuple[dict[int, list[float]], dict[int, list[float]]]:
     exp = tmp / "scaling.yaml"
     exp.write_text(EXPERIMENT.format(log=log, max_scans=max_scans))
     times: dict[int, list[float]] = {1: [], 2: []}
+    runs: dict[int, list[float]] = {1: [], 2: []}
     for r in range(repeats):
         for workers in (1, 2):
             out = tmp / f"w{workers}-{r}"
@@ -69,9 +72,12 @@ def scaling(log: Path, max_scans: int, repeats: int, tmp: Path, quiet: float | N
             subprocess.run([sys.executable, "-m", "omnitof.cli", "bench", str(exp), "--out", str(out),
                             "--workers", str(workers), "--quiet"], check=True, capture_output=True)
             times[workers].append(time.perf_counter() - start)
-            print(f"  repeat {r}, {workers} worker(s): {times[workers][-1]:.1f} s (load before {before}; after {load()})",
-                  flush=True)
-    return times
+            # Each run's own time on its worker (bench.yaml): what the cores gave the runs.
+            own = [yaml.safe_load(p.read_text())["seconds"] for p in (out / "runs").glob("*/bench.yaml")]
+            runs[workers] += own
+            print(f"  repeat {r}, {workers} worker(s): {times[workers][-1]:.1f} s, runs' own time {sum(own):.1f} s "
+                  f"(load before {before}; after {load()})", flush=True)
+    return times, runs
 
 
 def overhead(log: Path, runs: int, tmp: Path) -> list[dict[str, float]]:
@@ -130,13 +136,15 @@ def main() -> int:
         print(f"# overhead: load before {load()}", flush=True)
         rows = overhead(log, args.overhead_runs, tmp)
         print(f"# overhead: load after {load()}", flush=True)
-        times = scaling(log, args.max_scans, args.repeats, tmp, args.quiet_below, args.max_wait)
+        times, runs = scaling(log, args.max_scans, args.repeats, tmp, args.quiet_below, args.max_wait)
     print(f"# load average after: {load()}")
     one, two = statistics.median(times[1]), statistics.median(times[2])
     print("\n| workers | wall s, each repeat | median s |\n|---|---|---|")
     for w in (1, 2):
         print(f"| {w} | {' / '.join(f'{t:.1f}' for t in times[w])} | {statistics.median(times[w]):.1f} |")
     print(f"\n2 workers / 1 worker: {two / one:.2f} (median over {args.repeats} repeats; target <= 0.6)")
+    print(f"A run's own time on its worker, median: {statistics.median(runs[1]):.2f} s alone, "
+          f"{statistics.median(runs[2]):.2f} s beside another (the two cores' contention, not Dask's)")
     over = [r["overhead"] for r in rows]
     print(f"\nPer-task overhead over {len(rows)} tasks (2.2 MB log shipped afresh each time): median "
           f"{statistics.median(over):.3f} s, max {max(over):.3f} s (target <= 1 s); of which shipping the log: median "
