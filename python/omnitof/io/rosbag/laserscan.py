@@ -51,7 +51,13 @@ from omnitof.io.rosbag.common import (
     _storage_plugin,
     _to_ns,
 )
-from omnitof.types import ScanSequence, Trajectory, evenly_spaced_beams, pad_rows
+from omnitof.types import (
+    ScanSequence,
+    Trajectory,
+    drop_repeated_scans,
+    evenly_spaced_beams,
+    pad_rows,
+)
 
 __all__ = ["read_laserscan_bag", "write_laserscan_bag"]
 
@@ -83,7 +89,9 @@ def read_laserscan_bag(
       range_max; intensities become `remissions` when every scan has one per beam. Where
       angle_min, angle_increment or the beam count change from scan to scan, the ScanSequence
       has per-scan geometry (`angles` (N, B), `beam_counts`).
-    - Time: each scan's header stamp; stamps must not decrease. The odometry (its header
+    - Time: each scan's header stamp; stamps must not decrease. A scan that repeats the one
+      before it exactly (stamp, readings, pose) is dropped with a RosbagWarning
+      (`omnitof.types.drop_repeated_scans`); one stamped alike but reading differently is kept. The odometry (its header
       stamps must not decrease either) is interpolated to each scan's stamp (linear in x, y,
       shorter arc in θ); scans outside the odometry's time span are dropped with a
       RosbagWarning.
@@ -200,7 +208,7 @@ def read_laserscan_bag(
     sensor_pose, flipped = _laser_pose(static, base_frame, laser_frame, path, tf_static_topic)
     if flipped:
         angles = -angles
-    return ScanSequence(
+    scans = ScanSequence(
         timestamps=t[keep],
         ranges=scan_ranges,
         angles=angles,
@@ -213,6 +221,15 @@ def read_laserscan_bag(
         beam_counts=beam_counts,
         max_range_rule=rule,
     )
+    scans = drop_repeated_scans(scans)
+    if scans.repeated_scans_dropped:
+        warnings.warn(
+            f"{path}: {scans.repeated_scans_dropped} scans on {scan_name} repeat the scan before "
+            "them exactly (stamp, readings and pose: a message recorded twice) and were dropped",
+            RosbagWarning,
+            stacklevel=2,
+        )
+    return scans
 
 
 def _read_static_transforms(
