@@ -14,7 +14,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "python" / "omnitof"
 
 # Stages in data-flow order; a module may import its own stage and earlier ones only.
 STAGES = ["foundation", "sensor", "io", "sim", "calibration", "scan", "slam", "map3d", "eval", "viz", "top"]
-FOUNDATION = {"errors", "types", "geometry", "_core", "_moved", "__init__", "__version__"}
+FOUNDATION = {"errors", "types", "geometry", "interrupts", "_core", "_moved", "__init__", "__version__"}
 TOP = {"cli", "cli_calibrate", "demo", "results"}
 DATA_FOLDERS = {"worlds", "presets", "__pycache__"}
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import signal
 import sys
 
 import numpy as np
@@ -15,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from omnitof import __version__
-from omnitof.errors import OmnitofError
+from omnitof.errors import OmnitofError, OmnitofWarning
 from omnitof.types import ScanSequence
 
 
@@ -66,9 +67,10 @@ def _read_tof_input(args: argparse.Namespace, *, cloud_every: int, max_frames: i
 
 
 def cmd_slam(args: argparse.Namespace) -> int:
+    from omnitof.interrupts import pause_point
     from omnitof.io.scans import is_tof_bag, read_scans
-    from omnitof.results import write_results
-    from omnitof.slam import run_slam
+    from omnitof.results import results_folder, write_results
+    from omnitof.slam import check_limits, run_slam
 
     tof = is_tof_bag(args.log)
     if not tof and (args.calibration is not None or args.map3d):
@@ -76,53 +78,84 @@ def cmd_slam(args: argparse.Namespace) -> int:
     # Without --preset: the scan-matching filter with the pose-graph back end, for either kind of
     # input (the paper's filter is `--preset paper` / `--preset tof`).
     cfg = _config_from_args(args, default_preset="tof-scanmatch" if tof else "laser180-scanmatch")
-    if tof:
-        tof_data = _read_tof_input(args, cloud_every=args.map3d_every if args.map3d else 0,
-                                   max_frames=args.max_scans)
-        scans = tof_data.scans
-        extra = {"input": {"path": str(args.log), "kind": "tof-rosbag", "rig": tof_data.rig_source,
-                           "scan": tof_data.extractor.settings.model_dump()}}
-    else:
-        data = read_scans(args.log, skip_bad_lines=args.skip_bad_lines)
-        scans = data.scans if args.max_scans is None else data.scans.slice(0, args.max_scans)
-        extra = {"input": {"path": str(args.log), "kind": data.kind, "bad_lines_skipped": data.bad_lines}}
-    extra["input"]["max_range"] = {"metres": float(scans.max_range), "rule": scans.max_range_rule or "given"}
-    # Laser logs are stamped when the reading arrives, so their delay is estimated by default.
-    delay = args.scan_delay if args.scan_delay is not None or tof else "auto"
-    if delay is not None:
-        scans, extra["input"]["scan_delay"] = _retimed(scans, delay, given=args.scan_delay is not None)
-    with _progress_bar(len(scans), not args.quiet, "slam") as bar:
-        result = run_slam(scans, cfg, progress=bar.update)
+    relations = None
     if args.relations is not None:
-        from omnitof.eval.relations import evaluate_relations, read_relations
+        from omnitof.eval.relations import read_relations
 
-        rel = evaluate_relations(result.trajectory, read_relations(args.relations))
-        extra["relations"] = rel.to_dict()
-    if scans.ground_truth is not None:
-        from omnitof.eval.trajectory import absolute_trajectory_error
+        relations = read_relations(args.relations)
+    # Opened before any work, so that an output that cannot be written is found at once; the
+    # folder replaces --out only when everything is written (omnitof.results).
+    with results_folder(args.out) as folder:
+        pause_point("start")
+        if tof:
+            tof_data = _read_tof_input(args, cloud_every=args.map3d_every if args.map3d else 0,
+                                       max_frames=args.max_scans)
+            scans = tof_data.scans
+            extra = {"input": {"path": str(args.log), "kind": "tof-rosbag", "rig": tof_data.rig_source,
+                               "scan": tof_data.extractor.settings.model_dump()}}
+        else:
+            data = read_scans(args.log, skip_bad_lines=args.skip_bad_lines)
+            scans = data.scans if args.max_scans is None else data.scans.slice(0, args.max_scans)
+            extra = {"input": {"path": str(args.log), "kind": data.kind, "bad_lines_skipped": data.bad_lines}}
+        extra["input"]["max_range"] = {"metres": float(scans.max_range), "rule": scans.max_range_rule or "given"}
+        extra["input"]["time_order"] = scans.time_order()
+        if relations is not None:
+            from omnitof.eval.relations import check_relations_match
 
-        extra["trajectory_error"] = {
-            "slam": absolute_trajectory_error(result.trajectory.poses, scans.ground_truth).to_dict(),
-            "odometry": absolute_trajectory_error(scans.odometry, scans.ground_truth).to_dict(),
-        }
-    paths = write_results(args.out, result, cfg, title=f"{Path(args.log).name}", extra=extra,
-                          ground_truth=scans.ground_truth)
-    if tof and args.map3d:
-        from omnitof.map3d import voxel_map_from_clouds
-        from omnitof.results import write_voxel_outputs
+            check_relations_match(relations, scans.timestamps)
+        check_limits(scans, cfg)
+        # Laser logs are stamped when the reading arrives, so their delay is estimated by default.
+        delay = args.scan_delay if args.scan_delay is not None or tof else "auto"
+        if delay is not None:
+            scans, extra["input"]["scan_delay"] = _retimed(scans, delay, given=args.scan_delay is not None)
+        with _progress_bar(len(scans), not args.quiet, "slam") as bar:
+            result = run_slam(scans, cfg, progress=_pausing(bar.update, "slam", len(scans) // 2))
+        if relations is not None:
+            from omnitof.eval.relations import evaluate_relations
 
-        vmap = voxel_map_from_clouds(result.trajectory.poses[tof_data.cloud_frames], tof_data.clouds)
-        for name, path in write_voxel_outputs(vmap, args.out, trajectory=result.trajectory.poses).items():
-            paths[name] = path
+            rel = evaluate_relations(result.trajectory, relations)
+            extra["relations"] = rel.to_dict()
+        if scans.ground_truth is not None:
+            from omnitof.eval.trajectory import absolute_trajectory_error
+
+            extra["trajectory_error"] = {
+                "slam": absolute_trajectory_error(result.trajectory.poses, scans.ground_truth).to_dict(),
+                "odometry": absolute_trajectory_error(scans.odometry, scans.ground_truth).to_dict(),
+            }
+        if tof and args.map3d:
+            from omnitof.map3d import voxel_map_from_clouds
+            from omnitof.results import write_voxel_outputs
+
+            vmap = voxel_map_from_clouds(result.trajectory.poses[tof_data.cloud_frames], tof_data.clouds)
+            write_voxel_outputs(vmap, folder, trajectory=result.trajectory.poses)
+        write_results(folder, result, cfg, title=f"{Path(args.log).name}", extra=extra,
+                      ground_truth=scans.ground_truth)
     print(_summary_line(result.stats))
-    if args.relations is not None:
+    if relations is not None:
         print(rel.format())
     if "trajectory_error" in extra:
         te = extra["trajectory_error"]
         print(f"trajectory error (mean, final): SLAM {te['slam']['mean']:.3f} m, {te['slam']['final']:.3f} m; "
               f"odometry {te['odometry']['mean']:.3f} m, {te['odometry']['final']:.3f} m")
-    print(f"results in {paths['summary'].parent}")
+    print(f"results in {args.out}")
     return 0
+
+
+def _pausing(update, name: str, at: int):
+    """`update` (a progress callback) that passes `pause_point(name)` once `at` scans are done:
+    the fault-injection tests stop a run there, in the middle of SLAM."""
+    from omnitof.interrupts import pause_point
+
+    done = 0
+
+    def step(n: int) -> None:
+        nonlocal done
+        update(n)
+        if done < at <= done + n:
+            pause_point(name)
+        done += n
+
+    return step
 
 
 # A laser's scan delay is a fraction of a second; seconds beyond this are a mistake, not a delay.
@@ -391,25 +424,39 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+_library_format = warnings.formatwarning
+
+
 def _format_warning(message, category, filename, lineno, line=None) -> str:
-    # Warnings about the user's data read as one line, without our source location.
-    return f"omnitof: warning: {message}\n"
+    # Warnings about the user's data read as one line, without our source location. Another
+    # library's warning is not a message of omnitof's: it keeps its own form, so that it reads
+    # as what it is (a bug to fix where it arises, not news about the data).
+    if issubclass(category, OmnitofWarning):
+        return f"omnitof: warning: {message}\n"
+    return _library_format(message, category, filename, lineno, line)
 
 
 def main(argv: list[str] | None = None) -> int:
+    from omnitof.interrupts import Terminated, signals_as_exceptions
+
     args = build_parser().parse_args(argv)
     warnings.formatwarning = _format_warning
-    try:
-        return args.func(args)
-    except OmnitofError as err:
-        print(f"omnitof: error: {err}", file=sys.stderr)
-        return 2
-    except OSError as err:  # an output folder that cannot be written, a full disk, ...
-        print(f"omnitof: error: {err}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("omnitof: interrupted", file=sys.stderr)
-        return 130
+    # SIGTERM is handled like Ctrl-C: the run unwinds, removes what it had begun and says so.
+    with signals_as_exceptions():
+        try:
+            return args.func(args)
+        except OmnitofError as err:
+            print(f"omnitof: error: {err}", file=sys.stderr)
+            return 2
+        except OSError as err:  # an input that cannot be read, an output folder that cannot be written
+            print(f"omnitof: error: {err}", file=sys.stderr)
+            return 2
+        except Terminated:
+            print("omnitof: terminated (SIGTERM); nothing half-written was left", file=sys.stderr)
+            return 128 + signal.SIGTERM
+        except KeyboardInterrupt:
+            print("omnitof: interrupted; nothing half-written was left", file=sys.stderr)
+            return 130
 
 
 if __name__ == "__main__":

@@ -102,7 +102,8 @@ def slam_config(preset: str, seed: int, particles: int | None = None) -> Any:
 
 def run_world(settings: DemoSettings, out: str | Path, *, progress: bool = True,
               echo: Callable[[str], None] = print) -> DemoRun:
-    """Run the pipeline (module docstring) and write its folder `out`."""
+    """Run the pipeline (module docstring) and write its files into the folder `out`
+    (`run_demo` gives it a fresh folder that replaces its results folder when complete)."""
     from omnitof.io.terminal import progress_bar
 
     from omnitof.results import write_results
@@ -179,7 +180,6 @@ def run_world(settings: DemoSettings, out: str | Path, *, progress: bool = True,
     summary["total_seconds"] = round(time.perf_counter() - started, 1)
     with atomic_write(paths["summary"]) as f:
         yaml.safe_dump({"run": result.stats, "demo": to_plain(summary)}, f, sort_keys=False)
-    _print_summary(summary, out, echo)
     return DemoRun(summary, world, scans)
 
 
@@ -342,7 +342,13 @@ def _print_summary(summary: dict[str, Any], out: Path, echo: Callable[[str], Non
 def run_demo(out: str | Path, *, world: str = DEFAULT_WORLD, seed: int = 0, preset: str = DEFAULT_PRESET,
              particles: int | None = DEFAULT_PARTICLES, calibrate: bool = True, max_frames: int | None = None,
              progress: bool = True) -> dict[str, Any]:
-    """`omnitof demo`: run_world with the command's options."""
+    """`omnitof demo`: run_world with the command's options, into the results folder `out` as
+    one unit (omnitof.results.results_folder: `out` is replaced only when the run is complete)."""
+    from omnitof.results import results_folder
+
     settings = DemoSettings(world=world, seed=seed, preset=preset, particles=particles, calibrate=calibrate,
                             max_frames=max_frames)
-    return run_world(settings, out, progress=progress).summary
+    with results_folder(out) as folder:
+        summary = run_world(settings, folder, progress=progress).summary
+    _print_summary(summary, Path(out), print)
+    return summary
