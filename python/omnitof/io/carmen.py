@@ -743,8 +743,10 @@ def _repeated_top_value(readings: np.ndarray) -> tuple[float, int] | None:
 
 
 def _no_echo_to_inf(ranges: np.ndarray, max_range: float | np.ndarray) -> np.ndarray:
-    """float32 ranges with +inf where the laser saw nothing (>= max range, or <= 0)."""
-    out = ranges.astype(np.float32)
+    """float32 ranges with +inf where the laser saw nothing (>= max range, or <= 0). A reading
+    beyond float32 (3.4e38 m) becomes +inf too: no sensor measures that far."""
+    with np.errstate(over="ignore"):
+        out = ranges.astype(np.float32)
     out[(ranges >= max_range) | (ranges <= 0.0)] = np.inf
     return out
 
@@ -753,7 +755,8 @@ def _remissions(scans: list[_Scan]) -> np.ndarray | None:
     """Remissions only if every scan has one per beam (padded with 0 like its ranges)."""
     if any(s.remissions is None for s in scans):
         return None
-    return pad_rows([s.remissions for s in scans], 0.0, np.float32)
+    with np.errstate(over="ignore"):  # a remission beyond float32 becomes +inf
+        return pad_rows([s.remissions for s in scans], 0.0, np.float32)
 
 
 def _param_sensor_pose(

@@ -109,12 +109,11 @@ def _read_lines(path: str | Path) -> list[str]:
 
 def _parse_row(text: str, path: str | Path, number: int) -> list[float]:
     row = parse_float_row(text, 8, ROW_MESSAGE, path, number)
-    if np.linalg.norm(row[4:8]) < 1e-9:
+    if max(abs(v) for v in row[4:8]) < 1e-9:
         raise InputError("the quaternion qx qy qz qw has zero length", path, number)
     return row
 
 
 def _yaw(data: np.ndarray) -> np.ndarray:
-    q = data[:, 4:8]
-    # quaternion_to_yaw assumes unit quaternions; files rounded to a few decimals are not quite.
-    return np.asarray(quaternion_to_yaw(q / np.linalg.norm(q, axis=1, keepdims=True)))
+    # quaternion_to_yaw takes quaternions of any length (files rounded to a few decimals).
+    return np.asarray(quaternion_to_yaw(data[:, 4:8]))

@@ -227,6 +227,16 @@ def _opened(path: Path) -> Iterator[AnyReader]:
             "bag a folder with metadata.yaml (or a bare .mcap / .db3 file)",
             path,
         ) from None
+    # rosbags takes a ROS 2 bag's metadata.yaml as it is: a topic, type or count that is not
+    # what its field should be would only fail later, deep in our code.
+    if not all(isinstance(c.topic, str) and isinstance(c.msgtype, str)
+               and isinstance(c.msgcount, int) for c in reader.connections):  # fmt: skip
+        with suppress(Exception):
+            reader.close()
+        raise InputError(
+            "not a readable ROS bag: its metadata lists a topic, message type or message count "
+            "that is not one", path,
+        )
     try:
         yield reader
     finally:
@@ -335,7 +345,14 @@ def _read_trajectories(
             )
         previous.append(ns)
         p, q = msg.pose.pose.position, msg.pose.pose.orientation
-        yaw = float(quaternion_to_yaw(np.array([q.x, q.y, q.z, q.w])))
+        quaternion = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+        if not (np.isfinite([p.x, p.y]).all() and np.isfinite(quaternion).all() and np.any(quaternion)):
+            raise InputError(
+                f"topic {topic}: the pose stamped {_ns_to_s(ns):.9f} s is not finite (position "
+                f"{p.x}, {p.y}, orientation {q.x}, {q.y}, {q.z}, {q.w})",
+                path,
+            )
+        yaw = float(quaternion_to_yaw(quaternion))  # any length, huge components too
         poses.setdefault(topic, []).append((float(p.x), float(p.y), yaw))
         result.child_frames.setdefault(topic, _frame_name(msg.child_frame_id))
     for conn in connections:
