@@ -4,23 +4,25 @@ the number and the setting that decides it, instead of failing or being killed h
 
 The memory estimate (`estimate_memory`) is, in bytes,
 
-    particles × (window tiles × 8 + end-point tiles × tile bytes) + map cells × 30
+    particles × (window tiles × 8 + scan tiles × tile bytes) + map cells × 30
 
 - map cells: the cells, at map.resolution, of the rectangle that holds the sensor at every scan
   and every beam end point the map uses (ranges cut at min(map.max_range, the sensor's range);
   no-echo beams at that length when map.clear_no_echo is on). The map a run writes covers it.
 - window tiles: the tiles (16 × 16 cells) of that rectangle. Every particle keeps a window of
   pointers (8 bytes each) over its map's tiles (docs/conventions.md, "Memory").
-- end-point tiles: the tiles holding the end points of one scan (the median over up to 64 scans
-  spread over the log). At every step each particle writes its own copy of at least these
-  tiles (copy-on-write), `tile bytes` (1.75 KiB) each.
+- scan tiles: the tiles the beams of one scan cross (the median over up to 32 scans spread
+  over the log). At every step each particle writes its own copy of these tiles
+  (copy-on-write), `tile bytes` (1.75 KiB) each.
 - 30 bytes per map cell: the measured peak of the dense map, its copies, the PGM and the
   figure while the results are written (30 B per cell for a map of 8.6 million cells).
 
-The estimate errs low: on the simulated corridor loop with 1000 particles (sim2d preset) it
-comes to 90 MB where the run's peak grew by 125 MB. Rule: a run whose estimate exceeds the
-memory available is refused, available meaning MemAvailable of /proc/meminfo, or less where a
-cgroup limits the process; where neither can be read (not Linux), nothing is checked.
+It is the order of what a run needs, not a bound: on the simulated corridor loop with 1000
+particles (sim2d preset) it comes to 69 MB where the filter's peak grew by 125 MB (particles
+that were not resampled keep copies of older tiles too; copies made by resampling share
+theirs). Rule: a run whose estimate exceeds the memory available is refused, available
+meaning MemAvailable of /proc/meminfo, or less where a cgroup limits the process; where
+neither can be read (not Linux), nothing is checked.
 """
 
 from __future__ import annotations
@@ -40,13 +42,13 @@ from omnitof.types import ScanSequence
 TILE_CELLS = 16  # the core's tiles are 16 × 16 cells (rust/src/grid.rs, TILE)
 POINTER_BYTES = 8  # one slot of a particle's window of tiles
 MAP_CELL_BYTES = 30  # measured, see the module notes
-SAMPLED_SCANS = 64
+SAMPLED_SCANS = 32
 _CHUNK = 2048  # scans per chunk when the extent is computed (bounds the temporary arrays)
 
 
 @dataclass(frozen=True)
 class MemoryEstimate:
-    """The memory a run will need at least (module notes), and its parts.
+    """The memory a run will need (module notes), and its parts.
 
     extent: (width, height) of the mapped rectangle, metres. cells: (columns, rows) at the map
     resolution. particles_bytes: what the particles' windows and tile copies need. map_bytes:
@@ -108,27 +110,36 @@ def map_extent(scans: ScanSequence, cfg: SlamConfig) -> tuple[float, float, floa
     return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
 
-def _end_point_tiles(scans: ScanSequence, cfg: SlamConfig) -> float:
-    """Median count of distinct tiles holding the end points of one scan (module notes)."""
+def _scan_tiles(scans: ScanSequence, cfg: SlamConfig) -> float:
+    """Median count of distinct tiles that the beams of one scan cross, over up to
+    SAMPLED_SCANS scans spread over the log (module notes)."""
     tile = TILE_CELLS * cfg.map.resolution
     rows = np.unique(np.linspace(0, len(scans) - 1, min(len(scans), SAMPLED_SCANS)).round().astype(int))
-    _, x, y = _end_points(scans, rows, _reach(scans, cfg), False)
+    reach = _reach(scans, cfg)
+    sensor = compose(scans.odometry[rows], scans.sensor_pose)
+    lengths = _beam_lengths(scans.ranges[rows], scans.beam_mask[rows], reach, cfg.map.clear_no_echo)
+    # Points every half tile along each beam land in every tile it crosses but a corner's.
+    steps = np.arange(0.0, reach + tile, 0.5 * tile)[:4096]
     counts = []
-    for xi, yi in zip(x, y):
-        keep = np.isfinite(xi)
-        cells = np.stack([np.floor(xi[keep] / tile), np.floor(yi[keep] / tile)], axis=1)
-        counts.append(len(np.unique(cells, axis=0)))
+    for k, i in enumerate(rows):
+        used = np.isfinite(lengths[k])
+        bearing = sensor[k, 2] + scans.scan_angles(i)[used[: scans.beam_mask[i].sum()]]
+        t = np.minimum(steps[None, :], lengths[k, used][:, None])
+        # Tile indices relative to the sensor's tile, within ±4097 of it: one integer each.
+        x = np.floor((sensor[k, 0] + t * np.cos(bearing)[:, None]) / tile) - np.floor(sensor[k, 0] / tile)
+        y = np.floor((sensor[k, 1] + t * np.sin(bearing)[:, None]) / tile) - np.floor(sensor[k, 1] / tile)
+        counts.append(len(np.unique((x * 16384 + y).astype(np.int64))))
     return float(np.median(counts)) if counts else 0.0
 
 
 def estimate_memory(scans: ScanSequence, cfg: SlamConfig) -> MemoryEstimate:
-    """The memory a run of `cfg` on `scans` will need at least (module notes)."""
+    """The memory a run of `cfg` on `scans` will need (module notes)."""
     x0, y0, x1, y1 = map_extent(scans, cfg)
     res = cfg.map.resolution
     width, height = max(x1 - x0, 0.0), max(y1 - y0, 0.0)
     cols, rows = math.floor(width / res) + 1, math.floor(height / res) + 1  # floats: no overflow
     window = math.ceil(cols / TILE_CELLS) * math.ceil(rows / TILE_CELLS) * POINTER_BYTES
-    copies = _end_point_tiles(scans, cfg) * _core.ParticleFilter.tile_bytes()
+    copies = _scan_tiles(scans, cfg) * _core.ParticleFilter.tile_bytes()
     return MemoryEstimate(
         extent=(width, height),
         cells=(float(cols), float(rows)),
@@ -185,10 +196,10 @@ def check_memory(scans: ScanSequence, cfg: SlamConfig, *, available: float | Non
         raise ResourceError(
             f"map.resolution {cfg.map.resolution:g} m: the map of {scans.source or 'these scans'} "
             f"spans {width:.4g} m × {height:.4g} m, {cols:.3g} × {rows:.3g} cells, and the run "
-            f"would need at least {_size(estimate.total)}; {have} (choose a coarser map.resolution)"
+            f"would need about {_size(estimate.total)}; {have} (choose a coarser map.resolution)"
         )
     raise ResourceError(
-        f"filter.particles {cfg.filter.particles}: the particles' maps would need at least "
+        f"filter.particles {cfg.filter.particles}: the particles' maps would need about "
         f"{_size(estimate.particles_bytes)} (with map.resolution {cfg.map.resolution:g} m over "
         f"{width:.4g} m × {height:.4g} m); {have} (choose fewer particles)"
     )
