@@ -290,3 +290,33 @@ def test_only_omnitofs_own_warnings_read_as_omnitof_warnings():
     assert _format_warning("3 scans dropped", CarmenWarning, "carmen.py", 1) == "omnitof: warning: 3 scans dropped\n"
     other = _format_warning("singular limits", UserWarning, "matplotlib/axes.py", 7)
     assert not other.startswith("omnitof:") and "matplotlib/axes.py" in other
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["simulate", "--out", "OUT", "--seed", "-1"], "--seed: expected a seed in 0 … 2^63 - 1"),  # a traceback before
+    (["demo", "--out", "OUT", "--seed", "-3"], "--seed: expected a seed"),
+    (["slam", "LOG", "--out", "OUT", "--seed", "2e3"], "--seed: expected a whole number"),
+    (["slam", "LOG", "--out", "OUT", "--height", "nan"], "--height: expected a finite number"),
+    (["slam", "LOG", "--out", "OUT", "--map3d-every", "0"], "--map3d-every: expected at least 1"),
+    (["scans", "BAG", "--out", "x.clf", "--band", "-0.1"], "--band: expected a number above 0"),
+    (["eval", "relations", "a", "b", "--tolerance", "-1"], "--tolerance: expected a number of at least 0"),
+    (["design", "--yaw", "1e308"], "--yaw: expected a number of at most 360"),
+    (["simulate", "--out", "OUT", "--speed", "inf"], "--speed: expected a finite number"),
+    (["calibrate", "render-targets", "--out", "OUT", "--boards", "0"], "--boards: expected at least 1"),
+    (["calibrate", "intrinsics", "x.png", "--out", "c.yaml", "--square", "0"], "--square: expected a number above 0"),
+])
+def test_every_command_refuses_numbers_outside_their_domain(tmp_path, monkeypatch, capsys, argv, message):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_demo_refuses_a_bad_configuration_before_any_work(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--particles", "0", "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert "filter.particles" in captured.err and "[1]" not in captured.out and not out.exists()

@@ -118,6 +118,7 @@ def run_world(settings: DemoSettings, out: str | Path, *, progress: bool = True,
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    cfg = slam_config(settings.preset, settings.seed, settings.particles)  # a bad value stops us before any work
     stages = _Stages(echo)
     summary: dict[str, Any] = {"settings": asdict(settings)}
     started = time.perf_counter()
@@ -151,7 +152,6 @@ def run_world(settings: DemoSettings, out: str | Path, *, progress: bool = True,
                             "settings": extractor.settings.model_dump()}
 
     with stages.stage("SLAM"):
-        cfg = slam_config(settings.preset, settings.seed, settings.particles)
         bar = progress_bar(len(scans), enabled=progress, desc="slam", unit="scan")
         with bar:
             result = run_slam(scans, cfg, progress=bar.update)
@@ -348,6 +348,7 @@ def run_demo(out: str | Path, *, world: str = DEFAULT_WORLD, seed: int = 0, pres
 
     settings = DemoSettings(world=world, seed=seed, preset=preset, particles=particles, calibrate=calibrate,
                             max_frames=max_frames)
+    slam_config(preset, seed, particles)  # a bad value is refused before the folder is opened
     with results_folder(out) as folder:
         summary = run_world(settings, folder, progress=progress).summary
     _print_summary(summary, Path(out), print)
