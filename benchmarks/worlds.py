@@ -8,7 +8,13 @@ seeds 0, 1, 2: trajectory
 error (mean, final), Table I offsets and the floor-plan numbers, and the wall time of each run.
 
     python benchmarks/worlds.py [--worlds corridor1 corridor2 office room] [--seeds 0 1 2]
+        [--drive-seed 0] [--runs tof:200 tof:30 ...] [--set SECTION.FIELD=VALUE ...]
         [--out results/worlds]
+
+`--drive-seed` picks the simulated drive (odometry and sensor noise, calibration images): a
+drive not tuned on checks what was. `--runs PRESET:PARTICLES` replaces the default filters;
+`--set` overrides configuration fields of every run (VALUE read as YAML), e.g. the paper's
+filter with the back end: `--runs tof:200 --set backend.enabled=true`.
 
 Prints Markdown tables for BENCHMARKS.md.
 """
@@ -29,6 +35,7 @@ import numpy as np
 from omnitof.demo import DemoSettings, evaluate_run, run_world, slam_config
 from omnitof.eval.table1 import format_table1, table1
 from omnitof.slam import run_slam
+from slam_logs import overrides_of
 
 # (preset, particles): each filter with its own number of particles and with the other's.
 RUNS = (("tof", None), ("tof", 30), ("tof-scanmatch", None), ("tof-scanmatch", 200))
@@ -38,15 +45,22 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--worlds", nargs="+", default=["corridor1", "corridor2", "office", "room"])
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--drive-seed", type=int, default=0)
+    parser.add_argument("--runs", nargs="+", metavar="PRESET:PARTICLES",
+                        default=[f"{p}:{n or 'preset'}" for p, n in RUNS])
+    parser.add_argument("--set", nargs="*", default=[], metavar="SECTION.FIELD=VALUE")
     parser.add_argument("--out", type=Path, default=Path("results/worlds"))
     args = parser.parse_args(argv)
+    runs = [(p, None if n == "preset" else int(n)) for p, n in (r.split(":") for r in args.runs)]
+    extra = overrides_of(args.set)
 
     print(f"# {date.today()} · {platform.processor() or platform.machine()} · {os.cpu_count()} cores · "
           f"python {sys.version.split()[0]}")
     print(f"# command: python benchmarks/worlds.py {' '.join(argv if argv is not None else sys.argv[1:])}")
     stage_rows, filter_rows, tables = [], [], {}
     for name in args.worlds:
-        run = run_world(DemoSettings(world=name, seed=0), args.out / name, progress=False, echo=lambda _: None)
+        run = run_world(DemoSettings(world=name, seed=args.drive_seed), args.out / name, progress=False,
+                        echo=lambda _: None)
         s = run.summary
         stages = s["stages"]
         stage_rows.append(
@@ -56,9 +70,9 @@ def main(argv: list[str] | None = None) -> int:
         )
         cal = s["calibration"]
         print(f"{name}: calibration {cal.get('summary', cal)}", flush=True)
-        for preset, particles in RUNS:
+        for preset, particles in runs:
             for seed in args.seeds:
-                cfg = slam_config(preset, seed, particles)
+                cfg = slam_config(preset, seed, particles, extra)
                 start = time.perf_counter()
                 result = run_slam(run.scans, cfg)
                 seconds = time.perf_counter() - start
@@ -76,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
                 if seed == args.seeds[0] and cfg.filter.particles == 200 and run.world.landmarks:
                     tables[f"{name}, {preset}, 200 particles"] = (name, table1(result.map, run.world.landmarks))
 
-    print("\n## Stages (seconds; the demo's pipeline: tof-scanmatch, 200 particles, seed 0)\n")
+    print(f"\n## Stages (seconds; the demo's pipeline: tof-scanmatch, 200 particles, drive seed {args.drive_seed})\n")
     names = list(run.summary["stages"])
     print("| world | frames | metres | " + " | ".join(names) + " | total | peak RSS (MiB) |")
     print("|---" * (len(names) + 5) + "|")

@@ -125,3 +125,76 @@ def test_scans_between_integrated_ones_are_posed_by_their_own_match(corridor_loo
     assert np.allclose(matched.trajectory.poses[matched.integrated],
                        by_odometry.trajectory.poses[by_odometry.integrated], rtol=0, atol=1e-12)
     assert err_match.mean < err_odo.mean
+
+
+def test_compounded_edges_match_the_chains_marginal(monkeypatch, corridor_loop):
+    # The reduced graph of graduated non-convexity compounds the chain between two closure
+    # nodes into one edge. Independent check: GTSAM's marginal covariance of the chain's last
+    # node with its first node held fixed, from the whole chain.
+    import gtsam
+
+    backend = _captured_backend(monkeypatch, corridor_loop.slice(0, 400), loop_config(True))
+    a, b = 3, 25
+    measured, cov = backend._compound(a, b)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    graph.add(gtsam.PriorFactorPose2(a, gtsam.Pose2(*backend.estimate[a]), gtsam.noiseModel.Constrained.All(3)))
+    pose = gtsam.Pose2(*backend.estimate[a])
+    values.insert(a, pose)
+    for j in range(a + 1, b + 1):
+        edge = backend.odometry_edges[j - 1]
+        graph.add(gtsam.BetweenFactorPose2(j - 1, j, gtsam.Pose2(*edge), backend._odometry_noise(edge)))
+        pose = pose.compose(gtsam.Pose2(*edge))
+        values.insert(j, pose)
+    marginal = gtsam.Marginals(graph, values).marginalCovariance(b)
+    chained = gtsam.Pose2(*backend.estimate[a]).between(values.atPose2(b))
+    assert np.allclose([measured.x(), measured.y(), measured.theta()], [chained.x(), chained.y(), chained.theta()],
+                       atol=1e-9)
+    assert np.allclose(cov, marginal, rtol=1e-6, atol=1e-12)
+
+
+def test_graduated_verdicts_on_the_reduced_graph_are_the_whole_graphs(monkeypatch, corridor_loop):
+    import gtsam
+
+    from omnitof.slam.backend import CHI2_PROBABILITY
+
+    backend = _captured_backend(monkeypatch, corridor_loop, loop_config(True))
+    n = len(backend.estimate)
+    truth = np.asarray(backend.estimate)
+    for node, shift in ((n // 2, [2.0, 0.0, np.radians(30.0)]), (n // 3, [-1.5, 1.0, np.radians(-20.0)])):
+        backend.closures.append(Closure(
+            node=node, anchor=1, submap=0, measured=compose(relative(truth[1], truth[node]), np.array(shift)),
+            score=0.9, covariance=np.diag([0.05**2, 0.05**2, np.radians(1.0) ** 2]), search="local"))
+    reduced = backend._graduated()
+    # The same decision on the whole graph, built here without the reduction.
+    graph, values = backend._graph(robust=False, use=[True] * len(backend.closures))
+    params = gtsam.GncLMParams(gtsam.LevenbergMarquardtParams())
+    params.setLossType(gtsam.GncLossType.TLS)
+    params.setKnownInliers(list(range(1 + len(backend.odometry_edges))))
+    gnc = gtsam.GncLMOptimizer(graph, values, params)
+    gnc.setInlierCostThresholdsAtProbability(CHI2_PROBABILITY)
+    gnc.optimize()
+    whole = [bool(w > 0.5) for w in np.asarray(gnc.getWeights())[1 + len(backend.odometry_edges):]]
+    assert reduced == whole
+    assert reduced[-2:] == [False, False]  # the two injected ones
+
+
+def test_chained_matches_in_the_core_are_the_single_matches_in_turn(corridor_loop):
+    # ParticleFilter.match_scans poses a run of scans in one call; independent check: the same
+    # chain of single matches (match_scan), each started from the pose before it.
+    from omnitof.slam.driver import _make_filter
+
+    scans = corridor_loop
+    cfg = loop_config(False)
+    pf = _make_filter(scans, cfg)
+    pf.step(scans.odometry[0], scans.odometry[0], scans.ranges[0], 0)
+    pf.step(scans.odometry[0], scans.odometry[5], scans.ranges[5], 5)
+    poses, matched = pf.match_scans(scans.odometry[5:12], scans.ranges[6:12], cfg.scan_matcher.min_matched)
+    anchor = pf.best_pose()
+    pose = anchor
+    for i in range(6, 12):
+        start = compose(pose, relative(scans.odometry[i - 1], scans.odometry[i]))
+        found, share = pf.match_scan(start, scans.ranges[i])
+        assert (share >= cfg.scan_matcher.min_matched) == matched[i - 6]
+        pose = np.asarray(found) if matched[i - 6] else start
+        assert np.allclose(poses[i - 6], relative(anchor, pose), rtol=0, atol=1e-9)
+    assert matched.all()

@@ -90,11 +90,14 @@ class DemoRun:
     scans: Any
 
 
-def slam_config(preset: str, seed: int, particles: int | None = None) -> Any:
-    """The SLAM configuration of a preset with the run's seed (and particle count)."""
+def slam_config(preset: str, seed: int, particles: int | None = None,
+                extra: dict[str, dict[str, Any]] | None = None) -> Any:
+    """The SLAM configuration of a preset with the run's seed (and particle count, and other
+    fields `extra`, {section: {field: value}})."""
     from omnitof.slam.config import load_config
 
-    overrides: dict[str, Any] = {"filter": {"seed": int(seed)}}
+    overrides: dict[str, Any] = {section: dict(fields) for section, fields in (extra or {}).items()}
+    overrides.setdefault("filter", {})["seed"] = int(seed)
     if particles is not None:
         overrides["filter"]["particles"] = int(particles)
     return load_config(preset=preset, overrides=overrides)

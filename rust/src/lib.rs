@@ -279,15 +279,7 @@ fn filter_params(
             max_range,
             occupied_threshold: g.occupied_threshold,
         },
-        field: LikelihoodField {
-            sigma: lf.sigma,
-            z_hit: lf.z_hit,
-            z_rand: lf.z_rand,
-            max_range,
-            window: lf.window_cells,
-            occupied_threshold: g.occupied_threshold,
-            fit_walls: lf.fit_walls,
-        },
+        field: LikelihoodField::new(lf.sigma, lf.z_hit, lf.z_rand, max_range, lf.window_cells, g.occupied_threshold, lf.fit_walls),
         matcher: MatcherParams {
             step_xy: sm.step_xy,
             step_theta: sm.step_deg.to_radians(),
@@ -399,6 +391,43 @@ impl PyParticleFilter {
         }
         let inner = &self.inner;
         Ok(py.detach(|| inner.match_in_best(start, ranges, angles)))
+    }
+
+    /// Poses of the scans between integrated ones (ParticleFilter::match_chain): `odometry`
+    /// (M + 1, 3), the first row the scan before them; `ranges` (M, B), padding +inf; `angles`
+    /// (M, B) or None (the filter's). Returns (poses relative to the best particle's, (M, 3);
+    /// whether each match stood, (M,)), or None before the first scan.
+    #[pyo3(signature = (odometry, ranges, min_matched, angles=None))]
+    fn match_scans<'py>(
+        &self,
+        py: Python<'py>,
+        odometry: PyReadonlyArray2<f64>,
+        ranges: PyReadonlyArray2<f32>,
+        min_matched: f64,
+        angles: Option<PyReadonlyArray2<f64>>,
+    ) -> PyResult<Option<(Bound<'py, PyArray2<f64>>, Bound<'py, PyArray1<bool>>)>> {
+        let odometry = points3(&odometry, "odometry")?;
+        if !odometry.iter().flatten().all(|v| v.is_finite()) {
+            return Err(PyValueError::new_err("odometry must be finite"));
+        }
+        let (m, beams) = (ranges.shape()[0], ranges.shape()[1]);
+        if odometry.len() != m + 1 {
+            return Err(PyValueError::new_err(format!("{} scans need {} odometry rows, got {}", m, m + 1, odometry.len())));
+        }
+        let angles_slice = match &angles {
+            Some(a) if a.shape() != ranges.shape() => {
+                return Err(PyValueError::new_err(format!("angles {:?} and ranges {:?} differ in shape", a.shape(), ranges.shape())));
+            }
+            Some(a) => Some(a.as_slice()?),
+            None if beams != self.inner.n_beams() => {
+                return Err(PyValueError::new_err(format!("scans have {} ranges for {} beam angles", beams, self.inner.n_beams())));
+            }
+            None => None,
+        };
+        let ranges = ranges.as_slice()?;
+        let inner = &self.inner;
+        let found = py.detach(|| inner.match_chain(&odometry, ranges, angles_slice, beams, min_matched));
+        Ok(found.map(|(poses, matched)| (rows3(py, &poses), PyArray1::from_vec(py, matched))))
     }
 
     /// The best particle's pose (x, y, theta), or None before the first scan.
@@ -546,7 +575,7 @@ impl PyOccupancyGrid {
         let start = pose3(start.as_slice()?, "start")?;
         let (angles, ranges) = (angles.as_slice()?, ranges.as_slice()?);
         let geom = scan_geometry(angles, ranges, sensor_pose)?;
-        let lf = LikelihoodField { sigma, z_hit: 0.9, z_rand: 0.1, max_range, window, occupied_threshold, fit_walls: false };
+        let lf = LikelihoodField::new(sigma, 0.9, 0.1, max_range, window, occupied_threshold, false);
         let m = MatcherParams {
             step_xy, step_theta, refinements, gauss_newton, sample_xy: 0.01, sample_theta: 0.005,
             min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, search: None, search_below: 0.0,

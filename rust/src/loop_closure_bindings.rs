@@ -219,7 +219,7 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
 /// submap's likelihood field, from `start`.
 fn field_match(sub: &Submap, geom: &ScanGeometry, ranges: &[f32], start: [f64; 3], sigma: f64) -> [f64; 3] {
     let max_range = sub.params().max_range;
-    let lf = LikelihoodField { sigma, z_hit: 0.9, z_rand: 0.1, max_range, window: 3, occupied_threshold: 0.0, fit_walls: false };
+    let lf = LikelihoodField::new(sigma, 0.9, 0.1, max_range, 3, 0.0, false);
     let m = MatcherParams {
         step_xy: 0.01, step_theta: 0.005, refinements: 2, gauss_newton: 10, sample_xy: 0.005, sample_theta: 0.002,
         min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, search: None,

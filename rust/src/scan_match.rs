@@ -9,6 +9,8 @@
 //! η = Σ_k p(z|m,x_k)·p(x_k|x',u). Before that, `check_odometry` may replace the step's odometry
 //! where a wide search (correlative.rs) finds the scan far from where the odometry puts it.
 
+use std::sync::Arc;
+
 use rand::RngExt;
 use rand_distr::StandardNormal;
 
@@ -37,7 +39,7 @@ use crate::sensor_model::ScanGeometry;
 /// true walls. Chained scan after scan, with a 5 cm field, the estimate stretched the corridors
 /// by about 1 % and its heading wandered by a degree over the loop; with fitted walls and a
 /// 2 cm field, 0.14–0.23° rms (at most 0.4–0.7°) with 10 particles.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 pub struct LikelihoodField {
     pub sigma: f64,
     pub z_hit: f64,
@@ -46,6 +48,48 @@ pub struct LikelihoodField {
     pub window: i32,
     pub occupied_threshold: f32,
     pub fit_walls: bool,
+    table: Arc<LogLikelihoodTable>,
+}
+
+/// ln(z_hit·N(d; 0, σ) + z_rand/max_range) tabulated against q = d²/(2σ²), read with linear
+/// interpolation. Why: the hill climbing and the proposal's 27 poses evaluate it for every end
+/// point of every candidate pose, and `exp` and `ln` took a seventh of the filter's time on
+/// Intel. Written here because it is four lines that no library offers for this function.
+/// The function is smooth (second derivative at most 1/4 in q), so with TABLE_SIZE knots the
+/// interpolation error stays below h²/32 ≈ 6e-6 per point; beyond `q_max` the Gaussian is below
+/// 1e-9 of the floor and the value is the floor's.
+#[derive(Debug)]
+struct LogLikelihoodTable {
+    q_max: f64,
+    knots_per_q: f64,
+    values: Vec<f64>,
+    floor_ln: f64,
+}
+
+const TABLE_SIZE: usize = 4096;
+
+impl LogLikelihoodTable {
+    fn new(sigma: f64, z_hit: f64, z_rand: f64, max_range: f64) -> Self {
+        let peak = z_hit / (sigma * (2.0 * std::f64::consts::PI).sqrt());
+        let floor = z_rand / max_range;
+        // Where peak·e^(−q) = 1e-9·floor; at least one knot apart from 0 for degenerate settings.
+        let q_max = (peak / (1e-9 * floor)).ln().max(1.0);
+        let knots_per_q = (TABLE_SIZE - 1) as f64 / q_max;
+        let values = (0..TABLE_SIZE).map(|k| (peak * (-(k as f64) / knots_per_q).exp() + floor).ln()).collect();
+        LogLikelihoodTable { q_max, knots_per_q, values, floor_ln: floor.ln() }
+    }
+
+    #[inline]
+    fn at(&self, q: f64) -> f64 {
+        if !(q < self.q_max) {
+            return self.floor_ln; // also for an infinite distance (no obstacle in the window)
+        }
+        let x = q * self.knots_per_q;
+        let k = x as usize;
+        let t = x - k as f64;
+        let (a, b) = (self.values[k], self.values[(k + 1).min(TABLE_SIZE - 1)]);
+        a + t * (b - a)
+    }
 }
 
 /// Beam end points in the sensor frame, every `stride`-th beam with a reading below max_range.
@@ -60,6 +104,18 @@ pub fn endpoints(geom: &ScanGeometry, ranges: &[f32], stride: usize, max_range: 
             })
         })
         .collect()
+}
+
+/// ⌊v⌋ as i32 (saturating; NaN gives 0, as `as` does). Why not `v.floor() as i32`: without
+/// SSE4.1 in the baseline target, `floor` is a libm call, 2 % of the filter's time.
+#[inline(always)]
+fn floor_i32(v: f64) -> i32 {
+    let t = v as i32;
+    if (t as f64) > v {
+        t.saturating_sub(1)
+    } else {
+        t
+    }
 }
 
 /// Calls `visit` on every cell of the square ring `r` cells out from (ix, iy) (the cell itself
@@ -82,12 +138,17 @@ fn for_ring(ix: i32, iy: i32, r: i32, mut visit: impl FnMut(i32, i32)) {
 }
 
 impl LikelihoodField {
+    pub fn new(sigma: f64, z_hit: f64, z_rand: f64, max_range: f64, window: i32, occupied_threshold: f32, fit_walls: bool) -> Self {
+        let table = Arc::new(LogLikelihoodTable::new(sigma, z_hit, z_rand, max_range));
+        LikelihoodField { sigma, z_hit, z_rand, max_range, window, occupied_threshold, fit_walls, table }
+    }
+
     /// (squared distance, offset (dx, dy) from the point to) the nearest occupied cell's mean end
     /// point within the window; infinite distance if there is none.
     #[inline]
     fn nearest_cell(&self, grid: &TiledGrid, x: f64, y: f64) -> (f64, [f64; 2]) {
         let res = grid.resolution;
-        let (ix, iy) = ((x / res).floor() as i32, (y / res).floor() as i32);
+        let (ix, iy) = (floor_i32(x / res), floor_i32(y / res));
         if self.window >= TILE / 2 {
             return self.nearest_cell_in(|cx, cy| grid.occupied_hit(cx, cy, self.occupied_threshold), ix, iy, x, y);
         }
@@ -150,7 +211,7 @@ impl LikelihoodField {
     fn nearest_wall(&self, grid: &TiledGrid, x: f64, y: f64) -> (f64, [f64; 2], Option<[f64; 2]>) {
         let res = grid.resolution;
         let radius = self.radius(res);
-        let (ix, iy) = ((x / res).floor() as i32, (y / res).floor() as i32);
+        let (ix, iy) = (floor_i32(x / res), floor_i32(y / res));
         let mut best = radius * radius;
         let mut offset = [0.0; 2];
         let mut found = None;
@@ -249,7 +310,11 @@ impl LikelihoodField {
 
     #[inline]
     fn point_log_likelihood(&self, d2: f64, radius2: f64) -> f64 {
-        (self.z_hit * self.hit_density(d2, radius2) + self.z_rand / self.max_range).ln()
+        if self.fit_walls {
+            // The shifted Gaussian depends on the grid's resolution: computed exactly.
+            return (self.z_hit * self.hit_density(d2, radius2) + self.z_rand / self.max_range).ln();
+        }
+        self.table.at(0.5 * d2 / (self.sigma * self.sigma))
     }
 
     /// (mean log-likelihood over the points, points with an obstacle inside the window) for
@@ -347,6 +412,11 @@ pub struct PosePrior {
 }
 
 impl PosePrior {
+    /// Its information matrix (diagonal).
+    pub fn information(&self) -> [[f64; 3]; 3] {
+        [[1.0 / self.var_xy, 0.0, 0.0], [0.0, 1.0 / self.var_xy, 0.0], [0.0, 0.0, 1.0 / self.var_theta]]
+    }
+
     pub fn log_prob(&self, pose: [f64; 3]) -> f64 {
         let (dx, dy) = (pose[0] - self.mean[0], pose[1] - self.mean[1]);
         let dt = wrap(pose[2] - self.mean[2]);
@@ -368,10 +438,55 @@ pub fn objective(
     gain * lf.score(grid, geom.sensor_pose(pose), pts).0 + prior.map_or(0.0, |p| p.log_prob(pose))
 }
 
-/// Refine a pose by Gauss-Newton on the likelihood field: each end point pulls towards the
-/// mean end point of its nearest occupied cell, weighted as iteratively reweighted least squares of
-/// log(z_hit·N(d; 0, σ) + z_rand/max_range) (points with no obstacle in the window drop out);
-/// the points' mean is scaled by `gain`, and the Gaussian `prior` (if any) adds its own pull.
+/// One sweep over the end points at `pose`: (sum over the points of
+/// log(z_hit·N(d; 0, σ) + z_rand/max_range), its gradient g and Gauss-Newton Hessian H in
+/// (x, y, θ)), unscaled. Each end point pulls towards the mean end point of its nearest
+/// occupied cell, weighted as iteratively reweighted least squares of the log-likelihood
+/// (points with no obstacle in the window drop out).
+fn linearise(lf: &LikelihoodField, grid: &TiledGrid, geom: &ScanGeometry, pts: &[[f64; 2]], pose: [f64; 3]) -> (f64, [f64; 3], [[f64; 3]; 3]) {
+    let norm = lf.z_hit / (lf.sigma * (2.0 * std::f64::consts::PI).sqrt());
+    let floor = lf.z_rand / lf.max_range;
+    let radius2 = lf.radius(grid.resolution).powi(2);
+    let sp = geom.sensor_pose(pose);
+    let (s, c) = sp[2].sin_cos();
+    let mut h = [[0.0; 3]; 3];
+    let mut g = [0.0; 3];
+    let mut total = 0.0;
+    for p in pts {
+        let qx = sp[0] + c * p[0] - s * p[1];
+        let qy = sp[1] + s * p[0] + c * p[1];
+        let (d2, off, normal) = lf.nearest(grid, qx, qy);
+        if !d2.is_finite() {
+            total += floor.ln();
+            continue;
+        }
+        let g_d = norm * (-0.5 * d2 / (lf.sigma * lf.sigma)).exp();
+        let e = if lf.fit_walls { lf.z_hit * lf.hit_density(d2, radius2) } else { g_d };
+        total += (e + floor).ln();
+        // d log(e + floor) / d(d²) = −g_d / (2σ²(e + floor)), g_d the Gaussian without the shift.
+        let w = if e > 0.0 { g_d / (e + floor) / (lf.sigma * lf.sigma) } else { 0.0 };
+        // Residual r = q − hit point = −off; dq/d(x, y, θ) = [[1, 0, −(qy − y)], [0, 1, qx − x]].
+        let jt = [-(qy - pose[1]), qx - pose[0]];
+        // Across a fitted wall one residual, the distance along its normal n; otherwise the
+        // two of the offset.
+        let (rows, r, n_rows) = match normal {
+            Some(n) => ([[n[0], n[1], n[0] * jt[0] + n[1] * jt[1]], [0.0; 3]], [-(n[0] * off[0] + n[1] * off[1]), 0.0], 1),
+            None => ([[1.0, 0.0, jt[0]], [0.0, 1.0, jt[1]]], [-off[0], -off[1]], 2),
+        };
+        for (k, row) in rows.iter().enumerate().take(n_rows) {
+            for a in 0..3 {
+                g[a] += w * row[a] * r[k];
+                for b in 0..3 {
+                    h[a][b] += w * row[a] * row[b];
+                }
+            }
+        }
+    }
+    (total, g, h)
+}
+
+/// Refine a pose by Gauss-Newton on the likelihood field (see `linearise`); the points' mean
+/// is scaled by `gain`, and the Gaussian `prior` (if any) adds its own pull.
 /// A step that lowers the objective is undone and ends the refinement.
 #[allow(clippy::too_many_arguments)]
 pub fn gauss_newton(
@@ -384,50 +499,13 @@ pub fn gauss_newton(
     start: [f64; 3],
     iterations: u32,
 ) -> ([f64; 3], f64) {
-    let norm = lf.z_hit / (lf.sigma * (2.0 * std::f64::consts::PI).sqrt());
-    let floor = lf.z_rand / lf.max_range;
-    let radius2 = lf.radius(grid.resolution).powi(2);
     let scale = if pts.is_empty() { 0.0 } else { gain / pts.len() as f64 };
     let mut pose = start;
     let mut best = (start, f64::NEG_INFINITY);
     // Each pass scores the pose and linearises there in one sweep over the points; a pass
     // that scores lower than the one before undoes the last step and ends the refinement.
     for _ in 0..=iterations {
-        let sp = geom.sensor_pose(pose);
-        let (s, c) = sp[2].sin_cos();
-        let mut h = [[0.0; 3]; 3];
-        let mut g = [0.0; 3];
-        let mut total = 0.0;
-        for p in pts {
-            let qx = sp[0] + c * p[0] - s * p[1];
-            let qy = sp[1] + s * p[0] + c * p[1];
-            let (d2, off, normal) = lf.nearest(grid, qx, qy);
-            if !d2.is_finite() {
-                total += floor.ln();
-                continue;
-            }
-            let g_d = norm * (-0.5 * d2 / (lf.sigma * lf.sigma)).exp();
-            let e = if lf.fit_walls { lf.z_hit * lf.hit_density(d2, radius2) } else { g_d };
-            total += (e + floor).ln();
-            // d log(e + floor) / d(d²) = −g_d / (2σ²(e + floor)), g_d the Gaussian without the shift.
-            let w = if e > 0.0 { g_d / (e + floor) / (lf.sigma * lf.sigma) } else { 0.0 };
-            // Residual r = q − hit point = −off; dq/d(x, y, θ) = [[1, 0, −(qy − y)], [0, 1, qx − x]].
-            let jt = [-(qy - pose[1]), qx - pose[0]];
-            // Across a fitted wall one residual, the distance along its normal n; otherwise the
-            // two of the offset.
-            let (rows, r, n_rows) = match normal {
-                Some(n) => ([[n[0], n[1], n[0] * jt[0] + n[1] * jt[1]], [0.0; 3]], [-(n[0] * off[0] + n[1] * off[1]), 0.0], 1),
-                None => ([[1.0, 0.0, jt[0]], [0.0, 1.0, jt[1]]], [-off[0], -off[1]], 2),
-            };
-            for (k, row) in rows.iter().enumerate().take(n_rows) {
-                for a in 0..3 {
-                    g[a] += w * row[a] * r[k];
-                    for b in 0..3 {
-                        h[a][b] += w * row[a] * row[b];
-                    }
-                }
-            }
-        }
+        let (total, mut g, mut h) = linearise(lf, grid, geom, pts, pose);
         let mut score = scale * total;
         for a in 0..3 {
             g[a] *= scale;
@@ -437,11 +515,11 @@ pub fn gauss_newton(
         }
         if let Some(p) = prior {
             score += p.log_prob(pose);
+            let info = p.information();
             let d = [pose[0] - p.mean[0], pose[1] - p.mean[1], wrap(pose[2] - p.mean[2])];
-            let info = [1.0 / p.var_xy, 1.0 / p.var_xy, 1.0 / p.var_theta];
             for a in 0..3 {
-                g[a] += info[a] * d[a];
-                h[a][a] += info[a];
+                g[a] += info[a][a] * d[a];
+                h[a][a] += info[a][a];
             }
         }
         if score < best.1 {
@@ -595,7 +673,11 @@ pub fn propose<R: rand::Rng>(
     if pts.is_empty() || !enough(matched) {
         return Proposal { pose: predicted, log_normaliser: 0.0, matched: false };
     }
-    // Target at the 27 poses around the mode; offsets kept relative to the mode.
+    // Target at the 27 poses around the mode; offsets kept relative to the mode. Each pose
+    // searches its end points' nearest obstacles anew: holding the mode's (fixed
+    // correspondences) saves an eighth of the filter's time on Intel but narrows the
+    // Gaussian where two obstacles are about equally near, and on the simulated office the
+    // share of map cells within 5 cm of a wall fell from about 50 % to under 30 %.
     let mut offsets = Vec::with_capacity(27);
     let mut logs = Vec::with_capacity(27);
     for i in -1..=1 {
@@ -690,7 +772,7 @@ mod tests {
     fn climbing_recovers_a_displaced_pose() {
         let (g, angles, ranges) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
-        let lf = LikelihoodField { sigma: 0.05, z_hit: 0.9, z_rand: 0.1, max_range: 20.0, window: 3, occupied_threshold: 0.0, fit_walls: false };
+        let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, 3, 0.0, false);
         let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 0, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, search: None, search_below: 0.0 };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let (pose, _) = climb(|p| objective(&lf, &g, &geom, &pts, 1.0, None, p), [2.08, 1.43, 0.03], &m);
@@ -702,7 +784,7 @@ mod tests {
     fn gauss_newton_recovers_a_displaced_pose() {
         let (g, angles, ranges) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
-        let lf = LikelihoodField { sigma: 0.05, z_hit: 0.9, z_rand: 0.1, max_range: 20.0, window: 3, occupied_threshold: 0.0, fit_walls: false };
+        let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, 3, 0.0, false);
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let (pose, _) = gauss_newton(&lf, &g, &geom, &pts, 1.0, None, [2.06, 1.46, 0.02], 20);
         assert!((pose[0] - 2.0).abs() < 0.02 && (pose[1] - 1.5).abs() < 0.02, "{pose:?}");
@@ -713,7 +795,7 @@ mod tests {
     fn fitted_walls_recover_a_displaced_pose() {
         let (g, angles, ranges) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
-        let lf = LikelihoodField { sigma: 0.02, z_hit: 0.9, z_rand: 0.1, max_range: 20.0, window: 3, occupied_threshold: 0.0, fit_walls: true };
+        let lf = LikelihoodField::new(0.02, 0.9, 0.1, 20.0, 3, 0.0, true);
         let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 10, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, search: None, search_below: 0.0 };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let (mode, _) = climb(|p| objective(&lf, &g, &geom, &pts, 1.0, None, p), [2.04, 1.46, 0.02], &m);
@@ -723,6 +805,21 @@ mod tests {
         // Every end point of the true pose lies on a fitted wall: continuous score, no step.
         let (_, matched) = lf.score(&g, geom.sensor_pose([2.0, 1.5, 0.0]), &pts);
         assert_eq!(matched, pts.len());
+    }
+
+    #[test]
+    fn tabulated_log_likelihood_matches_the_exact_one() {
+        for &(sigma, max_range) in &[(0.05, 15.0), (0.02, 7.0), (0.3, 80.0)] {
+            let lf = LikelihoodField::new(sigma, 0.9, 0.1, max_range, 3, 0.0, false);
+            let norm = 0.9 / (sigma * (2.0 * std::f64::consts::PI).sqrt());
+            let exact = |d2: f64| (norm * (-0.5 * d2 / (sigma * sigma)).exp() + 0.1 / max_range).ln();
+            for k in 0..20_000 {
+                let d2 = (k as f64 * 1e-4 * sigma).powi(2) * 50.0;
+                let err = (lf.point_log_likelihood(d2, 0.0) - exact(d2)).abs();
+                assert!(err < 1e-5, "sigma {sigma}: d2 {d2}: error {err}");
+            }
+            assert_eq!(lf.point_log_likelihood(f64::INFINITY, 0.0), (0.1 / max_range as f64).ln());
+        }
     }
 
     #[test]

@@ -110,27 +110,18 @@ class _Between:
 
     def match_up_to(self, pf: "_core.ParticleFilter", stop: int) -> None:
         """Pose the scans from the last integrated one up to (not including) `stop`, in the map
-        as it is now (it holds every scan integrated before them)."""
-        anchor_pose = pf.best_pose()
-        if anchor_pose is None:
-            self.next = stop + 1
-            return
-        odom = self.scans.odometry
-        pose = anchor_pose
-        for i in range(self.next, stop):
-            start = compose(pose, relative(odom[i - 1], odom[i]))
-            found = pf.match_scan(start, self.scans.scan_ranges(i), self._angles(i))
-            if found is not None and found[1] >= self.min_matched:
-                pose = np.asarray(found[0])
-                self.matched += 1
-            else:
-                pose = start
-                self.by_odometry += 1
-            self.relative[i] = relative(anchor_pose, pose)
+        as it is now (it holds every scan integrated before them); one call into the core."""
+        first = self.next
         self.next = stop + 1
-
-    def _angles(self, i: int) -> np.ndarray | None:
-        return self.scans.scan_angles(i) if self.scans.per_scan_geometry else None  # else the filter's
+        if first >= stop or pf.best_pose() is None:  # before the first scan: no map yet
+            return
+        angles = self.scans.angles[first:stop] if self.scans.per_scan_geometry else None
+        found = pf.match_scans(self.scans.odometry[first - 1:stop], self.scans.ranges[first:stop],
+                               self.min_matched, angles=angles)
+        poses, matched = found
+        self.relative[first:stop] = poses
+        self.matched += int(matched.sum())
+        self.by_odometry += int((~matched).sum())
 
     def trajectory(self, integrated: np.ndarray, corrected: np.ndarray) -> np.ndarray:
         """Every scan's pose: integrated scans at `corrected`, the others after their anchor."""
