@@ -112,7 +112,7 @@ def main() -> None:
                 runs.append(r)
                 print(f"| {name} | {particles} | {seed} | {r['seconds']:.1f} | {r['integrated']} | "
                       f"{r['resamplings']} | {r['particle_scans_per_s']:.0f} | {r['peak_mib']:.0f} | "
-                      f"{r['trans_mean']:.3f} ± {r['trans_std']:.3f} | {r['rot_mean']:.2f} ± {r['rot_std']:.2f} |",
+                      f"{r['trans_mean']:.4f} ± {r['trans_std']:.3f} | {r['rot_mean']:.2f} ± {r['rot_std']:.2f} |",
                       flush=True)
             summary.append((name, particles, runs))
     print()
@@ -124,7 +124,7 @@ def main() -> None:
         rot = [r["rot_mean"] for r in runs]
         print(f"| {name} | {particles} | {runs[0]['scan_delay']:.3f} | "
               f"{statistics.median(r['seconds'] for r in runs):.1f} | "
-              f"{max(r['peak_mib'] for r in runs):.0f} | {statistics.mean(t):.3f} ({min(t):.3f}–{max(t):.3f}) | "
+              f"{max(r['peak_mib'] for r in runs):.0f} | {statistics.mean(t):.4f} ({min(t):.4f}–{max(t):.4f}) | "
               f"{statistics.mean(rot):.2f} | {runs[0]['odometry_trans_mean']:.3f} |")
 
 

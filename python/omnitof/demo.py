@@ -42,10 +42,10 @@ class DemoSettings:
 
     world: a bundled world name or a world YAML. seed: fixes every random draw (odometry, sensor
     noise, calibration images, filter). preset: the SLAM preset (`tof-scanmatch`: the
-    scan-matching proposal; `tof`: the paper's filter). particles: overrides the preset's; the
-    demo uses the paper's 200 with the scan-matching proposal: with the *estimated* calibration
-    the 30 of the preset close corridor1's 118 m loop in some seeds only, 200 in seeds 0–2
-    (BENCHMARKS.md, "ToF worlds"). None keeps the preset's. calibrate: estimate the rig from rendered target images
+    scan-matching proposal with the pose-graph back end; `tof`: the paper's filter). particles:
+    overrides the preset's; the demo uses the paper's 200 with the scan-matching proposal (with
+    the back end, corridor1 ends within 3.3 cm in seeds 0 and 1 and 13 cm off in seed 2; with 30
+    particles within 1.7–5.2 cm; BENCHMARKS.md, issue 13). None keeps the preset's. calibrate: estimate the rig from rendered target images
     (else use the true rig). map3d_every: frames between those fed to the 3D map (0: no 3D map);
     map3d_pixel_stride: every n-th ray of such a frame. max_frames: stop after this many frames
     (a quick look). speed: m/s.
