@@ -15,7 +15,7 @@ import warnings
 from pathlib import Path
 
 from omnitof import __version__
-from omnitof.errors import OmnitofError
+from omnitof.errors import OmnitofError, OmnitofWarning
 
 
 def _config_from_args(args: argparse.Namespace, default_preset: str | None = None):
