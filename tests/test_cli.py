@@ -92,6 +92,8 @@ def test_config_prints_a_loadable_configuration(tmp_path, capsys):
         (["slam", "MISSING.clf", "--out", "OUT"], "MISSING.clf"),
         (["config", "--preset", "nope"], "unknown preset"),
         (["config", "--particles", "0"], "filter.particles"),
+        (["config", "--set", "filter.partcles=3"], "filter.partcles"),
+        (["config", "--set", "particles=3"], "SECTION.FIELD"),
         (["eval", "relations", "none.tum", "none.relations"], "none.tum"),
     ],
 )

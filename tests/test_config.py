@@ -122,3 +122,23 @@ def test_a_wide_search_of_too_many_poses_is_refused():
     with pytest.raises(ConfigError, match=r"scan_matcher: .*wide search would score 3\.61e\+09 poses per scan"):
         load_config(overrides={"scan_matcher": fine})
     load_config(preset="laser180-scanmatch")  # the preset's search: 13 671 poses
+
+
+def test_dotted_settings_override_like_a_file_and_name_the_field():
+    from omnitof.slam.config import parse_setting, settings_overrides
+    from omnitof.slam_run import slam_config
+
+    assert parse_setting("backend.enabled=false") == ("backend.enabled", False)
+    assert parse_setting("filter.particles=12") == ("filter.particles", 12)
+    assert settings_overrides({"filter.particles": 5, "map.resolution": 0.1}) == {
+        "filter": {"particles": 5}, "map": {"resolution": 0.1}}
+    cfg = slam_config(preset="paper", settings={"filter.particles": 5, "backend.enabled": True}, seed=4)
+    assert (cfg.filter.particles, cfg.backend.enabled, cfg.filter.seed) == (5, True, 4)
+    # The named options win over a setting of the same field.
+    assert slam_config(settings={"filter.particles": 5}, particles=9).filter.particles == 9
+    for bad, message in [({"filter": 5}, "expected SECTION.FIELD"), ({"filter.a.b": 5}, "expected SECTION.FIELD"),
+                         ({"filter.partcles": 5}, "filter.partcles"), ({"filter.particles": 0}, "filter.particles")]:
+        with pytest.raises(ConfigError, match=message):
+            slam_config(settings=bad)
+    with pytest.raises(ConfigError, match="SECTION.FIELD=VALUE"):
+        parse_setting("filter.particles")

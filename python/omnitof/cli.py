@@ -13,29 +13,31 @@ import sys
 import numpy as np
 import warnings
 from pathlib import Path
-from typing import Any
 
 from omnitof import __version__
 from omnitof.errors import OmnitofError, OmnitofWarning
-from omnitof.types import ScanSequence
 
 
 def _config_from_args(args: argparse.Namespace, default_preset: str | None = None):
-    from omnitof.slam.config import load_config
+    from omnitof.slam.config import parse_setting
+    from omnitof.slam_run import slam_config
 
-    overrides: dict[str, Any] = {"filter": {}}
-    for name in ("particles", "seed", "threads"):
-        value = getattr(args, name, None)
-        if value is not None:
-            overrides["filter"][name] = value
     preset = args.preset if args.preset is not None or args.config is not None else default_preset
-    return load_config(args.config, preset=preset, overrides=overrides)
+    settings = dict(parse_setting(item) for item in (getattr(args, "set", None) or []))
+    return slam_config(preset=preset, config=args.config, settings=settings,
+                       particles=getattr(args, "particles", None), seed=getattr(args, "seed", None),
+                       threads=getattr(args, "threads", None))
 
 
 def _progress_bar(total: int, enabled: bool, desc: str, unit: str = "scan"):
     from omnitof.io.terminal import progress_bar
 
     return progress_bar(total, enabled=enabled, desc=desc, unit=unit)
+
+
+def _bar_factory(args: argparse.Namespace):
+    """Progress bars for the library's stages (omnitof.slam_run.BarFactory); none with --quiet."""
+    return lambda total, desc, unit: _progress_bar(total, not args.quiet, desc, unit)
 
 
 def _summary_line(stats: dict) -> str:
@@ -46,120 +48,25 @@ def _summary_line(stats: dict) -> str:
     )
 
 
-def _scan_settings(args: argparse.Namespace):
-    from omnitof.scan import scan_settings
-
-    given = {k: getattr(args, k) for k in ("height", "band") if getattr(args, k, None) is not None}
-    return scan_settings(**given)
-
-
-def _read_tof_input(args: argparse.Namespace, *, cloud_every: int, max_frames: int | None):
-    from omnitof.scan.tof_input import frame_count, read_tof_scans
-
-    total = frame_count(args.log)
-    if max_frames is not None:
-        total = min(total, max_frames)
-    with _progress_bar(total, not args.quiet, "scans", unit="frame") as bar:
-        return read_tof_scans(
-            args.log, calibration=args.calibration, settings=_scan_settings(args),
-            cloud_every=cloud_every, max_frames=max_frames, progress=bar.update,
-        )
-
-
 def cmd_slam(args: argparse.Namespace) -> int:
-    from omnitof.interrupts import pause_point
-    from omnitof.io.scans import is_tof_bag, read_scans
-    from omnitof.results import results_folder, write_results
-    from omnitof.slam import check_limits, run_slam
+    from omnitof.slam_run import SlamRequest, default_preset, slam_to_folder
 
-    tof = is_tof_bag(args.log)
-    if not tof and (args.calibration is not None or args.map3d):
-        raise OmnitofError(f"{args.log}: --calibration and --map3d need a bag of ToF images")
-    # Without --preset: the scan-matching filter with the pose-graph back end, for either kind of
-    # input (the paper's filter is `--preset paper` / `--preset tof`).
-    cfg = _config_from_args(args, default_preset="tof-scanmatch" if tof else "laser180-scanmatch")
-    relations = None
-    if args.relations is not None:
-        from omnitof.eval.relations import read_relations
-
-        relations = read_relations(args.relations)
-    # Opened before any work, so that an output that cannot be written is found at once; the
-    # folder replaces --out only when everything is written (omnitof.results).
-    with results_folder(args.out) as folder:
-        pause_point("start")
-        if tof:
-            tof_data = _read_tof_input(args, cloud_every=args.map3d_every if args.map3d else 0,
-                                       max_frames=args.max_scans)
-            scans = tof_data.scans
-            extra = {"input": {"path": str(args.log), "kind": "tof-rosbag", "rig": tof_data.rig_source,
-                               "scan": tof_data.extractor.settings.model_dump()}}
-        else:
-            data = read_scans(args.log, skip_bad_lines=args.skip_bad_lines)
-            scans = data.scans if args.max_scans is None else data.scans.slice(0, args.max_scans)
-            extra = {"input": {"path": str(args.log), "kind": data.kind, "bad_lines_skipped": data.bad_lines}}
-        extra["input"]["max_range"] = {"metres": float(scans.max_range), "rule": scans.max_range_rule or "given"}
-        extra["input"]["time_order"] = scans.time_order()
-        if relations is not None:
-            from omnitof.eval.relations import check_relations_match
-
-            check_relations_match(relations, scans.timestamps)
-        check_limits(scans, cfg)
-        # Laser logs are stamped when the reading arrives, so their delay is estimated by default.
-        delay = args.scan_delay if args.scan_delay is not None or tof else "auto"
-        if delay is not None:
-            scans, extra["input"]["scan_delay"] = _retimed(scans, delay, given=args.scan_delay is not None)
-        with _progress_bar(len(scans), not args.quiet, "slam") as bar:
-            result = run_slam(scans, cfg, progress=_pausing(bar.update, "slam", len(scans) // 2))
-        if relations is not None:
-            from omnitof.eval.relations import evaluate_relations
-
-            rel = evaluate_relations(result.trajectory, relations)
-            extra["relations"] = rel.to_dict()
-        if scans.ground_truth is not None:
-            from omnitof.eval.trajectory import absolute_trajectory_error
-
-            extra["trajectory_error"] = {
-                "slam": absolute_trajectory_error(result.trajectory.poses, scans.ground_truth).to_dict(),
-                "odometry": absolute_trajectory_error(scans.odometry, scans.ground_truth).to_dict(),
-            }
-        if tof and args.map3d:
-            from omnitof.map3d import voxel_map_from_clouds
-            from omnitof.results import write_voxel_outputs
-
-            vmap = voxel_map_from_clouds(result.trajectory.poses[tof_data.cloud_frames], tof_data.clouds)
-            write_voxel_outputs(vmap, folder, trajectory=result.trajectory.poses)
-        write_results(folder, result, cfg, title=f"{Path(args.log).name}", extra=extra,
-                      ground_truth=scans.ground_truth)
-    print(_summary_line(result.stats))
-    if relations is not None:
-        print(rel.format())
-    if "trajectory_error" in extra:
-        te = extra["trajectory_error"]
+    cfg = _config_from_args(args, default_preset=default_preset(args.log))
+    request = SlamRequest(
+        log=args.log, relations=args.relations, max_scans=args.max_scans, skip_bad_lines=args.skip_bad_lines,
+        scan_delay=args.scan_delay, calibration=args.calibration, height=args.height, band=args.band,
+        map3d=args.map3d, map3d_every=args.map3d_every,
+    )
+    run = slam_to_folder(request, cfg, args.out, bar=_bar_factory(args))
+    print(_summary_line(run.result.stats))
+    if run.relations is not None:
+        print(run.relations.format())
+    if "trajectory_error" in run.extra:
+        te = run.extra["trajectory_error"]
         print(f"trajectory error (mean, final): SLAM {te['slam']['mean']:.3f} m, {te['slam']['final']:.3f} m; "
               f"odometry {te['odometry']['mean']:.3f} m, {te['odometry']['final']:.3f} m")
-    print(f"results in {args.out}")
+    print(f"results in {run.paths['summary'].parent}")
     return 0
-
-
-def _pausing(update, name: str, at: int):
-    """`update` (a progress callback) that passes `pause_point(name)` once `at` scans are done:
-    the fault-injection tests stop a run there, in the middle of SLAM."""
-    from omnitof.interrupts import pause_point
-
-    done = 0
-
-    def step(n: int) -> None:
-        nonlocal done
-        update(n)
-        if done < at <= done + n:
-            pause_point(name)
-        done += n
-
-    return step
-
-
-# A laser's scan delay is a fraction of a second; seconds beyond this are a mistake, not a delay.
-MAX_SCAN_DELAY_S = 10.0
 
 
 def _scan_delay(text: str) -> str | float:
@@ -185,6 +92,8 @@ def _positive_int(text: str) -> int:
     return value
 
 
+# A laser's scan delay is a fraction of a second; seconds beyond this are a mistake, not a delay.
+MAX_SCAN_DELAY_S = 10.0
 SEED_LIMIT = 2**63  # seeds are u64 in the core and numpy's generators take any below it
 
 
@@ -219,33 +128,11 @@ def _number(*, above: float | None = None, at_least: float | None = None, at_mos
     return parse
 
 
-def _retimed(scans: ScanSequence, delay: str | float, *, given: bool) -> tuple[ScanSequence, dict]:
-    """The scans with their odometry re-timed by `delay` (seconds, or "auto": estimated), and
-    what to record of it. Where the log does not allow an estimate (a clock that steps back, too
-    few scans taken while turning), the delay is 0 and the record says why; a delay in seconds
-    that cannot be applied is an error."""
-    from omnitof.slam.timing import estimate_scan_delay, retime_odometry
-
-    option = "--scan-delay" if given else "default --scan-delay auto"
-    if delay == "auto":
-        try:
-            estimate = estimate_scan_delay(scans)
-        except ValueError as err:
-            print(f"scan delay 0 s: not estimated ({err})")
-            return scans, {"seconds": 0.0, "how": f"{option}: not estimated, so none applied", "reason": str(err)}
-        print(f"scan delay estimated from {estimate.pairs} scan pairs: {estimate.delay:.3f} s")
-        record = {"seconds": estimate.delay, "how": f"{option}: estimated from the log",
-                  "estimated_from_pairs": estimate.pairs}
-    else:
-        record = {"seconds": float(delay), "how": "--scan-delay: given"}
-    try:
-        return retime_odometry(scans, record["seconds"]), record
-    except ValueError as err:
-        raise OmnitofError(f"--scan-delay: {err}") from None
-
-
 def cmd_scans(args: argparse.Namespace) -> int:
-    data = _read_tof_input(args, cloud_every=0, max_frames=args.max_frames)
+    from omnitof.slam_run import read_tof_input
+
+    data = read_tof_input(args.log, calibration=args.calibration, height=args.height, band=args.band,
+                          max_frames=args.max_frames, bar=_bar_factory(args))
     scans = data.scans
     out = Path(args.out)
     if out.suffix in (".clf", ".log", ".txt"):
@@ -281,6 +168,44 @@ def cmd_eval_relations(args: argparse.Namespace) -> int:
     )
     print(result.format())
     return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    if args.what == "report":
+        if args.folder is None or args.out is not None:
+            raise OmnitofError("usage: omnitof bench report DIR (the folder of an experiment's --out)")
+        from omnitof.bench.table import write_tables
+
+        folder = Path(args.folder)
+        if not (folder / "runs").is_dir():
+            raise OmnitofError(f"{folder}: no runs/ folder here: not the --out folder of an experiment")
+        table = write_tables(folder)
+        print(f"{len(table.rows)} runs; table in {folder / 'table.md'} and {folder / 'table.csv'}; "
+              f"{len(table.figures)} figures")
+        return 0
+    if args.folder is not None:
+        raise OmnitofError(f"unexpected argument {args.folder!r}: omnitof bench EXPERIMENT.yaml --out DIR")
+    if args.out is None:
+        raise OmnitofError("omnitof bench EXPERIMENT.yaml needs --out DIR")
+    if args.workers is not None and args.scheduler is not None:
+        raise OmnitofError("--workers starts a local cluster, --scheduler uses a running one: give one of them")
+    from omnitof.bench import load_experiment
+    from omnitof.bench.runner import run_experiment
+    from omnitof.bench.table import write_tables
+
+    experiment = load_experiment(args.what)
+    try:
+        outcome = run_experiment(experiment, args.out, workers=args.workers, scheduler=args.scheduler,
+                                 progress=not args.quiet)
+    except KeyboardInterrupt:
+        print(f"interrupted: the runs finished so far are in {args.out}; the same command runs the rest",
+              file=sys.stderr)
+        raise
+    table = write_tables(args.out)
+    failed = sum(r["status"] != "ok" for r in table.rows)
+    print(f"{outcome.planned} runs: {outcome.skipped} were complete, {len(outcome.done)} ran now, {failed} failed; "
+          f"table in {Path(args.out) / 'table.md'} and table.csv, {len(table.figures)} figures")
+    return 1 if failed else 0
 
 
 def cmd_config(args: argparse.Namespace) -> int:
@@ -358,6 +283,9 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--particles", type=int, help="number of particles (overrides the configuration)")
     p.add_argument("--seed", type=_seed, help="random seed (overrides the configuration)")
     p.add_argument("--threads", type=int, help="worker threads, 0 = all cores (results do not depend on it)")
+    p.add_argument("--set", action="append", metavar="SECTION.FIELD=VALUE",
+                   help="set one configuration field, e.g. --set backend.enabled=false (VALUE read as YAML; "
+                   "repeatable; over the preset and --config, under --particles, --seed and --threads)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -407,6 +335,20 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("relations", type=Path, help="relations file: t1 t2 x y z roll pitch yaw")
     e.add_argument("--tolerance", type=_number(at_least=0), default=1e-3, help="timestamp match tolerance (s)")
     e.set_defaults(func=cmd_eval_relations)
+
+    p = sub.add_parser("bench", help="run an experiment (inputs × presets × settings × seeds) on Dask; "
+                       "`bench report DIR` rebuilds its table and figures",
+                       description="omnitof bench EXPERIMENT.yaml --out DIR [--workers N | --scheduler ADDRESS]; "
+                       "omnitof bench report DIR. The experiment file's fields: docs/guide/bench.md.")
+    p.add_argument("what", metavar="EXPERIMENT.yaml|report", help="the experiment file, or `report`")
+    p.add_argument("folder", nargs="?", metavar="DIR", help="with `report`: the experiment's folder")
+    p.add_argument("--out", type=Path, metavar="DIR", help="the experiment's folder: one results folder per run, the table, "
+                   "the figures; an experiment run again into it runs only what is missing")
+    p.add_argument("--workers", type=_positive_int, metavar="N", help="worker processes of the local cluster (default: one per core)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler (tcp://host:8786) instead of a "
+                   "local cluster")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("config", help="print the configuration a run would use")
     _add_config_options(p)

@@ -11,7 +11,8 @@
     7. write everything, with figures and a report (report.md), into one folder.
 
 `run_world` does the work and returns the summary; `benchmarks/worlds.py` calls it for every
-world. Times and the peak memory of every stage are in the summary.
+world, and `simulated_scans` (steps 1–3) makes the ToF worlds of `omnitof bench`. Times and the
+peak memory of every stage are in the summary.
 """
 
 from __future__ import annotations
@@ -83,7 +84,7 @@ class _Stages:
 @dataclass
 class DemoRun:
     """What `run_world` made: the summary (also in summary.yaml), the world and the scans (for
-    re-running SLAM with other settings, as benchmarks/worlds.py does)."""
+    re-running SLAM with other settings)."""
 
     summary: dict[str, Any]
     world: Any
@@ -108,16 +109,9 @@ def run_world(settings: DemoSettings, out: str | Path, *, progress: bool = True,
     """Run the pipeline (module docstring) and write its files into the folder `out`
     (`run_demo` gives it a fresh folder that replaces its results folder when complete)."""
     from omnitof.io.terminal import progress_bar
-
-    from omnitof.results import write_results
-    from omnitof.scan import ScanExtractor
-    from omnitof.sim.render import Renderer, RenderSettings
-    from omnitof.sim.sequence import MotionSettings, make_sequence, render_sequence
-    from omnitof.sim.worlds import load_world
-    from omnitof.slam import run_slam
     from omnitof.map3d import voxel_map_from_clouds
-    from omnitof.results import write_voxel_outputs
-    from omnitof.scan.tof_input import tof_scans
+    from omnitof.results import write_results, write_voxel_outputs
+    from omnitof.slam import run_slam
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -125,34 +119,13 @@ def run_world(settings: DemoSettings, out: str | Path, *, progress: bool = True,
     stages = _Stages(echo)
     summary: dict[str, Any] = {"settings": asdict(settings)}
     started = time.perf_counter()
-
-    with stages.stage("simulate the drive"):
-        world = load_world(settings.world)
-        sequence = make_sequence(world, seed=settings.seed, motion=MotionSettings(speed=settings.speed))
-        renderer = Renderer(world, settings=RenderSettings(seed=settings.seed))
-        n_frames = len(sequence) if settings.max_frames is None else min(len(sequence), settings.max_frames)
-        drift, turn = sequence.odometry_end_error(n_frames)
-        summary["sequence"] = {
-            "world": world.name, "frames": n_frames, "metres": round(sequence.distance_driven(n_frames), 2),
-            "odometry_end_error_m": round(drift, 3), "odometry_end_error_deg": round(math.degrees(turn), 2),
-        }
-
-    with stages.stage("calibrate the rig"):
-        calibration, calib_report = _calibrate(renderer, settings, out)
-        summary["calibration"] = calib_report
-
-    with stages.stage("render frames and extract scans"):
-        extractor = ScanExtractor.from_calibration(calibration)
-        bar = progress_bar(n_frames, enabled=progress, desc="render+scan", unit="frame")
-        with bar:
-            data = tof_scans(
-                render_sequence(sequence, renderer, stop=n_frames), extractor,
-                cloud_every=settings.map3d_every, cloud_pixel_stride=settings.map3d_pixel_stride,
-                source=f"{world.name} (simulated)", progress=bar.update,
-            )
-        scans = data.scans
-        summary["scans"] = {"frames": len(scans), "bins_with_reading": round(float(np.isfinite(scans.ranges).mean()), 3),
-                            "settings": extractor.settings.model_dump()}
+    sim = simulated_scans(settings, out, stages=stages, progress=progress)
+    world, renderer, extractor, sequence, data, scans = (sim.world, sim.renderer, sim.extractor, sim.sequence,
+                                                        sim.data, sim.data.scans)
+    summary["sequence"] = sim.sequence_summary
+    summary["calibration"] = sim.calibration_report
+    summary["scans"] = {"frames": len(scans), "bins_with_reading": round(float(np.isfinite(scans.ranges).mean()), 3),
+                        "settings": extractor.settings.model_dump()}
 
     with stages.stage("SLAM"):
         bar = progress_bar(len(scans), enabled=progress, desc="slam", unit="scan")
@@ -187,6 +160,61 @@ def run_world(settings: DemoSettings, out: str | Path, *, progress: bool = True,
 
 
 # --- steps ------------------------------------------------------------------------------------
+
+
+@dataclass
+class SimulatedScans:
+    """The first three steps of the pipeline: the world, its drive, the renderer, the extractor
+    of the (estimated or true) calibration, and the extracted scans with their ground truth and
+    3D rays (`data`: omnitof.scan.tof_input.ToFScans)."""
+
+    world: Any
+    sequence: Any
+    renderer: Any
+    extractor: Any
+    data: Any
+    sequence_summary: dict[str, Any]
+    calibration_report: dict[str, Any]
+
+
+def simulated_scans(settings: DemoSettings, out: str | Path, *, stages: _Stages | None = None,
+                    progress: bool = False, world: Any = None) -> SimulatedScans:
+    """Simulate the drive, calibrate the rig (calibration.yaml in `out`), render every frame
+    and extract its scan: steps 1–3 of the module docstring, for the demo and for the world
+    inputs of `omnitof bench`. `world`: the World already loaded (else `settings.world` is)."""
+    from omnitof.io.terminal import progress_bar
+    from omnitof.scan import ScanExtractor
+    from omnitof.scan.tof_input import tof_scans
+    from omnitof.sim.render import Renderer, RenderSettings
+    from omnitof.sim.sequence import MotionSettings, make_sequence, render_sequence
+    from omnitof.sim.worlds import load_world
+
+    out = Path(out)
+    stages = stages if stages is not None else _Stages(lambda _: None)
+    with stages.stage("simulate the drive"):
+        world = world if world is not None else load_world(settings.world)
+        sequence = make_sequence(world, seed=settings.seed, motion=MotionSettings(speed=settings.speed))
+        renderer = Renderer(world, settings=RenderSettings(seed=settings.seed))
+        n_frames = len(sequence) if settings.max_frames is None else min(len(sequence), settings.max_frames)
+        drift, turn = sequence.odometry_end_error(n_frames)
+        summary = {
+            "world": world.name, "frames": n_frames, "metres": round(sequence.distance_driven(n_frames), 2),
+            "odometry_end_error_m": round(drift, 3), "odometry_end_error_deg": round(math.degrees(turn), 2),
+        }
+
+    with stages.stage("calibrate the rig"):
+        calibration, calib_report = _calibrate(renderer, settings, out)
+
+    with stages.stage("render frames and extract scans"):
+        extractor = ScanExtractor.from_calibration(calibration)
+        bar = progress_bar(n_frames, enabled=progress, desc="render+scan", unit="frame")
+        with bar:
+            data = tof_scans(
+                render_sequence(sequence, renderer, stop=n_frames), extractor,
+                cloud_every=settings.map3d_every, cloud_pixel_stride=settings.map3d_pixel_stride,
+                source=f"{world.name} (simulated)", progress=bar.update,
+            )
+    return SimulatedScans(world, sequence, renderer, extractor, data, summary, calib_report)
 
 
 def _calibrate(renderer: Any, settings: DemoSettings, out: Path) -> tuple[Any, dict[str, Any]]:

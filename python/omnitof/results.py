@@ -15,6 +15,8 @@ The folder is one unit (`results_folder`): a run builds it under a hidden name b
 place and renames it into place when it is complete, so the folder is always the complete
 result of one run, the previous one or the new one, never a mix of both and never a part of
 either. Inside it every file is also written to a temporary name and renamed.
+summary.yaml is written last, so a folder that holds it is complete (`is_complete`, which
+`omnitof bench` uses to resume an experiment).
 """
 
 from __future__ import annotations
@@ -119,7 +121,7 @@ def write_results(
         "odometry": out / "odometry.tum",
         "config": out / "config.yaml",
         "figure": out / "map.png",
-        "summary": out / "summary.yaml",
+        "summary": out / SUMMARY,
     }
     # Poses that share a timestamp share a TUM row (io.tum.write_tum): counted in the summary.
     merged = write_tum(paths["trajectory"], result.trajectory, sort=True)
@@ -141,6 +143,14 @@ def write_results(
     with atomic_write(paths["summary"]) as f:
         yaml.safe_dump(summary, f, sort_keys=False)
     return paths
+
+
+SUMMARY = "summary.yaml"
+
+
+def is_complete(out_dir: str | Path) -> bool:
+    """Whether `out_dir` holds a complete run: its summary, the file written last."""
+    return (Path(out_dir) / SUMMARY).is_file()
 
 
 def write_voxel_outputs(vmap: VoxelMap, out_dir: str | Path, *, trajectory: np.ndarray | None = None,

@@ -13,6 +13,7 @@ same field there (and its use). Only the scan selection (`filter.linear_update`,
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
@@ -327,6 +328,34 @@ def _validate(data: dict[str, Any], source: str) -> SlamConfig:
             field = ".".join(str(p) for p in e["loc"]) or "(top level)"
             problems.append(f"{field}: {e['msg']}")
         raise ConfigError(f"{source}: invalid configuration: " + "; ".join(problems)) from None
+
+
+def settings_overrides(settings: Mapping[str, Any], source: str = "settings") -> dict[str, Any]:
+    """Nested overrides ({"filter": {"particles": 10}}) from dotted SECTION.FIELD settings
+    ({"filter.particles": 10}), the form of `omnitof slam --set` and of an experiment's grid
+    (omnitof.bench). Only the form is checked here; `load_config` checks names and values and
+    names the field."""
+    out: dict[str, Any] = {}
+    for key, value in settings.items():
+        section, dot, name = str(key).partition(".")
+        if not (section and dot and name) or "." in name:
+            raise ConfigError(f"{source}: {key!r}: expected SECTION.FIELD, e.g. filter.particles")
+        out.setdefault(section, {})[name] = value
+    return out
+
+
+def parse_setting(text: str) -> tuple[str, Any]:
+    """("SECTION.FIELD", value) from "SECTION.FIELD=VALUE", the value read as YAML (so that
+    `true`, `30` and `0.5` are a bool, an int and a float)."""
+    key, eq, value = text.partition("=")
+    if not eq:
+        raise ConfigError(f"--set {text!r}: expected SECTION.FIELD=VALUE")
+    try:
+        parsed = yaml.safe_load(value)
+    except yaml.YAMLError:
+        raise ConfigError(f"--set {text!r}: the value is not valid YAML") from None
+    settings_overrides({key: parsed}, "--set")  # the key's form
+    return key, parsed
 
 
 def load_preset(name: str) -> dict[str, Any]:

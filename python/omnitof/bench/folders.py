@@ -1,0 +1,124 @@
+"""The folder of an experiment (`omnitof bench EXPERIMENT.yaml --out DIR`):
+
+    DIR/experiment.yaml     the experiment file as given
+    DIR/inputs/NAME.bag     a simulated world's scans (a ROS 1 LaserScan bag with the ground
+                            truth), and NAME.yaml: how it was made
+    DIR/runs/RUN/           one run: the results folder `omnitof slam` writes, plus bench.yaml
+                            (the run's cell, the equivalent `omnitof slam` command, worker, time,
+                            peak memory, metrics beyond the summary's); a failed run's folder
+                            holds bench.yaml alone, with its one-line error
+    DIR/table.csv, table.md, aggregates.csv, figures/   the table and figures (omnitof.bench.table)
+
+A run's folder is written under a hidden name beside its place and renamed into place whole,
+so that DIR/runs never holds half a run. A run is complete when its folder is complete
+(`omnitof.results.is_complete`: summary.yaml, which is written last) and carries its
+bench.yaml; an experiment run again skips complete runs and runs the others, failed ones too.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+import shutil
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from omnitof.bench.experiment import ExperimentError, RunSpec
+from omnitof.io.atomic import atomic_write
+from omnitof.io.plain import to_plain
+from omnitof.results import SUMMARY, is_complete
+
+RECORD = "bench.yaml"
+RUNS = "runs"
+INPUTS = "inputs"
+_PARTIAL = ".partial"
+
+
+def run_dir(out: Path, run_id: str) -> Path:
+    return Path(out) / RUNS / run_id
+
+
+def run_is_complete(folder: Path) -> bool:
+    return is_complete(folder) and (folder / RECORD).is_file()
+
+
+def read_record(folder: Path) -> dict[str, Any] | None:
+    path = folder / RECORD
+    if not path.is_file():
+        return None
+    return yaml.safe_load(path.read_text(encoding="utf-8"))
+
+
+def prepare(out: Path, experiment_text: str, runs: list[RunSpec]) -> list[RunSpec]:
+    """Make DIR, sweep what an interrupted experiment left half-written, and return the runs
+    still to do. A complete run made with another configuration or input than the plan's is an
+    error: the folder belongs to another experiment, and mixing the two would go unnoticed."""
+    out = Path(out)
+    (out / RUNS).mkdir(parents=True, exist_ok=True)
+    for leftover in (out / RUNS).glob(f".*{_PARTIAL}"):
+        shutil.rmtree(leftover, ignore_errors=True)
+    todo = []
+    for run in runs:
+        folder = run_dir(out, run.id)
+        if not run_is_complete(folder):
+            todo.append(run)
+            continue
+        had = (read_record(folder) or {}).get("cell", {})
+        want = run.cell()
+        for key in ("config_sha256", "input_spec"):
+            if had.get(key) != to_plain(want[key]):
+                raise ExperimentError(
+                    f"{folder}: made with another {'configuration' if key == 'config_sha256' else 'input'} "
+                    f"than this experiment's; give another --out or remove the folder")
+    with atomic_write(out / "experiment.yaml") as f:
+        f.write(experiment_text)
+    return todo
+
+
+def write_run(out: Path, run_id: str, files: dict[str, bytes], record: dict[str, Any]) -> Path:
+    """Put a run's folder in place: its results files, then bench.yaml, then summary.yaml,
+    under a hidden name, renamed into place whole (replacing a failed attempt's folder)."""
+    def fill(tmp: Path) -> None:
+        for name, data in files.items():
+            if name != SUMMARY:
+                (tmp / name).write_bytes(data)
+        _write_record(tmp, record)
+        if SUMMARY in files:
+            (tmp / SUMMARY).write_bytes(files[SUMMARY])
+
+    return _replace(run_dir(out, run_id), fill)
+
+
+def write_failure(out: Path, run_id: str, record: dict[str, Any]) -> Path:
+    """A failed run's folder: bench.yaml alone, with the error."""
+    return _replace(run_dir(out, run_id), lambda tmp: _write_record(tmp, record))
+
+
+def _write_record(folder: Path, record: dict[str, Any]) -> None:
+    (folder / RECORD).write_text(yaml.safe_dump(to_plain(record), sort_keys=False, allow_unicode=True),
+                                 encoding="utf-8")
+
+
+def _replace(final: Path, fill) -> Path:
+    tmp = final.with_name(f".{final.name}.{secrets.token_hex(4)}{_PARTIAL}")
+    tmp.mkdir(parents=True)
+    try:
+        fill(tmp)
+        if final.exists():
+            shutil.rmtree(final)  # a failed or superseded attempt of the same run
+        os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return final
+
+
+def completed_folders(out: Path) -> list[Path]:
+    """Every run folder of DIR that holds a record (complete or failed)."""
+    base = Path(out) / RUNS
+    if not base.is_dir():
+        return []
+    return sorted(p for p in base.iterdir() if p.is_dir() and not p.name.startswith(".")
+                  and (p / RECORD).is_file())

@@ -1,0 +1,256 @@
+"""One SLAM run of a recording into its results folder: what `omnitof slam` does, as a function,
+so that `omnitof bench` runs exactly the same code for each of its runs (the same trajectory
+bytes, whichever way a run was started).
+
+    read the input (a ToF bag, a CARMEN log or a LaserScan bag), keep the first `max_scans`
+    → re-time the odometry by the scan delay (estimated by default for laser input)
+    → run_slam → score it (benchmark relations; the ground truth a simulated bag carries)
+    → the results folder (omnitof.results)
+
+`SlamRequest` holds the options of `omnitof slam` that choose and score the input,
+`slam_config` builds the configuration from a preset, a file and overrides, and
+`slam_to_folder` does the run.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from omnitof.errors import OmnitofError
+from omnitof.slam.config import SlamConfig
+from omnitof.types import ScanSequence
+
+# Without --preset: the scan-matching filter with the pose-graph back end, for either kind of
+# input (the paper's filter is `--preset paper` / `--preset tof`).
+DEFAULT_PRESET_LASER = "laser180-scanmatch"
+DEFAULT_PRESET_TOF = "tof-scanmatch"
+
+
+@dataclass(frozen=True)
+class SlamRequest:
+    """The input of a run and how it is scored; the fields are `omnitof slam`'s options.
+
+    scan_delay: seconds, "auto" (estimated from the log, `omnitof.slam.timing`) or None for the
+        default: "auto" for laser logs and LaserScan bags (they are stamped when the reading
+        arrives), none for ToF bags. calibration, height, band, map3d, map3d_every: ToF bags only.
+    label: the input's path as summary.yaml records it (default `log`): `omnitof bench` runs on
+        a worker's copy of the file and records the path the experiment gave.
+    """
+
+    log: Path
+    relations: Path | None = None
+    max_scans: int | None = None
+    skip_bad_lines: bool = False
+    scan_delay: str | float | None = None
+    calibration: Path | None = None
+    height: float | None = None
+    band: float | None = None
+    map3d: bool = False
+    map3d_every: int = 5
+    label: str | None = None
+
+
+@dataclass
+class SlamRun:
+    """What a run made: the SLAM result, the summary's extra sections (input, relations,
+    trajectory error), the files written by name, the relations metric when scored, and the
+    scans as the filter saw them (re-timed)."""
+
+    result: Any  # omnitof.slam.SlamResult
+    extra: dict[str, Any]
+    paths: dict[str, Path]
+    relations: Any = None  # omnitof.eval.relations.RelationsResult
+    scans: ScanSequence | None = None
+
+
+# A progress bar factory: (total, description, unit) → a context manager whose value has
+# .update(n). The command passes tqdm bars; a bench worker passes none.
+BarFactory = Callable[[int, str, str], Any]
+
+
+@contextmanager
+def no_bar(total: int, desc: str, unit: str) -> Iterator[Any]:
+    class _Null:
+        def update(self, n: int = 1) -> None:
+            pass
+
+    yield _Null()
+
+
+def default_preset(log: str | Path) -> str:
+    """The preset `omnitof slam` uses when none is given: by the kind of input."""
+    from omnitof.io.scans import is_tof_bag
+
+    return DEFAULT_PRESET_TOF if is_tof_bag(log) else DEFAULT_PRESET_LASER
+
+
+def slam_config(
+    *,
+    preset: str | None = None,
+    config: str | Path | None = None,
+    settings: Mapping[str, Any] | None = None,
+    particles: int | None = None,
+    seed: int | None = None,
+    threads: int | None = None,
+    source: str = "--set",
+) -> SlamConfig:
+    """The configuration of a run: the defaults, then the preset, then the file, then
+    `settings` ({"SECTION.FIELD": value}, `--set`), then particles, seed and threads."""
+    from omnitof.slam.config import load_config, settings_overrides
+
+    overrides = settings_overrides(settings or {}, source)
+    named = {k: v for k, v in (("particles", particles), ("seed", seed), ("threads", threads)) if v is not None}
+    if named:
+        overrides.setdefault("filter", {}).update(named)
+    return load_config(config, preset=preset, overrides=overrides)
+
+
+def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *,
+                   bar: BarFactory = no_bar, echo: Callable[[str], None] = print) -> SlamRun:
+    """Run SLAM on `request.log` with `cfg` and write the results folder `out`
+    (omnitof.results; summary.yaml is written last). `echo` prints what the run decided (the
+    scan delay)."""
+    from omnitof.interrupts import pause_point
+    from omnitof.io.scans import is_tof_bag
+    from omnitof.results import results_folder
+
+    log = Path(request.log)
+    label = request.label if request.label is not None else str(log)
+    tof = is_tof_bag(log)
+    if not tof and (request.calibration is not None or request.map3d):
+        raise OmnitofError(f"{log}: --calibration and --map3d need a bag of ToF images")
+    relations = None
+    if request.relations is not None:
+        from omnitof.eval.relations import read_relations
+
+        relations = read_relations(request.relations)
+    # Opened before any work, so that an output that cannot be written is found at once; the
+    # folder replaces `out` only when everything is written (omnitof.results).
+    with results_folder(out) as folder:
+        pause_point("start")
+        run = _run_into(request, cfg, folder, log, label, tof, relations, bar, echo)
+    # The files now lie in `out`, which the new folder became.
+    run.paths = {name: Path(out) / Path(path).relative_to(folder) for name, path in run.paths.items()}
+    return run
+
+
+def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label: str, tof: bool,
+              relations: Any, bar: BarFactory, echo: Callable[[str], None]) -> SlamRun:
+    """`slam_to_folder`'s work, writing into the new folder `out`."""
+    from omnitof.io.scans import read_scans
+    from omnitof.results import write_results
+    from omnitof.slam import check_limits, run_slam
+
+    if tof:
+        tof_data = read_tof_input(log, calibration=request.calibration, height=request.height, band=request.band,
+                                  cloud_every=request.map3d_every if request.map3d else 0,
+                                  max_frames=request.max_scans, bar=bar)
+        scans = tof_data.scans
+        extra: dict[str, Any] = {"input": {"path": label, "kind": "tof-rosbag", "rig": tof_data.rig_source,
+                                           "scan": tof_data.extractor.settings.model_dump()}}
+    else:
+        data = read_scans(log, skip_bad_lines=request.skip_bad_lines)
+        scans = data.scans if request.max_scans is None else data.scans.slice(0, request.max_scans)
+        extra = {"input": {"path": label, "kind": data.kind, "bad_lines_skipped": data.bad_lines}}
+    extra["input"]["max_range"] = {"metres": float(scans.max_range), "rule": scans.max_range_rule or "given"}
+    extra["input"]["time_order"] = scans.time_order()
+    if relations is not None:
+        from omnitof.eval.relations import check_relations_match
+
+        check_relations_match(relations, scans.timestamps)
+    check_limits(scans, cfg)
+    # Laser logs are stamped when the reading arrives, so their delay is estimated by default.
+    given = request.scan_delay is not None
+    delay = request.scan_delay if given or tof else "auto"
+    if delay is not None:
+        scans, extra["input"]["scan_delay"] = _retimed(scans, delay, given=given, echo=echo)
+    with bar(len(scans), "slam", "scan") as b:
+        result = run_slam(scans, cfg, progress=_pausing(b.update, "slam", len(scans) // 2))
+    rel = None
+    if relations is not None:
+        from omnitof.eval.relations import evaluate_relations
+
+        rel = evaluate_relations(result.trajectory, relations)
+        extra["relations"] = rel.to_dict()
+    if scans.ground_truth is not None:
+        from omnitof.eval.trajectory import absolute_trajectory_error
+
+        extra["trajectory_error"] = {
+            "slam": absolute_trajectory_error(result.trajectory.poses, scans.ground_truth).to_dict(),
+            "odometry": absolute_trajectory_error(scans.odometry, scans.ground_truth).to_dict(),
+        }
+    voxel_paths: dict[str, Path] = {}
+    if tof and request.map3d:
+        from omnitof.map3d import voxel_map_from_clouds
+        from omnitof.results import write_voxel_outputs
+
+        # Before write_results, so that summary.yaml stays the folder's last file.
+        vmap = voxel_map_from_clouds(result.trajectory.poses[tof_data.cloud_frames], tof_data.clouds)
+        voxel_paths = write_voxel_outputs(vmap, out, trajectory=result.trajectory.poses)
+    paths = write_results(out, result, cfg, title=log.name, extra=extra, ground_truth=scans.ground_truth)
+    return SlamRun(result, extra, {**paths, **voxel_paths}, rel, scans)
+
+
+def read_tof_input(log: str | Path, *, calibration: str | Path | None = None, height: float | None = None,
+                   band: float | None = None, cloud_every: int = 0, max_frames: int | None = None,
+                   bar: BarFactory = no_bar):
+    """The scans of a ToF bag (omnitof.scan.tof_input.read_tof_scans) with the slice's height and
+    band where given, for `omnitof slam` and `omnitof scans`."""
+    from omnitof.scan import scan_settings
+    from omnitof.scan.tof_input import frame_count, read_tof_scans
+
+    given = {k: v for k, v in (("height", height), ("band", band)) if v is not None}
+    settings = scan_settings(**given)
+    total = frame_count(log)
+    if max_frames is not None:
+        total = min(total, max_frames)
+    with bar(total, "scans", "frame") as b:
+        return read_tof_scans(log, calibration=calibration, settings=settings, cloud_every=cloud_every,
+                              max_frames=max_frames, progress=b.update)
+
+
+def _retimed(scans: ScanSequence, delay: str | float, *, given: bool,
+             echo: Callable[[str], None]) -> tuple[ScanSequence, dict]:
+    """The scans with their odometry re-timed by `delay` (seconds, or "auto": estimated), and
+    what to record of it. Where the log does not allow an estimate (a clock that steps back, too
+    few scans taken while turning), the delay is 0 and the record says why; a delay in seconds
+    that cannot be applied is an error."""
+    from omnitof.slam.timing import estimate_scan_delay, retime_odometry
+
+    option = "--scan-delay" if given else "default --scan-delay auto"
+    if delay == "auto":
+        try:
+            estimate = estimate_scan_delay(scans)
+        except ValueError as err:
+            echo(f"scan delay 0 s: not estimated ({err})")
+            return scans, {"seconds": 0.0, "how": f"{option}: not estimated, so none applied", "reason": str(err)}
+        echo(f"scan delay estimated from {estimate.pairs} scan pairs: {estimate.delay:.3f} s")
+        record = {"seconds": estimate.delay, "how": f"{option}: estimated from the log",
+                  "estimated_from_pairs": estimate.pairs}
+    else:
+        record = {"seconds": float(delay), "how": "--scan-delay: given"}
+    try:
+        return retime_odometry(scans, record["seconds"]), record
+    except ValueError as err:
+        raise OmnitofError(f"--scan-delay: {err}") from None
+
+
+def _pausing(update, name: str, at: int):
+    """`update` (a progress callback) that passes `pause_point(name)` once `at` scans are done:
+    the fault-injection tests stop a run there, in the middle of SLAM."""
+    from omnitof.interrupts import pause_point
+
+    done = 0
+
+    def step(n: int) -> None:
+        nonlocal done
+        update(n)
+        if done < at <= done + n:
+            pause_point(name)
+        done += n
+
+    return step
