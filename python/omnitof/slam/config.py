@@ -265,7 +265,7 @@ class BackendConfig(_Section):
     )
     kernel_width: float = Field(1.0, gt=0, le=1000, description="the kernel's width, in standard deviations of the closure")
     optimize_every: int = Field(
-        20, ge=1, description="optimise at most every n-th integrated scan that brought a new closure"
+        20, ge=1, description="optimise at most every n-th integrated scan, when a new closure disagrees with the estimate"
     )
     feedback_xy: float = Field(0.25, ge=0, description="feed the correction back when it moves the pose this far (m) ...")
     feedback_deg: float = Field(2.5, ge=0, description="... or turns it this much (deg)")
