@@ -545,6 +545,24 @@ def test_timestamps_going_backwards(tmp_path):
     np.testing.assert_array_equal(log.scans.timestamps, [10.0, 10.2, 10.1, 10.4])
 
 
+def test_a_repeated_line_is_dropped_and_a_shared_stamp_kept(tmp_path):
+    # A line logged twice is one scan; a scan stamped like the one before it but reading
+    # differently is a second reading (kept in file order); a small step back is kept too.
+    # ScanSequence.time_order counts each kind.
+    lines = [flaser([1.0, 2.0], 10.0), flaser([1.1, 2.0], 10.1), flaser([1.1, 2.0], 10.1),
+             flaser([1.2, 2.0], 10.1), flaser([1.3, 2.0], 10.3), flaser([1.4, 2.0], 10.2)]
+    path = write(tmp_path, lines)
+    with pytest.warns(CarmenWarning) as record:
+        log = read_carmen(path)
+    messages = " | ".join(str(w.message) for w in record)
+    assert "1 FLASER scans repeat the scan before them exactly" in messages
+    assert "1 FLASER timestamps are earlier than the one before" in messages
+    assert log.repeated_scans == 1 and log.time_reversals == 1
+    np.testing.assert_array_equal(log.scans.timestamps, [10.0, 10.1, 10.1, 10.3, 10.2])
+    np.testing.assert_allclose(log.scans.ranges[:, 0], [1.0, 1.1, 1.2, 1.3, 1.4])
+    assert log.scans.time_order() == {"repeated_scans_dropped": 1, "equal_stamps": 1, "backward_steps": 1}
+
+
 def test_missing_file(tmp_path):
     path = tmp_path / "nope.clf"
     with pytest.raises(InputError, match="file not found") as excinfo:

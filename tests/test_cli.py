@@ -3,6 +3,8 @@ mistakes reported as one line with exit status 2 (no traceback)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import yaml
@@ -175,3 +177,148 @@ def test_slam_refuses_numbers_outside_their_domain(tmp_path, capsys, option, val
     err = capsys.readouterr().err
     assert option in err and message in err and "Traceback" not in err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.fixture(scope="module")
+def short_log(tmp_path_factory, corridor_loop):
+    path = tmp_path_factory.mktemp("short") / "short.log"
+    write_carmen(path, corridor_loop.slice(0, 150))
+    return path
+
+
+def quick_slam(log, out, *extra):
+    return main(["slam", str(log), "--out", str(out), "--preset", "sim2d", "--particles", "3", "--quiet",
+                 "--scan-delay", "0", *extra])
+
+
+@pytest.mark.filterwarnings("ignore::omnitof.io.carmen.CarmenWarning")
+def test_a_log_with_a_repeated_line_and_a_stamp_that_steps_back_runs_and_counts_them(tmp_path, short_log, capsys):
+    # Before, the run died after SLAM in the TUM writer with a traceback, leaving half a folder.
+    lines = short_log.read_text().splitlines(keepends=True)
+    scans = [i for i, line in enumerate(lines) if line.startswith("ROBOTLASER1")]
+    fields = lines[scans[100]].split()
+    fields[-3] = f"{float(fields[-3]) - 0.5:.6f}"  # 0.5 s back: onto the stamp of scan 95
+    lines[scans[100]] = " ".join(fields) + "\n"
+    lines.insert(scans[40] + 1, lines[scans[40]])  # scan 40 logged twice
+    log = tmp_path / "jitter.log"
+    log.write_text("".join(lines))
+    out = tmp_path / "run"
+    assert quick_slam(log, out) == 0
+    captured = capsys.readouterr()
+    assert "scans 150" in captured.out and "Traceback" not in captured.err
+    summary = yaml.safe_load((out / "summary.yaml").read_text())
+    assert summary["input"]["time_order"] == {"repeated_scans_dropped": 1, "equal_stamps": 0, "backward_steps": 1}
+    assert summary["tum_poses_merged"] == 1  # scans 95 and 100 share a stamp: one row, scan 100's
+    traj = read_tum(out / "trajectory.tum")
+    assert len(traj) == 149 and np.all(np.diff(traj.timestamps) > 0)
+
+
+def test_a_second_run_replaces_the_whole_folder(tmp_path, short_log, corridor_loop, capsys):
+    # A bag with ground truth, then a CARMEN log without, into one folder: nothing of the
+    # first run survives beside the second.
+    from omnitof.io.rosbag import write_laserscan_bag
+
+    bag = tmp_path / "bag"
+    write_laserscan_bag(bag, corridor_loop.slice(0, 150))
+    out = tmp_path / "run"
+    assert quick_slam(bag, out) == 0
+    assert (out / "ground_truth.tum").exists()
+    assert quick_slam(short_log, out) == 0
+    assert not (out / "ground_truth.tum").exists()
+    assert yaml.safe_load((out / "summary.yaml").read_text())["input"]["kind"] == "carmen"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bag", "run"]  # no hidden leftovers
+    from omnitof.results import RESULT_FILES
+
+    assert {p.name for p in out.iterdir()} <= RESULT_FILES
+
+
+@pytest.mark.parametrize("case, message", [
+    ("file", "is a file, not a folder"),
+    ("under a file", "is a file, not a folder"),
+    ("foreign folder", "holds files that are not results of omnitof (notes.txt)"),
+    ("unwritable", "cannot create the results folder"),
+])
+def test_an_output_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys, case, message):
+    # The log is malformed too: the output is checked first, so its error is the one reported.
+    log = tmp_path / "bad.clf"
+    log.write_text("ODOM 0 0 0 0 0 0 1.0 host 0\nFLASER 3 1.0 2.0 0 0 0 0 0 0 2.0 host 0\n")
+    (tmp_path / "taken").write_text("a file")
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep me")
+    out = {"file": tmp_path / "taken", "under a file": tmp_path / "taken" / "run",
+           "foreign folder": tmp_path / "mine", "unwritable": Path("/proc/omnitof-run")}[case]
+    assert quick_slam(log, out) == 2
+    err = capsys.readouterr().err
+    assert message in err and "bad.clf" not in err and err.count("\n") == 1
+    assert (tmp_path / "taken").read_text() == "a file" and (tmp_path / "mine" / "notes.txt").exists()
+
+
+def test_relations_that_do_not_parse_or_match_are_refused_before_slam(tmp_path, short_log, capsys):
+    bad = tmp_path / "bad.relations"
+    bad.write_text("1.0 2.0 0 0 0 0 0\n")
+    other = tmp_path / "other.relations"
+    other.write_text("5000.0 5001.0 1.0 0 0 0 0 0\n")  # times the log does not have
+    out = tmp_path / "run"
+    assert quick_slam(short_log, out, "--relations", str(bad)) == 2
+    assert "bad.relations:1: relation rows need 8 numbers" in capsys.readouterr().err
+    assert quick_slam(short_log, out, "--relations", str(other)) == 2
+    captured = capsys.readouterr()
+    assert "other.relations: no relation has both its timestamps among the scans" in captured.err
+    assert "scans 150" not in captured.out and not out.exists()  # SLAM never ran
+
+
+def test_a_log_where_no_beam_echoes_is_one_clear_error(tmp_path, short_log, capsys):
+    lines = []
+    for line in short_log.read_text().splitlines():
+        if line.startswith("ROBOTLASER1"):
+            f = line.split()
+            n = int(f[8])
+            f[9:9 + n] = [f[5]] * n  # every reading at the maximum range: no echo
+            line = " ".join(f)
+        lines.append(line + "\n")
+    log = tmp_path / "blind.log"
+    log.write_text("".join(lines))
+    out = tmp_path / "run"
+    assert quick_slam(log, out) == 2
+    err = capsys.readouterr().err
+    assert "blind.log: no beam of the 150 scans has an echo" in err and err.count("\n") == 1
+    assert not out.exists()
+
+
+def test_only_omnitofs_own_warnings_read_as_omnitof_warnings():
+    from omnitof.cli import _format_warning
+    from omnitof.io.carmen import CarmenWarning
+
+    assert _format_warning("3 scans dropped", CarmenWarning, "carmen.py", 1) == "omnitof: warning: 3 scans dropped\n"
+    other = _format_warning("singular limits", UserWarning, "matplotlib/axes.py", 7)
+    assert not other.startswith("omnitof:") and "matplotlib/axes.py" in other
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["simulate", "--out", "OUT", "--seed", "-1"], "--seed: expected a seed in 0 … 2^63 - 1"),  # a traceback before
+    (["demo", "--out", "OUT", "--seed", "-3"], "--seed: expected a seed"),
+    (["slam", "LOG", "--out", "OUT", "--seed", "2e3"], "--seed: expected a whole number"),
+    (["slam", "LOG", "--out", "OUT", "--height", "nan"], "--height: expected a finite number"),
+    (["slam", "LOG", "--out", "OUT", "--map3d-every", "0"], "--map3d-every: expected at least 1"),
+    (["scans", "BAG", "--out", "x.clf", "--band", "-0.1"], "--band: expected a number above 0"),
+    (["eval", "relations", "a", "b", "--tolerance", "-1"], "--tolerance: expected a number of at least 0"),
+    (["design", "--yaw", "1e308"], "--yaw: expected a number of at most 360"),
+    (["simulate", "--out", "OUT", "--speed", "inf"], "--speed: expected a finite number"),
+    (["calibrate", "render-targets", "--out", "OUT", "--boards", "0"], "--boards: expected at least 1"),
+    (["calibrate", "intrinsics", "x.png", "--out", "c.yaml", "--square", "0"], "--square: expected a number above 0"),
+])
+def test_every_command_refuses_numbers_outside_their_domain(tmp_path, monkeypatch, capsys, argv, message):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_demo_refuses_a_bad_configuration_before_any_work(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--particles", "0", "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert "filter.particles" in captured.err and "[1]" not in captured.out and not out.exists()

@@ -98,6 +98,32 @@ def test_world_calibration_and_polygon_files_that_are_not_text_are_refused_with_
         read_polygon_file(png)
 
 
+@pytest.mark.parametrize("section, field, value, message", [
+    ("map", "resolution", 1e-5, "greater than or equal to 0.001"),  # panicked in the core before
+    ("map", "resolution", 1e-4, "greater than or equal to 0.001"),  # aborted allocating 24 GB before
+    ("map", "resolution", float("nan"), "finite number"),
+    ("map", "max_range", float("inf"), "finite number"),
+    ("motion", "alpha1", 1e9, "less than or equal to 10"),
+    ("sensor_model", "sigma_hit", 1e-300, "greater than or equal to 0.001"),
+    ("filter", "threads", 10**30, "less than or equal to 1024"),  # a TypeError in the core before
+    ("sensor_model", "beam_stride", 2**64, "less than or equal to 100000"),
+    ("map", "l_occ", 1e300, "less than or equal to 100"),
+    ("map", "occupied_threshold", 5.0, r"occupied_threshold 5 must lie in \[l_min, l_max\)"),
+    ("scan_matcher", "search_step_xy", 1e-9, "greater than or equal to 0.005"),
+    ("backend", "submap_length", 1e-9, "greater than or equal to 0.1"),
+])
+def test_every_value_is_checked_against_its_real_domain(section, field, value, message):
+    with pytest.raises(ConfigError, match=rf"{section}(\.{field})?: .*{message}"):
+        load_config(overrides={section: {field: value}})
+
+
+def test_a_wide_search_of_too_many_poses_is_refused():
+    fine = {"search_xy": 5.0, "search_step_xy": 0.01, "search_deg": 180.0, "search_step_deg": 0.1}
+    with pytest.raises(ConfigError, match=r"scan_matcher: .*wide search would score 3\.61e\+09 poses per scan"):
+        load_config(overrides={"scan_matcher": fine})
+    load_config(preset="laser180-scanmatch")  # the preset's search: 13 671 poses
+
+
 def test_dotted_settings_override_like_a_file_and_name_the_field():
     from omnitof.slam.config import parse_setting, settings_overrides
     from omnitof.slam_run import slam_config

@@ -205,3 +205,41 @@ def test_particle_filter_takes_configuration_sections_and_refuses_unknown_or_mis
     wrong = {**sections, "filter": {**sections["filter"], "seed": "zero"}}
     with pytest.raises(TypeError, match=r"filter\.seed: "):
         _core.ParticleFilter(**wrong, **sensor)
+
+
+def test_grids_beyond_reach_or_memory_raise_instead_of_aborting():
+    # Before, a 1e-5 m grid panicked ("capacity overflow") and a 1e-4 m one aborted the process
+    # allocating its window; now the core says which, before it allocates, and the caller decides.
+    pose = np.zeros(3)
+    short = dict(angles=np.zeros(1), ranges=np.array([1.0], np.float32), max_range=1e6)
+    fine = _core.OccupancyGrid(1e-5, 0.9, -0.4, -2.0, 3.5)
+    with pytest.raises(ValueError, match="beyond"):  # 20 km is 2e9 cells out
+        fine.integrate(np.array([2.0e4, 0.0, 0.0]), **short)
+    grid = _core.OccupancyGrid(1e-4, 0.9, -0.4, -2.0, 3.5)
+    grid.integrate(pose, **short)
+    before = grid.to_dense()[0]
+    with pytest.raises(MemoryError, match="window of tiles"):  # 50 km away: 1e15 tiles of window
+        grid.integrate(np.array([5.0e4, 5.0e4, 0.0]), **short)
+    with pytest.raises(MemoryError, match="one scan would write"):  # a 50 km beam: 77 GB of tiles
+        grid.integrate(pose, np.zeros(1), np.array([5.0e4], np.float32), 1e6)
+    assert np.array_equal(grid.to_dense()[0], before, equal_nan=True)  # the failed scans wrote nothing
+    with pytest.raises(ValueError, match="finite"):
+        _core.OccupancyGrid(float("inf"), 0.9, -0.4, -2.0, 3.5)
+
+
+def test_particle_filter_reports_a_map_it_cannot_allocate_as_memory_error():
+    # The configuration refuses such a resolution (omnitof.slam.config); the core alone must
+    # still fail as an exception, for the first scan and for a later one.
+    from omnitof.slam.config import SlamConfig
+    from omnitof.slam.driver import core_sections
+
+    sections = core_sections(SlamConfig())
+    sections["map"] = {**sections["map"], "resolution": 1e-4, "max_range": 1e6}
+    sections["sensor_model"] = {**sections["sensor_model"], "max_range": 1e6}
+    pf = _core.ParticleFilter(**sections, angles=np.zeros(1), sensor_pose=np.zeros(3), scan_max_range=1e6)
+    far, near = np.array([5.0e4], np.float32), np.array([1.0], np.float32)
+    with pytest.raises(MemoryError, match="one scan would write"):
+        pf.step(np.zeros(3), np.zeros(3), far, 0)
+    pf.step(np.zeros(3), np.zeros(3), near, 0)
+    with pytest.raises(MemoryError, match="window of tiles"):
+        pf.step(np.zeros(3), np.array([5.0e4, 5.0e4, 0.0]), near, 1)

@@ -379,3 +379,12 @@ def test_poses_along_the_loop_for_the_benchmarks():
     poses = poses_along_loop(w, 12)
     assert poses.shape == (12, 3)
     assert np.all(w.horizontal_distance(poses[:, :2], np.array([0.0]), 0.45) > 0.5)
+
+
+def test_a_plan_grid_too_fine_for_the_world_is_an_error_not_a_panic():
+    # 1 µm cells over the room's 8 m × 4.5 m: 3.6e13 cells, which overflowed the core's i32 cell
+    # count ("capacity overflow" panic, a traceback through PyO3) or asked for terabytes.
+    from omnitof.sim.render import RenderConfigError, RenderSettings
+
+    with pytest.raises(RenderConfigError, match=r"world 'room': the plan spans 8\.0000 m × 4\.5000 m: too large"):
+        Renderer(load_world("room"), settings=RenderSettings(cell=1e-6))

@@ -745,5 +745,22 @@ def test_laserscan_errors(tmp_path: Path) -> None:
         read_laserscan_bag(outside)
 
 
+def test_a_scan_recorded_twice_is_read_once(tmp_path: Path) -> None:
+    # The same message twice (a bag recorded from two connections) is one scan; a second scan
+    # with the same stamp but other readings is kept (omnitof.types.drop_repeated_scans).
+    store = HUMBLE
+    odom = [("/odom", ODOM, odometry_msg(store, k * NS, (k, 0, 0))) for k in range(4)]
+    twice = scan_msg(store, NS, [1.0, 2.0])
+    path = write_raw(tmp_path / "twice", odom + [
+        ("/scan", SCAN, twice), ("/scan", SCAN, twice), ("/scan", SCAN, scan_msg(store, NS, [1.5, 2.0])),
+        ("/scan", SCAN, scan_msg(store, 2 * NS, [1.0, 2.0])),
+    ])  # fmt: skip
+    scans, messages = read_warned(path)
+    assert any("1 scans on /scan repeat the scan before them exactly" in m for m in messages)
+    np.testing.assert_allclose(scans.timestamps, [1.0, 1.0, 2.0])
+    np.testing.assert_allclose(scans.ranges[:, 0], [1.0, 1.5, 1.0])
+    assert scans.time_order() == {"repeated_scans_dropped": 1, "equal_stamps": 1, "backward_steps": 0}
+
+
 def test_default_storage_is_mcap() -> None:
     assert DEFAULT_STORAGE == "mcap"  # rosbags writes MCAP; sqlite3 stays available

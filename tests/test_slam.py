@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from omnitof.errors import InputError
 from omnitof.slam.config import load_config
 from omnitof.eval.floorplan import wall_agreement
 from omnitof.eval.trajectory import absolute_trajectory_error
@@ -123,8 +124,19 @@ def test_sensor_offset_is_honoured(corridor_loop):
 
 
 def test_empty_input_is_refused(corridor_loop):
-    with pytest.raises(ValueError, match="no scans"):
+    with pytest.raises(InputError, match="no scans"):
         run_slam(corridor_loop.slice(0, 0), load_config())
+
+
+def test_scans_without_any_echo_are_refused_before_the_filter(corridor_loop):
+    # Before, such a log "succeeded" with a 0 × 0 map that read_ros_map rejects. With
+    # map.clear_no_echo the no-echo beams clear free space, and the map is not empty.
+    scans = corridor_loop.slice(0, 40)
+    scans.ranges[:] = np.inf
+    with pytest.raises(InputError, match="no beam of the 40 scans has an echo"):
+        run_slam(scans, load_config(preset="sim2d"))
+    cleared = run_slam(scans, load_config(preset="sim2d", overrides={"map": {"clear_no_echo": True}}))
+    assert cleared.map.known.any() and not (cleared.map.log_odds[cleared.map.known] > 0).any()
 
 
 def interlaced_loop(loop):

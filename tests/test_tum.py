@@ -102,9 +102,23 @@ def test_missing_file_is_an_input_error(tmp_path: Path) -> None:
 
 
 def test_writer_refuses_unreadable_trajectory(tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match="strictly increase"):
-        write_tum(tmp_path / "t.tum", Trajectory([1.0, 1.0], np.zeros((2, 3))))
+    with pytest.raises(ValueError, match="must not decrease"):
+        write_tum(tmp_path / "t.tum", Trajectory([1.0, 0.5], np.zeros((2, 3))))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_poses_sharing_a_stamp_become_one_row_the_last(tmp_path: Path) -> None:
+    # Equal stamps (and stamps equal to the microsecond the file keeps) give one row each, the
+    # last pose in the trajectory's order; the file reads back, and the writer says how many
+    # poses it left out.
+    t = np.array([5.0, 5.0, 4.0, 6.0, 6.0000001, 7.0])
+    poses = np.column_stack([np.arange(6.0), np.zeros(6), np.zeros(6)])
+    path = tmp_path / "t.tum"
+    assert write_tum(path, Trajectory(t, poses), sort=True) == 2
+    back = read_tum(path)
+    assert np.allclose(back.timestamps, [4.0, 5.0, 6.0, 7.0])
+    assert back.poses[:, 0].tolist() == [2.0, 1.0, 4.0, 5.0]
+    assert write_tum(path, Trajectory([1.0, 2.0], np.zeros((2, 3)))) == 0
 
 
 def test_atomic_write_replaces_only_on_success(tmp_path: Path) -> None:
@@ -140,7 +154,7 @@ def test_write_sorted_keeps_each_pose_with_its_timestamp(tmp_path):
     t = np.array([10.0, 10.2, 10.1, 10.3])
     poses = np.array([[0.0, 0, 0], [2.0, 0, 0.2], [1.0, 0, 0.1], [3.0, 0, 0.3]])
     path = tmp_path / "t.tum"
-    with pytest.raises(ValueError, match="strictly increase"):
+    with pytest.raises(ValueError, match="must not decrease"):
         write_tum(path, Trajectory(t, poses))
     write_tum(path, Trajectory(t, poses), sort=True)
     back = read_tum(path)

@@ -110,3 +110,20 @@ def test_huge_maps_are_drawn_by_blocks_that_keep_thin_walls():
             assert reduced[r, c] == expected
     assert np.all(reduced[1, :] == 0.0)  # the wall survives
     assert _at_most(shades, 10) is shades  # small maps are drawn as they are
+
+
+def test_degenerate_figures_draw_without_warnings(tmp_path: Path) -> None:
+    # An empty map made matplotlib warn of singular limits, which reached the user as
+    # "omnitof: warning: ..."; a single pose and a map of one tile are fine too.
+    import warnings
+
+    from omnitof.viz.maps import plot_pose_graph
+
+    empty = OccupancyMap(np.zeros((0, 0), np.float32), np.zeros((0, 0), bool), 0.05, (0.0, 0.0))
+    tile = OccupancyMap(np.zeros((16, 16), np.float32), np.ones((16, 16), bool), 0.05, (0.0, 0.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        plot_map(tmp_path / "empty.png", empty, {"SLAM": np.zeros((3, 3))})
+        plot_map(tmp_path / "one.png", tile, {"SLAM": np.zeros((1, 3))})
+        plot_pose_graph(tmp_path / "graph.png", tile, np.zeros((1, 3)), np.zeros((0, 2), np.int64))
+    assert all((tmp_path / n).stat().st_size > 1000 for n in ("empty.png", "one.png", "graph.png"))

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import signal
 import sys
 
 import numpy as np
@@ -14,7 +15,7 @@ import warnings
 from pathlib import Path
 
 from omnitof import __version__
-from omnitof.errors import OmnitofError
+from omnitof.errors import OmnitofError, OmnitofWarning
 
 
 def _config_from_args(args: argparse.Namespace, default_preset: str | None = None):
@@ -68,10 +69,6 @@ def cmd_slam(args: argparse.Namespace) -> int:
     return 0
 
 
-# A laser's scan delay is a fraction of a second; seconds beyond this are a mistake, not a delay.
-MAX_SCAN_DELAY_S = 10.0
-
-
 def _scan_delay(text: str) -> str | float:
     if text == "auto":
         return text
@@ -93,6 +90,42 @@ def _positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected at least 1, got {value}")
     return value
+
+
+# A laser's scan delay is a fraction of a second; seconds beyond this are a mistake, not a delay.
+MAX_SCAN_DELAY_S = 10.0
+SEED_LIMIT = 2**63  # seeds are u64 in the core and numpy's generators take any below it
+
+
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if not 0 <= value < SEED_LIMIT:
+        raise argparse.ArgumentTypeError(f"expected a seed in 0 … 2^63 - 1, got {value}")
+    return value
+
+
+def _number(*, above: float | None = None, at_least: float | None = None, at_most: float | None = None):
+    """An argparse type for finite numbers (and, if given, > `above`, >= `at_least`, <= `at_most`)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+        if above is not None and not value > above:
+            raise argparse.ArgumentTypeError(f"expected a number above {above:g}, got {text!r}")
+        if at_least is not None and not value >= at_least:
+            raise argparse.ArgumentTypeError(f"expected a number of at least {at_least:g}, got {text!r}")
+        if at_most is not None and not value <= at_most:
+            raise argparse.ArgumentTypeError(f"expected a number of at most {at_most:g}, got {text!r}")
+        return value
+
+    return parse
 
 
 def cmd_scans(args: argparse.Namespace) -> int:
@@ -248,7 +281,7 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", help="a bundled preset (see `omnitof config --list`)")
     p.add_argument("--config", type=Path, help="a YAML configuration file (over the preset)")
     p.add_argument("--particles", type=int, help="number of particles (overrides the configuration)")
-    p.add_argument("--seed", type=int, help="random seed (overrides the configuration)")
+    p.add_argument("--seed", type=_seed, help="random seed (overrides the configuration)")
     p.add_argument("--threads", type=int, help="worker threads, 0 = all cores (results do not depend on it)")
     p.add_argument("--set", action="append", metavar="SECTION.FIELD=VALUE",
                    help="set one configuration field, e.g. --set backend.enabled=false (VALUE read as YAML; "
@@ -274,10 +307,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "(omnitof.slam.timing), or uses 0 where the timestamps do not allow it")
     p.add_argument("--calibration", type=Path, help="ToF bags: the rig's calibration YAML (omnitof calibrate); "
                    "default: the true rig of a simulated bag")
-    p.add_argument("--height", type=float, help="ToF bags: height of the scan slice above the floor (m)")
-    p.add_argument("--band", type=float, help="ToF bags: half-thickness of the scan slice (m)")
+    p.add_argument("--height", type=_number(above=0), help="ToF bags: height of the scan slice above the floor (m)")
+    p.add_argument("--band", type=_number(above=0), help="ToF bags: half-thickness of the scan slice (m)")
     p.add_argument("--map3d", action="store_true", help="ToF bags: also build the 3D voxel map (map3d.ply, map3d.png)")
-    p.add_argument("--map3d-every", type=int, default=5, help="ToF bags: frames between those fed to the 3D map")
+    p.add_argument("--map3d-every", type=_positive_int, default=5, help="ToF bags: frames between those fed to the 3D map")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_slam)
 
@@ -287,8 +320,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True,
                    help="FILE.clf / .log: a CARMEN log; FILE.bag: a ROS 1 bag; otherwise a ROS 2 bag folder")
     p.add_argument("--calibration", type=Path, help="the rig's calibration YAML (default: a simulated bag's true rig)")
-    p.add_argument("--height", type=float, help="height of the scan slice above the floor (m)")
-    p.add_argument("--band", type=float, help="half-thickness of the scan slice (m)")
+    p.add_argument("--height", type=_number(above=0), help="height of the scan slice above the floor (m)")
+    p.add_argument("--band", type=_number(above=0), help="half-thickness of the scan slice (m)")
     p.add_argument("--max-frames", type=_positive_int, help="only the first N frames")
     p.add_argument("--figure", type=Path, help="draw the middle frame's scan (PNG)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bag")
@@ -300,7 +333,7 @@ def build_parser() -> argparse.ArgumentParser:
     e = esub.add_parser("relations", help="Kümmerle et al. 2009 relations metric of a TUM trajectory")
     e.add_argument("trajectory", type=Path, help="TUM trajectory (timestamps on the log's clock)")
     e.add_argument("relations", type=Path, help="relations file: t1 t2 x y z roll pitch yaw")
-    e.add_argument("--tolerance", type=float, default=1e-3, help="timestamp match tolerance (s)")
+    e.add_argument("--tolerance", type=_number(at_least=0), default=1e-3, help="timestamp match tolerance (s)")
     e.set_defaults(func=cmd_eval_relations)
 
     p = sub.add_parser("bench", help="run an experiment (inputs × presets × settings × seeds) on Dask; "
@@ -325,9 +358,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("design", help="measure a mirror-pyramid rig: bearing coverage, elevation bands")
     p.add_argument("--lens", choices=["standard", "wide"], default="wide", help="SR4000 lens (43.6° or 69°)")
     p.add_argument("--mirrors", type=int, default=4, help="number of mirrors")
-    p.add_argument("--tilt", type=float, default=56.0, help="mirror tilt from the optical axis (deg)")
-    p.add_argument("--yaw", type=float, default=0.0, help="pyramid yaw against the driving direction (deg)")
-    p.add_argument("--band", type=float, default=10.0, help="usable elevations: ± this around horizontal (deg)")
+    p.add_argument("--tilt", type=_number(), default=56.0, help="mirror tilt from the optical axis (deg)")
+    p.add_argument("--yaw", type=_number(at_least=-360, at_most=360), default=0.0, help="pyramid yaw against the driving direction (deg)")
+    p.add_argument("--band", type=_number(), default=10.0, help="usable elevations: ± this around horizontal (deg)")
     p.add_argument("--figure", type=Path, help="draw the mirror regions of the image (PNG)")
     p.add_argument("--sweep", type=Path, metavar="PNG", help="sweep tilt, yaw, mirrors and lens; plot to PNG")
     p.set_defaults(func=cmd_design)
@@ -339,10 +372,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "target images with the true calibration (as `omnitof calibrate render-targets`)")
     p.add_argument("--world", default="corridor1", help="a bundled world (room, office, corridor1, corridor2) or a world YAML file")
     p.add_argument("--out", type=Path, required=True, help="the bag folder (or, for calibration, the image folder) to write")
-    p.add_argument("--placements", type=int, default=8, help="calibration: dot-target placements per mirror")
-    p.add_argument("--boards", type=int, default=30, help="calibration: checkerboard images")
-    p.add_argument("--seed", type=int, default=0, help="fixes the odometry noise, the sensor noise and the sub-ray jitter")
-    p.add_argument("--speed", type=float, default=0.4, help="driving speed (m/s)")
+    p.add_argument("--placements", type=_positive_int, default=8, help="calibration: dot-target placements per mirror")
+    p.add_argument("--boards", type=_positive_int, default=30, help="calibration: checkerboard images")
+    p.add_argument("--seed", type=_seed, default=0, help="fixes the odometry noise, the sensor noise and the sub-ray jitter")
+    p.add_argument("--speed", type=_number(above=0), default=0.4, help="driving speed (m/s)")
     p.add_argument("--samples", action="store_true", help="also write the raw samples A0..A3 (3x the size)")
     p.add_argument("--max-frames", type=_positive_int, help="write only the first N frames")
     p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="ROS 2 bag storage")
@@ -354,7 +387,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "SLAM, 3D map, evaluate, report")
     p.add_argument("--world", default="corridor1", help="a bundled world (room, office, corridor1, corridor2) or a world YAML")
     p.add_argument("--out", type=Path, default=Path("results/demo"), help="results folder")
-    p.add_argument("--seed", type=int, default=0, help="fixes every random draw")
+    p.add_argument("--seed", type=_seed, default=0, help="fixes every random draw")
     p.add_argument("--preset", default="tof-scanmatch",
                    help="SLAM preset: tof-scanmatch (the scan-matching proposal) or tof (the paper's filter)")
     p.add_argument("--particles", type=int, default=200, help="number of particles (default 200)")
@@ -367,25 +400,39 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+_library_format = warnings.formatwarning
+
+
 def _format_warning(message, category, filename, lineno, line=None) -> str:
-    # Warnings about the user's data read as one line, without our source location.
-    return f"omnitof: warning: {message}\n"
+    # Warnings about the user's data read as one line, without our source location. Another
+    # library's warning is not a message of omnitof's: it keeps its own form, so that it reads
+    # as what it is (a bug to fix where it arises, not news about the data).
+    if issubclass(category, OmnitofWarning):
+        return f"omnitof: warning: {message}\n"
+    return _library_format(message, category, filename, lineno, line)
 
 
 def main(argv: list[str] | None = None) -> int:
+    from omnitof.interrupts import Terminated, signals_as_exceptions
+
     args = build_parser().parse_args(argv)
     warnings.formatwarning = _format_warning
-    try:
-        return args.func(args)
-    except OmnitofError as err:
-        print(f"omnitof: error: {err}", file=sys.stderr)
-        return 2
-    except OSError as err:  # an output folder that cannot be written, a full disk, ...
-        print(f"omnitof: error: {err}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("omnitof: interrupted", file=sys.stderr)
-        return 130
+    # SIGTERM is handled like Ctrl-C: the run unwinds, removes what it had begun and says so.
+    with signals_as_exceptions():
+        try:
+            return args.func(args)
+        except OmnitofError as err:
+            print(f"omnitof: error: {err}", file=sys.stderr)
+            return 2
+        except OSError as err:  # an input that cannot be read, an output folder that cannot be written
+            print(f"omnitof: error: {err}", file=sys.stderr)
+            return 2
+        except Terminated:
+            print("omnitof: terminated (SIGTERM); nothing half-written was left", file=sys.stderr)
+            return 128 + signal.SIGTERM
+        except KeyboardInterrupt:
+            print("omnitof: interrupted; nothing half-written was left", file=sys.stderr)
+            return 130
 
 
 if __name__ == "__main__":

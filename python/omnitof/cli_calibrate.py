@@ -21,6 +21,8 @@ import numpy as np
 
 def add_calibrate_parser(sub) -> None:
     """Register `calibrate` and its subcommands on the `omnitof` subparsers."""
+    from omnitof.cli import _number, _positive_int, _seed  # the command's argument types
+
     p = sub.add_parser("calibrate", help="calibrate the camera and the mirrors (paper sec. II-C)")
     csub = p.add_subparsers(dest="calibrate_command", required=True)
 
@@ -28,7 +30,7 @@ def add_calibrate_parser(sub) -> None:
     c.add_argument("images", nargs="+", type=Path, help="PNG/.npz images, folders of them, or ROS bags")
     c.add_argument("--out", type=Path, required=True, help="calibration YAML to write (updated if it exists)")
     c.add_argument("--board", default="8x6", help="squares across x down (default 8x6)")
-    c.add_argument("--square", type=float, default=0.035, help="square side in metres (default 0.035)")
+    c.add_argument("--square", type=_number(above=0), default=0.035, help="square side in metres (default 0.035)")
     c.add_argument("--fit-k3", action="store_true", help="also fit k3 (default: k3 = 0)")
     c.set_defaults(func=cmd_intrinsics)
 
@@ -37,19 +39,19 @@ def add_calibrate_parser(sub) -> None:
     c.add_argument("--calibration", type=Path, required=True,
                    help="calibration YAML with the intrinsics (from `calibrate intrinsics`)")
     c.add_argument("--out", type=Path, help="where to write (default: update --calibration)")
-    c.add_argument("--spacing", type=float, default=0.012, help="side of the square of dots, metres")
+    c.add_argument("--spacing", type=_number(above=0), default=0.012, help="side of the square of dots, metres")
     c.add_argument("--scale", choices=["dots", "tof"], default="dots",
                    help="metric scale from the dot spacing or from the ToF distances")
     c.add_argument("--mirror", help="the mirror all images show (default: found from the image)")
-    c.add_argument("--margin", type=float, help="mask edge margin in pixels (default: the file's)")
+    c.add_argument("--margin", type=_number(at_least=0), help="mask edge margin in pixels (default: the file's)")
     c.set_defaults(func=cmd_mirrors)
 
     c = csub.add_parser("render-targets", help="simulate checkerboard and dot-target images")
     c.add_argument("--out", type=Path, required=True, help="folder to write into")
     c.add_argument("--world", help="bundled world name or YAML: its ceiling, floor and light")
-    c.add_argument("--seed", type=int, default=0)
-    c.add_argument("--placements", type=int, default=8, help="dot-target placements per mirror")
-    c.add_argument("--boards", type=int, default=15, help="checkerboard images")
+    c.add_argument("--seed", type=_seed, default=0)
+    c.add_argument("--placements", type=_positive_int, default=8, help="dot-target placements per mirror")
+    c.add_argument("--boards", type=_positive_int, default=15, help="checkerboard images")
     c.set_defaults(func=cmd_render_targets)
 
     c = csub.add_parser("check", help="equal-height objects seen in every mirror (paper Fig. 6)")
@@ -58,18 +60,18 @@ def add_calibrate_parser(sub) -> None:
     c.add_argument("--frame", type=Path,
                    help="a recorded frame (.npz with distance, or a ROS bag: its first frame) of the "
                         "rig among equal-height objects, instead of the simulated scene")
-    c.add_argument("--band", type=float, nargs=2, metavar=("NEAR", "FAR"),
+    c.add_argument("--band", type=_number(above=0), nargs=2, metavar=("NEAR", "FAR"),
                    help="horizontal range band of the objects' faces, metres (default 1.95 2.15)")
-    c.add_argument("--min-height", type=float, help="ignore points lower than this (m; default 0.3)")
+    c.add_argument("--min-height", type=_number(), help="ignore points lower than this (m; default 0.3)")
     c.add_argument("--figure", type=Path, help="side view PNG")
-    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--seed", type=_seed, default=0)
     c.set_defaults(func=cmd_check)
 
     c = csub.add_parser("masks", help="export the mirror regions as polygons, or redraw them from polygons")
     c.add_argument("calibration", type=Path)
     c.add_argument("--export", type=Path, help="write the regions as an editable polygon YAML")
     c.add_argument("--polygons", type=Path, help="redraw the masks from this polygon YAML")
-    c.add_argument("--margin", type=float, help="edge margin in pixels (default: the file's)")
+    c.add_argument("--margin", type=_number(at_least=0), help="edge margin in pixels (default: the file's)")
     c.add_argument("--figure", type=Path, help="draw the masks (PNG)")
     c.add_argument("--out", type=Path, help="where to write (default: update the calibration)")
     c.set_defaults(func=cmd_masks)

@@ -43,10 +43,10 @@ class DemoSettings:
 
     world: a bundled world name or a world YAML. seed: fixes every random draw (odometry, sensor
     noise, calibration images, filter). preset: the SLAM preset (`tof-scanmatch`: the
-    scan-matching proposal; `tof`: the paper's filter). particles: overrides the preset's; the
-    demo uses the paper's 200 with the scan-matching proposal: with the *estimated* calibration
-    the 30 of the preset close corridor1's 118 m loop in some seeds only, 200 in seeds 0–2
-    (BENCHMARKS.md, "ToF worlds"). None keeps the preset's. calibrate: estimate the rig from rendered target images
+    scan-matching proposal with the pose-graph back end; `tof`: the paper's filter). particles:
+    overrides the preset's; the demo uses the paper's 200 with the scan-matching proposal (with
+    the back end, corridor1 ends within 3.3 cm in seeds 0 and 1 and 13 cm off in seed 2; with 30
+    particles within 1.7–5.2 cm; BENCHMARKS.md, issue 13). None keeps the preset's. calibrate: estimate the rig from rendered target images
     (else use the true rig). map3d_every: frames between those fed to the 3D map (0: no 3D map);
     map3d_pixel_stride: every n-th ray of such a frame. max_frames: stop after this many frames
     (a quick look). speed: m/s.
@@ -106,7 +106,8 @@ def slam_config(preset: str, seed: int, particles: int | None = None,
 
 def run_world(settings: DemoSettings, out: str | Path, *, progress: bool = True,
               echo: Callable[[str], None] = print) -> DemoRun:
-    """Run the pipeline (module docstring) and write its folder `out`."""
+    """Run the pipeline (module docstring) and write its files into the folder `out`
+    (`run_demo` gives it a fresh folder that replaces its results folder when complete)."""
     from omnitof.io.terminal import progress_bar
     from omnitof.map3d import voxel_map_from_clouds
     from omnitof.results import write_results, write_voxel_outputs
@@ -114,6 +115,7 @@ def run_world(settings: DemoSettings, out: str | Path, *, progress: bool = True,
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    cfg = slam_config(settings.preset, settings.seed, settings.particles)  # a bad value stops us before any work
     stages = _Stages(echo)
     summary: dict[str, Any] = {"settings": asdict(settings)}
     started = time.perf_counter()
@@ -126,7 +128,6 @@ def run_world(settings: DemoSettings, out: str | Path, *, progress: bool = True,
                         "settings": extractor.settings.model_dump()}
 
     with stages.stage("SLAM"):
-        cfg = slam_config(settings.preset, settings.seed, settings.particles)
         bar = progress_bar(len(scans), enabled=progress, desc="slam", unit="scan")
         with bar:
             result = run_slam(scans, cfg, progress=bar.update)
@@ -155,7 +156,6 @@ def run_world(settings: DemoSettings, out: str | Path, *, progress: bool = True,
     summary["total_seconds"] = round(time.perf_counter() - started, 1)
     with atomic_write(paths["summary"]) as f:
         yaml.safe_dump({"run": result.stats, "demo": to_plain(summary)}, f, sort_keys=False)
-    _print_summary(summary, out, echo)
     return DemoRun(summary, world, scans)
 
 
@@ -373,7 +373,14 @@ def _print_summary(summary: dict[str, Any], out: Path, echo: Callable[[str], Non
 def run_demo(out: str | Path, *, world: str = DEFAULT_WORLD, seed: int = 0, preset: str = DEFAULT_PRESET,
              particles: int | None = DEFAULT_PARTICLES, calibrate: bool = True, max_frames: int | None = None,
              progress: bool = True) -> dict[str, Any]:
-    """`omnitof demo`: run_world with the command's options."""
+    """`omnitof demo`: run_world with the command's options, into the results folder `out` as
+    one unit (omnitof.results.results_folder: `out` is replaced only when the run is complete)."""
+    from omnitof.results import results_folder
+
     settings = DemoSettings(world=world, seed=seed, preset=preset, particles=particles, calibrate=calibrate,
                             max_frames=max_frames)
-    return run_world(settings, out, progress=progress).summary
+    slam_config(preset, seed, particles)  # a bad value is refused before the folder is opened
+    with results_folder(out) as folder:
+        summary = run_world(settings, folder, progress=progress).summary
+    _print_summary(summary, Path(out), print)
+    return summary

@@ -28,3 +28,18 @@ class InputError(OmnitofError):
 
 class ConfigError(OmnitofError):
     """An invalid configuration value; the message names the field."""
+
+
+class OutputError(OmnitofError):
+    """An output that cannot be written where asked: a file where a folder should be, a folder
+    that cannot be created or written, a full disk. The message names the path."""
+
+
+class ResourceError(OmnitofError):
+    """A run that would need more than the machine has (memory); the message names the number
+    and the setting that decides it."""
+
+
+class OmnitofWarning(UserWarning):
+    """Something in the user's data was accepted but deserves a look; the command line prints
+    it as one line (`omnitof: warning: ...`). Each reader has its own subclass."""

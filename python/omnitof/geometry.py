@@ -52,10 +52,17 @@ def yaw_to_quaternion(theta: np.ndarray) -> np.ndarray:
 
 
 def quaternion_to_yaw(q: np.ndarray) -> np.ndarray:
-    """Yaw (rotation about +z) of quaternions (qx, qy, qz, qw); roll and pitch are ignored."""
+    """Yaw (rotation about +z) of quaternions (qx, qy, qz, qw); roll and pitch are ignored.
+
+    The quaternions need not be unit: the formula is invariant to their length (for a unit
+    quaternion qw² + qx² − qy² − qz² = 1 − 2(qy² + qz²)), and each is first divided by its
+    largest component, so that files rounded to a few decimals read right and huge
+    components do not overflow."""
     q = np.asarray(q, dtype=np.float64)
+    scale = np.max(np.abs(q), axis=-1, keepdims=True)
+    q = q / np.where(scale > 0, scale, 1.0)
     qx, qy, qz, qw = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+    return np.arctan2(2.0 * (qw * qz + qx * qy), qw * qw + qx * qx - qy * qy - qz * qz)
 
 
 def interpolate_poses(trajectory: Trajectory, timestamps: np.ndarray | float) -> np.ndarray:

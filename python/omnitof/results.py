@@ -4,27 +4,36 @@
     trajectory.tum        the corrected pose at every scan (TUM: timestamp x y z qx qy qz qw); with
                           the back end, the optimised one
     odometry.tum          the raw odometry at every scan
+    ground_truth.tum      the true poses, where the input has them (simulated data)
     config.yaml           the configuration actually used
     map.png               the map with the SLAM and odometry trajectories drawn over it
     pose_graph.png        with the back end: its nodes and loop closures over the map
     summary.yaml          counts, timings and any evaluation
     map3d.ply, map3d.png  the 3D voxel map of a ToF run, when asked (`write_voxel_outputs`)
 
-Every file is written to a temporary name and renamed, so an interrupted run leaves no
-half-written file, and summary.yaml is written last: a folder that holds it is complete
-(`is_complete`, which `omnitof bench` uses to resume an experiment).
+The folder is one unit (`results_folder`): a run builds it under a hidden name beside its
+place and renames it into place when it is complete, so the folder is always the complete
+result of one run, the previous one or the new one, never a mix of both and never a part of
+either. Inside it every file is also written to a temporary name and renamed.
+summary.yaml is written last, so a folder that holds it is complete (`is_complete`, which
+`omnitof bench` uses to resume an experiment).
 """
 
 from __future__ import annotations
 
+import errno
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
 
+from omnitof.errors import OutputError
+from omnitof.interrupts import pause_point
 from omnitof.slam.config import SlamConfig
-from omnitof.io.atomic import atomic_write
+from omnitof.io.atomic import atomic_folder, atomic_write
 from omnitof.io.rosmap import write_ros_map
 from omnitof.io.tum import write_tum
 from omnitof.slam import SlamResult
@@ -33,6 +42,57 @@ from omnitof.types import Trajectory
 from omnitof.viz.maps import plot_map, plot_pose_graph
 from omnitof.viz.map3d import height_colors, plot_voxels
 from omnitof.io.ply import write_ply
+
+# Every file a run of `omnitof slam` or `omnitof demo` writes into its results folder. A folder
+# holding anything else is not replaced: it is not (only) a results folder.
+RESULT_FILES = frozenset({
+    "map.pgm", "map.yaml", "map.png", "trajectory.tum", "odometry.tum", "ground_truth.tum",
+    "config.yaml", "summary.yaml", "pose_graph.png", "map3d.ply", "map3d.png",
+    # omnitof demo
+    "report.md", "overlay.png", "table1.txt", "calibration.yaml", "fig3_amplitude.png",
+    "fig3_depth.png", "scan.png", "slice.png",
+})  # fmt: skip
+
+# Errors of writing, not of reading: a full disk, a file size limit, a quota.
+_WRITE_ERRNOS = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT}
+
+
+def _only_results(folder: Path) -> None:
+    """Refuse to replace a folder that holds anything a run does not write (hidden temporary
+    files of an interrupted earlier version of omnitof aside)."""
+    foreign = sorted(
+        p.name for p in folder.iterdir()
+        if p.name not in RESULT_FILES and not (p.name.startswith(".") and p.name.endswith(".tmp"))
+    )  # fmt: skip
+    if foreign:
+        listed = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+        raise OutputError(
+            f"{folder}: the folder holds files that are not results of omnitof ({listed}); a run "
+            "replaces its results folder as a whole, so give a new or a results folder"
+        )
+
+
+@contextmanager
+def results_folder(out: str | Path) -> Iterator[Path]:
+    """The results folder `out` as one unit: yields a new, empty folder to write the run's
+    files into, which replaces `out` when the block ends without an error
+    (omnitof.io.atomic.atomic_folder).
+
+    Checked at once, so that a run that opens its folder first learns of them before any work:
+    `out` must be a folder or absent, hold nothing but results of omnitof, and its place must be
+    writable (missing parent folders are made). When the block raises (an error, Ctrl-C,
+    SIGTERM), `out` is left as it was; a write that fails for lack of room becomes an
+    OutputError that says so.
+    """
+    existed = Path(out).is_dir()
+    try:
+        with atomic_folder(out, may_replace=_only_results) as folder:
+            yield folder
+    except OSError as err:
+        if err.errno not in _WRITE_ERRNOS:
+            raise
+        left = "the folder was left as it was" if existed else "nothing was written"
+        raise OutputError(f"{out}: cannot write the results: {err.strerror}; {left}") from None
 
 
 def write_results(
@@ -44,9 +104,16 @@ def write_results(
     ground_truth: np.ndarray | None = None,
     extra: dict[str, Any] | None = None,
 ) -> dict[str, Path]:
-    """Write the results folder; returns the paths written, by name."""
+    """Write a run's files into the folder `out_dir` (made if missing); returns the paths
+    written, by name. To replace an earlier run's folder as one unit, write into the folder
+    that `results_folder` gives."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    if not result.map.known.any():
+        raise OutputError(
+            f"{out}: the map is empty: no scan left a mark in it (no beam echoed within "
+            "map.max_range, and map.clear_no_echo is off); nothing to write"
+        )
     write_ros_map(out / "map.yaml", result.map)
     paths = {
         "map": out / "map.yaml",
@@ -56,8 +123,10 @@ def write_results(
         "figure": out / "map.png",
         "summary": out / SUMMARY,
     }
-    write_tum(paths["trajectory"], result.trajectory, sort=True)
+    # Poses that share a timestamp share a TUM row (io.tum.write_tum): counted in the summary.
+    merged = write_tum(paths["trajectory"], result.trajectory, sort=True)
     write_tum(paths["odometry"], result.odometry, sort=True)
+    pause_point("write")  # half of the files are written (the fault-injection tests stop here)
     with atomic_write(paths["config"]) as f:
         f.write(cfg.to_yaml())
     drawn = {"SLAM": result.trajectory.poses, "odometry": result.odometry.poses}
@@ -70,7 +139,7 @@ def write_results(
         paths["pose_graph"] = out / "pose_graph.png"
         plot_pose_graph(paths["pose_graph"], result.map, result.graph["nodes"], result.graph["closures"],
                         result.graph["rejected"], title=f"pose graph: {title}" if title else "")
-    summary = {"run": result.stats, **(extra or {})}
+    summary = {"run": result.stats, **(extra or {}), "tum_poses_merged": merged}
     with atomic_write(paths["summary"]) as f:
         yaml.safe_dump(summary, f, sort_keys=False)
     return paths

@@ -114,15 +114,37 @@ def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *,
     """Run SLAM on `request.log` with `cfg` and write the results folder `out`
     (omnitof.results; summary.yaml is written last). `echo` prints what the run decided (the
     scan delay)."""
-    from omnitof.io.scans import is_tof_bag, read_scans
-    from omnitof.results import write_results
-    from omnitof.slam import run_slam
+    from omnitof.interrupts import pause_point
+    from omnitof.io.scans import is_tof_bag
+    from omnitof.results import results_folder
 
     log = Path(request.log)
     label = request.label if request.label is not None else str(log)
     tof = is_tof_bag(log)
     if not tof and (request.calibration is not None or request.map3d):
         raise OmnitofError(f"{log}: --calibration and --map3d need a bag of ToF images")
+    relations = None
+    if request.relations is not None:
+        from omnitof.eval.relations import read_relations
+
+        relations = read_relations(request.relations)
+    # Opened before any work, so that an output that cannot be written is found at once; the
+    # folder replaces `out` only when everything is written (omnitof.results).
+    with results_folder(out) as folder:
+        pause_point("start")
+        run = _run_into(request, cfg, folder, log, label, tof, relations, bar, echo)
+    # The files now lie in `out`, which the new folder became.
+    run.paths = {name: Path(out) / Path(path).relative_to(folder) for name, path in run.paths.items()}
+    return run
+
+
+def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label: str, tof: bool,
+              relations: Any, bar: BarFactory, echo: Callable[[str], None]) -> SlamRun:
+    """`slam_to_folder`'s work, writing into the new folder `out`."""
+    from omnitof.io.scans import read_scans
+    from omnitof.results import write_results
+    from omnitof.slam import check_limits, run_slam
+
     if tof:
         tof_data = read_tof_input(log, calibration=request.calibration, height=request.height, band=request.band,
                                   cloud_every=request.map3d_every if request.map3d else 0,
@@ -135,18 +157,24 @@ def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *,
         scans = data.scans if request.max_scans is None else data.scans.slice(0, request.max_scans)
         extra = {"input": {"path": label, "kind": data.kind, "bad_lines_skipped": data.bad_lines}}
     extra["input"]["max_range"] = {"metres": float(scans.max_range), "rule": scans.max_range_rule or "given"}
+    extra["input"]["time_order"] = scans.time_order()
+    if relations is not None:
+        from omnitof.eval.relations import check_relations_match
+
+        check_relations_match(relations, scans.timestamps)
+    check_limits(scans, cfg)
     # Laser logs are stamped when the reading arrives, so their delay is estimated by default.
     given = request.scan_delay is not None
     delay = request.scan_delay if given or tof else "auto"
     if delay is not None:
         scans, extra["input"]["scan_delay"] = _retimed(scans, delay, given=given, echo=echo)
     with bar(len(scans), "slam", "scan") as b:
-        result = run_slam(scans, cfg, progress=b.update)
+        result = run_slam(scans, cfg, progress=_pausing(b.update, "slam", len(scans) // 2))
     rel = None
-    if request.relations is not None:
-        from omnitof.eval.relations import evaluate_relations, read_relations
+    if relations is not None:
+        from omnitof.eval.relations import evaluate_relations
 
-        rel = evaluate_relations(result.trajectory, read_relations(request.relations))
+        rel = evaluate_relations(result.trajectory, relations)
         extra["relations"] = rel.to_dict()
     if scans.ground_truth is not None:
         from omnitof.eval.trajectory import absolute_trajectory_error
@@ -161,7 +189,6 @@ def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *,
         from omnitof.results import write_voxel_outputs
 
         # Before write_results, so that summary.yaml stays the folder's last file.
-        Path(out).mkdir(parents=True, exist_ok=True)
         vmap = voxel_map_from_clouds(result.trajectory.poses[tof_data.cloud_frames], tof_data.clouds)
         voxel_paths = write_voxel_outputs(vmap, out, trajectory=result.trajectory.poses)
     paths = write_results(out, result, cfg, title=log.name, extra=extra, ground_truth=scans.ground_truth)
@@ -210,3 +237,20 @@ def _retimed(scans: ScanSequence, delay: str | float, *, given: bool,
         return retime_odometry(scans, record["seconds"]), record
     except ValueError as err:
         raise OmnitofError(f"--scan-delay: {err}") from None
+
+
+def _pausing(update, name: str, at: int):
+    """`update` (a progress callback) that passes `pause_point(name)` once `at` scans are done:
+    the fault-injection tests stop a run there, in the middle of SLAM."""
+    from omnitof.interrupts import pause_point
+
+    done = 0
+
+    def step(n: int) -> None:
+        nonlocal done
+        update(n)
+        if done < at <= done + n:
+            pause_point(name)
+        done += n
+
+    return step

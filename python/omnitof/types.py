@@ -41,6 +41,8 @@ class ScanSequence:
             (N, B) angles, every scan has B beams).
         max_range_rule: how max_range was found (a reader says which rule it applied, e.g.
             "PARAM robot_front_laser_max = 80.99"), for reports.
+        repeated_scans_dropped: how many scans the reader dropped because each repeated the
+            scan before it exactly (`drop_repeated_scans`), for reports.
     """
 
     timestamps: np.ndarray
@@ -54,6 +56,7 @@ class ScanSequence:
     source: str = ""
     beam_counts: np.ndarray | None = None
     max_range_rule: str = ""
+    repeated_scans_dropped: int = 0
 
     def __post_init__(self) -> None:
         self.timestamps = np.ascontiguousarray(self.timestamps, dtype=np.float64)
@@ -151,7 +154,11 @@ class ScanSequence:
 
     def slice(self, start: int | None = None, stop: int | None = None) -> "ScanSequence":
         """The scans start..stop (a view-free copy with the same metadata)."""
-        s = np.s_[start:stop]
+        return self.take(np.s_[start:stop])
+
+    def take(self, s: slice | np.ndarray) -> "ScanSequence":
+        """The scans a slice, index array or boolean mask selects, in that order (a copy with the
+        same metadata)."""
         per_scan = self.per_scan_geometry
         return ScanSequence(
             timestamps=self.timestamps[s].copy(),
@@ -165,7 +172,48 @@ class ScanSequence:
             source=self.source,
             beam_counts=self.beam_counts[s].copy() if per_scan else None,
             max_range_rule=self.max_range_rule,
+            repeated_scans_dropped=self.repeated_scans_dropped,
         )
+
+    def time_order(self) -> dict[str, int]:
+        """How the timestamps run, for reports: `equal_stamps` scans stamped exactly as the one
+        before them, `backward_steps` scans stamped earlier than it (see `drop_repeated_scans`
+        for what the readers do with them), and the `repeated_scans_dropped` by the reader."""
+        steps = np.diff(self.timestamps)
+        return {
+            "repeated_scans_dropped": int(self.repeated_scans_dropped),
+            "equal_stamps": int(np.count_nonzero(steps == 0)),
+            "backward_steps": int(np.count_nonzero(steps < 0)),
+        }
+
+
+def drop_repeated_scans(scans: ScanSequence) -> ScanSequence:
+    """`scans` without the scans that repeat the scan before them exactly (same timestamp, same
+    beams and readings, same odometry pose), with their number in `repeated_scans_dropped`.
+
+    What equal timestamps mean, decided here for every reader: a scan that repeats its
+    predecessor in every number is the same message logged twice (a logger or a bag recorded
+    from two connections), not a second reading, so it is dropped. A scan stamped like its
+    predecessor that reads differently is a real reading whose stamp jittered onto the
+    previous one: it is kept in file order with its stamp, like the small backward steps of
+    real logs (docs/conventions.md), and counted by `ScanSequence.time_order`. Outputs indexed
+    by time (TUM files) then hold one pose per stamp (`omnitof.io.tum.write_tum`).
+    """
+    if len(scans) < 2:
+        return scans
+    same = scans.timestamps[1:] == scans.timestamps[:-1]
+    same &= np.all(scans.odometry[1:] == scans.odometry[:-1], axis=1)
+    same &= np.all(scans.ranges[1:] == scans.ranges[:-1], axis=1)  # +inf == +inf: no echo alike
+    if scans.per_scan_geometry:
+        a, b = scans.angles[1:], scans.angles[:-1]
+        same &= np.all((a == b) | (np.isnan(a) & np.isnan(b)), axis=1)  # NaN: padding alike
+    if scans.remissions is not None:
+        same &= np.all(scans.remissions[1:] == scans.remissions[:-1], axis=1)
+    if not same.any():
+        return scans
+    kept = scans.take(np.concatenate([[True], ~same]))
+    kept.repeated_scans_dropped = scans.repeated_scans_dropped + int(same.sum())
+    return kept
 
 
 def evenly_spaced_beams(

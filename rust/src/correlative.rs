@@ -13,7 +13,7 @@
 //! offsets, so that one pose costs one raster read per end point. Written here because the map
 //! is the particle's own tiled grid, which no library's matcher reads.
 
-use crate::grid::TiledGrid;
+use crate::grid::{try_vec, GridError, TiledGrid, MAX_CELL_INDEX};
 use crate::motion::wrap;
 use crate::sensor_model::ScanGeometry;
 
@@ -43,14 +43,24 @@ struct FieldRaster {
 }
 
 impl FieldRaster {
-    /// The raster over world rectangle [x0, x1] × [y0, y1].
-    fn build(grid: &TiledGrid, occupied_threshold: f32, sigma: f64, floor: f64, bounds: [f64; 4]) -> Self {
+    /// The raster over world rectangle [x0, x1] × [y0, y1]; an error instead of a panic or an
+    /// abort for a rectangle beyond the grid's reach or too large to allocate.
+    fn build(grid: &TiledGrid, occupied_threshold: f32, sigma: f64, floor: f64, bounds: [f64; 4]) -> Result<Self, GridError> {
         let res = grid.resolution;
         let reach = (3.0 * sigma / res).ceil() as i32;
-        let (ix0, iy0) = ((bounds[0] / res).floor() as i32, (bounds[1] / res).floor() as i32);
-        let (ix1, iy1) = ((bounds[2] / res).floor() as i32, (bounds[3] / res).floor() as i32);
+        let cell = |v: f64| (v / res).floor();
+        let outside = |i: usize| GridError::OutOfReach { x: bounds[i & 2], y: bounds[(i & 2) + 1], resolution: res };
+        for (i, v) in bounds.iter().enumerate() {
+            if !(cell(*v).abs() < MAX_CELL_INDEX) {
+                return Err(outside(i));
+            }
+        }
+        let (ix0, iy0) = (cell(bounds[0]) as i32, cell(bounds[1]) as i32);
+        let (ix1, iy1) = (cell(bounds[2]) as i32, cell(bounds[3]) as i32);
         let (nx, ny) = (ix1 - ix0 + 1, iy1 - iy0 + 1);
-        let mut d2 = vec![f64::INFINITY; (nx * ny) as usize];
+        let n = nx as usize * ny as usize; // below 2^62: no overflow
+        let mut d2 = try_vec(n, "the wide search's raster")?;
+        d2.resize(n, f64::INFINITY);
         // Stamp the neighbourhood of every occupied cell (obstacles are few: this is cheaper
         // than a nearest-obstacle search per raster cell).
         for cy in iy0 - reach..=iy1 + reach {
@@ -74,7 +84,7 @@ impl FieldRaster {
                 (hit + floor).ln() as f32
             })
             .collect();
-        FieldRaster { ix0, iy0, nx, ny, resolution: res, ll, floor_ll: floor.ln() as f32 }
+        Ok(FieldRaster { ix0, iy0, nx, ny, resolution: res, ll, floor_ll: floor.ln() as f32 })
     }
 
     #[inline]
@@ -91,6 +101,7 @@ impl FieldRaster {
 
 /// The robot pose in the window around `center` whose end points `pts` (sensor frame) score best
 /// against the raster of `grid`'s likelihood field. Ties go to the pose nearest the centre.
+/// Fails when the raster cannot be made (see `FieldRaster::build`).
 pub fn correlative_search(
     grid: &TiledGrid,
     occupied_threshold: f32,
@@ -99,9 +110,9 @@ pub fn correlative_search(
     pts: &[[f64; 2]],
     center: [f64; 3],
     w: &SearchWindow,
-) -> [f64; 3] {
+) -> Result<[f64; 3], GridError> {
     if pts.is_empty() {
-        return center;
+        return Ok(center);
     }
     let n_xy = (w.half_xy / w.step_xy).round() as i32;
     let n_th = (w.half_theta / w.step_theta).round() as i32;
@@ -125,7 +136,7 @@ pub fn correlative_search(
         center[0] + bounds[2] + margin,
         center[1] + bounds[3] + margin,
     ];
-    let raster = FieldRaster::build(grid, occupied_threshold, w.step_xy, floor, bounds);
+    let raster = FieldRaster::build(grid, occupied_threshold, w.step_xy, floor, bounds)?;
     let mut best = (f64::NEG_INFINITY, 0, 0, 0);
     for (k, offs) in offsets.iter().enumerate() {
         let kt = k as i32 - n_th;
@@ -141,11 +152,11 @@ pub fn correlative_search(
             }
         }
     }
-    [
+    Ok([
         center[0] + best.1 as f64 * w.step_xy,
         center[1] + best.2 as f64 * w.step_xy,
         wrap(center[2] + best.3 as f64 * w.step_theta),
-    ]
+    ])
 }
 
 #[cfg(test)]
@@ -176,7 +187,7 @@ mod tests {
         let mut g = TiledGrid::new(0.05);
         let truth = [1.5, 4.0, 0.3];
         for pose in [[3.0, 1.2, -0.2], truth] {
-            integrate_scan(&mut g, &lm, &geom, pose, &room_scan(geom.sensor_pose(pose), &angles), 20.0, false);
+            integrate_scan(&mut g, &lm, &geom, pose, &room_scan(geom.sensor_pose(pose), &angles), 20.0, false).unwrap();
         }
         // The scan the robot takes a little later, from a pose its odometry puts 0.7 m and 9° off.
         let real = [1.8, 3.7, 0.45];
@@ -184,7 +195,7 @@ mod tests {
         let pts = crate::scan_match::endpoints(&geom, &ranges, 2, 20.0);
         let predicted = [2.4, 3.4, 0.3];
         let w = SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians() };
-        let found = correlative_search(&g, 0.0, 0.1 / 20.0, &geom, &pts, predicted, &w);
+        let found = correlative_search(&g, 0.0, 0.1 / 20.0, &geom, &pts, predicted, &w).unwrap();
         assert!((found[0] - real[0]).abs() <= 0.06 && (found[1] - real[1]).abs() <= 0.06, "{found:?}");
         assert!(wrap(found[2] - real[2]).abs() <= 1.1f64.to_radians(), "{found:?}");
     }

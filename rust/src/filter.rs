@@ -17,7 +17,7 @@ use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64;
 use rayon::prelude::*;
 
-use crate::grid::{LogOddsModel, TiledGrid};
+use crate::grid::{try_vec, GridError, LogOddsModel, TiledGrid};
 use crate::motion::{compose, relative, OdometryMotion};
 use crate::scan_match::{check_odometry, endpoints, gauss_newton, propose, LikelihoodField, MatcherParams};
 use crate::sensor_model::{integrate_scan, BeamModel, ScanGeometry};
@@ -66,6 +66,23 @@ pub struct Particle {
     pub log_weight: f64,
     pub map: TiledGrid,
     pub trajectory: Arc<TrajectoryNode>,
+}
+
+impl Particle {
+    /// A copy with weight `log_weight` (sharing the map's tiles and the trajectory), or
+    /// NoMemory where `clone` would abort.
+    fn try_copy(&self, log_weight: f64) -> Result<Particle, GridError> {
+        Ok(Particle { pose: self.pose, log_weight, map: self.map.try_clone()?, trajectory: self.trajectory.clone() })
+    }
+}
+
+/// `n` copies of `first`, or NoMemory.
+fn copies(first: &Particle, n: usize) -> Result<Vec<Particle>, GridError> {
+    let mut out = try_vec(n, "the particles")?;
+    for _ in 0..n {
+        out.push(first.try_copy(first.log_weight)?);
+    }
+    Ok(out)
 }
 
 #[derive(Clone, Debug)]
@@ -191,37 +208,39 @@ impl ParticleFilter {
     }
 
     /// Every particle at `pose` with the first scan written into one shared map.
-    fn initial_particles(p: &FilterParams, geom: &ScanGeometry, pose: [f64; 3], ranges: &[f32], scan: u64) -> Vec<Particle> {
+    fn initial_particles(p: &FilterParams, geom: &ScanGeometry, pose: [f64; 3], ranges: &[f32], scan: u64) -> Result<Vec<Particle>, GridError> {
         let mut map = TiledGrid::new(p.resolution);
-        integrate_scan(&mut map, &p.log_odds, geom, pose, ranges, p.map_max_range, p.clear_no_echo);
+        integrate_scan(&mut map, &p.log_odds, geom, pose, ranges, p.map_max_range, p.clear_no_echo)?;
         let root = Arc::new(TrajectoryNode { pose, scan, parent: None });
-        let first = Particle { pose, log_weight: 0.0, map, trajectory: root };
-        vec![first; p.n_particles]
+        copies(&Particle { pose, log_weight: 0.0, map, trajectory: root }, p.n_particles)
     }
 
     /// Integrate one scan taken at odometry pose `odom_cur`, the robot having moved there from
     /// odometry pose `odom_prev` since the last integrated scan. The first call only starts the
     /// map, at `odom_cur`. `angles` are this scan's beam bearings where its geometry is its own
     /// (one per range); None: the filter's.
-    pub fn step(&mut self, odom_prev: [f64; 3], odom_cur: [f64; 3], ranges: &[f32], angles: Option<&[f64]>, scan: u64) -> StepInfo {
+    ///
+    /// Fails when a map cannot grow (a pose or reading beyond a grid's reach, memory that cannot
+    /// be had); the filter is then spent, as a run that ran out of memory is: the caller stops.
+    pub fn step(&mut self, odom_prev: [f64; 3], odom_cur: [f64; 3], ranges: &[f32], angles: Option<&[f64]>, scan: u64) -> Result<StepInfo, GridError> {
         let step_index = self.steps;
         self.steps += 1;
         let p = &self.params;
         let geom = ScanGeometry { angles: angles.unwrap_or(&self.angles), sensor: self.sensor };
         if self.particles.is_empty() {
-            self.particles = Self::initial_particles(p, &geom, odom_cur, ranges, scan);
-            return StepInfo { neff: p.n_particles as f64, resampled: false, fallbacks: 0, odometry_corrected: false };
+            self.particles = Self::initial_particles(p, &geom, odom_cur, ranges, scan)?;
+            return Ok(StepInfo { neff: p.n_particles as f64, resampled: false, fallbacks: 0, odometry_corrected: false });
         }
         let seed = p.seed;
         let pts = endpoints(&geom, ranges, p.beam_stride, p.field.max_range);
         let corrected = match (p.proposal, self.particles.get(self.best)) {
             (ProposalKind::ScanMatch, Some(best)) => {
-                check_odometry(&p.field, &p.matcher, &best.map, &geom, &pts, best.pose, odom_prev, odom_cur)
+                check_odometry(&p.field, &p.matcher, &best.map, &geom, &pts, best.pose, odom_prev, odom_cur)?
             }
             _ => None,
         };
         let odom_cur = corrected.unwrap_or(odom_cur);
-        let fallbacks: usize = self.pool.install(|| {
+        let outcomes: Vec<Result<usize, GridError>> = self.pool.install(|| {
             self.particles
                 .par_iter_mut()
                 .enumerate()
@@ -254,11 +273,16 @@ impl ParticleFilter {
                     };
                     part.pose = pose;
                     part.trajectory = Arc::new(TrajectoryNode { pose, scan, parent: Some(part.trajectory.clone()) });
-                    integrate_scan(&mut part.map, &p.log_odds, &geom, pose, ranges, p.map_max_range, p.clear_no_echo);
-                    fell_back as usize
+                    integrate_scan(&mut part.map, &p.log_odds, &geom, pose, ranges, p.map_max_range, p.clear_no_echo)?;
+                    Ok(fell_back as usize)
                 })
-                .sum()
+                .collect()
         });
+        // In particle order, so that the error reported does not depend on the thread count.
+        let mut fallbacks = 0;
+        for outcome in outcomes {
+            fallbacks += outcome?;
+        }
         self.fallbacks += fallbacks as u64;
         let log_w: Vec<f64> = self.particles.iter().map(|q| q.log_weight).collect();
         let w = normalise(&log_w);
@@ -269,10 +293,11 @@ impl ParticleFilter {
             let mut rng = rng_for(seed, step_index, u64::MAX);
             let idx = low_variance_resample(&w, &mut rng);
             self.best = idx.iter().position(|&j| j == best).unwrap_or(0);
-            self.particles = idx
-                .iter()
-                .map(|&j| Particle { log_weight: 0.0, ..self.particles[j].clone() })
-                .collect();
+            let mut next = try_vec(idx.len(), "the resampled particles")?;
+            for &j in &idx {
+                next.push(self.particles[j].try_copy(0.0)?);
+            }
+            self.particles = next;
             self.resamplings += 1;
             resampled = true;
         } else {
@@ -283,7 +308,7 @@ impl ParticleFilter {
             }
             self.best = best;
         }
-        StepInfo { neff: n_eff, resampled, fallbacks, odometry_corrected: corrected.is_some() }
+        Ok(StepInfo { neff: n_eff, resampled, fallbacks, odometry_corrected: corrected.is_some() })
     }
 
     /// One local match, from `start`, of a scan in the best particle's map (with the filter's
@@ -335,11 +360,11 @@ impl ParticleFilter {
     /// weights, and a trajectory that begins at scan `scan`: how a pose-graph back end feeds a
     /// correction back. The step counter goes on, so the random streams stay those of the
     /// steps to come and the run stays deterministic.
-    pub fn reset(&mut self, pose: [f64; 3], scan: u64, map: TiledGrid) {
+    pub fn reset(&mut self, pose: [f64; 3], scan: u64, map: TiledGrid) -> Result<(), GridError> {
         let root = Arc::new(TrajectoryNode { pose, scan, parent: None });
-        let first = Particle { pose, log_weight: 0.0, map, trajectory: root };
-        self.particles = vec![first; self.params.n_particles];
+        self.particles = copies(&Particle { pose, log_weight: 0.0, map, trajectory: root }, self.params.n_particles)?;
         self.best = 0;
+        Ok(())
     }
 
     /// The particle with the highest weight (after a resampling, a copy of the one that had it).

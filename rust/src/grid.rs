@@ -12,11 +12,50 @@
 //! point rather than to the cell centre: walls that run along cell boundaries would otherwise
 //! pull every match by up to half a cell.
 
+use std::fmt;
 use std::sync::Arc;
 
 pub const TILE_SHIFT: i32 = 4;
 pub const TILE: i32 = 1 << TILE_SHIFT;
 const TILE_CELLS: usize = (TILE * TILE) as usize;
+/// Cells are addressed by i32 indices; a grid reaches |index| < 2^30 (53 000 km at 5 cm), so
+/// that tile indices, window margins and window sizes never overflow.
+pub const MAX_CELL_INDEX: f64 = (1u64 << 30) as f64;
+
+/// Why a grid could not be grown or copied. The filter's bindings turn these into Python
+/// exceptions (ValueError, MemoryError): nothing a run's data or settings do may panic or abort.
+#[derive(Clone, Debug, PartialEq)]
+pub enum GridError {
+    /// A point beyond the cells a grid addresses (`MAX_CELL_INDEX`): a pose or a reading very
+    /// far out, a resolution very fine, or a coordinate that is not a number.
+    OutOfReach { x: f64, y: f64, resolution: f64 },
+    /// An allocation that failed: what it was for and how many bytes it asked for.
+    NoMemory { what: &'static str, bytes: u128 },
+}
+
+impl fmt::Display for GridError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            GridError::OutOfReach { x, y, resolution } => write!(
+                f,
+                "the point ({x}, {y}) m lies beyond the {MAX_CELL_INDEX} cells a grid of resolution {resolution} m reaches"
+            ),
+            GridError::NoMemory { what, bytes } => {
+                write!(f, "cannot allocate {:.3} GB for {what}", *bytes as f64 / 1e9)
+            }
+        }
+    }
+}
+
+impl std::error::Error for GridError {}
+
+/// An empty Vec with room for `n` items of type T, or GridError::NoMemory (never an abort).
+pub(crate) fn try_vec<T>(n: usize, what: &'static str) -> Result<Vec<T>, GridError> {
+    let mut v = Vec::new();
+    v.try_reserve_exact(n)
+        .map_err(|_| GridError::NoMemory { what, bytes: n as u128 * std::mem::size_of::<T>() as u128 })?;
+    Ok(v)
+}
 
 #[derive(Clone)]
 pub struct Tile {
@@ -184,17 +223,28 @@ impl TiledGrid {
         ))
     }
 
-    /// Grow the tile window so that it holds the world rectangle [x0, x1] × [y0, y1].
-    pub fn ensure_covers(&mut self, x0: f64, y0: f64, x1: f64, y1: f64) {
-        let to_tile = |v: f64| ((v / self.resolution).floor() as i32) >> TILE_SHIFT;
-        let (ax, ay, bx, by) = (to_tile(x0), to_tile(y0), to_tile(x1), to_tile(y1));
+    /// Grow the tile window so that it holds the world rectangle [x0, x1] × [y0, y1]. Fails,
+    /// changing nothing, for a rectangle beyond the grid's reach or a window that cannot be
+    /// allocated.
+    pub fn ensure_covers(&mut self, x0: f64, y0: f64, x1: f64, y1: f64) -> Result<(), GridError> {
+        let res = self.resolution;
+        let to_tile = |x: f64, y: f64| -> Result<(i32, i32), GridError> {
+            let (cx, cy) = ((x / res).floor(), (y / res).floor());
+            // NaN fails the comparison too.
+            if !(cx.abs() < MAX_CELL_INDEX && cy.abs() < MAX_CELL_INDEX) {
+                return Err(GridError::OutOfReach { x, y, resolution: res });
+            }
+            Ok(((cx as i32) >> TILE_SHIFT, (cy as i32) >> TILE_SHIFT))
+        };
+        let (ax, ay) = to_tile(x0, y0)?;
+        let (bx, by) = to_tile(x1, y1)?;
         if self.ntx > 0
             && ax >= self.tx0
             && ay >= self.ty0
             && bx < self.tx0 + self.ntx
             && by < self.ty0 + self.nty
         {
-            return;
+            return Ok(());
         }
         // Grow with margin so that a robot moving on does not regrow at every scan.
         let margin = 4;
@@ -208,8 +258,15 @@ impl TiledGrid {
                 by.max(self.ty0 + self.nty - 1) + if by >= self.ty0 + self.nty { margin } else { 0 },
             )
         };
+        // Tile indices are below 2^26 in size, so these fit in i32 and their product in u64.
         let (ntx, nty) = (nx1 - nx0 + 1, ny1 - ny0 + 1);
-        let mut tiles = vec![None; (ntx * nty) as usize];
+        let slots = ntx as u64 * nty as u64;
+        let slots = usize::try_from(slots).map_err(|_| GridError::NoMemory {
+            what: "the map's window of tiles",
+            bytes: slots as u128 * std::mem::size_of::<Option<Arc<Tile>>>() as u128,
+        })?;
+        let mut tiles = try_vec(slots, "the map's window of tiles")?;
+        tiles.resize(slots, None);
         for ty in 0..self.nty {
             for tx in 0..self.ntx {
                 let old = &mut self.tiles[(ty * self.ntx + tx) as usize];
@@ -222,6 +279,15 @@ impl TiledGrid {
         self.ntx = ntx;
         self.nty = nty;
         self.tiles = tiles;
+        Ok(())
+    }
+
+    /// A copy that shares every tile (as `clone`), or NoMemory instead of an abort when even
+    /// the window of pointers cannot be had: particles copy their maps at every resampling.
+    pub fn try_clone(&self) -> Result<TiledGrid, GridError> {
+        let mut tiles = try_vec(self.tiles.len(), "a particle's copy of its map window")?;
+        tiles.extend_from_slice(&self.tiles);
+        Ok(TiledGrid { resolution: self.resolution, tx0: self.tx0, ty0: self.ty0, ntx: self.ntx, nty: self.nty, tiles })
     }
 
     /// Tiles this grid holds (allocated, whether shared or not).
@@ -234,8 +300,9 @@ impl TiledGrid {
     }
 
     /// Dense copy of the observed part: (rows, cols, first cell ix, first cell iy, data) with
-    /// data row-major, row 0 = lowest y; NaN where unknown. Empty grids give 0×0.
-    pub fn to_dense(&self) -> (usize, usize, i32, i32, Vec<f32>) {
+    /// data row-major, row 0 = lowest y; NaN where unknown. Empty grids give 0×0. Fails with
+    /// NoMemory when the copy cannot be allocated.
+    pub fn to_dense(&self) -> Result<(usize, usize, i32, i32, Vec<f32>), GridError> {
         let mut bounds: Option<(i32, i32, i32, i32)> = None;
         for ty in 0..self.nty {
             for tx in 0..self.ntx {
@@ -249,18 +316,23 @@ impl TiledGrid {
             }
         }
         let Some((tx_lo, ty_lo, tx_hi, ty_hi)) = bounds else {
-            return (0, 0, 0, 0, Vec::new());
+            return Ok((0, 0, 0, 0, Vec::new()));
         };
         let (ix0, iy0) = (tx_lo << TILE_SHIFT, ty_lo << TILE_SHIFT);
-        let cols = ((tx_hi - tx_lo + 1) * TILE) as usize;
-        let rows = ((ty_hi - ty_lo + 1) * TILE) as usize;
-        let mut data = vec![f32::NAN; rows * cols];
+        let cols = (tx_hi - tx_lo + 1) as usize * TILE as usize;
+        let rows = (ty_hi - ty_lo + 1) as usize * TILE as usize;
+        let cells = rows.checked_mul(cols).ok_or(GridError::NoMemory {
+            what: "a dense copy of the map",
+            bytes: rows as u128 * cols as u128 * 4,
+        })?;
+        let mut data = try_vec(cells, "a dense copy of the map")?;
+        data.resize(cells, f32::NAN);
         for r in 0..rows {
             for c in 0..cols {
                 data[r * cols + c] = self.get(ix0 + c as i32, iy0 + r as i32);
             }
         }
-        (rows, cols, ix0, iy0, data)
+        Ok((rows, cols, ix0, iy0, data))
     }
 }
 
@@ -273,7 +345,7 @@ mod tests {
     #[test]
     fn writes_read_back_and_clamp_including_negative_indices() {
         let mut g = TiledGrid::new(0.05);
-        g.ensure_covers(-3.0, -3.0, 3.0, 3.0);
+        g.ensure_covers(-3.0, -3.0, 3.0, 3.0).unwrap();
         assert!(g.get(-37, 12).is_nan());
         for _ in 0..10 {
             g.add(-37, 12, MODEL.l_occ, &MODEL);
@@ -286,9 +358,9 @@ mod tests {
     #[test]
     fn growing_keeps_contents() {
         let mut g = TiledGrid::new(0.1);
-        g.ensure_covers(0.0, 0.0, 1.0, 1.0);
+        g.ensure_covers(0.0, 0.0, 1.0, 1.0).unwrap();
         g.add(3, 4, 1.0, &MODEL);
-        g.ensure_covers(-50.0, -20.0, 80.0, 1.0);
+        g.ensure_covers(-50.0, -20.0, 80.0, 1.0).unwrap();
         assert_eq!(g.get(3, 4), 1.0);
         g.add(-499, -199, 1.0, &MODEL);
         assert_eq!(g.get(-499, -199), 1.0);
@@ -297,7 +369,7 @@ mod tests {
     #[test]
     fn copies_share_tiles_until_written() {
         let mut a = TiledGrid::new(0.1);
-        a.ensure_covers(0.0, 0.0, 10.0, 10.0);
+        a.ensure_covers(0.0, 0.0, 10.0, 10.0).unwrap();
         a.add(1, 1, 1.0, &MODEL);
         a.add(60, 60, 1.0, &MODEL);
         let mut b = a.clone();
@@ -309,5 +381,31 @@ mod tests {
         assert_eq!(shared(&a, &b), 1);
         assert!(a.get(1, 2).is_nan());
         assert_eq!(b.get(1, 2), 1.0);
+        let c = b.try_clone().unwrap();
+        assert_eq!(shared(&b, &c), 2);
+    }
+
+    #[test]
+    fn points_beyond_reach_are_errors_not_panics() {
+        // A resolution of 1e-5 m puts a point 20 km out beyond 2^30 cells; NaN and infinity
+        // are beyond reach too. The grid is left as it was.
+        let mut g = TiledGrid::new(1e-5);
+        g.ensure_covers(0.0, 0.0, 1.0, 1.0).unwrap();
+        let before = g.tiles.len();
+        for (x, y) in [(2.0e4, 0.0), (0.0, -2.0e4), (f64::NAN, 0.0), (f64::INFINITY, 1.0)] {
+            assert!(matches!(g.ensure_covers(0.0, 0.0, x, y), Err(GridError::OutOfReach { .. })), "{x} {y}");
+        }
+        assert_eq!(g.tiles.len(), before);
+    }
+
+    #[test]
+    fn windows_that_cannot_be_allocated_are_errors_not_aborts() {
+        // 0.1 mm cells over 100 km: 2^50 tiles of window, far beyond any memory. Before, this
+        // overflowed ("capacity overflow" panic) or aborted on the allocation.
+        let mut g = TiledGrid::new(1e-4);
+        let err = g.ensure_covers(-5.0e4, -5.0e4, 5.0e4, 5.0e4).unwrap_err();
+        assert!(matches!(err, GridError::NoMemory { .. }), "{err}");
+        assert!(err.to_string().contains("window of tiles"));
+        assert!(try_vec::<u64>(usize::MAX / 4, "a test").is_err());
     }
 }

@@ -18,14 +18,14 @@ pub mod voxel;
 
 use numpy::ndarray::Array2;
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
-use pyo3::exceptions::{PyTypeError, PyValueError};
+use pyo3::exceptions::{PyMemoryError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use filter::{FilterParams, ObservationKind, ParticleFilter, ProposalKind};
 use correlative::SearchWindow;
 use scan_match::{LikelihoodField, MatcherParams};
-use grid::{LogOddsModel, TiledGrid};
+use grid::{GridError, LogOddsModel, TiledGrid};
 use motion::OdometryMotion;
 use sensor_model::{integrate_scan, BeamModel, ScanGeometry};
 use voxel::VoxelGrid;
@@ -40,6 +40,15 @@ pub(crate) fn optional_pool(threads: Option<usize>) -> PyResult<Option<rayon::Th
             .map(Some)
             .map_err(|e| PyValueError::new_err(e.to_string())),
         None => Ok(None),
+    }
+}
+
+/// A grid's error as the Python exception a caller can act on: memory that cannot be had is a
+/// MemoryError, a point beyond a grid's reach a ValueError (never a panic or an abort).
+pub(crate) fn grid_error(err: GridError) -> PyErr {
+    match err {
+        GridError::NoMemory { .. } => PyMemoryError::new_err(err.to_string()),
+        GridError::OutOfReach { .. } => PyValueError::new_err(err.to_string()),
     }
 }
 
@@ -84,9 +93,10 @@ fn scan_angles(angles: &[f64], n_ranges: usize) -> PyResult<&[f64]> {
 
 type DenseGrid<'py> = (Bound<'py, PyArray2<f32>>, i32, i32);
 
-fn dense<'py>(py: Python<'py>, grid: &TiledGrid) -> DenseGrid<'py> {
-    let (rows, cols, ix0, iy0, data) = grid.to_dense();
-    (Array2::from_shape_vec((rows, cols), data).unwrap().into_pyarray(py), ix0, iy0)
+pub(crate) fn dense<'py>(py: Python<'py>, grid: &TiledGrid) -> PyResult<DenseGrid<'py>> {
+    let (rows, cols, ix0, iy0, data) = grid.to_dense().map_err(grid_error)?;
+    let array = Array2::from_shape_vec((rows, cols), data).map_err(|e| PyValueError::new_err(e.to_string()))?;
+    Ok((array.into_pyarray(py), ix0, iy0))
 }
 
 /// A section of the SLAM configuration as a Rust struct, read from the section's dict
@@ -352,7 +362,7 @@ impl PyParticleFilter {
             None => None,
         };
         let inner = &mut self.inner;
-        let info = py.detach(|| inner.step(prev, cur, ranges, angles, scan));
+        let info = py.detach(|| inner.step(prev, cur, ranges, angles, scan)).map_err(grid_error)?;
         Ok((info.neff, info.resampled, info.odometry_corrected))
     }
 
@@ -439,8 +449,8 @@ impl PyParticleFilter {
                 self.inner.params.resolution
             )));
         }
-        self.inner.reset(pose, scan, grid.grid.clone());
-        Ok(())
+        let map = grid.grid.try_clone().map_err(grid_error)?;
+        self.inner.reset(pose, scan, map).map_err(grid_error)
     }
 
     /// (scan indices (K,), poses (K, 3)) of the best particle's integrated scans.
@@ -452,7 +462,7 @@ impl PyParticleFilter {
     }
 
     /// (log-odds (rows, cols) with NaN = unknown, ix0, iy0) of the best particle's map.
-    fn best_map<'py>(&self, py: Python<'py>) -> DenseGrid<'py> {
+    fn best_map<'py>(&self, py: Python<'py>) -> PyResult<DenseGrid<'py>> {
         match self.inner.best() {
             Some(p) => dense(py, &p.map),
             None => dense(py, &TiledGrid::new(self.inner.params.resolution)),
@@ -461,7 +471,7 @@ impl PyParticleFilter {
 
     fn map_of<'py>(&self, py: Python<'py>, index: usize) -> PyResult<DenseGrid<'py>> {
         let p = self.inner.particles.get(index).ok_or_else(|| PyValueError::new_err("no such particle"))?;
-        Ok(dense(py, &p.map))
+        dense(py, &p.map)
     }
 
     fn poses<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
@@ -512,8 +522,11 @@ impl PyOccupancyGrid {
     #[new]
     #[pyo3(signature = (resolution, l_occ, l_free, l_min, l_max))]
     fn new(resolution: f64, l_occ: f32, l_free: f32, l_min: f32, l_max: f32) -> PyResult<Self> {
-        if !(resolution > 0.0) {
-            return Err(PyValueError::new_err("resolution must be positive"));
+        if !(resolution > 0.0 && resolution.is_finite()) {
+            return Err(PyValueError::new_err("resolution must be positive and finite"));
+        }
+        if !(l_min <= l_max) {
+            return Err(PyValueError::new_err("l_min must not exceed l_max"));
         }
         Ok(PyOccupancyGrid { grid: TiledGrid::new(resolution), model: LogOddsModel { l_occ, l_free, l_min, l_max } })
     }
@@ -531,12 +544,11 @@ impl PyOccupancyGrid {
         let robot = pose3(robot_pose.as_slice()?, "robot_pose")?;
         let (angles, ranges) = (angles.as_slice()?, ranges.as_slice()?);
         let geom = scan_geometry(angles, ranges, sensor_pose)?;
-        integrate_scan(&mut self.grid, &self.model, &geom, robot, ranges, max_range, clear_no_echo);
-        Ok(())
+        integrate_scan(&mut self.grid, &self.model, &geom, robot, ranges, max_range, clear_no_echo).map_err(grid_error)
     }
 
     /// (log-odds (rows, cols) with NaN = unknown, ix0, iy0): cell (r, c) is (ix0 + c, iy0 + r).
-    fn to_dense<'py>(&self, py: Python<'py>) -> DenseGrid<'py> {
+    fn to_dense<'py>(&self, py: Python<'py>) -> PyResult<DenseGrid<'py>> {
         dense(py, &self.grid)
     }
 

@@ -29,7 +29,7 @@ use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 
 use rayon::prelude::*;
 
-use crate::grid::{LogOddsModel, TiledGrid};
+use crate::grid::{GridError, LogOddsModel, TiledGrid};
 use crate::motion::{compose, relative, wrap};
 use crate::sensor_model::{integrate_scan, ScanGeometry};
 
@@ -42,7 +42,7 @@ const MAX_DEPTH: u32 = 12;
 /// A submap is local: what its scans can reach must fit in a square this many cells wide (410 m
 /// at 5 cm). A guard against misuse only: the precomputed grids cost about 12 bytes per observed
 /// cell (2 MB for a 20 m × 20 m submap at 5 cm), and this caps them below 1 GB.
-const MAX_SIDE_CELLS: f64 = 8192.0;
+pub const MAX_SIDE_CELLS: f64 = 8192.0;
 /// Bound of |coordinates| (in cells) of everything the search touches, so that i32 cell
 /// indices plus window offsets never overflow.
 const MAX_CELL_COORD: f64 = (1u64 << 29) as f64;
@@ -147,7 +147,8 @@ impl Submap {
             ));
         }
         let p = &self.params;
-        integrate_scan(&mut self.grid, &p.log_odds, geom, robot, ranges, p.max_range, p.clear_no_echo);
+        integrate_scan(&mut self.grid, &p.log_odds, geom, robot, ranges, p.max_range, p.clear_no_echo)
+            .map_err(|e| e.to_string())?;
         self.reach = Some(reach);
         self.origin.get_or_insert(robot);
         self.num_scans += 1;
@@ -155,9 +156,13 @@ impl Submap {
     }
 
     /// Finish the submap: precompute its search grids (once; later calls return them again).
-    pub fn finish(&mut self) -> &PrecomputedGrids {
-        let p = self.params;
-        self.grids.get_or_insert_with(|| PrecomputedGrids::new(&self.grid, p.depth, p.unknown_probability))
+    /// Fails only when their memory cannot be had.
+    pub fn finish(&mut self) -> Result<&PrecomputedGrids, GridError> {
+        if self.grids.is_none() {
+            let p = self.params;
+            self.grids = Some(PrecomputedGrids::new(&self.grid, p.depth, p.unknown_probability)?);
+        }
+        Ok(self.grids.as_ref().expect("just made"))
     }
 
     pub fn is_finished(&self) -> bool {
@@ -306,9 +311,9 @@ pub struct PrecomputedGrids {
 impl PrecomputedGrids {
     /// Precompute the grids of heights 0..=depth from a log-odds grid (NaN = unknown, which
     /// gets `unknown_probability`). O(cells) per height; the heights are built in parallel.
-    pub fn new(grid: &TiledGrid, depth: u32, unknown_probability: f32) -> Self {
+    pub fn new(grid: &TiledGrid, depth: u32, unknown_probability: f32) -> Result<Self, GridError> {
         let depth = depth.min(MAX_DEPTH);
-        let (ny, nx, ix0, iy0, log_odds) = grid.to_dense();
+        let (ny, nx, ix0, iy0, log_odds) = grid.to_dense()?;
         let probability: Vec<f32> =
             log_odds.iter().map(|&l| if l.is_nan() { unknown_probability } else { probability(l) }).collect();
         let base: Vec<u8> = probability.iter().map(|&p| quantise(p)).collect();
@@ -339,7 +344,7 @@ impl PrecomputedGrids {
                 MaxGrid { ix0: ix0 - pad as i32, iy0: iy0 - pad as i32, nx: wx, ny: wy, cells, outside }
             })
             .collect();
-        PrecomputedGrids { resolution: grid.resolution, unknown: unknown_probability, ix0, iy0, nx, ny, probability, levels }
+        Ok(PrecomputedGrids { resolution: grid.resolution, unknown: unknown_probability, ix0, iy0, nx, ny, probability, levels })
     }
 
     pub fn resolution(&self) -> f64 {
@@ -910,7 +915,7 @@ mod tests {
         for &pose in poses {
             s.insert(pose, &geom, &cast(walls, geom.sensor_pose(pose), &angles)).unwrap();
         }
-        s.finish();
+        s.finish().unwrap();
         s
     }
 
@@ -952,7 +957,7 @@ mod tests {
     fn loop_closure_precomputed_grids_equal_brute_force_window_maxima() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
         let mut g = TiledGrid::new(0.1);
-        g.ensure_covers(-1.0, -1.0, 2.5, 1.5);
+        g.ensure_covers(-1.0, -1.0, 2.5, 1.5).unwrap();
         for _ in 0..900 {
             let (ix, iy) = (rng.random_range(-10..25), rng.random_range(-10..15));
             let delta = rng.random_range(-2.5f32..3.0);
@@ -960,7 +965,7 @@ mod tests {
         }
         let unknown = 0.1;
         let depth = 5;
-        let grids = PrecomputedGrids::new(&g, depth, unknown);
+        let grids = PrecomputedGrids::new(&g, depth, unknown).unwrap();
         assert_eq!(grids.depth(), depth);
         let base = |ix: i32, iy: i32| {
             let l = g.get(ix, iy);
@@ -1088,7 +1093,7 @@ mod tests {
             pool.install(|| {
                 let m = search(grids, &pts, [5.0, 4.0, 0.0], 5.0, std::f64::consts::PI, 0.3).unwrap().unwrap();
                 let w = search(grids, &pts, [4.4, 2.7, 0.05], 2.0, 0.5, 0.3).unwrap().unwrap();
-                let regrids = PrecomputedGrids::new(submap.grid(), DEFAULT_DEPTH, DEFAULT_UNKNOWN_PROBABILITY);
+                let regrids = PrecomputedGrids::new(submap.grid(), DEFAULT_DEPTH, DEFAULT_UNKNOWN_PROBABILITY).unwrap();
                 let levels: Vec<Vec<u8>> = regrids.levels.iter().map(|l| l.cells.clone()).collect();
                 (refine(grids, &pts, &m), refine(grids, &pts, &w), levels)
             })
@@ -1147,7 +1152,7 @@ mod tests {
         assert!(s.insert([0.0, 0.0, 0.0], &geom, &[1.0; 8]).is_err(), "1000 km wide submap");
         let opts = MatchOptions { linear_window: 1.0, angular_window: 0.1, min_score: 0.5, refine: true };
         assert!(s.match_scan(&geom, &[1.0; 8], [1e6, 0.0, 0.0], &opts).is_err(), "not finished");
-        s.finish();
+        s.finish().unwrap();
         assert_eq!(s.num_scans(), 1);
         assert_eq!(s.origin(), Some([1e6, 0.0, 0.0]));
         assert!(s.insert([1e6, 0.0, 0.0], &geom, &[1.0; 8]).is_err(), "finished");
@@ -1162,7 +1167,7 @@ mod tests {
         assert!(search(g, &[], [0.0, 0.0, 0.0], 1.0, 0.1, 0.5).unwrap().is_none());
         // An empty submap finishes and matches nothing.
         let mut e = Submap::new(params(0.05, 10.0)).unwrap();
-        let eg = e.finish();
+        let eg = e.finish().unwrap();
         assert!(search(eg, &pts, [0.0, 0.0, 0.0], 1.0, 3.2, 0.5).unwrap().is_none());
         assert!(Submap::new(SubmapParams { resolution: 0.0, ..params(0.05, 10.0) }).is_err());
         assert!(Submap::new(SubmapParams { depth: 40, ..params(0.05, 10.0) }).is_err());
@@ -1192,7 +1197,7 @@ mod tests {
         let submap = build(&walls, &poses, params(0.05, 20.0));
         let built = t.elapsed();
         let t = Instant::now();
-        let grids = PrecomputedGrids::new(submap.grid(), DEFAULT_DEPTH, DEFAULT_UNKNOWN_PROBABILITY);
+        let grids = PrecomputedGrids::new(submap.grid(), DEFAULT_DEPTH, DEFAULT_UNKNOWN_PROBABILITY).unwrap();
         let precomputed = t.elapsed();
         let truth = [11.3, 9.2, 2.1];
         let pts = query(&walls, truth, 20.0);

@@ -95,16 +95,19 @@ impl PySubmap {
     }
 
     /// Finish the submap: no more scans; precompute the search grids (once).
-    fn finish(&mut self, py: Python<'_>) {
+    fn finish(&mut self, py: Python<'_>) -> PyResult<()> {
         let (inner, pool) = (&mut self.inner, &self.pool);
         py.detach(|| match pool {
-            Some(pool) => pool.install(|| {
-                inner.finish();
-            }),
-            None => {
-                inner.finish();
-            }
-        });
+            Some(pool) => pool.install(|| inner.finish().map(|_| ())),
+            None => inner.finish().map(|_| ()),
+        })
+        .map_err(crate::grid_error)
+    }
+
+    /// The widest a submap may be, in cells (a submap is local; see loop_closure.rs).
+    #[staticmethod]
+    fn max_side_cells() -> f64 {
+        crate::loop_closure::MAX_SIDE_CELLS
     }
 
     #[getter]
@@ -134,9 +137,8 @@ impl PySubmap {
     }
 
     /// (log-odds (rows, cols) with NaN = unknown, ix0, iy0): cell (r, c) is (ix0 + c, iy0 + r).
-    fn to_dense<'py>(&self, py: Python<'py>) -> (Bound<'py, PyArray2<f32>>, i32, i32) {
-        let (rows, cols, ix0, iy0, data) = self.inner.grid().to_dense();
-        (Array2::from_shape_vec((rows, cols), data).unwrap().into_pyarray(py), ix0, iy0)
+    fn to_dense<'py>(&self, py: Python<'py>) -> PyResult<(Bound<'py, PyArray2<f32>>, i32, i32)> {
+        crate::dense(py, self.inner.grid())
     }
 
     /// Search a scan in the finished submap within ± `linear_window` (m) in x and y and

@@ -277,7 +277,7 @@ impl Scene {
                 material: b.material,
             });
         }
-        let grid = build_grid(&wall_geoms, &block_geoms, cell);
+        let grid = build_grid(&wall_geoms, &block_geoms, cell)?;
         Ok(Scene {
             walls: wall_geoms,
             blocks: block_geoms,
@@ -519,7 +519,8 @@ fn segment_touches_box(a: [f64; 2], b: [f64; 2], lo: [f64; 2], hi: [f64; 2]) -> 
 /// Bin every primitive into the cells its footprint touches. Cells are padded by a tiny slack so
 /// a wall that runs exactly along a cell boundary is listed on both sides, and the grid keeps an
 /// empty margin of one cell around all geometry.
-fn build_grid(walls: &[WallGeom], blocks: &[BlockGeom], cell: f64) -> PlanGrid {
+/// Fails for a plan too wide for its cells (more than MAX_PLAN_CELLS), instead of overflowing.
+fn build_grid(walls: &[WallGeom], blocks: &[BlockGeom], cell: f64) -> Result<PlanGrid, String> {
     let mut footprints: Vec<([f64; 2], [f64; 2])> = Vec::with_capacity(walls.len() + blocks.len());
     for w in walls {
         let b = [w.a[0] + w.e[0], w.a[1] + w.e[1]];
@@ -539,6 +540,15 @@ fn build_grid(walls: &[WallGeom], blocks: &[BlockGeom], cell: f64) -> PlanGrid {
                 hi[k] = hi[k].max(h[k]);
             }
         }
+    }
+    let cells = ((hi[0] - lo[0]) / cell + 3.0) * ((hi[1] - lo[1]) / cell + 3.0);
+    let far = lo.iter().chain(&hi).fold(0.0f64, |m, v| m.max(v.abs())) / cell;
+    if !(cells <= MAX_PLAN_CELLS && far < 1e9) {
+        return Err(format!(
+            "the plan spans {:.4} m × {:.4} m: too large for the renderer's {cell} m grid ({MAX_PLAN_CELLS} cells at most)",
+            hi[0] - lo[0],
+            hi[1] - lo[1]
+        ));
     }
     let ix0 = (lo[0] / cell).floor() as i32 - 1;
     let iy0 = (lo[1] / cell).floor() as i32 - 1;
@@ -576,8 +586,11 @@ fn build_grid(walls: &[WallGeom], blocks: &[BlockGeom], cell: f64) -> PlanGrid {
         items.extend(list);
         starts.push(items.len() as u32);
     }
-    PlanGrid { cell, ix0, iy0, nx, ny, starts, items }
+    Ok(PlanGrid { cell, ix0, iy0, nx, ny, starts, items })
 }
+
+/// The most cells the renderer's plan grid may have (a list each: 24 bytes, so 1.6 GB at most).
+const MAX_PLAN_CELLS: f64 = (1u64 << 26) as f64;
 
 // --- the camera side ---------------------------------------------------------------------
 

@@ -15,7 +15,7 @@ use rand::RngExt;
 use rand_distr::StandardNormal;
 
 use crate::correlative::{correlative_search, SearchWindow};
-use crate::grid::{TiledGrid, TILE};
+use crate::grid::{GridError, TiledGrid, TILE};
 use crate::motion::{compose, decompose, relative, wrap, OdometryMotion};
 use crate::sensor_model::ScanGeometry;
 
@@ -597,7 +597,8 @@ pub fn local_match(
 /// found. If that explains clearly more of the scan (a tenth of its end points more, and a
 /// higher likelihood), return the odometry pose that would have predicted it: the increment
 /// the wheels should have reported. Why: an odometry glitch is common to every particle, so one
-/// search on the best map corrects the prediction of them all.
+/// search on the best map corrects the prediction of them all. Fails when the search's raster
+/// cannot be made (correlative.rs).
 #[allow(clippy::too_many_arguments)]
 pub fn check_odometry(
     lf: &LikelihoodField,
@@ -608,10 +609,10 @@ pub fn check_odometry(
     pose: [f64; 3],
     odom_prev: [f64; 3],
     odom_cur: [f64; 3],
-) -> Option<[f64; 3]> {
-    let window = m.search.as_ref()?;
+) -> Result<Option<[f64; 3]>, GridError> {
+    let Some(window) = m.search.as_ref() else { return Ok(None) };
     if pts.is_empty() {
-        return None;
+        return Ok(None);
     }
     let predicted = compose(pose, relative(odom_prev, odom_cur));
     let n = pts.len() as f64;
@@ -619,17 +620,17 @@ pub fn check_odometry(
     // Cheap first (this runs before the particles, on one core): a prediction that already puts
     // the scan on the map needs no search.
     if enough(lf.score(grid, geom.sensor_pose(predicted), pts).1) {
-        return None;
+        return Ok(None);
     }
     let (_, local_value, local_matched) = local_match(lf, m, grid, geom, pts, predicted, None);
     if enough(local_matched) {
-        return None;
+        return Ok(None);
     }
     let floor = lf.z_rand / lf.max_range;
-    let start = correlative_search(grid, lf.occupied_threshold, floor, geom, pts, predicted, window);
+    let start = correlative_search(grid, lf.occupied_threshold, floor, geom, pts, predicted, window)?;
     let (found, value, matched) = local_match(lf, m, grid, geom, pts, start, None);
     let better = matched as f64 >= local_matched as f64 + 0.1 * n && value > local_value;
-    better.then(|| compose(odom_prev, relative(pose, found)))
+    Ok(better.then(|| compose(odom_prev, relative(pose, found))))
 }
 
 pub struct Proposal {
@@ -763,7 +764,7 @@ mod tests {
         let lm = LogOddsModel { l_occ: 0.9, l_free: -0.4, l_min: -2.0, l_max: 3.5 };
         let mut g = TiledGrid::new(0.05);
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
-        integrate_scan(&mut g, &lm, &geom, [x0, y0, 0.0], &ranges, 20.0, false);
+        integrate_scan(&mut g, &lm, &geom, [x0, y0, 0.0], &ranges, 20.0, false).unwrap();
         (g, angles, ranges)
     }
 

@@ -2,7 +2,7 @@
 //! Thrun, Burgard & Fox, Probabilistic Robotics, section 6.3) and the inverse sensor model that
 //! writes a scan into a log-odds grid (paper eq. 8).
 
-use crate::grid::{LogOddsModel, TiledGrid};
+use crate::grid::{GridError, LogOddsModel, TiledGrid, TILE};
 use crate::raycast::traverse;
 
 /// Beam model mixture: weights of the hit / short / max / random parts and their parameters.
@@ -129,10 +129,15 @@ impl BeamModel {
     }
 }
 
+/// The most tiles one scan may write: 2^22 tiles are 7.5 GB. At the finest resolution the
+/// configuration allows (1 mm), a scan of 1081 beams of 30 m writes at most 2.9 million.
+pub const MAX_SCAN_TILES: f64 = (1u64 << 22) as f64;
+
 /// Write a scan into a grid with the inverse sensor model: every cell a beam passes through
 /// gets l_free, the cell holding its end point l_occ; log-odds are clamped to [l_min, l_max].
 /// Beams longer than `max_range` (including no echo, +inf, when `clear_no_echo`) mark free
-/// space up to `max_range` and no obstacle.
+/// space up to `max_range` and no obstacle. Fails, writing nothing, when the scan reaches beyond
+/// the grid or its window cannot grow (see `TiledGrid::ensure_covers`).
 pub fn integrate_scan(
     grid: &mut TiledGrid,
     model: &LogOddsModel,
@@ -141,7 +146,7 @@ pub fn integrate_scan(
     ranges: &[f32],
     max_range: f64,
     clear_no_echo: bool,
-) {
+) -> Result<(), GridError> {
     let sp = geom.sensor_pose(robot);
     let (mut x0, mut y0, mut x1, mut y1) = (sp[0], sp[1], sp[0], sp[1]);
     let mut beams: Vec<(usize, f64, bool)> = Vec::with_capacity(ranges.len());
@@ -159,6 +164,9 @@ pub fn integrate_scan(
         }
         let a = sp[2] + geom.angles[i];
         let (ex, ey) = (sp[0] + len * a.cos(), sp[1] + len * a.sin());
+        if !(ex.is_finite() && ey.is_finite()) {
+            continue; // a bearing or pose that is not a number marks nothing
+        }
         x0 = x0.min(ex);
         y0 = y0.min(ey);
         x1 = x1.max(ex);
@@ -166,7 +174,18 @@ pub fn integrate_scan(
         beams.push((i, len, hit));
     }
     let res = grid.resolution;
-    grid.ensure_covers(x0 - res, y0 - res, x1 + res, y1 + res);
+    // A beam of length l crosses at most √2·l/T + 2 tiles of side T: bound what the scan may
+    // allocate before it allocates anything (tiles are allocated one by one, where a failure
+    // could not be caught).
+    let tile = TILE as f64 * res;
+    let tiles: f64 = beams.iter().map(|&(_, len, _)| std::f64::consts::SQRT_2 * len / tile + 2.0).sum();
+    if !(tiles <= MAX_SCAN_TILES) {
+        return Err(GridError::NoMemory {
+            what: "the tiles one scan would write",
+            bytes: (tiles.min(1e30) as u128).saturating_mul(TiledGrid::tile_bytes() as u128),
+        });
+    }
+    grid.ensure_covers(x0 - res, y0 - res, x1 + res, y1 + res)?;
     for (i, len, hit) in beams {
         let (s, c) = (sp[2] + geom.angles[i]).sin_cos();
         traverse([sp[0], sp[1]], [c, s], len, res, |ix, iy, _, t1| {
@@ -179,6 +198,7 @@ pub fn integrate_scan(
             grid.add_hit(sp[0] + len * c, sp[1] + len * s);
         }
     }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -210,10 +230,24 @@ mod tests {
     }
 
     #[test]
+    fn a_scan_that_would_write_too_many_tiles_is_refused_before_it_writes_any() {
+        // One beam of 50 km at 0.1 mm crosses 44 million tiles (77 GB): an error, not an abort,
+        // and the grid stays empty.
+        let lm = LogOddsModel { l_occ: 0.9, l_free: -0.4, l_min: -2.0, l_max: 3.5 };
+        let geom = ScanGeometry { angles: &[0.0, 0.1], sensor: [0.0; 3] };
+        let mut g = TiledGrid::new(1e-4);
+        let err = integrate_scan(&mut g, &lm, &geom, [0.0; 3], &[5.0e4, 1.0], 1e6, false).unwrap_err();
+        assert!(matches!(err, GridError::NoMemory { .. }) && err.to_string().contains("one scan"), "{err}");
+        assert_eq!(g.tiles().count(), 0);
+        integrate_scan(&mut g, &lm, &geom, [0.0; 3], &[0.5, 1.0], 1e6, false).unwrap();
+        assert!(g.tiles().count() > 0);
+    }
+
+    #[test]
     fn expected_range_finds_the_wall_and_reports_unknown() {
         let lm = LogOddsModel { l_occ: 2.0, l_free: -1.0, l_min: -5.0, l_max: 5.0 };
         let mut g = TiledGrid::new(0.1);
-        g.ensure_covers(-1.0, -1.0, 10.0, 1.0);
+        g.ensure_covers(-1.0, -1.0, 10.0, 1.0).unwrap();
         for ix in 0..30 {
             g.add(ix, 0, lm.l_free, &lm);
         }

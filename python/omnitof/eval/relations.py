@@ -226,6 +226,28 @@ def evaluate_relations(
     )
 
 
+def check_relations_match(
+    relations: Relations, timestamps: np.ndarray, *, time_tolerance: float = 1e-3
+) -> None:
+    """Check, before a run, that some relation has both ends among the scans' `timestamps`
+    (as `evaluate_relations` will need of the trajectory, which has a pose at every scan).
+
+    Raises:
+        InputError: naming the relations file, if none has.
+    """
+    _, ok1 = _match_times(timestamps, relations.t1, time_tolerance)
+    _, ok2 = _match_times(timestamps, relations.t2, time_tolerance)
+    if not (ok1 & ok2).any():
+        times = np.concatenate([relations.t1, relations.t2])
+        scans = f"{timestamps.min():.6f}..{timestamps.max():.6f} s" if len(timestamps) else "none"
+        raise InputError(
+            f"no relation has both its timestamps among the scans to be processed (within "
+            f"{time_tolerance:g} s; the relations span {times.min():.6f}..{times.max():.6f} s, the "
+            f"scans {scans}): are they the relations of this log?",
+            relations.source or None,
+        )
+
+
 def relation_errors(
     pose1: np.ndarray, pose2: np.ndarray, delta_ref: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -39,9 +39,15 @@ from typing import BinaryIO, Iterator
 
 import numpy as np
 
-from omnitof.errors import ConfigError, InputError
+from omnitof.errors import ConfigError, InputError, OmnitofWarning
 from omnitof.geometry import relative, wrap_angle
-from omnitof.types import ScanSequence, Trajectory, evenly_spaced_beams, pad_rows
+from omnitof.types import (
+    ScanSequence,
+    Trajectory,
+    drop_repeated_scans,
+    evenly_spaced_beams,
+    pad_rows,
+)
 
 __all__ = ["CarmenLog", "CarmenWarning", "old_format_angles", "read_carmen", "write_carmen"]
 
@@ -86,7 +92,7 @@ _BZIP2_MAGIC = b"BZh"
 _SNIFF_BYTES = 4096  # how much of the start is checked for binary content
 
 
-class CarmenWarning(UserWarning):
+class CarmenWarning(OmnitofWarning):
     """Something in a CARMEN log was accepted but deserves a look (see the message)."""
 
 
@@ -103,6 +109,8 @@ class CarmenLog:
             other laser, RAWLASER when the same laser also has messages with poses, ...).
         time_reversals: how many times a scan's timestamp is earlier than the one before it
             (tolerated up to `max_time_reversal`; see read_carmen).
+        repeated_scans: scans dropped because they repeat the scan before them exactly (a
+            line logged twice; see read_carmen).
     """
 
     scans: ScanSequence
@@ -111,6 +119,7 @@ class CarmenLog:
     bad_lines: int = 0
     ignored_messages: dict[str, int] = field(default_factory=dict)
     time_reversals: int = 0
+    repeated_scans: int = 0
 
 
 def read_carmen(
@@ -160,11 +169,14 @@ def read_carmen(
     `ScanSequence.max_range_rule` says which rule gave it.
 
     Time order. Scans are kept in file order with their logged timestamps (the benchmark
-    relations refer to them). Equal consecutive timestamps are accepted. A timestamp earlier than
-    the previous one by at most `max_time_reversal` seconds is accepted too, counted in
+    relations refer to them). A scan that repeats the one before it exactly (stamp, readings
+    and pose: the same line logged twice) is dropped, counted in `CarmenLog.repeated_scans`
+    and reported in a CarmenWarning (`omnitof.types.drop_repeated_scans`). A scan stamped like
+    the one before it but reading differently is kept. A timestamp earlier than the previous
+    one by at most `max_time_reversal` seconds is accepted too, counted in
     `CarmenLog.time_reversals` and reported once in a CarmenWarning: the Intel log has 631 such
     steps of up to 0.9 s while its poses run smoothly in file order, so the file order is right
-    and the stamps jitter. Such a sequence breaks ScanSequence's "strictly increasing" promise.
+    and the stamps jitter. `ScanSequence.time_order` counts both kinds.
 
     Args:
         path: the log file.
@@ -192,6 +204,14 @@ def read_carmen(
     records = _parse_scans(ctx, kind, raw.lasers[kind])
     scans = _build_sequence(ctx, kind, laser, records, raw.params, odometry, odom_lines, fov_deg)
     reversals = _check_time_order(ctx, kind, records, max_time_reversal)
+    scans = drop_repeated_scans(scans)
+    if scans.repeated_scans_dropped:
+        warnings.warn(
+            f"{ctx.path}: {scans.repeated_scans_dropped} {kind} scans repeat the scan before them "
+            "exactly (stamp, readings and pose: a line logged twice) and were dropped",
+            CarmenWarning,
+            stacklevel=2,
+        )
     return CarmenLog(
         scans=scans,
         params=params,
@@ -199,6 +219,7 @@ def read_carmen(
         bad_lines=ctx.bad_lines,
         ignored_messages=dict(sorted(raw.ignored.items())),
         time_reversals=reversals,
+        repeated_scans=scans.repeated_scans_dropped,
     )
 
 
@@ -722,8 +743,10 @@ def _repeated_top_value(readings: np.ndarray) -> tuple[float, int] | None:
 
 
 def _no_echo_to_inf(ranges: np.ndarray, max_range: float | np.ndarray) -> np.ndarray:
-    """float32 ranges with +inf where the laser saw nothing (>= max range, or <= 0)."""
-    out = ranges.astype(np.float32)
+    """float32 ranges with +inf where the laser saw nothing (>= max range, or <= 0). A reading
+    beyond float32 (3.4e38 m) becomes +inf too: no sensor measures that far."""
+    with np.errstate(over="ignore"):
+        out = ranges.astype(np.float32)
     out[(ranges >= max_range) | (ranges <= 0.0)] = np.inf
     return out
 
@@ -732,7 +755,8 @@ def _remissions(scans: list[_Scan]) -> np.ndarray | None:
     """Remissions only if every scan has one per beam (padded with 0 like its ranges)."""
     if any(s.remissions is None for s in scans):
         return None
-    return pad_rows([s.remissions for s in scans], 0.0, np.float32)
+    with np.errstate(over="ignore"):  # a remission beyond float32 becomes +inf
+        return pad_rows([s.remissions for s in scans], 0.0, np.float32)
 
 
 def _param_sensor_pose(

@@ -80,37 +80,24 @@ def write_ply(
 
 def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     """Read a PLY vertex cloud (ascii or binary_little_endian, scalar vertex properties, no
-    other elements): (points (N, 3) float64, colours (N, 3) uint8 or None)."""
+    other elements): (points (N, 3) float64, colours (N, 3) uint8 or None).
+
+    Raises:
+        InputError: naming the file (and the header line) for anything else: a file that cannot
+            be read, a header that is not ASCII or not of this shape, a body that does not hold
+            the vertices it declares, coordinates that are not finite, colours outside 0..255.
+    """
     path = Path(path)
-    data = path.read_bytes()
+    try:
+        data = path.read_bytes()
+    except OSError as err:
+        raise InputError(f"cannot read the PLY file: {err.strerror or err}", path) from None
     end = data.find(b"end_header\n")
     if not data.startswith(b"ply\n") or end < 0:
         raise InputError("not a PLY file (no 'ply' magic or 'end_header')", path)
-    fmt, count, fields = None, None, []
-    for number, line in enumerate(data[:end].decode("ascii").splitlines(), start=1):
-        words = line.split()
-        if not words or words[0] in ("ply", "comment", "obj_info"):
-            continue
-        if words[0] == "format":
-            fmt = words[1]
-            if fmt not in ("ascii", "binary_little_endian"):
-                raise InputError(f"unsupported PLY format {fmt!r}", path, number)
-        elif words[0] == "element":
-            if words[1] != "vertex" or count is not None:
-                raise InputError(
-                    f"only one 'vertex' element is supported, got {line!r}", path, number
-                )
-            count = int(words[2])
-        elif words[0] == "property":
-            if words[1] not in _PLY_TYPES or len(words) != 3:
-                raise InputError(f"unsupported PLY property {line!r}", path, number)
-            fields.append((words[2], "<" + _PLY_TYPES[words[1]]))
-        else:
-            raise InputError(f"unexpected PLY header line {line!r}", path, number)
-    names = [f[0] for f in fields]
-    if fmt is None or count is None or not {"x", "y", "z"} <= set(names):
-        raise InputError("PLY header lacks format, vertex count or x/y/z", path)
+    fmt, count, fields = _header(data[:end], path)
     body = data[end + len(b"end_header\n"):]
+    names = [f[0] for f in fields]
     dtype = np.dtype(fields)
     if fmt == "binary_little_endian":
         if len(body) < count * dtype.itemsize:
@@ -118,20 +105,73 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
         rows = np.frombuffer(body, dtype=dtype, count=count)
         table = {n: rows[n] for n in names}
     else:
-        values = np.array(body.split(), dtype=np.float64)
+        try:
+            values = np.array(body.split(), dtype=np.float64)
+        except ValueError:
+            raise InputError("the PLY body holds something that is not a number", path) from None
         if values.size != count * len(names):
             raise InputError(
                 f"PLY body has {values.size} values, expected {count}×{len(names)}", path
             )
         grid = values.reshape(count, len(names))
+        if not np.isfinite(grid).all() or not all(
+            np.array_equal(grid[:, i].astype(dtype[n]), grid[:, i]) for i, n in enumerate(names)
+            if dtype[n].kind in "iu"
+        ):
+            raise InputError("the PLY body holds a value its property's type cannot hold", path)
         # Through each property's own type, as a binary file would store it.
-        table = {n: grid[:, i].astype(dtype[n]) for i, n in enumerate(names)}
+        with np.errstate(invalid="ignore", over="ignore"):
+            table = {n: grid[:, i].astype(dtype[n]) for i, n in enumerate(names)}
     points = np.stack([table[a].astype(np.float64) for a in "xyz"], axis=1).reshape(-1, 3)
+    if not np.isfinite(points).all():
+        raise InputError("PLY vertex coordinates must be finite", path)
     colors = None
     if {"red", "green", "blue"} <= set(names):
-        colors = np.stack([table[c] for c in ("red", "green", "blue")], axis=1).astype(np.uint8)
+        rgb = np.stack([table[c] for c in ("red", "green", "blue")], axis=1)
+        if rgb.size and (not np.isfinite(rgb.astype(np.float64)).all() or rgb.min() < 0 or rgb.max() > 255):
+            raise InputError("PLY colours must lie in 0..255", path)
+        colors = rgb.astype(np.uint8)
     return points, colors
 
+
+# A PLY header line: "format <f> 1.0", "element vertex <n>", "property <type> <name>".
+_MAX_VERTICES = 2**40
+
+
+def _header(text: bytes, path: Path) -> tuple[str, int, list[tuple[str, str]]]:
+    """(format, vertex count, fields) of a PLY header; InputError naming the line."""
+    try:
+        lines = text.decode("ascii").splitlines()
+    except UnicodeDecodeError:
+        raise InputError("the PLY header is not ASCII text", path) from None
+    fmt, count, fields = None, None, []
+    for number, line in enumerate(lines, start=1):
+        words = line.split()
+        if not words or words[0] in ("ply", "comment", "obj_info"):
+            continue
+        if words[0] == "format" and len(words) == 3:
+            fmt = words[1]
+            if fmt not in ("ascii", "binary_little_endian"):
+                raise InputError(f"unsupported PLY format {fmt!r}", path, number)
+        elif words[0] == "element" and len(words) == 3:
+            if words[1] != "vertex" or count is not None:
+                raise InputError(
+                    f"only one 'vertex' element is supported, got {line!r}", path, number
+                )
+            if not (words[2].isascii() and words[2].isdigit() and int(words[2]) < _MAX_VERTICES):
+                raise InputError(f"the vertex count {words[2]!r} is not a whole number", path, number)
+            count = int(words[2])
+        elif words[0] == "property":
+            if len(words) != 3 or words[1] not in _PLY_TYPES:
+                raise InputError(f"unsupported PLY property {line!r}", path, number)
+            if words[2] in (f[0] for f in fields):
+                raise InputError(f"the property {words[2]!r} appears twice", path, number)
+            fields.append((words[2], "<" + _PLY_TYPES[words[1]]))
+        else:
+            raise InputError(f"unexpected PLY header line {line!r}", path, number)
+    if fmt is None or count is None or not {"x", "y", "z"} <= {f[0] for f in fields}:
+        raise InputError("PLY header lacks format, vertex count or x/y/z", path)
+    return fmt, count, fields
 
 
 def _points(array: np.ndarray) -> np.ndarray:

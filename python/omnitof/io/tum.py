@@ -26,38 +26,46 @@ ROW_MESSAGE = "TUM trajectory rows need 8 numbers: timestamp x y z qx qy qz qw"
 _FORMATS = ["%.6f", "%.6f", "%.6f", "%.6f", "%.9f", "%.9f", "%.9f", "%.9f"]
 
 
-def write_tum(path: str | Path, traj: Trajectory, *, sort: bool = False) -> None:
+def write_tum(path: str | Path, traj: Trajectory, *, sort: bool = False) -> int:
     """Write `traj` as a TUM trajectory file (atomically), with a '#' header naming the columns.
 
     With `sort`, rows are written in timestamp order. Some logs stamp their messages with clocks
     that step back now and then (the Intel log's scans do, 631 times); each pose keeps its own
     timestamp, so ordering the rows loses nothing and keeps the file readable by TUM tools.
 
+    A TUM file identifies a pose by its timestamp, so it holds one row per timestamp as written
+    (to the microsecond): where several poses share one (a log whose stamps repeat, see
+    `omnitof.types.drop_repeated_scans`), the last of them in the trajectory's order is
+    written, the latest estimate. Returns how many poses were left out so.
+
     Raises:
-        ValueError: if the timestamps (after sorting, with `sort`) do not strictly increase
-            (the file could not be read back).
+        ValueError: if, without `sort`, the timestamps decrease (the file could not be read
+            back).
     """
     if sort:
         order = np.argsort(traj.timestamps, kind="stable")
         traj = Trajectory(traj.timestamps[order], traj.poses[order])
     _check_increasing(traj.timestamps)
-    n = len(traj)
+    stamps = np.char.mod(_FORMATS[0], traj.timestamps)
+    last = np.append(stamps[1:] != stamps[:-1], True)  # the last row of each written stamp
+    n = int(last.sum())
     data = np.empty((n, 8))
-    data[:, 0] = traj.timestamps
-    data[:, 1:3] = traj.poses[:, :2]
+    data[:, 0] = traj.timestamps[last]
+    data[:, 1:3] = traj.poses[last, :2]
     data[:, 3] = 0.0
-    data[:, 4:8] = yaw_to_quaternion(traj.poses[:, 2])
+    data[:, 4:8] = yaw_to_quaternion(traj.poses[last, 2])
     with atomic_write(path, "w") as f:
         f.write(HEADER + "\n")
         np.savetxt(f, data, fmt=_FORMATS, delimiter=" ")
+    return len(traj) - n
 
 
 def _check_increasing(timestamps: np.ndarray) -> None:
-    bad = np.flatnonzero(np.diff(timestamps) <= 0)
+    bad = np.flatnonzero(np.diff(timestamps) < 0)
     if bad.size:
         i = int(bad[0]) + 1
         raise ValueError(
-            f"trajectory timestamps must strictly increase: pose {i} at {timestamps[i]:.6f} "
+            f"trajectory timestamps must not decrease: pose {i} at {timestamps[i]:.6f} "
             f"follows {timestamps[i - 1]:.6f}"
         )
 
@@ -101,12 +109,11 @@ def _read_lines(path: str | Path) -> list[str]:
 
 def _parse_row(text: str, path: str | Path, number: int) -> list[float]:
     row = parse_float_row(text, 8, ROW_MESSAGE, path, number)
-    if np.linalg.norm(row[4:8]) < 1e-9:
+    if max(abs(v) for v in row[4:8]) < 1e-9:
         raise InputError("the quaternion qx qy qz qw has zero length", path, number)
     return row
 
 
 def _yaw(data: np.ndarray) -> np.ndarray:
-    q = data[:, 4:8]
-    # quaternion_to_yaw assumes unit quaternions; files rounded to a few decimals are not quite.
-    return np.asarray(quaternion_to_yaw(q / np.linalg.norm(q, axis=1, keepdims=True)))
+    # quaternion_to_yaw takes quaternions of any length (files rounded to a few decimals).
+    return np.asarray(quaternion_to_yaw(data[:, 4:8]))

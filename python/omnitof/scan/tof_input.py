@@ -17,12 +17,12 @@ from typing import Any
 
 import numpy as np
 
-from omnitof.errors import InputError
+from omnitof.errors import InputError, OmnitofWarning
 from omnitof.scan.extract import ScanExtractor, ScanSettings, scans_from_frames
 from omnitof.types import ScanSequence
 
 
-class ToFInputWarning(UserWarning):
+class ToFInputWarning(OmnitofWarning):
     """Something about ToF input the user should know (e.g. no calibration file was given)."""
 
 

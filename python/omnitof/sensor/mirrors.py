@@ -154,10 +154,14 @@ class MirrorPlane:
             raise MirrorParameterError(
                 f"MirrorPlane.normal must be 3 finite numbers, got {self.normal!r}"
             )
-        length = float(np.linalg.norm(normal))
         d = float(self.d)
-        if length == 0.0 or not math.isfinite(d):
+        scale = float(np.abs(normal).max())
+        if scale == 0.0 or not math.isfinite(d):
             raise MirrorParameterError("MirrorPlane needs a non-zero normal and a finite d")
+        # The plane n·x = d is n·x/s = d/s for any s > 0: scaling by the largest component first
+        # keeps the norm of huge components from overflowing.
+        normal, d = normal / scale, d / scale
+        length = float(np.linalg.norm(normal))
         if d / length <= 0.0:
             raise MirrorParameterError(
                 f"MirrorPlane.d must be > 0 with the normal pointing away from the camera, got "

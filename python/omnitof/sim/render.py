@@ -262,31 +262,34 @@ class Renderer:
             np.concatenate([m.polygon for m in mirrors]) if mirrors else np.zeros((0, 3))
         )
         h, w, s, _ = self._directions.shape
-        return _core._Renderer(
-            walls=np.ascontiguousarray(world.quads),
-            wall_materials=np.array([index[m] for m in world.quad_materials], dtype=np.uint32),
-            boxes=np.ascontiguousarray(world.boxes),
-            box_materials=np.array([index[m] for m in world.box_materials], dtype=np.uint32),
-            materials=table,
-            floor_material=index[world.floor_material],
-            ceiling_material=index[world.ceiling_material],
-            ceiling_height=world.ceiling_height,
-            cell=settings.cell,
-            directions=np.ascontiguousarray(self._directions.reshape(-1, 3)),
-            height=h,
-            width=w,
-            sub_rays=s,
-            mirror_planes=planes,
-            mirror_vertices=np.ascontiguousarray(vertices, dtype=np.float64),
-            mirror_counts=np.array([len(m.polygon) for m in mirrors], dtype=np.uint64),
-            mirror_reflectivity=np.full(len(mirrors), settings.mirror_reflectivity),
-            robot_T_camera=np.ascontiguousarray(self.robot_T_camera),
-            f_mod=self.sensor.f_mod,
-            amplitude_at_1m=self.sensor.amplitude_at_1m,
-            max_bounces=settings.max_bounces,
-            min_gain=settings.min_gain,
-            threads=settings.threads,
-        )
+        try:
+            return _core._Renderer(
+                walls=np.ascontiguousarray(world.quads),
+                wall_materials=np.array([index[m] for m in world.quad_materials], dtype=np.uint32),
+                boxes=np.ascontiguousarray(world.boxes),
+                box_materials=np.array([index[m] for m in world.box_materials], dtype=np.uint32),
+                materials=table,
+                floor_material=index[world.floor_material],
+                ceiling_material=index[world.ceiling_material],
+                ceiling_height=world.ceiling_height,
+                cell=settings.cell,
+                directions=np.ascontiguousarray(self._directions.reshape(-1, 3)),
+                height=h,
+                width=w,
+                sub_rays=s,
+                mirror_planes=planes,
+                mirror_vertices=np.ascontiguousarray(vertices, dtype=np.float64),
+                mirror_counts=np.array([len(m.polygon) for m in mirrors], dtype=np.uint64),
+                mirror_reflectivity=np.full(len(mirrors), settings.mirror_reflectivity),
+                robot_T_camera=np.ascontiguousarray(self.robot_T_camera),
+                f_mod=self.sensor.f_mod,
+                amplitude_at_1m=self.sensor.amplitude_at_1m,
+                max_bounces=settings.max_bounces,
+                min_gain=settings.min_gain,
+                threads=settings.threads,
+            )
+        except ValueError as err:  # the core refuses a scene it cannot hold (a plan too wide)
+            raise RenderConfigError(f"world {world.name!r}: {err}") from None
 
 
 def subpixel_offsets(height: int, width: int, sub_rays: int, seed: int) -> np.ndarray:

@@ -24,21 +24,32 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from omnitof.errors import ConfigError
 
 
+# Every number has its real domain here, not only its sign: a value outside it would not
+# describe a sensor, a robot or a map (an alpha of 1e9, a 1 µm cell), and some would make the
+# core run for ever or ask for terabytes. NaN and infinity are refused everywhere
+# (allow_inf_nan). Whole numbers that the core reads as u32, usize or i32 are bounded so that
+# they fit. How much memory a configuration needs for a given log is checked before a run
+# (omnitof.slam.limits).
+MAX_LOG_ODDS = 100.0  # a probability of 1 - 4e-44: certainty, far beyond any useful clamp
+MAX_SEARCH_POSES = 1e6  # 70 times the laser180-scanmatch preset's wide search (13 671 poses)
+
+
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 class MotionConfig(_Section):
     """Odometry motion model (Probabilistic Robotics, sample_motion_model_odometry).
 
     The alphas are variances: rotation noise variance = alpha1·rot² + alpha2·trans², translation
-    noise variance = alpha3·trans² + alpha4·(rot1² + rot2²) (rot in rad, trans in m).
+    noise variance = alpha3·trans² + alpha4·(rot1² + rot2²) (rot in rad, trans in m). At most 10:
+    a noise three times the motion itself is no longer odometry.
     """
 
-    alpha1: float = Field(0.05, ge=0, description="rotation variance per squared rotation (rad²/rad²)")
-    alpha2: float = Field(0.01, ge=0, description="rotation variance per squared translation (rad²/m²)")
-    alpha3: float = Field(0.02, ge=0, description="translation variance per squared translation (m²/m²)")
-    alpha4: float = Field(0.01, ge=0, description="translation variance per squared rotation (m²/rad²)")
+    alpha1: float = Field(0.05, ge=0, le=10, description="rotation variance per squared rotation (rad²/rad²)")
+    alpha2: float = Field(0.01, ge=0, le=10, description="rotation variance per squared translation (rad²/m²)")
+    alpha3: float = Field(0.02, ge=0, le=10, description="translation variance per squared translation (m²/m²)")
+    alpha4: float = Field(0.01, ge=0, le=10, description="translation variance per squared rotation (m²/rad²)")
 
 
 class SensorModelConfig(_Section):
@@ -55,12 +66,12 @@ class SensorModelConfig(_Section):
     z_short: float = Field(0.05, ge=0, description="weight of the exponential short-reading part")
     z_max: float = Field(0.05, ge=0, description="weight of the max-reading point mass")
     z_rand: float = Field(0.1, ge=0, description="weight of the uniform random part")
-    sigma_hit: float = Field(0.1, gt=0, description="standard deviation of the hit part (m)")
-    lambda_short: float = Field(0.5, gt=0, description="rate of the short-reading part (1/m)")
+    sigma_hit: float = Field(0.1, ge=0.001, le=10, description="standard deviation of the hit part (m)")
+    lambda_short: float = Field(0.5, gt=0, le=1000, description="rate of the short-reading part (1/m)")
     max_range: float = Field(15.0, gt=0, description="largest range the model scores (m); longer readings are left out")
-    beam_stride: int = Field(2, ge=1, description="score every n-th beam")
+    beam_stride: int = Field(2, ge=1, le=100_000, description="score every n-th beam")
     effective_beams: float = Field(
-        9.0, gt=0,
+        9.0, gt=0, le=100_000,
         description="a scan's log-likelihood is the mean over its scored beams times this: the scan counts as "
         "this many independent beams, which tempers the overconfidence of treating real beams as independent",
     )
@@ -77,7 +88,7 @@ class LikelihoodFieldConfig(_Section):
     """Likelihood field: p = z_hit·N(d; 0, sigma) + z_rand/max_range for an end point at
     distance d from the nearest occupied cell, searched up to window_cells cells away."""
 
-    sigma: float = Field(0.05, gt=0, description="standard deviation of the end-point distance (m)")
+    sigma: float = Field(0.05, ge=0.001, le=10, description="standard deviation of the end-point distance (m)")
     z_hit: float = Field(0.9, ge=0, le=1, description="weight of the Gaussian part")
     z_rand: float = Field(0.1, ge=0, le=1, description="weight of the uniform part")
     window_cells: int = Field(3, ge=1, le=20, description="how far (cells) to search for the nearest obstacle")
@@ -97,14 +108,14 @@ class ScanMatcherConfig(_Section):
     likelihood field from the odometry prediction, then a Gaussian fitted to the target at the
     3×3×3 poses around the mode."""
 
-    step_xy: float = Field(0.05, gt=0, description="initial hill-climbing step in x and y (m)")
-    step_deg: float = Field(2.0, gt=0, description="initial hill-climbing step in heading (deg)")
+    step_xy: float = Field(0.05, gt=0, le=10, description="initial hill-climbing step in x and y (m)")
+    step_deg: float = Field(2.0, gt=0, le=180, description="initial hill-climbing step in heading (deg)")
     refinements: int = Field(3, ge=0, le=20, description="how often the hill-climbing steps are halved")
     gauss_newton: int = Field(
         10, ge=0, le=100, description="Gauss-Newton iterations on the likelihood field after the hill climbing"
     )
-    sample_xy: float = Field(0.01, gt=0, description="spacing in x and y of the poses the Gaussian is fitted to (m)")
-    sample_deg: float = Field(0.25, gt=0, description="spacing in heading of those poses (deg)")
+    sample_xy: float = Field(0.01, gt=0, le=10, description="spacing in x and y of the poses the Gaussian is fitted to (m)")
+    sample_deg: float = Field(0.25, gt=0, le=180, description="spacing in heading of those poses (deg)")
     odometry_prior: bool = Field(
         False,
         description="climb to the mode of likelihood × odometry prior instead of the likelihood alone: "
@@ -129,28 +140,59 @@ class ScanMatcherConfig(_Section):
         "climbing can undo; 0 = off",
     )
     search_deg: float = Field(15.0, ge=0, le=180, description="half-width of the wide search in heading (deg)")
-    search_step_xy: float = Field(0.1, gt=0, description="spacing of the wide search's poses in x and y (m)")
-    search_step_deg: float = Field(1.0, gt=0, description="spacing of the wide search's poses in heading (deg)")
+    search_step_xy: float = Field(
+        0.1, ge=0.005, le=5, description="spacing of the wide search's poses in x and y (m)"
+    )
+    search_step_deg: float = Field(
+        1.0, ge=0.05, le=180, description="spacing of the wide search's poses in heading (deg)"
+    )
     search_below: float = Field(
         0.8, ge=0, le=1,
         description="run the wide search only when fewer than this share of end points lie near an obstacle "
         "after the local match from the odometry",
     )
 
+    @model_validator(mode="after")
+    def _search_is_finite_work(self) -> "ScanMatcherConfig":
+        # Every pose of the wide search costs a raster read per end point, at every scan it runs.
+        n_xy = 2 * round(self.search_xy / self.search_step_xy) + 1
+        n_th = 2 * round(self.search_deg / self.search_step_deg) + 1
+        if self.search_xy > 0 and n_xy * n_xy * n_th > MAX_SEARCH_POSES:
+            raise ValueError(
+                f"the wide search would score {n_xy * n_xy * n_th:.3g} poses per scan (search_xy / "
+                f"search_step_xy, search_deg / search_step_deg), more than {MAX_SEARCH_POSES:.0e}: "
+                "widen the steps or narrow the window"
+            )
+        return self
+
 
 class MapConfig(_Section):
     """Log-odds occupancy grid and its inverse sensor model (paper eq. 8)."""
 
-    resolution: float = Field(0.05, gt=0, le=1, description="cell size (m)")
-    l_occ: float = Field(0.9, gt=0, description="log-odds added to the cell that holds a beam's end point")
-    l_free: float = Field(-0.4, lt=0, description="log-odds added to every cell a beam passes through")
-    l_min: float = Field(-2.0, lt=0, description="lower clamp of a cell's log-odds")
-    l_max: float = Field(3.5, gt=0, description="upper clamp of a cell's log-odds")
+    resolution: float = Field(
+        0.05, ge=0.001, le=1,
+        description="cell size (m); at least 1 mm, finer than any range sensor resolves (how much memory a "
+        "resolution needs for a log is checked before the run)",
+    )
+    l_occ: float = Field(0.9, gt=0, le=MAX_LOG_ODDS, description="log-odds added to the cell that holds a beam's end point")
+    l_free: float = Field(-0.4, lt=0, ge=-MAX_LOG_ODDS, description="log-odds added to every cell a beam passes through")
+    l_min: float = Field(-2.0, lt=0, ge=-MAX_LOG_ODDS, description="lower clamp of a cell's log-odds")
+    l_max: float = Field(3.5, gt=0, le=MAX_LOG_ODDS, description="upper clamp of a cell's log-odds")
     occupied_threshold: float = Field(
-        0.0, description="log-odds above which a cell is an obstacle for the beam model's ray casting"
+        0.0, description="log-odds above which a cell is an obstacle for the beam model's ray casting "
+        "(within [l_min, l_max): else no cell, or every cell, would ever be one)"
     )
     max_range: float = Field(20.0, gt=0, description="readings beyond this (m) clear free space only")
     clear_no_echo: bool = Field(False, description="let no-echo beams clear free space up to max_range")
+
+    @model_validator(mode="after")
+    def _threshold_within_the_clamp(self) -> "MapConfig":
+        if not self.l_min <= self.occupied_threshold < self.l_max:
+            raise ValueError(
+                f"occupied_threshold {self.occupied_threshold:g} must lie in [l_min, l_max) = "
+                f"[{self.l_min:g}, {self.l_max:g})"
+            )
+        return self
 
 
 class FilterConfig(_Section):
@@ -170,7 +212,9 @@ class FilterConfig(_Section):
     )
     angular_update_deg: float = Field(25.0, ge=0, description="... or turned this much (deg)")
     seed: int = Field(0, ge=0, lt=2**63, description="seed of every random draw; same seed, same map")
-    threads: int = Field(0, ge=0, description="worker threads; 0 uses every core (results do not depend on it)")
+    threads: int = Field(
+        0, ge=0, le=1024, description="worker threads; 0 uses every core (results do not depend on it)"
+    )
 
 
 class BackendConfig(_Section):
@@ -189,13 +233,15 @@ class BackendConfig(_Section):
 
     enabled: bool = Field(False, description="run the pose-graph back end")
     submap_length: float = Field(
-        6.0, gt=0, description="metres of trajectory per submap: long enough to hold a corner, short enough to stay straight"
+        6.0, ge=0.1, le=1000, description="metres of trajectory per submap: long enough to hold a corner, short enough to stay straight"
     )
     search_every: int = Field(3, ge=1, description="search loop closures from every n-th integrated scan")
     search_radius: float = Field(
         10.0, gt=0, description="search the submaps whose centre lies within this (m) of the scan's estimated pose"
     )
-    linear_window: float = Field(2.5, gt=0, description="half-width (m) of the search window around the estimated pose")
+    linear_window: float = Field(
+        2.5, gt=0, le=50, description="half-width (m) of the search window around the estimated pose"
+    )
     angular_window_deg: float = Field(25.0, gt=0, le=180, description="half-width (deg) of the search window's heading")
     min_score: float = Field(
         0.65, gt=0, lt=1, description="accept a match whose mean end-point occupancy probability reaches this"
@@ -217,9 +263,9 @@ class BackendConfig(_Section):
     robust_kernel: Literal["cauchy", "huber", "none"] = Field(
         "cauchy", description="M-estimator on closure edges: cauchy | huber | none"
     )
-    kernel_width: float = Field(1.0, gt=0, description="the kernel's width, in standard deviations of the closure")
+    kernel_width: float = Field(1.0, gt=0, le=1000, description="the kernel's width, in standard deviations of the closure")
     optimize_every: int = Field(
-        20, ge=1, description="optimise at most every n-th integrated scan that brought a new closure"
+        20, ge=1, description="optimise at most every n-th integrated scan, when a new closure disagrees with the estimate"
     )
     feedback_xy: float = Field(0.25, ge=0, description="feed the correction back when it moves the pose this far (m) ...")
     feedback_deg: float = Field(2.5, ge=0, description="... or turns it this much (deg)")

@@ -18,7 +18,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from omnitof import _core
+from omnitof.errors import InputError, ResourceError
 from omnitof.slam.backend import PoseGraphBackend
+from omnitof.slam.limits import check_limits
 from omnitof.slam.config import SlamConfig
 from omnitof.geometry import compose, relative
 from omnitof.types import OccupancyMap, ScanSequence, Trajectory
@@ -147,9 +149,32 @@ def run_slam(
     progress: Callable[[int], None] | None = None,
 ) -> SlamResult:
     """Run the filter over every scan of `scans`. `progress(n)` is called with the number of
-    scans processed since its last call (for a progress bar)."""
-    if len(scans) == 0:
-        raise ValueError("no scans to process")
+    scans processed since its last call (for a progress bar).
+
+    Raises:
+        InputError, ResourceError, ConfigError: scans that cannot make a map, a run that
+            cannot fit (omnitof.slam.limits.check_limits, before the filter starts), memory
+            that ran out all the same.
+    """
+    check_limits(scans, cfg)
+    try:
+        result = _run(scans, cfg, progress)
+    except MemoryError as err:  # the core's allocations fail as MemoryError, never as an abort
+        raise ResourceError(
+            f"out of memory during SLAM ({err or 'no detail'}) with filter.particles "
+            f"{cfg.filter.particles} and map.resolution {cfg.map.resolution:g} m: choose fewer "
+            "particles or a coarser resolution"
+        ) from None
+    if not result.map.known.any():
+        raise InputError(
+            "no scan left a mark in the map (no beam echoed within map.max_range "
+            f"{cfg.map.max_range:g} m, and map.clear_no_echo is off): there is nothing to map",
+            scans.source or None,
+        )
+    return result
+
+
+def _run(scans: ScanSequence, cfg: SlamConfig, progress: Callable[[int], None] | None) -> SlamResult:
     start = time.perf_counter()
     integrated = select_scans(
         scans.odometry, cfg.filter.linear_update, math.radians(cfg.filter.angular_update_deg)

@@ -50,14 +50,16 @@ def retime_odometry(scans: ScanSequence, delay: float) -> ScanSequence:
     shorter arc in theta) and held at the first and last pose beyond them.
 
     Raises:
-        ValueError: if the timestamps go backwards anywhere (the Intel log's do): time then
-            cannot tell where the robot was.
+        ValueError: if the timestamps do not increase everywhere (the Intel log's step back; a
+            stamp shared by two scans with different poses is as ambiguous): time then cannot
+            tell where the robot was.
     """
     if delay == 0.0 or len(scans) == 0:
         return scans
-    if np.any(np.diff(scans.timestamps) < 0):
+    if np.any(np.diff(scans.timestamps) <= 0):
         raise ValueError(
-            f"{scans.source or 'scans'}: timestamps go backwards, so the odometry cannot be re-timed"
+            f"{scans.source or 'scans'}: timestamps do not increase everywhere, so the odometry "
+            "cannot be re-timed"
         )
     t = scans.timestamps
     query = np.clip(t - delay, t[0], t[-1])
@@ -84,13 +86,14 @@ def estimate_scan_delay(
     difference is refined by a parabola through it and its neighbours.
 
     Raises:
-        ValueError: if the timestamps go backwards, or fewer than 20 pairs match.
+        ValueError: if the timestamps do not increase everywhere, or fewer than 20 pairs match.
     """
     from omnitof import _core
 
-    if np.any(np.diff(scans.timestamps) < 0):
+    if np.any(np.diff(scans.timestamps) <= 0):
         raise ValueError(
-            f"{scans.source or 'scans'}: timestamps go backwards, so no scan delay can be estimated"
+            f"{scans.source or 'scans'}: timestamps do not increase everywhere, so no scan delay "
+            "can be estimated"
         )
     turn = np.abs(wrap_angle(np.diff(scans.odometry[:, 2])))
     candidates = np.flatnonzero((turn >= np.radians(min_turn_deg)) & (np.diff(scans.timestamps) > 0))

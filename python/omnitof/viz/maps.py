@@ -106,6 +106,8 @@ def plot_pose_graph(
 
 
 def _draw_map(ax: Axes, occ: OccupancyMap) -> None:
+    if occ.log_odds.size == 0:
+        return  # no cell to draw: an image of zero extent would only make matplotlib warn
     # origin="lower": row 0 of the grid is the lowest y. "nearest" keeps cells crisp.
     ax.imshow(
         _at_most(map_shades(occ), MAX_DRAWN_CELLS),

@@ -27,8 +27,6 @@ from __future__ import annotations
 
 import math
 import os
-import secrets
-import shutil
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager, suppress
 from functools import lru_cache
@@ -41,8 +39,10 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from omnitof.errors import InputError, OmnitofError
+from omnitof.errors import InputError, OmnitofError, OmnitofWarning
 from omnitof.geometry import quaternion_to_yaw, yaw_to_quaternion
+from omnitof.interrupts import deferred_signals
+from omnitof.io.atomic import temporary_folder
 from omnitof.io.plain import to_plain
 from omnitof.types import Trajectory
 
@@ -84,7 +84,7 @@ class BagExistsError(OmnitofError, FileExistsError):
     """The target of a bag writer exists and `overwrite` was not given."""
 
 
-class RosbagWarning(UserWarning):
+class RosbagWarning(OmnitofWarning):
     """Data read from a bag were usable but not as expected (dropped scans, no laser pose)."""
 
 
@@ -227,6 +227,16 @@ def _opened(path: Path) -> Iterator[AnyReader]:
             "bag a folder with metadata.yaml (or a bare .mcap / .db3 file)",
             path,
         ) from None
+    # rosbags takes a ROS 2 bag's metadata.yaml as it is: a topic, type or count that is not
+    # what its field should be would only fail later, deep in our code.
+    if not all(isinstance(c.topic, str) and isinstance(c.msgtype, str)
+               and isinstance(c.msgcount, int) for c in reader.connections):  # fmt: skip
+        with suppress(Exception):
+            reader.close()
+        raise InputError(
+            "not a readable ROS bag: its metadata lists a topic, message type or message count "
+            "that is not one", path,
+        )
     try:
         yield reader
     finally:
@@ -335,7 +345,14 @@ def _read_trajectories(
             )
         previous.append(ns)
         p, q = msg.pose.pose.position, msg.pose.pose.orientation
-        yaw = float(quaternion_to_yaw(np.array([q.x, q.y, q.z, q.w])))
+        quaternion = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+        if not (np.isfinite([p.x, p.y]).all() and np.isfinite(quaternion).all() and np.any(quaternion)):
+            raise InputError(
+                f"topic {topic}: the pose stamped {_ns_to_s(ns):.9f} s is not finite (position "
+                f"{p.x}, {p.y}, orientation {q.x}, {q.y}, {q.z}, {q.w})",
+                path,
+            )
+        yaw = float(quaternion_to_yaw(quaternion))  # any length, huge components too
         poses.setdefault(topic, []).append((float(p.x), float(p.y), yaw))
         result.child_frames.setdefault(topic, _frame_name(msg.child_frame_id))
     for conn in connections:
@@ -422,35 +439,27 @@ def _fsync_dir(folder: Path) -> None:
 def _atomic_path(path: Path, overwrite: bool) -> Iterator[Path]:
     """Yield a not-yet-existing path to build a bag (file or folder) at; rename it to `path`.
 
-    The bag is built as `.<name>.<random>.tmp/<name>` beside `path` (its inner name is the final
-    one, so a ROS 2 bag's storage file is called `<name>.mcap`), synced to disk, and renamed
-    into place only if the block succeeds; otherwise the staging folder is removed and `path`
-    is left as it was.
+    The bag is built as `.<name>.<pid>-<random>.tmp/<name>` beside `path` (its inner name is the
+    final one, so a ROS 2 bag's storage file is called `<name>.mcap`; omnitof.io.atomic), synced
+    to disk, and renamed into place only if the block succeeds; otherwise the staging folder is
+    removed and `path` is left as it was. What a killed writer left is swept first.
     """
     if path.exists() and not overwrite:
         raise BagExistsError(f"{path} exists already; pass overwrite=True to replace it")
     path.parent.mkdir(parents=True, exist_ok=True)
-    while True:
-        staging = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
-        try:
-            staging.mkdir()
-            break
-        except FileExistsError:
-            continue
-    try:
+    with temporary_folder(path) as staging:
         inner = staging / path.name
         yield inner
         _fsync_tree(inner)
         old = staging / ".replaced"
-        had_old = path.exists() or path.is_symlink()
-        if had_old:
-            os.replace(path, old)
-        try:
-            os.replace(inner, path)
-        except BaseException:
+        with deferred_signals():  # the two renames happen together or not at all
+            had_old = path.exists() or path.is_symlink()
             if had_old:
-                os.replace(old, path)
-            raise
+                os.replace(path, old)
+            try:
+                os.replace(inner, path)
+            except BaseException:
+                if had_old:
+                    os.replace(old, path)
+                raise
         _fsync_dir(path.parent)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)

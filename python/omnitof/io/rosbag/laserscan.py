@@ -51,7 +51,13 @@ from omnitof.io.rosbag.common import (
     _storage_plugin,
     _to_ns,
 )
-from omnitof.types import ScanSequence, Trajectory, evenly_spaced_beams, pad_rows
+from omnitof.types import (
+    ScanSequence,
+    Trajectory,
+    drop_repeated_scans,
+    evenly_spaced_beams,
+    pad_rows,
+)
 
 __all__ = ["read_laserscan_bag", "write_laserscan_bag"]
 
@@ -78,12 +84,14 @@ def read_laserscan_bag(
     - Topics: when not given, found by type. Several candidates are ambiguous unless one is
       the conventional name ("/scan", "/odom"); the ground-truth topic is never taken for
       odometry. The error lists the candidates.
-    - Ranges: NaN, ±inf and values outside [range_min, range_max] (each message its own) become
-      +inf (no echo). Beam i is at angle_min + i·angle_increment; max_range = the largest
+    - Ranges: NaN, ±inf, values of 0 or less and values outside [range_min, range_max] (each
+      message its own) become +inf (no echo). Beam i is at angle_min + i·angle_increment; max_range = the largest
       range_max; intensities become `remissions` when every scan has one per beam. Where
       angle_min, angle_increment or the beam count change from scan to scan, the ScanSequence
       has per-scan geometry (`angles` (N, B), `beam_counts`).
-    - Time: each scan's header stamp; stamps must not decrease. The odometry (its header
+    - Time: each scan's header stamp; stamps must not decrease. A scan that repeats the one
+      before it exactly (stamp, readings, pose) is dropped with a RosbagWarning
+      (`omnitof.types.drop_repeated_scans`); one stamped alike but reading differently is kept. The odometry (its header
       stamps must not decrease either) is interpolated to each scan's stamp (linear in x, y,
       shorter arc in θ); scans outside the odometry's time span are dropped with a
       RosbagWarning.
@@ -96,8 +104,8 @@ def read_laserscan_bag(
 
     Raises:
         InputError: naming the bag and topic: not a bag, no or ambiguous topics, a range_max
-            that is not a positive number, timestamps that go backwards, no scan within the
-            odometry's span.
+            that is not a positive number, beam angles or odometry poses that are not finite,
+            timestamps that go backwards, no scan within the odometry's span.
     """
     path = Path(path)
     with _opened(path) as reader:
@@ -144,8 +152,16 @@ def read_laserscan_bag(
                     f"{range_max}; it must be a positive number",
                     path,
                 )
+            if not (math.isfinite(msg.angle_min) and math.isfinite(msg.angle_increment)):
+                raise InputError(
+                    f"topic {scan_name}: the scan at {_ns_to_s(ns):.9f} s has angle_min "
+                    f"{msg.angle_min} and angle_increment {msg.angle_increment}; both must be "
+                    "finite",
+                    path,
+                )
             with np.errstate(invalid="ignore"):
-                valid = (r >= range_min) & (r <= range_max)  # False for NaN
+                # False for NaN; a range of 0 or less is no reading, whatever range_min says.
+                valid = (r >= range_min) & (r <= range_max) & (r > 0.0)
             r[~valid] = np.inf
             stamps.append(ns)
             ranges.append(r)
@@ -200,7 +216,7 @@ def read_laserscan_bag(
     sensor_pose, flipped = _laser_pose(static, base_frame, laser_frame, path, tf_static_topic)
     if flipped:
         angles = -angles
-    return ScanSequence(
+    scans = ScanSequence(
         timestamps=t[keep],
         ranges=scan_ranges,
         angles=angles,
@@ -213,6 +229,15 @@ def read_laserscan_bag(
         beam_counts=beam_counts,
         max_range_rule=rule,
     )
+    scans = drop_repeated_scans(scans)
+    if scans.repeated_scans_dropped:
+        warnings.warn(
+            f"{path}: {scans.repeated_scans_dropped} scans on {scan_name} repeat the scan before "
+            "them exactly (stamp, readings and pose: a message recorded twice) and were dropped",
+            RosbagWarning,
+            stacklevel=2,
+        )
+    return scans
 
 
 def _read_static_transforms(
@@ -257,7 +282,10 @@ def _laser_pose(
             stacklevel=3,
         )
         return np.zeros(3), False
-    base_T_laser = np.linalg.inv(root_T_base) @ root_T_laser
+    with np.errstate(all="ignore"):
+        base_T_laser = np.linalg.inv(root_T_base) @ root_T_laser
+    if not np.isfinite(base_T_laser).all():
+        raise InputError(f"the static transform {base} → {laser} on {topic} is not finite", path)
     rotation = base_T_laser[:3, :3]
     flipped = rotation[2, 2] < 0.0  # the laser's z axis points down: its angles run clockwise
     tilt = math.acos(min(1.0, abs(rotation[2, 2])))
@@ -273,11 +301,14 @@ def _laser_pose(
 
 
 def _rotation_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
+    """The rotation of a quaternion of any length (zero: none; not finite: NaN, refused later)."""
     q = np.array([x, y, z, w], dtype=np.float64)
-    norm = np.linalg.norm(q)
-    if not norm > 0.0:
+    if not np.isfinite(q).all():
+        return np.full((3, 3), np.nan)
+    if not q.any():
         return np.eye(3)
-    x, y, z, w = q / norm
+    q /= np.abs(q).max()  # first, so that the norm of huge components does not overflow
+    x, y, z, w = q / np.linalg.norm(q)
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],

@@ -1,0 +1,253 @@
+"""What a configuration implies for a log, checked before the filter runs: whether the scans can
+make a map at all, the memory the run will need and the size of the back end's submaps. A run that cannot fit stops at once, with
+the number and the setting that decides it, instead of failing or being killed hours later.
+
+The memory estimate (`estimate_memory`) is, in bytes,
+
+    particles × (window tiles × 8 + scan tiles × tile bytes) + map cells × 30
+
+- map cells: the cells, at map.resolution, of the rectangle that holds the sensor at every scan
+  and every beam end point the map uses (ranges cut at min(map.max_range, the sensor's range);
+  no-echo beams at that length when map.clear_no_echo is on). The map a run writes covers it.
+- window tiles: the tiles (16 × 16 cells) of that rectangle. Every particle keeps a window of
+  pointers (8 bytes each) over its map's tiles (docs/conventions.md, "Memory").
+- scan tiles: the tiles the beams of one scan cross (the median over up to 32 scans spread
+  over the log). At every step each particle writes its own copy of these tiles
+  (copy-on-write), `tile bytes` (1.75 KiB) each.
+- 30 bytes per map cell: the measured peak of the dense map, its copies, the PGM and the
+  figure while the results are written (30 B per cell for a map of 8.6 million cells).
+
+It is the order of what a run needs, not a bound: on the simulated corridor loop with 1000
+particles (sim2d preset) it comes to 69 MB where the filter's peak grew by 125 MB (particles
+that were not resampled keep copies of older tiles too; copies made by resampling share
+theirs). Rule: a run whose estimate exceeds the memory available is refused, available
+meaning MemAvailable of /proc/meminfo, or less where a cgroup limits the process; where
+neither can be read (not Linux), nothing is checked.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from omnitof import _core
+from omnitof.errors import ConfigError, InputError, ResourceError
+from omnitof.geometry import compose
+from omnitof.slam.config import SlamConfig
+from omnitof.types import ScanSequence
+
+TILE_CELLS = 16  # the core's tiles are 16 × 16 cells (rust/src/grid.rs, TILE)
+POINTER_BYTES = 8  # one slot of a particle's window of tiles
+MAP_CELL_BYTES = 30  # measured, see the module notes
+SAMPLED_SCANS = 32
+_CHUNK = 2048  # scans per chunk when the extent is computed (bounds the temporary arrays)
+
+
+@dataclass(frozen=True)
+class MemoryEstimate:
+    """The memory a run will need (module notes), and its parts.
+
+    extent: (width, height) of the mapped rectangle, metres. cells: (columns, rows) at the map
+    resolution. particles_bytes: what the particles' windows and tile copies need. map_bytes:
+    what the written map needs. total: their sum.
+    """
+
+    extent: tuple[float, float]
+    cells: tuple[float, float]
+    particles_bytes: float
+    map_bytes: float
+
+    @property
+    def total(self) -> float:
+        return self.particles_bytes + self.map_bytes
+
+
+def _reach(scans: ScanSequence, cfg: SlamConfig) -> float:
+    return min(cfg.map.max_range, scans.max_range)
+
+
+def _beam_lengths(ranges: np.ndarray, mask: np.ndarray, reach: float, clear_no_echo: bool) -> np.ndarray:
+    """Length (m) of every beam as the map uses it; NaN for beams that leave no mark."""
+    r = ranges.astype(np.float64)
+    hit = mask & np.isfinite(r) & (r > 0.0)
+    used = hit | (mask & np.isposinf(r) & clear_no_echo)
+    return np.where(used, np.minimum(np.where(hit, r, reach), reach), np.nan)
+
+
+def _end_points(scans: ScanSequence, rows: slice | np.ndarray, reach: float, clear: bool):
+    """(sensor positions (n, 2), end points x, y (n, B) with NaN where a beam leaves no mark)."""
+    sensor = compose(scans.odometry[rows], scans.sensor_pose)
+    lengths = _beam_lengths(scans.ranges[rows], scans.beam_mask[rows], reach, clear)
+    angles = scans.angles[rows] if scans.per_scan_geometry else scans.angles[None, :]
+    bearing = sensor[:, 2:3] + angles
+    with np.errstate(invalid="ignore"):
+        x = sensor[:, 0:1] + lengths * np.cos(bearing)
+        y = sensor[:, 1:2] + lengths * np.sin(bearing)
+    return sensor[:, :2], x, y
+
+
+def map_extent(scans: ScanSequence, cfg: SlamConfig) -> tuple[float, float, float, float]:
+    """(xmin, ymin, xmax, ymax), metres, of the sensor at every scan and every end point the map
+    uses, in the odometry's frame.
+
+    Raises:
+        InputError: for odometry poses that are not finite.
+    """
+    if not np.isfinite(scans.odometry).all():
+        bad = int(np.flatnonzero(~np.isfinite(scans.odometry).all(axis=1))[0])
+        raise InputError(f"the odometry pose of scan {bad} is not finite", scans.source or None)
+    reach, clear = _reach(scans, cfg), cfg.map.clear_no_echo
+    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
+    for start in range(0, len(scans), _CHUNK):
+        sensor, x, y = _end_points(scans, slice(start, start + _CHUNK), reach, clear)
+        lo = np.fmin(lo, [np.nanmin(x, initial=np.inf), np.nanmin(y, initial=np.inf)])
+        lo = np.fmin(lo, sensor.min(axis=0))
+        hi = np.fmax(hi, [np.nanmax(x, initial=-np.inf), np.nanmax(y, initial=-np.inf)])
+        hi = np.fmax(hi, sensor.max(axis=0))
+    return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+
+def _scan_tiles(scans: ScanSequence, cfg: SlamConfig) -> float:
+    """Median count of distinct tiles that the beams of one scan cross, over up to
+    SAMPLED_SCANS scans spread over the log (module notes)."""
+    tile = TILE_CELLS * cfg.map.resolution
+    rows = np.unique(np.linspace(0, len(scans) - 1, min(len(scans), SAMPLED_SCANS)).round().astype(int))
+    reach = _reach(scans, cfg)
+    sensor = compose(scans.odometry[rows], scans.sensor_pose)
+    lengths = _beam_lengths(scans.ranges[rows], scans.beam_mask[rows], reach, cfg.map.clear_no_echo)
+    # Points every half tile along each beam land in every tile it crosses but a corner's.
+    steps = np.arange(0.0, reach + tile, 0.5 * tile)[:4096]
+    counts = []
+    for k, i in enumerate(rows):
+        used = np.isfinite(lengths[k])
+        bearing = sensor[k, 2] + scans.scan_angles(i)[used[: scans.beam_mask[i].sum()]]
+        t = np.minimum(steps[None, :], lengths[k, used][:, None])
+        # Tile indices relative to the sensor's tile, within ±4097 of it: one integer each.
+        x = np.floor((sensor[k, 0] + t * np.cos(bearing)[:, None]) / tile) - np.floor(sensor[k, 0] / tile)
+        y = np.floor((sensor[k, 1] + t * np.sin(bearing)[:, None]) / tile) - np.floor(sensor[k, 1] / tile)
+        counts.append(len(np.unique((x * 16384 + y).astype(np.int64))))
+    return float(np.median(counts)) if counts else 0.0
+
+
+def estimate_memory(scans: ScanSequence, cfg: SlamConfig) -> MemoryEstimate:
+    """The memory a run of `cfg` on `scans` will need (module notes)."""
+    x0, y0, x1, y1 = map_extent(scans, cfg)
+    res = cfg.map.resolution
+    width, height = max(x1 - x0, 0.0), max(y1 - y0, 0.0)
+    cols, rows = math.floor(width / res) + 1, math.floor(height / res) + 1  # floats: no overflow
+    window = math.ceil(cols / TILE_CELLS) * math.ceil(rows / TILE_CELLS) * POINTER_BYTES
+    copies = _scan_tiles(scans, cfg) * _core.ParticleFilter.tile_bytes()
+    return MemoryEstimate(
+        extent=(width, height),
+        cells=(float(cols), float(rows)),
+        particles_bytes=cfg.filter.particles * (window + copies),
+        map_bytes=float(cols) * rows * MAP_CELL_BYTES,
+    )
+
+
+def available_memory() -> int | None:
+    """Bytes this process can still have: MemAvailable of /proc/meminfo, lowered to what is left
+    below the cgroup's memory limit where there is one; None where neither can be read."""
+    found = []
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                found.append(int(line.split()[1]) * 1024)
+    except (OSError, ValueError, IndexError):
+        pass
+    for limit, usage in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                         ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
+                          "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
+        try:
+            found.append(int(Path(limit).read_text()) - int(Path(usage).read_text()))
+        except (OSError, ValueError):
+            continue
+    return min(found) if found else None
+
+
+def _size(n: float) -> str:
+    for unit, scale in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
+        if n >= scale:
+            return f"{n / scale:.3g} {unit}"
+    return f"{n / 1e3:.3g} kB"
+
+
+def check_memory(scans: ScanSequence, cfg: SlamConfig, *, available: float | None = None) -> MemoryEstimate:
+    """Refuse a run whose estimated memory exceeds what is `available` (default:
+    `available_memory()`); returns the estimate.
+
+    Raises:
+        ResourceError: naming the estimate, the memory available and the setting that decides
+            the estimate: map.resolution when the map's cells weigh more, filter.particles when
+            the particles do.
+        InputError: for odometry poses that are not finite.
+    """
+    estimate = estimate_memory(scans, cfg)
+    if available is None:
+        available = available_memory()
+    if available is None or estimate.total <= available:
+        return estimate
+    (width, height), (cols, rows) = estimate.extent, estimate.cells
+    have = f"the machine has {_size(available)} available"
+    if estimate.map_bytes >= estimate.particles_bytes:
+        raise ResourceError(
+            f"map.resolution {cfg.map.resolution:g} m: the map of {scans.source or 'these scans'} "
+            f"spans {width:.4g} m × {height:.4g} m, {cols:.3g} × {rows:.3g} cells, and the run "
+            f"would need about {_size(estimate.total)}; {have} (choose a coarser map.resolution)"
+        )
+    raise ResourceError(
+        f"filter.particles {cfg.filter.particles}: the particles' maps would need about "
+        f"{_size(estimate.particles_bytes)} (with map.resolution {cfg.map.resolution:g} m over "
+        f"{width:.4g} m × {height:.4g} m); {have} (choose fewer particles)"
+    )
+
+
+def check_submaps(scans: ScanSequence, cfg: SlamConfig) -> None:
+    """With the back end on, refuse submaps wider than the core allows: a submap holds
+    backend.submap_length metres of trajectory plus the sensor's reach on each side.
+
+    Raises:
+        ConfigError: naming backend.submap_length, map.max_range and map.resolution.
+    """
+    if not cfg.backend.enabled:
+        return
+    side = (cfg.backend.submap_length + 2.0 * _reach(scans, cfg)) / cfg.map.resolution
+    limit = _core.Submap.max_side_cells()
+    if side > limit:
+        raise ConfigError(
+            f"backend.submap_length {cfg.backend.submap_length:g} m plus twice the reach "
+            f"{_reach(scans, cfg):g} m (map.max_range or the sensor's) make submaps {side:.0f} cells "
+            f"wide at map.resolution {cfg.map.resolution:g} m; the back end allows {limit:.0f}: "
+            "lower map.max_range or backend.submap_length, or coarsen map.resolution"
+        )
+
+
+def check_mappable(scans: ScanSequence, cfg: SlamConfig) -> None:
+    """Refuse scans that cannot leave a mark in the map: none at all, or no beam with an echo
+    while map.clear_no_echo is off (the map would be empty, an image of 0 × 0 cells).
+
+    Raises:
+        InputError: naming the scans' source.
+    """
+    source = scans.source or None
+    if len(scans) == 0:
+        raise InputError("no scans to process", source)
+    if cfg.map.clear_no_echo:
+        return
+    r = scans.ranges[scans.beam_mask]
+    if not np.any(np.isfinite(r) & (r > 0)):
+        raise InputError(
+            f"no beam of the {len(scans)} scans has an echo (every range is beyond the sensor's "
+            f"{scans.max_range:g} m or missing): there is nothing to map", source
+        )
+
+
+def check_limits(scans: ScanSequence, cfg: SlamConfig, *, available: float | None = None) -> MemoryEstimate:
+    """Everything a run can be refused for before it runs: scans that cannot make a map
+    (`check_mappable`), submaps too wide (`check_submaps`), memory (`check_memory`)."""
+    check_mappable(scans, cfg)
+    check_submaps(scans, cfg)
+    return check_memory(scans, cfg, available=available)

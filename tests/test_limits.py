@@ -1,0 +1,114 @@
+"""What a configuration implies for a log, checked before a run (omnitof.slam.limits): the
+memory estimate against a measured run, refusals that name the number and the setting."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from omnitof import _core
+from omnitof.errors import ConfigError, InputError, ResourceError
+from omnitof.slam.config import load_config
+from omnitof.slam.limits import (
+    MAP_CELL_BYTES,
+    available_memory,
+    check_limits,
+    check_memory,
+    estimate_memory,
+    map_extent,
+)
+
+
+@pytest.fixture(scope="module")
+def loop(corridor_loop):
+    return corridor_loop.slice(0, 300)
+
+
+def test_extent_holds_every_end_point_and_no_more(loop):
+    cfg = load_config(preset="sim2d")
+    x0, y0, x1, y1 = map_extent(loop, cfg)
+    # Independently: every finite reading within the map's reach, at its pose.
+    reach = min(cfg.map.max_range, loop.max_range)
+    pts = []
+    for i in range(len(loop)):
+        r, a = loop.scan_ranges(i).astype(float), loop.scan_angles(i)
+        ok = np.isfinite(r)
+        th = loop.odometry[i, 2] + loop.sensor_pose[2] + a[ok]
+        sx = loop.odometry[i, 0] + np.cos(loop.odometry[i, 2]) * loop.sensor_pose[0]
+        sy = loop.odometry[i, 1] + np.sin(loop.odometry[i, 2]) * loop.sensor_pose[0]
+        rr = np.minimum(r[ok], reach)
+        pts.append(np.column_stack([sx + rr * np.cos(th), sy + rr * np.sin(th)]))
+    pts = np.concatenate(pts + [loop.odometry[:, :2]])
+    assert np.allclose([x0, y0], pts.min(axis=0), atol=0.15) and np.allclose([x1, y1], pts.max(axis=0), atol=0.15)
+
+
+def test_estimate_counts_the_map_cells_and_the_particles(loop):
+    cfg = load_config(preset="sim2d", overrides={"filter": {"particles": 10}})
+    est = estimate_memory(loop, cfg)
+    cols, rows = est.cells
+    x0, y0, x1, y1 = map_extent(loop, cfg)
+    assert cols == pytest.approx((x1 - x0) / 0.05, abs=1.5) and rows == pytest.approx((y1 - y0) / 0.05, abs=1.5)
+    assert est.map_bytes == cols * rows * MAP_CELL_BYTES
+    more = estimate_memory(loop, load_config(preset="sim2d", overrides={"filter": {"particles": 20}}))
+    assert more.particles_bytes == pytest.approx(2 * est.particles_bytes)
+    # Each particle holds at least its window of pointers and its copies of the tiles one scan
+    # writes (a scan of this loop has its end points in a few dozen tiles).
+    window = np.ceil(cols / 16) * np.ceil(rows / 16) * 8
+    per_particle = est.particles_bytes / 10
+    assert window + 10 * _core.ParticleFilter.tile_bytes() < per_particle < window + 200 * _core.ParticleFilter.tile_bytes()
+
+
+def test_a_map_that_cannot_fit_is_refused_naming_the_resolution(loop):
+    cfg = load_config(preset="sim2d", overrides={"map": {"resolution": 0.001}})
+    need = estimate_memory(loop, cfg).total
+    assert need > 1e9  # 1 mm cells over the loop: billions of bytes
+    with pytest.raises(ResourceError, match=r"map\.resolution 0\.001 m: .* cells, and the run would need about .* GB; "
+                       r"the machine has 500 MB available \(choose a coarser map\.resolution\)"):
+        check_memory(loop, cfg, available=500e6)
+    assert check_memory(loop, cfg, available=2 * need).total == need
+
+
+def test_particles_that_cannot_fit_are_refused_naming_the_particles(loop):
+    cfg = load_config(preset="sim2d", overrides={"filter": {"particles": 100_000}})
+    est = estimate_memory(loop, cfg)
+    assert est.particles_bytes > est.map_bytes
+    with pytest.raises(ResourceError, match=r"filter\.particles 100000: the particles' maps would need about .* GB"):
+        check_memory(loop, cfg, available=1e9)
+
+
+def test_available_memory_is_what_the_machine_reports():
+    found = available_memory()
+    assert found is None or 0 < found
+
+
+def test_submaps_wider_than_the_back_end_allows_are_refused(loop):
+    cfg = load_config(preset="laser180-scanmatch", overrides={"map": {"resolution": 0.001}})
+    with pytest.raises(ConfigError, match=r"backend\.submap_length 6 m plus twice the reach 8 m .* cells wide at "
+                       r"map\.resolution 0\.001 m; the back end allows 8192"):
+        check_limits(loop, cfg, available=float("inf"))
+
+
+def test_non_finite_odometry_is_refused(loop):
+    bad = loop.slice(0, 10)
+    bad.odometry[4, 1] = np.nan
+    with pytest.raises(InputError, match="odometry pose of scan 4 is not finite"):
+        check_limits(bad, load_config(preset="sim2d"))
+
+
+def test_a_log_whose_odometry_leaps_100_km_is_refused_before_slam(tmp_path, loop, capsys):
+    from omnitof.cli import main
+    from omnitof.io.carmen import write_carmen
+
+    far = loop.slice(0, 20)
+    far.odometry[10:, 0] += 1e5
+    path = tmp_path / "leap.log"
+    write_carmen(path, far)
+    config = tmp_path / "fine.yaml"
+    config.write_text("map:\n  resolution: 0.001\n")
+    out = tmp_path / "out"
+    code = main(["slam", str(path), "--out", str(out), "--config", str(config), "--preset", "sim2d", "--quiet",
+                 "--scan-delay", "0"])
+    assert code == 2 and not out.exists()
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert "map.resolution 0.001 m: the map of" in err and "1e+05 m ×" in err and "TB" in err
