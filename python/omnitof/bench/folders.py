@@ -9,31 +9,29 @@
                             holds bench.yaml alone, with its one-line error
     DIR/table.csv, table.md, aggregates.csv, figures/   the table and figures (omnitof.bench.table)
 
-A run's folder is written under a hidden name beside its place and renamed into place whole,
-so that DIR/runs never holds half a run. A run is complete when its folder is complete
+A run's folder is put in place as one unit, as `omnitof slam` puts its own
+(`omnitof.io.atomic.atomic_folder`: built under a hidden name beside its place, renamed into
+place whole), so that DIR/runs never holds half a run, and what a killed client left half-way is
+swept when that run is written again. A run is complete when its folder is complete
 (`omnitof.results.is_complete`: summary.yaml, which is written last) and carries its
 bench.yaml; an experiment run again skips complete runs and runs the others, failed ones too.
 """
 
 from __future__ import annotations
 
-import os
-import secrets
-import shutil
 from pathlib import Path
 from typing import Any
 
 import yaml
 
 from omnitof.bench.experiment import ExperimentError, RunSpec
-from omnitof.io.atomic import atomic_write
+from omnitof.io.atomic import atomic_folder, atomic_write, sweep_leftovers
 from omnitof.io.plain import to_plain
 from omnitof.results import SUMMARY, is_complete
 
 RECORD = "bench.yaml"
 RUNS = "runs"
 INPUTS = "inputs"
-_PARTIAL = ".partial"
 
 
 def run_dir(out: Path, run_id: str) -> Path:
@@ -57,11 +55,10 @@ def prepare(out: Path, experiment_text: str, runs: list[RunSpec]) -> list[RunSpe
     error: the folder belongs to another experiment, and mixing the two would go unnoticed."""
     out = Path(out)
     (out / RUNS).mkdir(parents=True, exist_ok=True)
-    for leftover in (out / RUNS).glob(f".*{_PARTIAL}"):
-        shutil.rmtree(leftover, ignore_errors=True)
     todo = []
     for run in runs:
         folder = run_dir(out, run.id)
+        sweep_leftovers(folder)  # what a client killed while putting this run in place left
         if not run_is_complete(folder):
             todo.append(run)
             continue
@@ -78,41 +75,30 @@ def prepare(out: Path, experiment_text: str, runs: list[RunSpec]) -> list[RunSpe
 
 
 def write_run(out: Path, run_id: str, files: dict[str, bytes], record: dict[str, Any]) -> Path:
-    """Put a run's folder in place: its results files, then bench.yaml, then summary.yaml,
-    under a hidden name, renamed into place whole (replacing a failed attempt's folder)."""
-    def fill(tmp: Path) -> None:
+    """Put a run's folder in place as one unit (replacing a failed attempt's): its results
+    files, then bench.yaml, then summary.yaml."""
+    final = run_dir(out, run_id)
+    with atomic_folder(final) as folder:
         for name, data in files.items():
             if name != SUMMARY:
-                (tmp / name).write_bytes(data)
-        _write_record(tmp, record)
+                (folder / name).write_bytes(data)
+        _write_record(folder, record)
         if SUMMARY in files:
-            (tmp / SUMMARY).write_bytes(files[SUMMARY])
-
-    return _replace(run_dir(out, run_id), fill)
+            (folder / SUMMARY).write_bytes(files[SUMMARY])
+    return final
 
 
 def write_failure(out: Path, run_id: str, record: dict[str, Any]) -> Path:
     """A failed run's folder: bench.yaml alone, with the error."""
-    return _replace(run_dir(out, run_id), lambda tmp: _write_record(tmp, record))
+    final = run_dir(out, run_id)
+    with atomic_folder(final) as folder:
+        _write_record(folder, record)
+    return final
 
 
 def _write_record(folder: Path, record: dict[str, Any]) -> None:
     (folder / RECORD).write_text(yaml.safe_dump(to_plain(record), sort_keys=False, allow_unicode=True),
                                  encoding="utf-8")
-
-
-def _replace(final: Path, fill) -> Path:
-    tmp = final.with_name(f".{final.name}.{secrets.token_hex(4)}{_PARTIAL}")
-    tmp.mkdir(parents=True)
-    try:
-        fill(tmp)
-        if final.exists():
-            shutil.rmtree(final)  # a failed or superseded attempt of the same run
-        os.replace(tmp, final)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return final
 
 
 def completed_folders(out: Path) -> list[Path]:
