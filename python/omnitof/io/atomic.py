@@ -269,7 +269,7 @@ def _put_in_place(staging: Path, path: Path) -> None:
         if old is not None:
             os.rename(old, path)
         raise
-    _fsync_dir(path.parent)
+    fsync_dir(path.parent)
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
 
@@ -277,10 +277,11 @@ def _put_in_place(staging: Path, path: Path) -> None:
 def _fsync_folder(folder: Path) -> None:
     """fsync the folder's entries (its files were fsync'ed as they were written)."""
     for sub in [folder, *(p for p in folder.rglob("*") if p.is_dir())]:
-        _fsync_dir(sub)
+        fsync_dir(sub)
 
 
-def _fsync_dir(folder: Path) -> None:
+def fsync_dir(folder: Path) -> None:
+    """fsync a folder's entries, where the platform allows it."""
     with suppress(OSError):  # not every platform / file system lets a folder be fsync'ed
         fd = os.open(folder, os.O_RDONLY)
         try:

@@ -42,7 +42,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from omnitof.errors import InputError, OmnitofError, OmnitofWarning
 from omnitof.geometry import quaternion_to_yaw, yaw_to_quaternion
 from omnitof.interrupts import deferred_signals
-from omnitof.io.atomic import temporary_folder
+from omnitof.io.atomic import fsync_dir, temporary_folder
 from omnitof.io.plain import to_plain
 from omnitof.types import Trajectory
 
@@ -423,16 +423,7 @@ def _fsync_tree(path: Path) -> None:
             with open(p, "rb") as handle:
                 os.fsync(handle.fileno())
     for folder in {p if p.is_dir() else p.parent for p in paths}:
-        _fsync_dir(folder)
-
-
-def _fsync_dir(folder: Path) -> None:
-    with suppress(OSError):  # not every platform / file system lets a folder be fsync'ed
-        fd = os.open(folder, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        fsync_dir(folder)
 
 
 @contextmanager
@@ -462,4 +453,4 @@ def _atomic_path(path: Path, overwrite: bool) -> Iterator[Path]:
                 if had_old:
                     os.replace(old, path)
                 raise
-        _fsync_dir(path.parent)
+        fsync_dir(path.parent)
