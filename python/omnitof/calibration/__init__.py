@@ -35,6 +35,8 @@ and robot_T_camera are the rig's YAML form (`Rig.to_dict`), read by the same cod
                                            # "value*count" tokens, left to right
     quality: {...}                         # optional: intrinsics RMS etc.
     provenance: {...}                      # optional: how and from what it was made
+    distance_correction: {...}             # optional: the systematic distance error
+                                           # (omnitof.calibration.distance); absent = none
 
 The run-length rows are the truth for `labels` (loading reproduces them exactly); polygons are
 kept so that a person can edit them and redraw the rows with `omnitof calibrate masks`.
@@ -55,6 +57,7 @@ import yaml
 from omnitof.errors import InputError
 from omnitof.io.atomic import atomic_write
 from omnitof.io.plain import to_plain
+from omnitof.calibration.distance import DistanceCorrection, DistanceCorrectionError
 from omnitof.sensor.camera import Camera
 from omnitof.sensor.mirrors import MirrorParameterError, MirrorPlane
 from omnitof.sensor.rig import Rig, RigError, camera_to_dict
@@ -90,6 +93,8 @@ class Calibration:
         quality: free-form numbers from the calibration runs (RMS reprojection error, per
             mirror epipole residuals, ...), stored as they are.
         provenance: free-form description of how the calibration was made.
+        distance_correction: the systematic distance error to remove from every reading
+            (`calibration.distance.DistanceCorrection`), or None.
     """
 
     rig: Rig
@@ -98,6 +103,7 @@ class Calibration:
     edge_margin_px: float = 2.0
     quality: dict[str, Any] = field(default_factory=dict)
     provenance: dict[str, Any] = field(default_factory=dict)
+    distance_correction: DistanceCorrection | None = None
 
     def __post_init__(self) -> None:
         labels = np.asarray(self.labels)
@@ -185,7 +191,7 @@ class Calibration:
     def with_rig(self, rig: Rig) -> Calibration:
         """The same masks and records with another rig (e.g. a refined one)."""
         return Calibration(rig, self.labels, dict(self.polygons), self.edge_margin_px,
-                           dict(self.quality), dict(self.provenance))
+                           dict(self.quality), dict(self.provenance), self.distance_correction)
 
 
 # --- run-length rows -----------------------------------------------------------------------
@@ -263,7 +269,7 @@ def calibration_to_dict(cal: Calibration) -> dict[str, Any]:
     quality = {
         k: v for k, v in cal.quality.items() if not (k == "mirrors" and isinstance(v, Mapping))
     }
-    return {
+    out = {
         "omnitof_calibration": FORMAT_VERSION,
         "camera": camera_to_dict(cam),
         "robot_T_camera": _floats(cal.robot_T_camera),
@@ -272,6 +278,9 @@ def calibration_to_dict(cal: Calibration) -> dict[str, Any]:
         "quality": to_plain(quality),
         "provenance": to_plain(cal.provenance),
     }
+    if cal.distance_correction is not None:
+        out["distance_correction"] = cal.distance_correction.to_dict()
+    return out
 
 
 def save_calibration(cal: Calibration, path: str | Path) -> Path:
@@ -350,6 +359,12 @@ def calibration_from_dict(data: Any, path: str | Path = "<calibration>") -> Cali
             f"[{labels.min()}, {labels.max()}]",
             path,
         )
+    correction = None
+    if data.get("distance_correction") is not None:
+        try:
+            correction = DistanceCorrection.from_dict(data["distance_correction"], camera.shape, path)
+        except DistanceCorrectionError as err:
+            raise CalibrationError(err.reason, path) from None
     quality = dict(data.get("quality") or {})
     if mirror_quality:
         quality["mirrors"] = mirror_quality
@@ -361,6 +376,7 @@ def calibration_from_dict(data: Any, path: str | Path = "<calibration>") -> Cali
             edge_margin_px=margin,
             quality=quality,
             provenance=dict(data.get("provenance") or {}),
+            distance_correction=correction,
         )
     except CalibrationError as err:
         raise CalibrationError(err.reason, path) from None

@@ -158,6 +158,23 @@ class DotTarget:
         return np.where(d2 <= self.radius**2, BLACK, WHITE)
 
 
+@dataclass(frozen=True)
+class PlainBoard:
+    """A plain white board of width × height metres centred on the target frame's origin:
+    seen through two neighbouring mirrors at once, its path lengths tie the two mirrors together
+    (`calibration.refine`). Any flat, matte board does (a wall panel, the back of a checkerboard)."""
+
+    width: float = 1.2
+    height: float = 0.8
+    reflectance: float = WHITE
+
+    def extent(self) -> tuple[float, float, float, float]:
+        return (-self.width / 2, self.width / 2, -self.height / 2, self.height / 2)
+
+    def albedo(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.full(np.shape(x), self.reflectance)
+
+
 @dataclass
 class RenderedImage:
     """One simulated calibration image.
@@ -175,7 +192,7 @@ class RenderedImage:
 
 def render_target(
     camera: Camera,
-    target: Checkerboard | DotTarget,
+    target: Checkerboard | DotTarget | PlainBoard,
     camera_T_target: np.ndarray,
     mirrors: Sequence[Mirror] = (),
     *,
@@ -283,7 +300,7 @@ def _scene(camera: Camera, mirrors: tuple[Mirror, ...], room: Room, sub_rays: in
 
 
 def _card_hits(
-    target: Checkerboard | DotTarget, pose: np.ndarray, origins: np.ndarray, dirs: np.ndarray
+    target: Checkerboard | DotTarget | PlainBoard, pose: np.ndarray, origins: np.ndarray, dirs: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(t, albedo, |cos incidence|) of rays meeting the card; t = inf where they miss."""
     rotation, centre = pose[:3, :3], pose[:3, 3]
@@ -456,6 +473,67 @@ def dot_target_poses(
     return poses
 
 
+# Two-mirror boards: the board's middle this far (metres) from the mirrors, along the direction
+# the two mirrors' adjacent edges look; at least this many of a 24 × 18 grid of its points must
+# be seen through each of the two mirrors.
+PAIR_DISTANCE = (0.4, 0.8)
+PAIR_MIN_POINTS = 30
+
+
+def adjacent_pairs(mirrors: Sequence[Mirror]) -> list[tuple[int, int]]:
+    """Neighbouring mirrors (a, b) of a pyramid: each mirror and the next one around it."""
+    n = len(mirrors)
+    return [(k, (k + 1) % n) for k in range(n)] if n > 2 else ([(0, 1)] if n == 2 else [])
+
+
+def pair_board_poses(
+    camera: Camera, mirrors: Sequence[Mirror], a: int, b: int, board: PlainBoard, n: int, seed: int
+) -> list[np.ndarray]:
+    """n poses of a plain board seen through mirrors a and b at once: out along the direction
+    where the two mirrors' image regions meet, PAIR_DISTANCE away, facing back with a random tilt
+    of up to 25° and a random turn about its normal."""
+    from omnitof.sensor.mirrors import viewing_rays
+
+    rng = np.random.default_rng(seed)
+    labels = assign_pixels(camera, mirrors)
+    rays = viewing_rays(camera, mirrors, labels)
+    # The two mirrors' views do not meet (the default pyramid leaves ~24° blind between them):
+    # the board spans the gap, its middle between where the two seams' rays reach.
+    side_a = (labels == a) & (distance_transform_edt(labels != b) <= 6)
+    side_b = (labels == b) & (distance_transform_edt(labels != a) <= 6)
+    if not (side_a.any() and side_b.any()):
+        raise ValueError(f"mirrors {mirrors[a].name!r} and {mirrors[b].name!r} are not neighbours in the image")
+    x0, x1, y0, y1 = board.extent()
+    gx, gy = np.meshgrid(np.linspace(x0, x1, 24), np.linspace(y0, y1, 18))
+    grid = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1)
+    poses: list[np.ndarray] = []
+    for _ in range(400 * n):
+        if len(poses) == n:
+            break
+        i = rng.integers(int(side_a.sum()))
+        j = rng.integers(int(side_b.sum()))
+        reach = rng.uniform(*PAIR_DISTANCE)
+        ends = [rays.origins[side][k] + reach * rays.directions[side][k] for side, k in ((side_a, i), (side_b, j))]
+        centre = 0.5 * (ends[0] + ends[1])
+        out = rays.directions[side_a][i] + rays.directions[side_b][j]
+        facing = _random_rotation(rng, math.radians(15.0)) @ (-out / np.linalg.norm(out))
+        pose = look_at_pose(centre, facing, rng.uniform(-math.pi, math.pi))
+        points = grid @ pose[:3, :3].T + pose[:3, 3]
+        counts = []
+        for k in (a, b):
+            px = project_via(camera, mirrors[k], points)
+            ok = _inside_image(camera, px, 2.0)
+            rows = np.round(px[ok, 1]).astype(int)
+            cols = np.round(px[ok, 0]).astype(int)
+            counts.append(int(np.sum(labels[rows, cols] == k)))
+        if min(counts) >= PAIR_MIN_POINTS:
+            poses.append(pose)
+    if len(poses) < n:
+        raise ValueError(f"found only {len(poses)} of {n} board poses seen through mirrors "
+                         f"{mirrors[a].name!r} and {mirrors[b].name!r}")
+    return poses
+
+
 def _inside_image(camera: Camera, pixels: np.ndarray, margin_px: float) -> np.ndarray:
     h, w = camera.shape
     with np.errstate(invalid="ignore"):
@@ -569,6 +647,30 @@ def render_dot_images(
                                      rng=np.random.default_rng([seed, k, i]), sensor=sensor, room=room)
             images.append(AmplitudeImage(f"{mirror.name}_{i:02d}", frame.amplitude, frame.distance))
             truth.append((k, pose))
+    return images, truth
+
+
+def render_pair_images(
+    camera: Camera,
+    mirrors: Sequence[Mirror],
+    per_pair: int,
+    seed: int,
+    *,
+    board: PlainBoard = PlainBoard(),
+    sensor: SensorNoise | None = None,
+    room: Room = Room(),
+) -> tuple[list, list[tuple[tuple[int, int], np.ndarray]]]:
+    """`per_pair` images of a plain board seen through each two neighbouring mirrors (named
+    pair_<a>-<b>_00, ...), noisy, and their ((a, b), true pose)."""
+    images, truth = [], []
+    for a, b in adjacent_pairs(mirrors):
+        poses = pair_board_poses(camera, mirrors, a, b, board, per_pair, seed * 1000 + 100 + a)
+        for i, pose in enumerate(poses):
+            frame, _ = render_target(camera, board, pose, mirrors,
+                                     rng=np.random.default_rng([seed, 100 + a, i]), sensor=sensor, room=room)
+            name = f"pair_{mirrors[a].name}-{mirrors[b].name}_{i:02d}"
+            images.append(AmplitudeImage(name, frame.amplitude, frame.distance))
+            truth.append(((a, b), pose))
     return images, truth
 
 

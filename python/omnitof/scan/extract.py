@@ -206,9 +206,13 @@ class ScanExtractor:
         robot_T_camera: np.ndarray,
         *,
         settings: ScanSettings | None = None,
+        distance_correction: Any = None,
         **overrides: Any,
     ) -> None:
         self.camera = camera
+        # The calibration's systematic distance error (calibration.distance), removed from
+        # every frame before anything else; None: distances used as the camera reports them.
+        self.distance_correction = distance_correction
         self.settings = scan_settings(settings, **overrides)
         self.planes = [p.plane if isinstance(p, Mirror) else p for p in planes]
         labels = np.asarray(labels)
@@ -233,7 +237,8 @@ class ScanExtractor:
     @classmethod
     def from_calibration(cls, cal: Any, **settings: Any) -> ScanExtractor:
         """From a calibration with attributes .camera, .planes, .labels, .robot_T_camera."""
-        return cls(cal.camera, cal.planes, cal.labels, cal.robot_T_camera, **settings)
+        return cls(cal.camera, cal.planes, cal.labels, cal.robot_T_camera,
+                   distance_correction=getattr(cal, "distance_correction", None), **settings)
 
     @classmethod
     def from_rig(cls, rig: Rig | None = None, *, edge_margin_px: float = 2.0, **settings: Any) -> ScanExtractor:
@@ -412,6 +417,8 @@ class ScanExtractor:
             raise ScanInputError(f"distances {d.shape} and amplitudes {a.shape} must have one shape")
         if single:
             d, a = d[None], a[None]
+        if self.distance_correction is not None:
+            d = self.distance_correction.correct(d, a)
         return d, a
 
     def _points(

@@ -1,0 +1,268 @@
+"""Distance calibration: the systematic error of the ToF distances, estimated and removed.
+
+A continuous-wave ToF camera's distance has errors that repeat from frame to frame (Lindner &
+Kolb 2006, Fuchs & May 2008):
+
+- the "wiggling" error, a periodic function of the distance (the correlation function's odd
+  harmonics; with four phase samples, period a quarter of the unambiguous range);
+- an amplitude-dependent error (dark or far surfaces read farther or nearer);
+- a per-pixel fixed-pattern offset (the pixel's own delay).
+
+`DistanceCorrection` models the error as the sum of the three,
+
+    error(d, a, p) = w(d) + g(log a) + o[p],
+
+w and g cubic B-splines (Lindner & Kolb's choice for the wiggling curve), o a table with one
+offset per pixel, and corrects a reading by subtracting it: d' = d − error(d, a, p). The fit is
+one sparse linear least-squares problem (`fit`) over samples (measured distance, true distance,
+amplitude, pixel), e.g. the pixels of boards whose poses the refinement found, or of a flat wall
+driven past. The three parts share a constant: g is pinned to zero at the median amplitude and o
+to mean zero over the pixels that have samples. Outside the fitted ranges of distance and
+amplitude the curves are held at their end values.
+
+The correction is stored in the calibration YAML under `distance_correction`; a file without it
+loads with none (the identity).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.interpolate import BSpline
+from scipy.sparse import coo_matrix, csr_matrix, hstack, vstack
+from scipy.sparse.linalg import spsolve
+
+from omnitof.errors import InputError
+
+DEGREE = 3
+# Knot spacing of the wiggling curve (metres): a quarter of the SR4000's 5 m unambiguous range
+# is 1.25 m, so 0.125 m gives ten knots per period.
+DISTANCE_KNOT_SPACING = 0.125
+# Interior knots of the amplitude curve over the range of log amplitude.
+AMPLITUDE_KNOTS = 6
+# Ridge weight that keeps the per-pixel offsets of pixels with few samples near zero (metres of
+# error per metre of offset, relative to one sample).
+PIXEL_RIDGE = 0.05
+
+
+class DistanceCorrectionError(InputError):
+    """A distance correction that cannot be fitted or read; the message names the field."""
+
+
+def _clamped_knots(lo: float, hi: float, count: int) -> np.ndarray:
+    inner = np.linspace(lo, hi, max(2, count))
+    return np.concatenate([[lo] * DEGREE, inner, [hi] * DEGREE])
+
+
+def _design(knots: np.ndarray, x: np.ndarray) -> csr_matrix:
+    """B-spline basis (N, n_coefficients) at x, held at the end values outside the knots."""
+    lo, hi = knots[DEGREE], knots[-DEGREE - 1]
+    xc = np.clip(x, lo, hi - 1e-12 * max(1.0, abs(hi)))
+    return BSpline.design_matrix(xc, knots, DEGREE).tocsr()
+
+
+@dataclass
+class DistanceCorrection:
+    """error(d, a, p) = w(d) + g(log a) + o[p] (see the module docstring).
+
+    distance_knots / distance_coefficients: w, a cubic B-spline in metres of measured distance.
+    amplitude_knots / amplitude_coefficients: g, a cubic B-spline in log amplitude.
+    pixel_offsets: (H, W) metres, or None (no per-pixel term).
+    samples, rms_before, rms_after: how it was fitted (metres).
+    """
+
+    distance_knots: np.ndarray
+    distance_coefficients: np.ndarray
+    amplitude_knots: np.ndarray
+    amplitude_coefficients: np.ndarray
+    pixel_offsets: np.ndarray | None = None
+    samples: int = 0
+    rms_before: float = math.nan
+    rms_after: float = math.nan
+
+    # --- use --------------------------------------------------------------------------------
+
+    def error(self, distance: np.ndarray, amplitude: np.ndarray, pixels: np.ndarray | None = None) -> np.ndarray:
+        """The modelled error (metres) of readings; any shape, `pixels` flat indices
+        (row·W + col) of the same shape, or None when distance is a whole (H, W) image."""
+        d = np.asarray(distance, dtype=np.float64)
+        a = np.asarray(amplitude, dtype=np.float64)
+        shape = d.shape
+        flat_d, flat_a = d.ravel(), a.ravel()
+        ok = np.isfinite(flat_d) & np.isfinite(flat_a) & (flat_a > 0)
+        out = np.zeros(flat_d.shape)
+        if ok.any():
+            w = _design(self.distance_knots, flat_d[ok]) @ self.distance_coefficients
+            g = _design(self.amplitude_knots, np.log(flat_a[ok])) @ self.amplitude_coefficients
+            out[ok] = w + g
+        if self.pixel_offsets is not None:
+            offsets = self.pixel_offsets.ravel()
+            if pixels is None:
+                if d.shape != self.pixel_offsets.shape:
+                    raise DistanceCorrectionError(
+                        f"distance_correction: images are {d.shape}, the pixel offsets {self.pixel_offsets.shape}"
+                    )
+                out += offsets
+            else:
+                out += offsets[np.asarray(pixels).ravel()]
+        return out.reshape(shape)
+
+    def correct(self, distance: np.ndarray, amplitude: np.ndarray, pixels: np.ndarray | None = None) -> np.ndarray:
+        """Corrected distances d − error(d, a, p), float32 for float32 input; NaN stays NaN.
+        A stack of images (N, H, W) is corrected image by image."""
+        d = np.asarray(distance)
+        if pixels is None and self.pixel_offsets is not None and d.ndim == 3:
+            return np.stack([self.correct(di, ai) for di, ai in zip(d, np.asarray(amplitude))])
+        out = d - self.error(d, amplitude, pixels)
+        return out.astype(d.dtype if np.issubdtype(d.dtype, np.floating) else np.float64)
+
+    # --- fit --------------------------------------------------------------------------------
+
+    @classmethod
+    def fit(
+        cls,
+        measured: np.ndarray,
+        true: np.ndarray,
+        amplitude: np.ndarray,
+        pixels: np.ndarray | None = None,
+        shape: tuple[int, int] | None = None,
+        *,
+        knot_spacing: float = DISTANCE_KNOT_SPACING,
+    ) -> DistanceCorrection:
+        """Fit the three terms to samples (1-D arrays of one length; pixels: flat indices into
+        an image of `shape`, or None for no per-pixel term). Robust: samples off by more than
+        5 robust σ after a first fit (mixed pixels, wrong targets) are dropped and it is refitted."""
+        m = np.asarray(measured, dtype=np.float64).ravel()
+        t = np.asarray(true, dtype=np.float64).ravel()
+        a = np.asarray(amplitude, dtype=np.float64).ravel()
+        ok = np.isfinite(m) & np.isfinite(t) & np.isfinite(a) & (a > 0)
+        if pixels is not None:
+            p = np.asarray(pixels).ravel().astype(np.int64)
+            if shape is None:
+                raise DistanceCorrectionError("distance_correction: pixel indices need the image shape")
+        else:
+            p = np.zeros(len(m), dtype=np.int64)
+        m, t, a, p = m[ok], t[ok], a[ok], p[ok]
+        if len(m) < 50:
+            raise DistanceCorrectionError(f"distance_correction: {len(m)} usable samples, need at least 50")
+        lo, hi = float(np.min(m)), float(np.max(m))
+        n_knots = max(2, int(math.ceil((hi - lo) / knot_spacing)) + 1)
+        dk = _clamped_knots(lo, hi, n_knots)
+        la = np.log(a)
+        ak = _clamped_knots(float(la.min()), float(la.max()), AMPLITUDE_KNOTS)
+        keep = np.ones(len(m), dtype=bool)
+        for _ in range(2):
+            coef = _solve(m[keep], t[keep], la[keep], p[keep], dk, ak, pixels is not None, shape)
+            model = cls(dk, coef[0], ak, coef[1], coef[2], int(keep.sum()))
+            residual = (m - model.error(m, a, p if pixels is not None else None)) - t
+            sigma = 1.4826 * float(np.median(np.abs(residual[keep] - np.median(residual[keep]))))
+            keep = np.abs(residual - np.median(residual[keep])) < max(5.0 * sigma, 1e-4)
+        model.samples = int(keep.sum())
+        model.rms_before = float(np.sqrt(np.mean((m[keep] - t[keep]) ** 2)))
+        model.rms_after = float(np.sqrt(np.mean(residual[keep] ** 2)))
+        return model
+
+    # --- YAML -------------------------------------------------------------------------------
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "model": "bspline",
+            "degree": DEGREE,
+            "distance_knots": [float(v) for v in self.distance_knots],
+            "distance_coefficients": [float(v) for v in self.distance_coefficients],
+            "log_amplitude_knots": [float(v) for v in self.amplitude_knots],
+            "amplitude_coefficients": [float(v) for v in self.amplitude_coefficients],
+            "samples": int(self.samples),
+            "rms_before_mm": round(1000.0 * self.rms_before, 3) if math.isfinite(self.rms_before) else None,
+            "rms_after_mm": round(1000.0 * self.rms_after, 3) if math.isfinite(self.rms_after) else None,
+        }
+        if self.pixel_offsets is not None:
+            # Rows of per-pixel offsets in millimetres, to 1 µm.
+            out["pixel_offsets_mm"] = [[round(1000.0 * v, 3) for v in row] for row in self.pixel_offsets]
+        return out
+
+    @classmethod
+    def from_dict(cls, data: Any, shape: tuple[int, int], source: Any = None) -> DistanceCorrection:
+        where = "distance_correction"
+        if not isinstance(data, Mapping):
+            raise DistanceCorrectionError(f"{where}: expected a mapping", source)
+        if data.get("model", "bspline") != "bspline" or int(data.get("degree", DEGREE)) != DEGREE:
+            raise DistanceCorrectionError(f"{where}: only the cubic B-spline model is known", source)
+
+        def numbers(key: str) -> np.ndarray:
+            try:
+                arr = np.asarray(data[key], dtype=np.float64)
+            except KeyError:
+                raise DistanceCorrectionError(f"{where}.{key}: missing", source) from None
+            except (TypeError, ValueError):
+                raise DistanceCorrectionError(f"{where}.{key}: expected a list of numbers", source) from None
+            if arr.ndim != 1 or not np.all(np.isfinite(arr)):
+                raise DistanceCorrectionError(f"{where}.{key}: expected a list of finite numbers", source)
+            return arr
+
+        dk, dc = numbers("distance_knots"), numbers("distance_coefficients")
+        ak, ac = numbers("log_amplitude_knots"), numbers("amplitude_coefficients")
+        for knots, coef, name in ((dk, dc, "distance"), (ak, ac, "amplitude")):
+            if len(knots) != len(coef) + DEGREE + 1 or np.any(np.diff(knots) < 0):
+                raise DistanceCorrectionError(
+                    f"{where}: {name} knots ({len(knots)}) must be sorted and number the coefficients "
+                    f"({len(coef)}) + {DEGREE + 1}", source)
+        offsets = None
+        if data.get("pixel_offsets_mm") is not None:
+            try:
+                offsets = np.asarray(data["pixel_offsets_mm"], dtype=np.float64) / 1000.0
+            except (TypeError, ValueError):
+                raise DistanceCorrectionError(f"{where}.pixel_offsets_mm: expected rows of numbers", source) from None
+            if offsets.shape != tuple(shape) or not np.all(np.isfinite(offsets)):
+                raise DistanceCorrectionError(
+                    f"{where}.pixel_offsets_mm: expected {shape[0]} rows of {shape[1]} finite numbers", source)
+        def number(key: str) -> float:
+            value = data.get(key)
+            return float(value) / 1000.0 if isinstance(value, (int, float)) else math.nan
+
+        return cls(dk, dc, ak, ac, offsets, int(data.get("samples") or 0), number("rms_before_mm"),
+                   number("rms_after_mm"))
+
+
+def _solve(m, t, la, p, dk, ak, per_pixel: bool, shape):
+    """Least squares of (m − t) = w(m) + g(la) + o[p] with g(median la) = 0 and mean o = 0."""
+    n = len(m)
+    Bd = _design(dk, m)
+    Ba = _design(ak, la)
+    blocks = [Bd, Ba]
+    n_pix = int(shape[0] * shape[1]) if per_pixel else 0
+    if per_pixel:
+        blocks.append(coo_matrix((np.ones(n), (np.arange(n), p)), shape=(n, n_pix)).tocsr())
+    A = hstack(blocks).tocsr()
+    b = m - t
+    # Constraints as heavily weighted rows, and a light ridge on the pixel offsets.
+    heavy = 10.0 * math.sqrt(n)
+    g_row = hstack([csr_matrix((1, Bd.shape[1])), _design(ak, np.array([np.median(la)])),
+                    csr_matrix((1, n_pix))]) * heavy
+    rows = [A, g_row]
+    rhs = [b, np.zeros(1)]
+    if per_pixel:
+        seen = np.bincount(p, minlength=n_pix) > 0
+        mean_row = hstack([csr_matrix((1, Bd.shape[1] + Ba.shape[1])),
+                           csr_matrix(seen.astype(float)[None, :] / max(1, seen.sum()))]) * heavy
+        ridge = hstack([csr_matrix((n_pix, Bd.shape[1] + Ba.shape[1])),
+                        _identity(n_pix) * PIXEL_RIDGE])
+        rows += [mean_row, ridge]
+        rhs += [np.zeros(1), np.zeros(n_pix)]
+    system = vstack(rows).tocsr()
+    # Normal equations: the pixel block is diagonal and couples only to the few spline
+    # coefficients (an arrow matrix), which a sparse direct solve handles at once.
+    normal = (system.T @ system).tocsc()
+    x = spsolve(normal, system.T @ np.concatenate(rhs))
+    wd = x[: Bd.shape[1]]
+    wa = x[Bd.shape[1] : Bd.shape[1] + Ba.shape[1]]
+    offsets = x[Bd.shape[1] + Ba.shape[1] :].reshape(shape) if per_pixel else None
+    return wd, wa, offsets
+
+
+def _identity(n: int) -> csr_matrix:
+    return coo_matrix((np.ones(n), (np.arange(n), np.arange(n))), shape=(n, n)).tocsr()
