@@ -182,7 +182,7 @@ class DistanceCorrection:
         }
         if self.pixel_offsets is not None:
             # Rows of per-pixel offsets in millimetres, to 1 µm.
-            out["pixel_offsets_mm"] = [[round(1000.0 * v, 3) for v in row] for row in self.pixel_offsets]
+            out["pixel_offsets_mm"] = [[round(float(v), 3) for v in row] for row in 1000.0 * self.pixel_offsets]
         return out
 
     @classmethod
