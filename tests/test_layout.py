@@ -18,7 +18,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "python" / "omnitof"
 STAGES = ["foundation", "sensor", "io", "sim", "calibration", "scan", "slam", "map3d", "eval", "viz", "runs",
           "bench", "commands"]
 FOUNDATION = {"errors", "types", "geometry", "interrupts", "_core", "_moved", "__init__", "__version__"}
-RUNS = {"demo", "results", "slam_run"}
+RUNS = {"demo", "results", "slam_run", "calibration_report"}
 COMMANDS = {"cli", "cli_calibrate"}
 TOP_LEVEL = FOUNDATION | RUNS | COMMANDS  # the stages that are modules, not folders
 DATA_FOLDERS = {"worlds", "presets", "__pycache__"}

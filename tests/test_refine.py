@@ -171,3 +171,28 @@ def test_a_two_mirror_board_counts_for_both_mirrors(rig):
     std = result.std["mirrors"]["right"]
     assert std["normal_deg"] < 1.0 and std["d_mm"] < 2.0
     assert math.degrees(math.hypot(err["a"], err["b"])) < 3.0 * std["normal_deg"]
+
+
+def test_refine_and_report_commands(tmp_path, rig):
+    """`omnitof calibrate refine` on rendered targets, then `calibrate report`: the refined file
+    carries standard deviations, the report its sections and figures."""
+    from omnitof.calibration import load_calibration
+    from omnitof.cli import main
+
+    folder = tmp_path / "targets"
+    assert main(["simulate", "calibration", "--out", str(folder), "--boards", "8", "--placements", "2",
+                 "--pair-boards", "1", "--seed", "4"]) == 0
+    cal = tmp_path / "cal.yaml"
+    assert main(["calibrate", "intrinsics", str(folder / "intrinsics"), "--out", str(cal)]) == 0
+    assert main(["calibrate", "mirrors", str(folder / "mirrors"), "--calibration", str(cal)]) == 0
+    refined = tmp_path / "refined.yaml"
+    assert main(["calibrate", "refine", str(folder), "--calibration", str(cal), "--out", str(refined)]) == 0
+    result = load_calibration(refined)
+    assert set(result.quality["refinement"]["std"]["mirrors"]) == set(result.names)
+    report = tmp_path / "report"
+    assert main(["calibrate", "report", str(refined), "--out", str(report), "--truth", str(folder / "truth.yaml")]) == 0
+    text = (report / "report.md").read_text()
+    for heading in ("## Camera", "## Mirrors", "## Residuals", "## Distance correction", "Fig. 6 check"):
+        assert heading in text
+    assert (report / "residuals.png").stat().st_size > 1000
+    assert (report / "fig6_side_view.png").stat().st_size > 1000

@@ -3,6 +3,8 @@
     omnitof calibrate render-targets --out DIR [--world W] [--seed S] [--placements N]
     omnitof calibrate intrinsics DIR/intrinsics --out cal.yaml
     omnitof calibrate mirrors DIR/mirrors --calibration cal.yaml
+    omnitof calibrate refine DIR --calibration cal.yaml [--out refined.yaml]
+    omnitof calibrate report cal.yaml --out REPORT_DIR [--truth DIR/truth.yaml]
     omnitof calibrate check cal.yaml [--truth DIR/truth.yaml] [--figure side.png]
     omnitof calibrate masks cal.yaml --export regions.yaml | --polygons regions.yaml
 
@@ -46,12 +48,35 @@ def add_calibrate_parser(sub) -> None:
     c.add_argument("--margin", type=_number(at_least=0), help="mask edge margin in pixels (default: the file's)")
     c.set_defaults(func=cmd_mirrors)
 
+    c = csub.add_parser("refine", help="refine intrinsics, mirrors and target poses jointly from all images "
+                        "(ToF path lengths, two-mirror boards)")
+    c.add_argument("folder", type=Path, help="folder with intrinsics/, mirrors/ and (optional) pairs/ images, "
+                   "as render-targets writes it")
+    c.add_argument("--calibration", type=Path, required=True,
+                   help="the closed-form calibration to start from (`calibrate intrinsics` then `mirrors`)")
+    c.add_argument("--out", type=Path, help="where to write (default: update --calibration)")
+    c.add_argument("--board", default="8x6", help="checkerboard squares across x down (default 8x6)")
+    c.add_argument("--square", type=_number(above=0), default=0.035, help="square side in metres (default 0.035)")
+    c.add_argument("--spacing", type=_number(above=0), default=0.012, help="side of the square of dots, metres")
+    c.set_defaults(func=cmd_refine)
+
+    c = csub.add_parser("report", help="write a report (Markdown + PNG) of a calibration: uncertainties, "
+                        "residuals, distance correction, the Fig. 6 check")
+    c.add_argument("calibration", type=Path)
+    c.add_argument("--out", type=Path, required=True, help="folder for report.md and its figures")
+    c.add_argument("--truth", type=Path, help="true calibration of a simulated rig (adds error columns)")
+    c.add_argument("--frame", type=Path, help="a recorded frame among equal-height objects (.npz or bag) "
+                   "for the Fig. 6 check (default: the simulated scene)")
+    c.set_defaults(func=cmd_report)
+
     c = csub.add_parser("render-targets", help="simulate checkerboard and dot-target images")
     c.add_argument("--out", type=Path, required=True, help="folder to write into")
     c.add_argument("--world", help="bundled world name or YAML: its ceiling, floor and light")
     c.add_argument("--seed", type=_seed, default=0)
     c.add_argument("--placements", type=_positive_int, default=8, help="dot-target placements per mirror")
     c.add_argument("--boards", type=_positive_int, default=15, help="checkerboard images")
+    c.add_argument("--pair-boards", type=_positive_int, default=2,
+                   help="plain boards seen through each two neighbouring mirrors (for `calibrate refine`)")
     c.set_defaults(func=cmd_render_targets)
 
     c = csub.add_parser("check", help="equal-height objects seen in every mirror (paper Fig. 6)")
@@ -168,16 +193,77 @@ def cmd_mirrors(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_refine(args: argparse.Namespace) -> int:
+    from omnitof.calibration import load_calibration, save_calibration
+    from omnitof.calibration.images import load_images
+    from omnitof.calibration.observations import refine_calibration
+    from omnitof.calibration.targets import Checkerboard, DotTarget
+
+    cal = load_calibration(args.calibration)
+    cols, rows = _board(args.board)
+    started = time.perf_counter()
+    folder = args.folder
+    boards = load_images([folder / "intrinsics"])
+    dots = load_images([folder / "mirrors"])
+    pairs = load_images([folder / "pairs"]) if (folder / "pairs").is_dir() else []
+    refined, result = refine_calibration(
+        cal, boards, dots, pairs, outside=_design_outside(cal.camera),
+        board=Checkerboard(cols=cols, rows=rows, square=args.square), target=DotTarget(spacing=args.spacing),
+    )
+    out = args.out or args.calibration
+    save_calibration(refined, out)
+    cam, sd = result.camera, result.std["camera"]
+    print(f"refined from {len(boards)} board, {len(dots)} dot-target and {len(pairs)} two-mirror images "
+          f"({time.perf_counter() - started:.1f} s, {result.iterations} iterations)")
+    print(f"  fx {cam.fx:.3f} ± {sd['fx']:.3f}  fy {cam.fy:.3f} ± {sd['fy']:.3f}  "
+          f"cx {cam.cx:.3f} ± {sd['cx']:.3f}  cy {cam.cy:.3f} ± {sd['cy']:.3f} px")
+    for name, plane in zip(result.names, result.planes):
+        s = result.std["mirrors"][name]
+        n = plane.normal
+        print(f"  mirror {name}: n = [{n[0]:+.5f} {n[1]:+.5f} {n[2]:+.5f}] ± {s['normal_deg']:.3f}°, "
+              f"d = {1000 * plane.d:.2f} ± {s['d_mm']:.2f} mm")
+    print(f"  noise: corners {result.sigma['corner_px']:.3f} px, dots {result.sigma['dot_px']:.3f} px, "
+          f"path lengths {result.sigma['path_mm']:.2f} mm")
+    for note in refined.quality["refinement"]["skipped"]:
+        print(f"  not used: {note}")
+    print(f"wrote {out}")
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from omnitof.calibration import load_calibration
+    from omnitof.calibration_report import write_report
+
+    cal = load_calibration(args.calibration)
+    truth = load_calibration(args.truth) if args.truth is not None else None
+    distance = None
+    if args.frame is not None:
+        from omnitof.calibration import CalibrationError
+        from omnitof.calibration.images import load_images
+
+        frames = load_images([args.frame])
+        if not frames or frames[0].distance is None:
+            raise CalibrationError("the check needs a distance image (.npz or a ROS bag)", args.frame)
+        distance = frames[0].distance
+    written = write_report(cal, args.out, distance=distance, truth=truth)
+    print(f"Fig. 6 check: upper edges of the mirrors within {written['fig6_spread_mm']:.1f} mm")
+    print(f"wrote {written['report']} and " + ", ".join(str(v) for k, v in written.items()
+                                                       if k not in ("report", "fig6_spread_mm")))
+    return 0
+
+
 def cmd_render_targets(args: argparse.Namespace) -> int:
     from omnitof.calibration.targets import render_calibration_images
 
     started = time.perf_counter()
     summary = render_calibration_images(
-        args.out, world=args.world, seed=args.seed, placements=args.placements, boards=args.boards
+        args.out, world=args.world, seed=args.seed, placements=args.placements, boards=args.boards,
+        pair_boards=args.pair_boards,
     )
     print(f"wrote {summary['boards']} checkerboard images to {args.out / 'intrinsics'}, "
           f"{summary['dot_images']} dot-target images ({args.placements} per mirror: "
           f"{', '.join(summary['mirrors'])}) to {args.out / 'mirrors'}, "
+          f"{summary['pair_images']} two-mirror board images to {args.out / 'pairs'}, "
           f"and the true calibration {summary['truth']} ({time.perf_counter() - started:.1f} s)")
     return 0
 

@@ -73,6 +73,8 @@ class DistanceCorrection:
     amplitude_knots / amplitude_coefficients: g, a cubic B-spline in log amplitude.
     pixel_offsets: (H, W) metres, or None (no per-pixel term).
     samples, rms_before, rms_after: how it was fitted (metres).
+    curve: the fit samples' median error per 0.1 m of distance before and after the
+        correction (`distance_m`, `before_mm`, `after_mm`), for the calibration report.
     """
 
     distance_knots: np.ndarray
@@ -83,6 +85,7 @@ class DistanceCorrection:
     samples: int = 0
     rms_before: float = math.nan
     rms_after: float = math.nan
+    curve: dict[str, list[float]] | None = None
 
     # --- use --------------------------------------------------------------------------------
 
@@ -164,6 +167,7 @@ class DistanceCorrection:
         model.samples = int(keep.sum())
         model.rms_before = float(np.sqrt(np.mean((m[keep] - t[keep]) ** 2)))
         model.rms_after = float(np.sqrt(np.mean(residual[keep] ** 2)))
+        model.curve = _binned_curve(m[keep], (m - t)[keep], residual[keep])
         return model
 
     # --- YAML -------------------------------------------------------------------------------
@@ -180,6 +184,8 @@ class DistanceCorrection:
             "rms_before_mm": round(1000.0 * self.rms_before, 3) if math.isfinite(self.rms_before) else None,
             "rms_after_mm": round(1000.0 * self.rms_after, 3) if math.isfinite(self.rms_after) else None,
         }
+        if self.curve is not None:
+            out["curve"] = {k: [round(float(v), 4) for v in vals] for k, vals in self.curve.items()}
         if self.pixel_offsets is not None:
             # Rows of per-pixel offsets in millimetres, to 1 µm.
             out["pixel_offsets_mm"] = [[round(float(v), 3) for v in row] for row in 1000.0 * self.pixel_offsets]
@@ -224,8 +230,12 @@ class DistanceCorrection:
             value = data.get(key)
             return float(value) / 1000.0 if isinstance(value, (int, float)) else math.nan
 
+        curve = data.get("curve")
+        if curve is not None and not (isinstance(curve, Mapping) and all(
+                isinstance(curve.get(k), list) for k in ("distance_m", "before_mm", "after_mm"))):
+            raise DistanceCorrectionError(f"{where}.curve: expected distance_m, before_mm, after_mm lists", source)
         return cls(dk, dc, ak, ac, offsets, int(data.get("samples") or 0), number("rms_before_mm"),
-                   number("rms_after_mm"))
+                   number("rms_after_mm"), dict(curve) if curve is not None else None)
 
 
 def _solve(m, t, la, p, dk, ak, per_pixel: bool, shape):
@@ -262,6 +272,19 @@ def _solve(m, t, la, p, dk, ak, per_pixel: bool, shape):
     wa = x[Bd.shape[1] : Bd.shape[1] + Ba.shape[1]]
     offsets = x[Bd.shape[1] + Ba.shape[1] :].reshape(shape) if per_pixel else None
     return wd, wa, offsets
+
+
+def _binned_curve(measured: np.ndarray, before: np.ndarray, after: np.ndarray) -> dict[str, list[float]]:
+    """Median error per 0.1 m bin of measured distance (bins with at least 20 samples), mm."""
+    bins = np.floor(measured / 0.1).astype(np.int64)
+    out: dict[str, list[float]] = {"distance_m": [], "before_mm": [], "after_mm": []}
+    for b in np.unique(bins):
+        sel = bins == b
+        if sel.sum() >= 20:
+            out["distance_m"].append(0.1 * b + 0.05)
+            out["before_mm"].append(1000.0 * float(np.median(before[sel])))
+            out["after_mm"].append(1000.0 * float(np.median(after[sel])))
+    return out
 
 
 def _identity(n: int) -> csr_matrix:

@@ -701,11 +701,14 @@ def render_calibration_images(
     target: DotTarget = DotTarget(),
     board: Checkerboard = Checkerboard(),
     sensor: SensorNoise | None = None,
+    pair_boards: int = 2,
 ) -> dict[str, Any]:
     """Render a calibration data set into out_dir and return a summary.
 
     Writes out_dir/intrinsics/board_XX.{png,npz} (checkerboards, no mirrors),
-    out_dir/mirrors/<mirror>_XX.{png,npz} (the dot target at every mirror), and
+    out_dir/mirrors/<mirror>_XX.{png,npz} (the dot target at every mirror),
+    out_dir/pairs/pair_<a>-<b>_XX.{png,npz} (a plain board seen through each two neighbouring
+    mirrors, `pair_boards` per pair, for the joint refinement; none if 0), and
     out_dir/truth.yaml, the true calibration (`Calibration.from_rig`) to compare with. PNGs
     hold the amplitude as 16-bit sample units; the .npz files hold `amplitude` and `distance`
     (float32, metres).
@@ -724,8 +727,12 @@ def render_calibration_images(
     (out / "mirrors").mkdir(parents=True, exist_ok=True)
     boards_images, _ = render_checkerboard_images(camera, boards, seed, board=board, sensor=sensor, room=room)
     dot_images, _ = render_dot_images(camera, mirrors, placements, seed, target=target, sensor=sensor, room=room)
+    pair_images: list = []
+    if pair_boards > 0:
+        (out / "pairs").mkdir(parents=True, exist_ok=True)
+        pair_images, _ = render_pair_images(camera, mirrors, pair_boards, seed, sensor=sensor, room=room)
     written = []
-    for folder, images in (("intrinsics", boards_images), ("mirrors", dot_images)):
+    for folder, images in (("intrinsics", boards_images), ("mirrors", dot_images), ("pairs", pair_images)):
         for image in images:
             base = out / folder / image.name
             png = np.clip(np.round(image.amplitude), 0, 65535).astype(np.uint16)
@@ -750,6 +757,7 @@ def render_calibration_images(
         "out": out,
         "boards": len(boards_images),
         "dot_images": len(dot_images),
+        "pair_images": len(pair_images),
         "mirrors": [m.name for m in mirrors],
         "truth": out / "truth.yaml",
     }
