@@ -84,9 +84,9 @@ def injected_error(seed: int, shape):
     return error
 
 
-def wall_images(rig, distances, reflectances, seed):
-    """Per (distance, reflectance, mirror): a flat wall facing the mirror's view; yields
-    (frame, true path per pixel (NaN off the wall), mask)."""
+def wall_frames(rig, distances, reflectances, seed):
+    """Per (distance, reflectance, mirror): a flat wall facing the mirror's view, rendered with
+    the sensor's noise; yields (frame, wall normal, wall c) in the camera frame."""
     from omnitof.calibration.targets import PlainBoard, look_at_pose, render_target
     from omnitof.sensor.mirrors import viewing_rays
 
@@ -105,18 +105,11 @@ def wall_images(rig, distances, reflectances, seed):
             wall = PlainBoard(width=12.0, height=6.0, reflectance=albedo)
             frame, _ = render_target(camera, wall, pose, mirrors, rng=np.random.default_rng([seed, i, k]),
                                      sensor=rig.sensor)
-            # True path: along the pixel's ray to the wall plane reflected in its mirror.
-            n, c = pose[:3, 2], float(pose[:3, 2] @ pose[:3, 3])
-            m_n, m_d = mirror.plane.normal, mirror.plane.d
-            n2 = n - 2 * (n @ m_n) * m_n
-            c2 = c - 2 * m_d * (n @ m_n)
-            r = camera.pixel_grid_rays()
-            true = c2 / (r @ n2)
-            yield frame, np.where(sel, true, np.nan), sel
+            yield frame, pose[:3, 2], float(pose[:3, 2] @ pose[:3, 3])
 
 
 def distance_table(seed: int = 0) -> None:
-    from omnitof.calibration.distance import DistanceCorrection
+    from omnitof.calibration.distance import DistanceCorrection, samples_from_plane
 
     rig = default_rig()
     shape = rig.camera.shape
@@ -125,21 +118,34 @@ def distance_table(seed: int = 0) -> None:
     test_d = fit_d[:-1] + 0.125
     refl = [0.2, 0.5, 0.85]
 
+    # The walls' true poses; the geometry is the refined calibration's (seed 0), so its errors
+    # are in the fit as they would be in practice.
+    cal, _ = calibrate_from_simulation(renderer_of(rig), seed=seed)
+    labels = rig.masks(3.0)
+
     def samples(distances, reflect):
         out = []
-        for frame, true, sel in wall_images(rig, distances, reflect, seed):
+        for frame, normal, c in wall_frames(rig, distances, reflect, seed):
             measured = frame.distance.astype(np.float64)
             measured = measured + error(measured, frame.amplitude)
-            ok = sel & np.isfinite(true) & np.isfinite(measured) & (np.abs(measured - true) < 0.15)
-            ok &= frame.amplitude > 50  # the scan extraction's rough amplitude filter
-            idx = np.flatnonzero(ok)
-            out.append((measured.ravel()[idx], true.ravel()[idx], frame.amplitude.ravel()[idx], idx))
+            amp = np.where(frame.amplitude > 50, frame.amplitude, np.nan)  # the extraction's rough filter
+            out.append(samples_from_plane(cal.camera, cal.planes, labels, measured, amp, normal, c))
         return [np.concatenate(x) for x in zip(*out)]
 
     started = time.perf_counter()
     m, t, a, p = samples(fit_d, refl)
     correction = DistanceCorrection.fit(m, t, a, p, shape)
-    mt, tt, at, pt = samples(test_d, refl[::-1])
+    # Tested against the truth: the path lengths of the true rig.
+    truth_labels = labels
+    mt, tt, at, pt = [], [], [], []
+    for frame, normal, c in wall_frames(rig, test_d, refl[::-1], seed + 1):
+        measured = frame.distance.astype(np.float64)
+        measured = measured + error(measured, frame.amplitude)
+        amp = np.where(frame.amplitude > 50, frame.amplitude, np.nan)
+        got = samples_from_plane(rig.camera, rig.planes, truth_labels, measured, amp, normal, c)
+        for lst, v in zip((mt, tt, at, pt), got):
+            lst.append(v)
+    mt, tt, at, pt = (np.concatenate(v) for v in (mt, tt, at, pt))
     before = np.abs(mt - tt)
     after = np.abs(correction.correct(mt, at, pt) - tt)
     print()

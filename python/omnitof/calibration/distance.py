@@ -289,3 +289,32 @@ def _binned_curve(measured: np.ndarray, before: np.ndarray, after: np.ndarray) -
 
 def _identity(n: int) -> csr_matrix:
     return coo_matrix((np.ones(n), (np.arange(n), np.arange(n))), shape=(n, n)).tocsr()
+
+
+def samples_from_plane(
+    camera: Any, planes: Any, labels: np.ndarray, distance: np.ndarray, amplitude: np.ndarray,
+    normal: np.ndarray, c: float, *, max_error: float = 0.15,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Samples for `DistanceCorrection.fit` from one frame of a flat surface of known pose
+    {x : normal·x = c} (camera frame; e.g. a wall the robot stands at a measured distance from,
+    or a board pose the refinement found): per labelled pixel the measured distance, the true
+    path (along the pixel's ray to the plane reflected in the pixel's mirror, eq. 6), the
+    amplitude and the flat pixel index. Pixels off the plane by more than max_error (another
+    surface, mixed pixels) are left out."""
+    rays = camera.pixel_grid_rays().reshape(-1, 3)
+    flat = np.asarray(labels).reshape(-1)
+    n = np.asarray(normal, dtype=np.float64)
+    true = np.full(flat.shape, np.nan)
+    for k, plane in enumerate(planes):
+        sel = flat == k
+        dot = float(n @ plane.normal)
+        n2 = n - 2.0 * dot * plane.normal  # the surface's plane reflected in the mirror
+        c2 = c - 2.0 * plane.d * dot
+        with np.errstate(divide="ignore", invalid="ignore"):
+            true[sel] = c2 / (rays[sel] @ n2)
+    measured = np.asarray(distance, dtype=np.float64).reshape(-1)
+    amp = np.asarray(amplitude, dtype=np.float64).reshape(-1)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(true) & (true > 0) & np.isfinite(measured) & (amp > 0) & (np.abs(measured - true) < max_error)
+    index = np.flatnonzero(ok)
+    return measured[index], true[index], amp[index], index
