@@ -222,7 +222,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from omnitof.demo import run_demo
 
     run_demo(args.out, world=args.world, seed=args.seed, preset=args.preset, particles=args.particles,
-             calibrate=not args.true_rig, max_frames=args.max_frames, progress=not args.quiet)
+             calibrate=not args.true_rig, max_frames=args.max_frames, progress=not args.quiet,
+             refine=not args.closed_form)
     return 0
 
 
@@ -394,6 +395,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="SLAM preset: tof-scanmatch (the scan-matching proposal) or tof (the paper's filter)")
     p.add_argument("--particles", type=int, default=200, help="number of particles (default 200)")
     p.add_argument("--true-rig", action="store_true", help="skip the calibration and use the true rig")
+    p.add_argument("--closed-form", action="store_true",
+                   help="keep the closed-form calibration (intrinsics, then mirrors) without the joint refinement")
     p.add_argument("--max-frames", type=_positive_int, help="stop after N frames (a quick look)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_demo)

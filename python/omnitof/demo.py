@@ -49,7 +49,9 @@ class DemoSettings:
     particles within 1.7–5.2 cm; BENCHMARKS.md, issue 13). None keeps the preset's. calibrate: estimate the rig from rendered target images
     (else use the true rig). map3d_every: frames between those fed to the 3D map (0: no 3D map);
     map3d_pixel_stride: every n-th ray of such a frame. max_frames: stop after this many frames
-    (a quick look). speed: m/s.
+    (a quick look). speed: m/s. refine: refine the estimated calibration jointly (issue 16:
+    two-mirror boards, ToF path lengths; `calibration.refine`) after the closed-form chain, as
+    the demo does by default; False keeps the closed-form estimate.
     """
 
     world: str = DEFAULT_WORLD
@@ -61,6 +63,7 @@ class DemoSettings:
     map3d_pixel_stride: int = 2
     max_frames: int | None = None
     speed: float = 0.4
+    refine: bool = True
 
 
 class _Stages:
@@ -227,7 +230,7 @@ def _calibrate(renderer: Any, settings: DemoSettings, out: Path) -> tuple[Any, d
         return truth, {"source": "true rig (no calibration run)"}
     from omnitof.calibration.simulated import calibrate_from_simulation
 
-    cal, report = calibrate_from_simulation(renderer, seed=settings.seed, truth=truth)
+    cal, report = calibrate_from_simulation(renderer, seed=settings.seed, truth=truth, refine=settings.refine)
     save_calibration(cal, out / "calibration.yaml")
     return cal, report
 
@@ -372,13 +375,13 @@ def _print_summary(summary: dict[str, Any], out: Path, echo: Callable[[str], Non
 
 def run_demo(out: str | Path, *, world: str = DEFAULT_WORLD, seed: int = 0, preset: str = DEFAULT_PRESET,
              particles: int | None = DEFAULT_PARTICLES, calibrate: bool = True, max_frames: int | None = None,
-             progress: bool = True) -> dict[str, Any]:
+             progress: bool = True, refine: bool = True) -> dict[str, Any]:
     """`omnitof demo`: run_world with the command's options, into the results folder `out` as
     one unit (omnitof.results.results_folder: `out` is replaced only when the run is complete)."""
     from omnitof.results import results_folder
 
     settings = DemoSettings(world=world, seed=seed, preset=preset, particles=particles, calibrate=calibrate,
-                            max_frames=max_frames)
+                            max_frames=max_frames, refine=refine)
     slam_config(preset, seed, particles)  # a bad value is refused before the folder is opened
     with results_folder(out) as folder:
         summary = run_world(settings, folder, progress=progress).summary
