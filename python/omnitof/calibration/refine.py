@@ -21,10 +21,12 @@ Residuals (each divided by its kind's noise level, re-estimated from the fit):
 - ToF path lengths of card pixels (boards, dot cards, both views, two-mirror boards):
   predicted − measured (metres), weighted by the pixel's amplitude (shot noise: σ ∝ 1/amplitude).
 
-Solver: `scipy.optimize.least_squares` (trust-region reflective) with the Jacobian's sparsity
-pattern (a residual depends on the camera, its view's pose and at most one mirror), so finite
-differences group the views' columns, and a Huber loss at 3σ against outliers. Parameter
-standard deviations: (JᵀJ)⁻¹ scaled by the residual variance at the solution.
+Solver: Levenberg–Marquardt on the normal equations with a Huber loss at 3σ (iteratively
+reweighted), the Jacobian by finite differences grouped over its sparsity pattern (a residual
+depends on the camera, its view's pose and at most one mirror, so all views' j-th pose columns
+are perturbed together; Curtis, Powell and Reid). `scipy.optimize.least_squares` was the first
+choice; see `_solve` for why it is not used. Parameter standard deviations: (JᵀWJ)⁻¹ scaled by
+the residual variance at the solution.
 
 Parameters: fx, fy, cx, cy, k1, k2, p1, p2 (k3 is kept as given, as `calibrate_intrinsics` does);
 per mirror a normal (two angles in the tangent plane of the start) and d; per board or dot card a
@@ -40,7 +42,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 
 from omnitof.calibration import CalibrationError
