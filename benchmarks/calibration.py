@@ -12,6 +12,9 @@ NOISE), calibrates, and compares with the simulator's true geometry:
 3. mirrors with the calibrated intrinsics (15 boards), the whole chain.
 
 Usage: python benchmarks/calibration.py [--seeds 2] [--quick]
+       python benchmarks/calibration.py --refine [--seeds 5]   # issue 16: the joint refinement
+                                                               # and the distance correction
+                                                               # (benchmarks/calibration_refine.py)
 """
 
 from __future__ import annotations
@@ -52,7 +55,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="fewer cells (a smoke run)")
+    parser.add_argument("--refine", action="store_true",
+                        help="the joint refinement against the closed form (seeds 0..N-1) and the distance correction")
     args = parser.parse_args()
+    if args.refine:
+        from calibration_refine import distance_table, refinement_table  # beside this script
+
+        refinement_table(range(args.seeds))
+        distance_table()
+        return
     rig = default_rig()
     camera, mirrors = rig.camera, rig.mirrors
     noises = [1.0, 4.0] if args.quick else [1.0, 4.0, 16.0, 64.0]
