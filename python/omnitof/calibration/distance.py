@@ -16,8 +16,9 @@ w and g cubic B-splines (Lindner & Kolb's choice for the wiggling curve), o a ta
 offset per pixel, and corrects a reading by subtracting it: d' = d − error(d, a, p). The fit is
 one sparse linear least-squares problem (`fit`) over samples (measured distance, true distance,
 amplitude, pixel), e.g. the pixels of boards whose poses the refinement found, or of a flat wall
-driven past. The three parts share a constant: g is pinned to zero at the median amplitude and o
-to mean zero over the pixels that have samples. Outside the fitted ranges of distance and
+driven past. The three parts share a constant: g is pinned to zero at the median amplitude, and a
+light ridge on o leaves the rest to w. The normal equations' pixel block is diagonal, so it is
+eliminated (Schur complement) before a dense solve of the spline coefficients. Outside the fitted ranges of distance and
 amplitude the curves are held at their end values.
 
 The correction is stored in the calibration YAML under `distance_correction`; a file without it
@@ -34,7 +35,6 @@ from typing import Any
 import numpy as np
 from scipy.interpolate import BSpline
 from scipy.sparse import coo_matrix, csr_matrix, hstack, vstack
-from scipy.sparse.linalg import spsolve
 
 from omnitof.errors import InputError
 
@@ -256,18 +256,27 @@ def _solve(m, t, la, p, dk, ak, per_pixel: bool, shape):
     rows = [A, g_row]
     rhs = [b, np.zeros(1)]
     if per_pixel:
-        seen = np.bincount(p, minlength=n_pix) > 0
-        mean_row = hstack([csr_matrix((1, Bd.shape[1] + Ba.shape[1])),
-                           csr_matrix(seen.astype(float)[None, :] / max(1, seen.sum()))]) * heavy
-        ridge = hstack([csr_matrix((n_pix, Bd.shape[1] + Ba.shape[1])),
-                        _identity(n_pix) * PIXEL_RIDGE])
-        rows += [mean_row, ridge]
-        rhs += [np.zeros(1), np.zeros(n_pix)]
+        # A light ridge keeps the offsets of pixels with few samples near zero, and sends the
+        # constant they share with w into w.
+        ridge = hstack([csr_matrix((n_pix, Bd.shape[1] + Ba.shape[1])), _identity(n_pix) * PIXEL_RIDGE])
+        rows.append(ridge)
+        rhs.append(np.zeros(n_pix))
     system = vstack(rows).tocsr()
-    # Normal equations: the pixel block is diagonal and couples only to the few spline
-    # coefficients (an arrow matrix), which a sparse direct solve handles at once.
-    normal = (system.T @ system).tocsc()
-    x = spsolve(normal, system.T @ np.concatenate(rhs))
+    normal = (system.T @ system).tocsr()
+    rhs_n = system.T @ np.concatenate(rhs)
+    ns = Bd.shape[1] + Ba.shape[1]
+    if not per_pixel:
+        x = np.linalg.solve(normal.toarray(), rhs_n)
+    else:
+        # The pixel block of the normal equations is diagonal (one pixel per sample): eliminate
+        # it (Schur complement) and solve the few spline coefficients densely.
+        A = normal[:ns, :ns].toarray()
+        B = normal[:ns, ns:].toarray()
+        D = normal[ns:, ns:].diagonal()
+        schur = A - (B / D) @ B.T
+        xs = np.linalg.solve(schur, rhs_n[:ns] - (B / D) @ rhs_n[ns:])
+        xp = (rhs_n[ns:] - B.T @ xs) / D
+        x = np.concatenate([xs, xp])
     wd = x[: Bd.shape[1]]
     wa = x[Bd.shape[1] : Bd.shape[1] + Ba.shape[1]]
     offsets = x[Bd.shape[1] + Ba.shape[1] :].reshape(shape) if per_pixel else None
