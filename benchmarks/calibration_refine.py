@@ -87,11 +87,12 @@ def injected_error(seed: int, shape):
 def wall_frames(rig, distances, reflectances, seed):
     """Per (distance, reflectance, mirror): a flat wall facing the mirror's view, rendered with
     the sensor's noise; yields (frame, wall normal, wall c) in the camera frame."""
-    from omnitof.calibration.targets import PlainBoard, look_at_pose, render_target
+    from omnitof.calibration.targets import PlainBoard, Room, look_at_pose, render_target
     from omnitof.sensor.mirrors import viewing_rays
 
     camera, mirrors = rig.camera, rig.mirrors
     labels = rig.masks(3.0)
+    room = Room(half_width=10.0)  # the default room's walls (2.5 m) would hide walls beyond them
     rays = viewing_rays(camera, mirrors, labels)
     for i, dist in enumerate(distances):
         albedo = reflectances[i % len(reflectances)]
@@ -104,7 +105,7 @@ def wall_frames(rig, distances, reflectances, seed):
             pose = look_at_pose(origin + dist * out, -out, 0.0)
             wall = PlainBoard(width=12.0, height=6.0, reflectance=albedo)
             frame, _ = render_target(camera, wall, pose, mirrors, rng=np.random.default_rng([seed, i, k]),
-                                     sensor=rig.sensor)
+                                     sensor=rig.sensor, room=room)
             yield frame, pose[:3, 2], float(pose[:3, 2] @ pose[:3, 3])
 
 
