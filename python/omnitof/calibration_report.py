@@ -25,10 +25,12 @@ from omnitof.viz import save_figure
 
 
 def _residual_figure(path: Path, per_view: dict[str, dict[str, float]]) -> Figure:
-    fig = Figure(figsize=(10.0, 4.2), dpi=120)
+    # Constrained layout: the image names under the bars are long, which tight_layout cannot fit.
+    fig = Figure(figsize=(10.0, 5.0), dpi=120, layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, 2)
     names = list(per_view)
+    labels = [Path(n).stem for n in names]
     x = np.arange(len(names))
     for key, colour, label in (("direct_px", "C0", "direct (corners, dots)"), ("mirrored_px", "C1", "through the mirror (dots)")):
         values = [per_view[n].get(key, np.nan) for n in names]
@@ -39,10 +41,9 @@ def _residual_figure(path: Path, per_view: dict[str, dict[str, float]]) -> Figur
     axes[1].set_ylabel("median |path length residual| [mm]")
     for ax in axes:
         ax.set_xticks(x[:: max(1, len(x) // 30)])
-        ax.set_xticklabels(names[:: max(1, len(x) // 30)], rotation=90, fontsize=6)
+        ax.set_xticklabels(labels[:: max(1, len(x) // 30)], rotation=90, fontsize=6)
     fig.suptitle("residuals per image after the joint refinement")
-    fig.tight_layout()
-    return save_figure(fig, path)
+    return save_figure(fig, path, tight_layout=False)
 
 
 def _distance_figure(path: Path, curve: dict[str, list[float]]) -> Figure:
