@@ -17,7 +17,7 @@ offset per pixel, and corrects a reading by subtracting it: d' = d − error(d, 
 one sparse linear least-squares problem (`fit`) over samples (measured distance, true distance,
 amplitude, pixel), e.g. the pixels of boards whose poses the refinement found, or of a flat wall
 driven past. The three parts share a constant: g is pinned to zero at the median amplitude, and a
-light ridge on o leaves the rest to w. The normal equations' pixel block is diagonal, so it is
+ridge on o (a prior of PIXEL_PRIOR against the readings' noise) leaves the rest to w. The normal equations' pixel block is diagonal, so it is
 eliminated (Schur complement) before a dense solve of the spline coefficients. Outside the fitted ranges of distance and
 amplitude the curves are held at their end values.
 
@@ -44,9 +44,16 @@ DEGREE = 3
 DISTANCE_KNOT_SPACING = 0.125
 # Interior knots of the amplitude curve over the range of log amplitude.
 AMPLITUDE_KNOTS = 6
-# Ridge weight that keeps the per-pixel offsets of pixels with few samples near zero (metres of
-# error per metre of offset, relative to one sample).
-PIXEL_RIDGE = 0.05
+# Second-difference penalty on the spline coefficients (P-splines, Eilers & Marx 1996), per
+# sample of a coefficient's share: it bridges distances no sample covers (walls or boards at a
+# few distances leave gaps between knots) with a straight line, and is too weak to flatten a
+# curve the samples cover (a wiggle of ten knots per period loses < 0.1 % of its amplitude).
+SMOOTHNESS = 1e-3
+# Prior standard deviation of the per-pixel offsets (metres): with the readings' noise σ (from a
+# first fit without them) each offset is shrunk toward zero like a mean of its samples with
+# (σ / PIXEL_PRIOR)² samples of value zero added, so that offsets fitted to a few noisy readings
+# do not add noise (one frame of a dark wall at 4 m: σ ≈ 25 mm; average frames to do better).
+PIXEL_PRIOR = 0.005
 
 
 class DistanceCorrectionError(InputError):
@@ -158,8 +165,15 @@ class DistanceCorrection:
         la = np.log(a)
         ak = _clamped_knots(float(la.min()), float(la.max()), AMPLITUDE_KNOTS)
         keep = np.ones(len(m), dtype=bool)
+        ridge = 1.0
+        if pixels is not None:  # the readings' noise, from a first fit without the pixel term
+            coef = _solve(m, t, la, p, dk, ak, False, shape, 1.0)
+            first = cls(dk, coef[0], ak, coef[1], None)
+            r = (m - first.error(m, a)) - t
+            noise = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+            ridge = max(noise / PIXEL_PRIOR, 1e-3)
         for _ in range(2):
-            coef = _solve(m[keep], t[keep], la[keep], p[keep], dk, ak, pixels is not None, shape)
+            coef = _solve(m[keep], t[keep], la[keep], p[keep], dk, ak, pixels is not None, shape, ridge)
             model = cls(dk, coef[0], ak, coef[1], coef[2], int(keep.sum()))
             residual = (m - model.error(m, a, p if pixels is not None else None)) - t
             sigma = 1.4826 * float(np.median(np.abs(residual[keep] - np.median(residual[keep]))))
@@ -238,7 +252,7 @@ class DistanceCorrection:
                    number("rms_after_mm"), dict(curve) if curve is not None else None)
 
 
-def _solve(m, t, la, p, dk, ak, per_pixel: bool, shape):
+def _solve(m, t, la, p, dk, ak, per_pixel: bool, shape, ridge: float):
     """Least squares of (m − t) = w(m) + g(la) + o[p] with g(median la) = 0 and mean o = 0."""
     n = len(m)
     Bd = _design(dk, m)
@@ -255,11 +269,18 @@ def _solve(m, t, la, p, dk, ak, per_pixel: bool, shape):
                     csr_matrix((1, n_pix))]) * heavy
     rows = [A, g_row]
     rhs = [b, np.zeros(1)]
+    for start, basis in ((0, Bd), (Bd.shape[1], Ba)):
+        k = basis.shape[1]
+        if k >= 3:
+            second = np.zeros((k - 2, A.shape[1]))
+            i = np.arange(k - 2)
+            second[i, start + i], second[i, start + i + 1], second[i, start + i + 2] = 1.0, -2.0, 1.0
+            rows.append(csr_matrix(second * math.sqrt(SMOOTHNESS * n / k)))
+            rhs.append(np.zeros(k - 2))
     if per_pixel:
-        # A light ridge keeps the offsets of pixels with few samples near zero, and sends the
-        # constant they share with w into w.
-        ridge = hstack([csr_matrix((n_pix, Bd.shape[1] + Ba.shape[1])), _identity(n_pix) * PIXEL_RIDGE])
-        rows.append(ridge)
+        # A ridge (see PIXEL_PRIOR) keeps the offsets of pixels with few or noisy samples near
+        # zero, and sends the constant they share with w into w.
+        rows.append(hstack([csr_matrix((n_pix, Bd.shape[1] + Ba.shape[1])), _identity(n_pix) * ridge]))
         rhs.append(np.zeros(n_pix))
     system = vstack(rows).tocsr()
     normal = (system.T @ system).tocsr()
