@@ -166,18 +166,22 @@ class DistanceCorrection:
         ak = _clamped_knots(float(la.min()), float(la.max()), AMPLITUDE_KNOTS)
         keep = np.ones(len(m), dtype=bool)
         ridge = 1.0
+        # Weights 1/σ ∝ amplitude (the phase noise falls as the signal grows), relative to the
+        # median: unweighted, the dark far readings' noise (tens of mm) drowns the curve.
+        wt = np.clip(a / np.median(a), 0.05, 3.0)
         if pixels is not None:  # the readings' noise, from a first fit without the pixel term
-            coef = _solve(m, t, la, p, dk, ak, False, shape, 1.0)
+            coef = _solve(m, t, la, p, dk, ak, False, shape, 1.0, wt)
             first = cls(dk, coef[0], ak, coef[1], None)
-            r = (m - first.error(m, a)) - t
+            r = ((m - first.error(m, a)) - t) * wt
             noise = 1.4826 * float(np.median(np.abs(r - np.median(r))))
             ridge = max(noise / PIXEL_PRIOR, 1e-3)
         for _ in range(2):
-            coef = _solve(m[keep], t[keep], la[keep], p[keep], dk, ak, pixels is not None, shape, ridge)
+            coef = _solve(m[keep], t[keep], la[keep], p[keep], dk, ak, pixels is not None, shape, ridge, wt[keep])
             model = cls(dk, coef[0], ak, coef[1], coef[2], int(keep.sum()))
             residual = (m - model.error(m, a, p if pixels is not None else None)) - t
-            sigma = 1.4826 * float(np.median(np.abs(residual[keep] - np.median(residual[keep]))))
-            keep = np.abs(residual - np.median(residual[keep])) < max(5.0 * sigma, 1e-4)
+            scaled = residual * wt
+            sigma = 1.4826 * float(np.median(np.abs(scaled[keep] - np.median(scaled[keep]))))
+            keep = np.abs(scaled - np.median(scaled[keep])) < max(5.0 * sigma, 1e-4)
         model.samples = int(keep.sum())
         model.rms_before = float(np.sqrt(np.mean((m[keep] - t[keep]) ** 2)))
         model.rms_after = float(np.sqrt(np.mean(residual[keep] ** 2)))
@@ -252,17 +256,18 @@ class DistanceCorrection:
                    number("rms_after_mm"), dict(curve) if curve is not None else None)
 
 
-def _solve(m, t, la, p, dk, ak, per_pixel: bool, shape, ridge: float):
-    """Least squares of (m − t) = w(m) + g(la) + o[p] with g(median la) = 0 and mean o = 0."""
+def _solve(m, t, la, p, dk, ak, per_pixel: bool, shape, ridge: float, weights: np.ndarray):
+    """Weighted least squares of (m − t) = w(m) + g(la) + o[p] with g(median la) = 0."""
     n = len(m)
-    Bd = _design(dk, m)
-    Ba = _design(ak, la)
+    W = coo_matrix((weights, (np.arange(n), np.arange(n))), shape=(n, n)).tocsr()
+    Bd = W @ _design(dk, m)
+    Ba = W @ _design(ak, la)
     blocks = [Bd, Ba]
     n_pix = int(shape[0] * shape[1]) if per_pixel else 0
     if per_pixel:
-        blocks.append(coo_matrix((np.ones(n), (np.arange(n), p)), shape=(n, n_pix)).tocsr())
+        blocks.append(coo_matrix((weights, (np.arange(n), p)), shape=(n, n_pix)).tocsr())
     A = hstack(blocks).tocsr()
-    b = m - t
+    b = (m - t) * weights
     # Constraints as heavily weighted rows, and a light ridge on the pixel offsets.
     heavy = 10.0 * math.sqrt(n)
     g_row = hstack([csr_matrix((1, Bd.shape[1])), _design(ak, np.array([np.median(la)])),
