@@ -96,6 +96,26 @@ class OccupancyGrid:
         refinements: int = 3,
         gauss_newton: int = 10,
     ) -> tuple[list[float], float]: ...
+    def match_each(
+        self,
+        starts: _F64,
+        ranges: _F32,
+        angles: _F64,
+        *,
+        sensor_pose: _F64 | None = None,
+        sigma: float = 0.05,
+        z_hit: float = 0.9,
+        z_rand: float = 0.1,
+        window: int = 3,
+        fit_walls: bool = False,
+        max_range: float = 20.0,
+        occupied_threshold: float = 0.0,
+        beam_stride: int = 1,
+        gauss_newton: int = 10,
+        threads: int | None = None,
+    ) -> tuple[_F64, _F64]:
+        """Every scan re-posed in this map by Gauss-Newton from its row of `starts`: (poses
+        (N, 3), share of end points near an obstacle (N,)); `angles` (B,) or (N, B)."""
     def expected_ranges(self, sensor_pose: _F64, angles: _F64, max_range: float, occupied_threshold: float) -> _F64: ...
 
 @final

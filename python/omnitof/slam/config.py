@@ -210,6 +210,13 @@ class FilterConfig(_Section):
         False,
         description="pose every scan between integrated ones by one local match in the best map (else by odometry)",
     )
+    final_match_passes: int = Field(
+        0, ge=0, le=10,
+        description="when the run is over, pose every scan once more by one local match in the finished map "
+        "(built from the final, optimised poses), from the pose the run gave it, this many times, the map "
+        "rebuilt from the new poses between passes and at the end; where too few of a scan's end points find "
+        "the map (scan_matcher.min_matched) its pose stands (omnitof.slam.final_match). 0: off",
+    )
     angular_update_deg: float = Field(25.0, ge=0, description="... or turned this much (deg)")
     seed: int = Field(0, ge=0, lt=2**63, description="seed of every random draw; same seed, same map")
     threads: int = Field(
