@@ -24,9 +24,8 @@
 //! frame does not depend on the order of its rays. The result does not depend on the number of
 //! threads.
 
-use std::collections::hash_map::DefaultHasher;
 use std::collections::{HashMap, HashSet};
-use std::hash::BuildHasherDefault;
+use std::hash::{BuildHasherDefault, Hasher};
 use std::sync::Arc;
 
 use rand::RngExt;
@@ -58,7 +57,27 @@ impl Block3 {
     }
 }
 
-type Blocks = HashMap<u64, Arc<Block3>, BuildHasherDefault<DefaultHasher>>;
+/// A multiplicative hash of a block key (Fibonacci hashing): keys are already well spread, and
+/// the default SipHash cost half the likelihood field's time. Fixed, so that a map's layout
+/// depends on its inputs only.
+#[derive(Default)]
+pub struct KeyHasher(u64);
+
+impl Hasher for KeyHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+    fn write(&mut self, bytes: &[u8]) {
+        for b in bytes {
+            self.0 = (self.0.rotate_left(8) ^ *b as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        }
+    }
+    fn write_u64(&mut self, k: u64) {
+        self.0 = (k ^ (k >> 29)).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    }
+}
+
+type Blocks = HashMap<u64, Arc<Block3>, BuildHasherDefault<KeyHasher>>;
 
 /// A sparse log-odds voxel grid with copy-on-write blocks (see the module docs).
 #[derive(Clone)]
@@ -92,22 +111,31 @@ impl SharedVoxels {
 
     /// Write one frame of rays (world frame) into the grid, serially (the filter runs the
     /// particles in parallel): voxel.rs's inverse sensor model, with copy-on-write blocks, and
-    /// each end point averaged into its voxel's mean end point.
-    pub fn integrate(&mut self, origins: &[[f64; 3]], endpoints: &[[f64; 3]], max_range: f64) -> IntegrateStats {
+    /// each end point averaged into its voxel's mean end point. Only every `free_stride`-th ray
+    /// frees the voxels it passes through; every ray marks its end point (the likelihood field
+    /// reads occupied voxels only, and neighbouring rays free nearly the same voxels).
+    pub fn integrate(&mut self, origins: &[[f64; 3]], endpoints: &[[f64; 3]], max_range: f64, free_stride: usize) -> IntegrateStats {
         let mut stats = IntegrateStats::default();
         let (mut free, mut ignored) = (Vec::new(), Vec::new());
         let mut ends: Vec<(u64, [u8; 3])> = Vec::new();
         let mut seen = SeenFilter::new();
         let res = self.resolution;
         let limit = (INDEX_LIMIT - 2) as f64 * res;
-        for (o, e) in origins.iter().zip(endpoints) {
+        let free_stride = free_stride.max(1);
+        for (n, (o, e)) in origins.iter().zip(endpoints).enumerate() {
             // Rays beyond the index range are skipped (the binding rejects them up front).
-            if o.iter().chain(e).any(|v| v.abs() > limit) {
+            if o.iter().chain(e).any(|v| !v.is_finite() || v.abs() > limit) {
                 stats.skipped += 1;
                 continue;
             }
             let hits_before = stats.hits;
-            ray_voxels(*o, *e, max_range, res, &mut seen, &mut free, &mut ignored, &mut stats);
+            if n % free_stride == 0 {
+                ray_voxels(*o, *e, max_range, res, &mut seen, &mut free, &mut ignored, &mut stats);
+            } else if (0..3).map(|a| (e[a] - o[a]).powi(2)).sum::<f64>().sqrt() <= max_range {
+                stats.hits += 1;
+            } else {
+                stats.max_range += 1;
+            }
             if stats.hits > hits_before {
                 let u = e.map(|v| v / res);
                 let i = u.map(|v| v.floor() as i64);
@@ -186,6 +214,9 @@ impl SharedVoxels {
         if let Some(d2) = d2_in(c) {
             return Some(d2);
         }
+        // The 26 neighbours lie in at most 8 blocks: look each block up once.
+        let mut cache: [(u64, Option<&Block3>); 8] = [(u64::MAX, None); 8];
+        let mut cached = 0;
         let mut best: Option<f64> = None;
         for dx in -1..=1 {
             for dy in -1..=1 {
@@ -193,10 +224,32 @@ impl SharedVoxels {
                     if dx == 0 && dy == 0 && dz == 0 {
                         continue;
                     }
-                    if let Some(d2) = d2_in([c[0] + dx, c[1] + dy, c[2] + dz]) {
-                        if best.is_none_or(|b| d2 < b) {
-                            best = Some(d2);
+                    let i = [c[0] + dx, c[1] + dy, c[2] + dz];
+                    if i.iter().any(|v| !(-INDEX_LIMIT..INDEX_LIMIT).contains(v)) {
+                        continue;
+                    }
+                    let key = pack(i);
+                    let bk = key >> 9;
+                    let block = match cache[..cached].iter().find(|e| e.0 == bk) {
+                        Some(e) => e.1,
+                        None => {
+                            let b = self.blocks.get(&bk).map(|b| &**b);
+                            if cached < cache.len() {
+                                cache[cached] = (bk, b);
+                                cached += 1;
+                            }
+                            b
                         }
+                    };
+                    let Some(b) = block else { continue };
+                    let k = (key & 511) as usize;
+                    if !(b.log_odds[k] > threshold) {
+                        continue;
+                    }
+                    let off = b.offset[k];
+                    let d2 = (0..3).map(|a| (u[a] - (i[a] as f64 + (off[a] as f64 + 0.5) / 256.0)).powi(2)).sum::<f64>() * res * res;
+                    if best.is_none_or(|bb| d2 < bb) {
+                        best = Some(d2);
                     }
                 }
             }
@@ -280,6 +333,8 @@ pub struct FilterParams3d {
     pub resolution: f64,
     /// Rays longer than this (m) free space up to it and mark nothing.
     pub max_range: f64,
+    /// Every n-th ray frees the voxels it passes through (see SharedVoxels::integrate).
+    pub free_stride: usize,
     pub resample_threshold: f64,
 }
 
@@ -368,7 +423,7 @@ impl ParticleFilter3d {
         if self.particles.is_empty() {
             let mut map = SharedVoxels::new(self.params.resolution, self.params.log_odds).expect("checked in new");
             let (wo, we) = Self::world_rays(odom_cur, origins, endpoints);
-            map.integrate(&wo, &we, self.params.max_range);
+            map.integrate(&wo, &we, self.params.max_range, self.params.free_stride);
             let root = Arc::new(TrajectoryNode { pose: odom_cur, scan, parent: None });
             let first = Particle3d { pose: odom_cur, log_weight: 0.0, map, trajectory: root };
             self.particles = vec![first; n];
@@ -402,7 +457,7 @@ impl ParticleFilter3d {
                     part.pose = pose;
                     part.trajectory = Arc::new(TrajectoryNode { pose, scan, parent: Some(part.trajectory.clone()) });
                     let (wo, we) = Self::world_rays(pose, origins, endpoints);
-                    part.map.integrate(&wo, &we, p.max_range);
+                    part.map.integrate(&wo, &we, p.max_range, p.free_stride);
                     fell_back
                 })
                 .collect()
@@ -625,6 +680,7 @@ mod tests {
             log_odds: MODEL,
             resolution: 0.1,
             max_range: 7.0,
+            free_stride: 2,
             resample_threshold: 0.5,
         }
     }
@@ -635,7 +691,7 @@ mod tests {
             let (o, e) = frame(pose, 2.0, (-180.0, 180.0));
             let (wo, we) = ParticleFilter3d::world_rays(pose, &o, &e);
             for _ in 0..3 {
-                map.integrate(&wo, &we, 7.0);
+                map.integrate(&wo, &we, 7.0, 1);
             }
         }
         map

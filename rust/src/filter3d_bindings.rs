@@ -29,10 +29,13 @@ struct Filter3dSection {
     score_stride: usize,
     score_z_min: f64,
     score_z_max: f64,
+    free_stride: usize,
 }
 
-const FILTER3D_FIELDS: [&str; 9] =
-    ["resolution", "max_range", "sigma", "z_hit", "z_rand", "effective_rays", "score_stride", "score_z_min", "score_z_max"];
+const FILTER3D_FIELDS: [&str; 10] = [
+    "resolution", "max_range", "sigma", "z_hit", "z_rand", "effective_rays", "score_stride", "score_z_min", "score_z_max",
+    "free_stride",
+];
 
 impl<'a, 'py> FromPyObject<'a, 'py> for Filter3dSection {
     type Error = PyErr;
@@ -50,6 +53,7 @@ impl<'a, 'py> FromPyObject<'a, 'py> for Filter3dSection {
             score_stride: section_field::<usize>(&d, "filter3d", "score_stride")?,
             score_z_min: f("score_z_min")?,
             score_z_max: f("score_z_max")?,
+            free_stride: section_field::<usize>(&d, "filter3d", "free_stride")?,
         })
     }
 }
@@ -106,6 +110,7 @@ impl PyParticleFilter3D {
             log_odds: base.log_odds,
             resolution: f3.resolution,
             max_range: f3.max_range,
+            free_stride: f3.free_stride,
             resample_threshold: base.resample_threshold,
         };
         Ok(PyParticleFilter3D { inner: ParticleFilter3d::new(params).map_err(PyValueError::new_err)? })
