@@ -323,8 +323,9 @@ pub struct FilterParams3d {
     /// A frame's log-likelihood is the mean over its scored end points times this number (as
     /// filter.rs's effective_beams): neighbouring rays are far from independent.
     pub effective_rays: f64,
-    /// Score every n-th of the frame's rays (the map gets them all).
-    pub score_stride: usize,
+    /// Score at most this many of the frame's rays, evenly spread over them (the map gets them
+    /// all): the scan matcher evaluates about a hundred poses per particle, each over every scored ray.
+    pub score_rays: usize,
     /// End points scored: those at heights within [score_z_min, score_z_max] (m) and within
     /// max_range of their origin. The floor tells nothing of (x, y, θ).
     pub score_z_min: f64,
@@ -383,8 +384,8 @@ impl ParticleFilter3d {
         if params.n_particles == 0 {
             return Err("n_particles must be at least 1".into());
         }
-        if params.score_stride == 0 {
-            return Err("score_stride must be at least 1".into());
+        if params.score_rays == 0 {
+            return Err("score_rays must be at least 1".into());
         }
         if !(params.field.sigma > 0.0 && params.field.z_rand > 0.0 && params.field.z_hit >= 0.0) {
             return Err("the likelihood field needs sigma > 0, z_rand > 0, z_hit >= 0".into());
@@ -397,19 +398,24 @@ impl ParticleFilter3d {
         Ok(ParticleFilter3d { params, particles: Vec::new(), steps: 0, resamplings: 0, fallbacks: 0, best: 0, pool })
     }
 
-    /// The robot-frame end points a frame is weighed by (see FilterParams3d).
+    /// The robot-frame end points a frame is weighed by (see FilterParams3d): of the rays whose
+    /// end points lie in the height band and within max_range, at most score_rays, evenly spread.
     pub fn scored_points(&self, origins: &[[f64; 3]], endpoints: &[[f64; 3]]) -> Vec<[f64; 3]> {
         let p = &self.params;
-        origins
+        let candidates: Vec<[f64; 3]> = origins
             .iter()
             .zip(endpoints)
-            .step_by(p.score_stride)
             .filter(|(o, e)| {
                 let d2: f64 = (0..3).map(|a| (e[a] - o[a]).powi(2)).sum();
                 e.iter().all(|v| v.is_finite()) && d2.sqrt() <= p.max_range && e[2] >= p.score_z_min && e[2] <= p.score_z_max
             })
             .map(|(_, e)| *e)
-            .collect()
+            .collect();
+        let n = candidates.len();
+        if n <= p.score_rays {
+            return candidates;
+        }
+        (0..p.score_rays).map(|k| candidates[k * n / p.score_rays]).collect()
     }
 
     /// Integrate one frame of rays (robot frame: origins on the mirrors, end points) taken at
@@ -674,7 +680,7 @@ mod tests {
                 search_below: 0.0,
             },
             effective_rays: 9.0,
-            score_stride: 2,
+            score_rays: 600,
             score_z_min: 0.05,
             score_z_max: 10.0,
             log_odds: MODEL,

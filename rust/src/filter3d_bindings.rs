@@ -26,14 +26,14 @@ struct Filter3dSection {
     z_hit: f64,
     z_rand: f64,
     effective_rays: f64,
-    score_stride: usize,
+    score_rays: usize,
     score_z_min: f64,
     score_z_max: f64,
     free_stride: usize,
 }
 
 const FILTER3D_FIELDS: [&str; 10] = [
-    "resolution", "max_range", "sigma", "z_hit", "z_rand", "effective_rays", "score_stride", "score_z_min", "score_z_max",
+    "resolution", "max_range", "sigma", "z_hit", "z_rand", "effective_rays", "score_rays", "score_z_min", "score_z_max",
     "free_stride",
 ];
 
@@ -50,7 +50,7 @@ impl<'a, 'py> FromPyObject<'a, 'py> for Filter3dSection {
             z_hit: f("z_hit")?,
             z_rand: f("z_rand")?,
             effective_rays: f("effective_rays")?,
-            score_stride: section_field::<usize>(&d, "filter3d", "score_stride")?,
+            score_rays: section_field::<usize>(&d, "filter3d", "score_rays")?,
             score_z_min: f("score_z_min")?,
             score_z_max: f("score_z_max")?,
             free_stride: section_field::<usize>(&d, "filter3d", "free_stride")?,
@@ -104,7 +104,7 @@ impl PyParticleFilter3D {
             field: Field3d { sigma: f3.sigma, z_hit: f3.z_hit, z_rand: f3.z_rand, occupied_threshold: threshold },
             matcher: base.matcher,
             effective_rays: f3.effective_rays,
-            score_stride: f3.score_stride,
+            score_rays: f3.score_rays,
             score_z_min: f3.score_z_min,
             score_z_max: f3.score_z_max,
             log_odds: base.log_odds,

@@ -280,7 +280,10 @@ class Filter3DConfig(_Section):
 
     enabled: bool = Field(False, description="run the 3D filter instead of the 2D one (`omnitof slam --filter 3d`)")
     pixel_stride: int = Field(4, ge=1, le=10_000, description="keep every n-th valid mirror pixel's ray of a frame")
-    score_stride: int = Field(4, ge=1, le=10_000, description="of those, weigh the particles by every n-th")
+    score_rays: int = Field(
+        300, ge=1, le=1_000_000,
+        description="of those, weigh the particles by at most this many, evenly spread (the scan matcher's cost)",
+    )
     free_stride: int = Field(
         4, ge=1, le=10_000,
         description="of those, every n-th frees the voxels it passes through (all mark their end points)",
