@@ -509,9 +509,14 @@ impl ParticleFilter3d {
 
     /// (distinct blocks over all particles, block references over all particles).
     pub fn block_counts(&self) -> (usize, usize) {
+        self.block_counts_of(&self.particles.iter().collect::<Vec<_>>())
+    }
+
+    /// (distinct blocks, block references) over the maps of `particles`.
+    pub fn block_counts_of(&self, particles: &[&Particle3d]) -> (usize, usize) {
         let mut seen = HashSet::new();
         let mut refs = 0;
-        for q in &self.particles {
+        for q in particles {
             for b in q.map.blocks() {
                 refs += 1;
                 seen.insert(Arc::as_ptr(b) as usize);

@@ -208,9 +208,20 @@ impl PyParticleFilter3D {
         PyArray1::from_vec(py, self.inner.particles.iter().map(|q| q.log_weight).collect())
     }
 
-    /// (distinct voxel blocks over all particles, block references over all particles).
-    fn block_counts(&self) -> (usize, usize) {
-        self.inner.block_counts()
+    /// (distinct voxel blocks, block references) over the maps of the particles `indices`
+    /// (default: all).
+    #[pyo3(signature = (indices=None))]
+    fn block_counts(&self, indices: Option<Vec<usize>>) -> PyResult<(usize, usize)> {
+        match indices {
+            None => Ok(self.inner.block_counts()),
+            Some(idx) => {
+                let parts = idx
+                    .iter()
+                    .map(|&i| self.inner.particles.get(i).ok_or_else(|| PyValueError::new_err(format!("no particle {i}"))))
+                    .collect::<PyResult<Vec<_>>>()?;
+                Ok(self.inner.block_counts_of(&parts))
+            }
+        }
     }
 
     /// Bytes of one 8³ block (float32 log-odds, mean end points, counts).
