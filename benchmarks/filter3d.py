@@ -8,7 +8,8 @@ of the frames to integrate (every `filter3d.pixel_stride`-th mirror pixel) are e
 Then, per run (PROPOSAL:PARTICLES), both filters run on the same data with preset tof3d (the 2D
 filter ignores the filter3d section; no pose-graph back end):
 
-- trajectory error (mean, final) to the truth of each, and the mean/max distance between them;
+- trajectory error (mean, final) to the truth of each, and the mean/max distance between them
+  (with --backend-2d the 2D filter runs with the pose-graph back end, as tof-scanmatch ships);
 - map quality: 3D, the share of occupied voxel centres within 0.1 m of a true surface
   (`map3d.surface_distance`); 2D, the share of occupied cells within 0.1 m of a wall at the
   slice height (`eval.floorplan.wall_agreement`);
@@ -112,11 +113,13 @@ def prepare(world_name: str, seed: int, calibration: str, cfg, max_frames: int |
     return world, data, cal_report
 
 
-def one_run(world, data, cfg) -> dict:
+def one_run(world, data, cfg, backend_2d: bool = False) -> dict:
     scans = data.scans
     truth = scans.ground_truth
+    cfg2 = cfg.model_copy(deep=True)
+    cfg2.backend.enabled = backend_2d  # the 3D filter has no back end
     t0 = time.perf_counter()
-    flat = run_slam(scans, cfg)
+    flat = run_slam(scans, cfg2)
     seconds_2d = time.perf_counter() - t0
     rss_before = status_kib("VmRSS")
     have_peak = reset_peak()
@@ -158,6 +161,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-frames", type=int, default=None)
     parser.add_argument("--threads", type=int, default=0)
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE")
+    parser.add_argument("--backend-2d", action="store_true",
+                        help="the 2D filter with the pose-graph back end (tof-scanmatch as shipped)")
     args = parser.parse_args(argv)
     from omnitof.slam.config import parse_setting, settings_overrides
 
@@ -181,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
             cfg.filter.particles = int(particles)
             cfg.filter.seed = seed
             cfg.filter.threads = args.threads
-            r = one_run(world, data, cfg)
+            r = one_run(world, data, cfg, args.backend_2d)
             d = r["diff"]
             print(f"| {args.world} | {seed} | {proposal} | {particles} | {len(data.scans)} ({r['integrated']}) "
                   f"| {r['rays']:.0f} | {r['odo_mean']:.3f} | {r['err2_mean']:.3f} ({r['err2_final']:.3f}) "
