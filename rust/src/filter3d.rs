@@ -336,6 +336,9 @@ pub struct FilterParams3d {
     pub max_range: f64,
     /// Every n-th ray frees the voxels it passes through (see SharedVoxels::integrate).
     pub free_stride: usize,
+    /// The scan-matching proposal climbs on every n-th scored ray (then fits its Gaussian and
+    /// weighs on all of them): the climb evaluates most of the poses.
+    pub climb_stride: usize,
     pub resample_threshold: f64,
 }
 
@@ -549,8 +552,9 @@ fn propose3d<R: rand::Rng>(
     let prior: PosePrior = motion_prior(&p.motion, odom_prev, odom_cur, predicted);
     let target = |pose: [f64; 3]| p.effective_rays * p.field.score(map, pose, pts).0 + prior.log_prob(pose);
     let start = if m.climb_from_sample { p.motion.sample(prev_pose, odom_prev, odom_cur, rng) } else { predicted };
+    let sparse: Vec<[f64; 3]> = pts.iter().step_by(p.climb_stride.max(1)).copied().collect();
     let climb_goal = |pose: [f64; 3]| {
-        let s = p.effective_rays * p.field.score(map, pose, pts).0;
+        let s = p.effective_rays * p.field.score(map, pose, &sparse).0;
         if m.odometry_prior { s + prior.log_prob(pose) } else { s }
     };
     let (mode, _) = climb(climb_goal, start, m);
@@ -692,6 +696,7 @@ mod tests {
             resolution: 0.1,
             max_range: 7.0,
             free_stride: 2,
+            climb_stride: 1,
             resample_threshold: 0.5,
         }
     }

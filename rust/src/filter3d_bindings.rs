@@ -30,11 +30,12 @@ struct Filter3dSection {
     score_z_min: f64,
     score_z_max: f64,
     free_stride: usize,
+    climb_stride: usize,
 }
 
-const FILTER3D_FIELDS: [&str; 10] = [
+const FILTER3D_FIELDS: [&str; 11] = [
     "resolution", "max_range", "sigma", "z_hit", "z_rand", "effective_rays", "score_rays", "score_z_min", "score_z_max",
-    "free_stride",
+    "free_stride", "climb_stride",
 ];
 
 impl<'a, 'py> FromPyObject<'a, 'py> for Filter3dSection {
@@ -54,6 +55,7 @@ impl<'a, 'py> FromPyObject<'a, 'py> for Filter3dSection {
             score_z_min: f("score_z_min")?,
             score_z_max: f("score_z_max")?,
             free_stride: section_field::<usize>(&d, "filter3d", "free_stride")?,
+            climb_stride: section_field::<usize>(&d, "filter3d", "climb_stride")?,
         })
     }
 }
@@ -111,6 +113,7 @@ impl PyParticleFilter3D {
             resolution: f3.resolution,
             max_range: f3.max_range,
             free_stride: f3.free_stride,
+            climb_stride: f3.climb_stride,
             resample_threshold: base.resample_threshold,
         };
         Ok(PyParticleFilter3D { inner: ParticleFilter3d::new(params).map_err(PyValueError::new_err)? })

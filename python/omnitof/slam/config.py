@@ -288,6 +288,10 @@ class Filter3DConfig(_Section):
         4, ge=1, le=10_000,
         description="of those, every n-th frees the voxels it passes through (all mark their end points)",
     )
+    climb_stride: int = Field(
+        1, ge=1, le=10_000,
+        description="scan-matching proposal: climb on every n-th scored ray (the Gaussian and the weight use all)",
+    )
     resolution: float = Field(0.1, ge=0.01, le=10, description="voxel edge (m); the paper's Fig. 11(b): 0.1")
     max_range: float = Field(7.0, gt=0, le=100, description="rays longer than this (m) free space only")
     sigma: float = Field(0.05, ge=0.001, le=10, description="likelihood field: standard deviation of the end-point distance (m)")
