@@ -11,6 +11,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use crate::filter3d::{Field3d, FilterParams3d, ParticleFilter3d};
+use crate::scan_match::MatcherParams;
 use crate::voxel::{VoxelGrid, INDEX_LIMIT};
 use crate::{
     filter_params, pose3, rows3, section_dict, section_field, FilterSection, LikelihoodFieldSection, MapSection, MotionSection,
@@ -31,11 +32,12 @@ struct Filter3dSection {
     score_z_max: f64,
     free_stride: usize,
     climb_stride: usize,
+    min_matched: f64,
 }
 
-const FILTER3D_FIELDS: [&str; 11] = [
+const FILTER3D_FIELDS: [&str; 12] = [
     "resolution", "max_range", "sigma", "z_hit", "z_rand", "effective_rays", "score_rays", "score_z_min", "score_z_max",
-    "free_stride", "climb_stride",
+    "free_stride", "climb_stride", "min_matched",
 ];
 
 impl<'a, 'py> FromPyObject<'a, 'py> for Filter3dSection {
@@ -56,6 +58,7 @@ impl<'a, 'py> FromPyObject<'a, 'py> for Filter3dSection {
             score_z_max: f("score_z_max")?,
             free_stride: section_field::<usize>(&d, "filter3d", "free_stride")?,
             climb_stride: section_field::<usize>(&d, "filter3d", "climb_stride")?,
+            min_matched: f("min_matched")?,
         })
     }
 }
@@ -104,7 +107,8 @@ impl PyParticleFilter3D {
             motion: base.motion,
             proposal: base.proposal,
             field: Field3d { sigma: f3.sigma, z_hit: f3.z_hit, z_rand: f3.z_rand, occupied_threshold: threshold },
-            matcher: base.matcher,
+            // The 3D rays' own threshold: see Filter3DConfig.min_matched.
+            matcher: MatcherParams { min_matched: f3.min_matched, ..base.matcher },
             effective_rays: f3.effective_rays,
             score_rays: f3.score_rays,
             score_z_min: f3.score_z_min,
