@@ -430,7 +430,8 @@ impl ParticleFilter3d {
         self.steps += 1;
         let n = self.params.n_particles;
         if self.particles.is_empty() {
-            let mut map = SharedVoxels::new(self.params.resolution, self.params.log_odds).expect("checked in new");
+            // Resolution and model were checked by `new`.
+            let mut map = SharedVoxels { resolution: self.params.resolution, model: self.params.log_odds, blocks: Blocks::default() };
             let (wo, we) = Self::world_rays(odom_cur, origins, endpoints);
             map.integrate(&wo, &we, self.params.max_range, self.params.free_stride);
             let root = Arc::new(TrajectoryNode { pose: odom_cur, scan, parent: None });
