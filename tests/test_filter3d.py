@@ -179,3 +179,38 @@ def test_projection_takes_the_largest_log_odds_of_each_column():
     # Column (0, 0): 3.5 lies at 3.05 m, above the band: 2.0 wins. Column (2, 1): -0.4.
     assert m.log_odds[0, 0] == 2.0 and m.log_odds[1, 2] == np.float32(-0.4)
     assert m.known.sum() == 2
+
+
+# --- the command ---------------------------------------------------------------------------
+
+
+def test_slam_filter_3d_writes_the_voxel_map_its_projection_and_the_difference(tmp_path, capsys):
+    import yaml
+
+    from omnitof.cli import main
+    from omnitof.io.ply import read_ply
+    from omnitof.io.rosmap import read_ros_map
+    from omnitof.io.tum import read_tum
+
+    bag = tmp_path / "room_bag"
+    assert main(["simulate", "--world", "room", "--out", str(bag), "--max-frames", "40", "--quiet"]) == 0
+    out = tmp_path / "out"
+    assert main(["slam", str(bag), "--filter", "3d", "--compare-2d", "--particles", "5", "--out", str(out),
+                 "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "3D filter vs 2D filter" in printed
+    summary = yaml.safe_load((out / "summary.yaml").read_text())
+    assert summary["run"]["filter"] == "3d" and summary["run"]["particles"] == 5
+    assert summary["run"]["voxel_blocks_distinct"] <= summary["run"]["voxel_blocks_referenced"]
+    traj3, traj2 = read_tum(out / "trajectory.tum"), read_tum(out / "trajectory_2d.tum")
+    apart = np.hypot(*(traj3.poses[:, :2] - traj2.poses[:, :2]).T)
+    assert summary["filter2d"]["difference_3d_to_2d"]["mean"] == pytest.approx(apart.mean(), abs=1e-4)
+    points, _ = read_ply(out / "map3d.ply")
+    assert len(points) > 1000 and (out / "map3d.png").stat().st_size > 0
+    occ = read_ros_map(out / "map.yaml")
+    assert occ.known.sum() > 500
+    # Not on a laser log.
+    log = tmp_path / "laser.clf"
+    log.write_text("ODOM 0 0 0 0 0 0 1.0 host 0\n")
+    assert main(["slam", str(log), "--filter", "3d", "--out", str(tmp_path / "x"), "--quiet"]) == 2
+    assert "needs a bag of ToF images" in capsys.readouterr().err
