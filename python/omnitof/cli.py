@@ -51,11 +51,14 @@ def _summary_line(stats: dict) -> str:
 def cmd_slam(args: argparse.Namespace) -> int:
     from omnitof.slam_run import SlamRequest, default_preset, slam_to_folder
 
-    cfg = _config_from_args(args, default_preset=default_preset(args.log))
+    if args.filter == "3d":
+        args.set = [*(args.set or []), "filter3d.enabled=true"]
+    preset = "tof3d" if args.filter == "3d" else default_preset(args.log)
+    cfg = _config_from_args(args, default_preset=preset)
     request = SlamRequest(
         log=args.log, relations=args.relations, max_scans=args.max_scans, skip_bad_lines=args.skip_bad_lines,
         scan_delay=args.scan_delay, calibration=args.calibration, height=args.height, band=args.band,
-        map3d=args.map3d, map3d_every=args.map3d_every,
+        map3d=args.map3d, map3d_every=args.map3d_every, compare_2d=args.compare_2d,
     )
     run = slam_to_folder(request, cfg, args.out, bar=_bar_factory(args))
     print(_summary_line(run.result.stats))
@@ -65,6 +68,9 @@ def cmd_slam(args: argparse.Namespace) -> int:
         te = run.extra["trajectory_error"]
         print(f"trajectory error (mean, final): SLAM {te['slam']['mean']:.3f} m, {te['slam']['final']:.3f} m; "
               f"odometry {te['odometry']['mean']:.3f} m, {te['odometry']['final']:.3f} m")
+    if "filter2d" in run.extra:
+        d = run.extra["filter2d"]["difference_3d_to_2d"]
+        print(f"3D filter vs 2D filter: mean {d['mean']:.3f} m, max {d['max']:.3f} m apart")
     print(f"results in {run.paths['summary'].parent}")
     return 0
 
@@ -311,6 +317,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--band", type=_number(above=0), help="ToF bags: half-thickness of the scan slice (m)")
     p.add_argument("--map3d", action="store_true", help="ToF bags: also build the 3D voxel map (map3d.ply, map3d.png)")
     p.add_argument("--map3d-every", type=_positive_int, default=5, help="ToF bags: frames between those fed to the 3D map")
+    p.add_argument("--filter", choices=("2d", "3d"), default="2d",
+                   help="ToF bags: 3d runs the paper's 3D variant (voxel maps per particle, every mirror pixel; "
+                   "default preset tof3d) and writes map3d.ply/png, map.pgm as its projection")
+    p.add_argument("--compare-2d", action="store_true",
+                   help="with --filter 3d: also run the 2D filter and record the trajectories' difference")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_slam)
 

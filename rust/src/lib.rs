@@ -3,6 +3,8 @@
 
 pub mod correlative;
 pub mod filter;
+pub mod filter3d;
+mod filter3d_bindings;
 pub mod grid;
 pub mod loop_closure;
 mod loop_closure_bindings;
@@ -847,5 +849,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(low_variance_resample, m)?)?;
     render_bindings::register(m)?;
     loop_closure_bindings::register(m)?;
+    filter3d_bindings::register(m)?;
     Ok(())
 }

@@ -764,7 +764,7 @@ pub fn propose<R: rand::Rng>(
 }
 
 /// Lower-triangular L with L·Lᵀ = a for a symmetric positive definite 3×3 matrix.
-fn cholesky3(a: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
+pub(crate) fn cholesky3(a: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
     let mut l = [[0.0; 3]; 3];
     for i in 0..3 {
         for j in 0..=i {

@@ -77,10 +77,11 @@ def fill_trajectory(odometry: np.ndarray, integrated: np.ndarray, corrected: np.
 
 def core_sections(cfg: SlamConfig) -> dict:
     """The configuration's sections as the core's filter takes them: every section but the
-    back end's, less the fields this driver uses itself (which scans to integrate, the poses of
+    back end's and the 3D filter's, less the fields this driver uses itself (which scans to integrate, the poses of
     the others)."""
     return cfg.model_dump(
-        exclude={"filter": {"linear_update", "angular_update_deg", "match_between", "final_match_passes"}, "backend": True}
+        exclude={"filter": {"linear_update", "angular_update_deg", "match_between", "final_match_passes"},
+                 "backend": True, "filter3d": True}
     )
 
 
