@@ -63,6 +63,10 @@ from omnitof.errors import ConfigError
 SPEED_OF_LIGHT: float = scipy.constants.c
 
 
+# The effects a user switches on and off (`omnitof simulate --tof-errors`, `omnitof demo`).
+SWITCHES = ("wiggling", "amplitude_offset", "fixed_pattern", "motion")
+
+
 class ToFErrorsError(ConfigError, ValueError):
     """A bad systematic-error setting; the message names the field."""
 
@@ -136,11 +140,26 @@ class ToFErrors:
 
     def only(self, *names: str) -> ToFErrors:
         """These settings with only the named switches on (for the error budget)."""
-        switches = ("wiggling", "amplitude_offset", "fixed_pattern", "motion")
         for n in names:
-            if n not in switches:
-                raise ToFErrorsError(f"no switch {n!r}; switches: {list(switches)}")
-        return replace(self, **{s: s in names for s in switches})
+            if n not in SWITCHES:
+                raise ToFErrorsError(f"no ToF error {n!r}; the switches: {', '.join(SWITCHES)}")
+        return replace(self, **{s: s in names for s in SWITCHES})
+
+    @classmethod
+    def parse(cls, text: str) -> ToFErrors:
+        """The command line's form: "all", "none", or switches joined by commas
+        ("wiggling,motion"), each with the literature's figures."""
+        text = text.strip()
+        if text == "all":
+            return cls.realistic()
+        if text in ("none", ""):
+            return cls()
+        return cls().only(*(name.strip() for name in text.split(",")))
+
+    @property
+    def switched_on(self) -> tuple[str, ...]:
+        """The names of the switches that are on."""
+        return tuple(s for s in SWITCHES if getattr(self, s))
 
     @property
     def offsets_on(self) -> bool:
