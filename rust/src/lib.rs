@@ -4,6 +4,7 @@
 pub mod correlative;
 pub mod filter;
 pub mod grid;
+pub mod light;
 pub mod loop_closure;
 mod loop_closure_bindings;
 pub mod motion;

@@ -41,6 +41,15 @@ The figures (from the literature as remembered, not re-checked against the paper
   Kolb (2006) calibrate.
 - fixed_pattern_std = 1 cm: per-pixel offsets of the order Lindner & Kolb's per-pixel
   calibration removes (an assumption for this camera class).
+- multipath_rays = 2 secondary rays per pixel: enough for the mean of the interreflection (its
+  Monte-Carlo noise adds to the shot noise of a pixel), and the cost stays within the
+  renderer's budget (BENCHMARKS.md, "ToF error budget").
+- LEDs: 4 on a ring of 3.5 cm around the lens (the ring sampled at four points: each LED
+  costs a set of light paths per surface point): the SR4000's LED array surrounds its lens
+  within a few centimetres of the optical centre (from the camera's product photographs, not
+  measured); profile cos^3.6 of the angle from the axis, which halves the intensity at 34.5°,
+  the wide lens's half field of view (an assumption: the camera lights its own field of
+  view), and nothing beyond 50° (the LEDs' optics and the housing).
 - integration_time = 5 ms per sample (the SR4000 allows 0.3–25.8 ms; 4 × 5 ms fits its 10 Hz
   at a 20 ms acquisition): the four samples are taken one after another, sample k at
   k·integration_time after the frame's time, each at the robot's pose then
@@ -64,7 +73,7 @@ SPEED_OF_LIGHT: float = scipy.constants.c
 
 
 # The effects a user switches on and off (`omnitof simulate --tof-errors`, `omnitof demo`).
-SWITCHES = ("wiggling", "amplitude_offset", "fixed_pattern", "motion")
+SWITCHES = ("wiggling", "amplitude_offset", "fixed_pattern", "motion", "multipath", "illumination")
 
 
 class ToFErrorsError(ConfigError, ValueError):
@@ -82,6 +91,13 @@ class ToFErrors:
             fixed_pattern_seed (the same pattern for every frame of a camera).
         motion: the four samples taken one after another, integration_time seconds apart,
             each rendered at the robot's pose at its own time.
+        multipath: one diffuse interreflection, multipath_rays secondary rays per pixel
+            (rust/src/light.rs).
+        illumination: the light from led_count LEDs on a ring of led_radius metres around
+            the lens (in the lens plane, the first at +x of the camera frame), each emitting
+            cos^led_profile_exponent of the angle from the optical axis up to
+            led_half_angle_deg and nothing beyond; without it, a
+            point source at the lens centre whose light follows the view path exactly.
     """
 
     wiggling: bool = False
@@ -95,6 +111,13 @@ class ToFErrors:
     fixed_pattern_seed: int = 0
     motion: bool = False
     integration_time: float = 0.005
+    multipath: bool = False
+    multipath_rays: int = 2
+    illumination: bool = False
+    led_count: int = 4
+    led_radius: float = 0.035
+    led_profile_exponent: float = 3.6
+    led_half_angle_deg: float = 50.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -103,9 +126,10 @@ class ToFErrors:
                 if not isinstance(value, (bool, np.bool_)):
                     raise ToFErrorsError(f"errors.{f.name} must be true or false, got {value!r}")
                 continue
-            if f.name == "fixed_pattern_seed":
-                if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
-                    raise ToFErrorsError(f"errors.{f.name} must be a whole number >= 0, got {value!r}")
+            if f.name in ("fixed_pattern_seed", "multipath_rays", "led_count"):
+                least = 1 if f.name == "led_count" else 0
+                if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+                    raise ToFErrorsError(f"errors.{f.name} must be a whole number >= {least}, got {value!r}")
                 continue
             if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
                 raise ToFErrorsError(f"errors.{f.name} must be a number, got {value!r}")
@@ -117,13 +141,20 @@ class ToFErrors:
         for name in ("amplitude_reference", "integration_time"):
             if not getattr(self, name) > 0.0:
                 raise ToFErrorsError(f"errors.{name} must be > 0, got {getattr(self, name)!r}")
+        if not 0.0 <= self.led_radius < 0.5:
+            raise ToFErrorsError(f"errors.led_radius must lie in [0, 0.5) metres, got {self.led_radius!r}")
+        if not 0.0 < self.led_half_angle_deg <= 180.0:
+            raise ToFErrorsError(f"errors.led_half_angle_deg must lie in (0, 180], got {self.led_half_angle_deg!r}")
+        if self.led_profile_exponent < 0.0:
+            raise ToFErrorsError(f"errors.led_profile_exponent must be >= 0, got {self.led_profile_exponent!r}")
         if self.fixed_pattern_std < 0.0:
             raise ToFErrorsError(f"errors.fixed_pattern_std must be >= 0, got {self.fixed_pattern_std!r}")
 
     @classmethod
     def realistic(cls, **overrides: Any) -> ToFErrors:
         """Every effect on, with the literature's figures (module docstring)."""
-        return cls(wiggling=True, amplitude_offset=True, fixed_pattern=True, motion=True, **overrides)
+        on = {name: True for name in SWITCHES}
+        return cls(**{**on, **overrides})
 
     @classmethod
     def from_dict(cls, data: Any) -> ToFErrors:
@@ -160,6 +191,12 @@ class ToFErrors:
     def switched_on(self) -> tuple[str, ...]:
         """The names of the switches that are on."""
         return tuple(s for s in SWITCHES if getattr(self, s))
+
+    def led_positions(self) -> np.ndarray:
+        """(led_count, 3) the LEDs in the camera frame (metres): a ring in the lens plane."""
+        angle = 2.0 * math.pi * np.arange(self.led_count) / self.led_count
+        return np.column_stack([self.led_radius * np.cos(angle), self.led_radius * np.sin(angle),
+                                np.zeros(self.led_count)])
 
     @property
     def offsets_on(self) -> bool:

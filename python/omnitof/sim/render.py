@@ -299,6 +299,17 @@ class Renderer:
             frames.append(Frame(poses[i].copy(), phasor, np.stack([a0, a1, a2, a3]), decoded))
         return frames
 
+    def _light_arguments(self) -> dict[str, object]:
+        """The LEDs (`errors.illumination`) and secondary rays (`errors.multipath`) for the core."""
+        errors = self.sensor.errors
+        args: dict[str, object] = {"seed": int(self.settings.seed),
+                                   "multipath_rays": int(errors.multipath_rays) if errors.multipath else 0}
+        if errors.illumination:
+            args["leds"] = np.ascontiguousarray(errors.led_positions())
+            args["led_profile_exponent"] = float(errors.led_profile_exponent)
+            args["led_min_cos"] = math.cos(math.radians(errors.led_half_angle_deg))
+        return args
+
     def _build_core(self) -> _core._Renderer:
         world, settings = self.world, self.settings
         names, table = world.material_table()
@@ -335,6 +346,7 @@ class Renderer:
                 max_bounces=settings.max_bounces,
                 min_gain=settings.min_gain,
                 threads=settings.threads,
+                **self._light_arguments(),
             )
         except ValueError as err:  # the core refuses a scene it cannot hold (a plan too wide)
             raise RenderConfigError(f"world {world.name!r}: {err}") from None
