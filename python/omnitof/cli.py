@@ -288,9 +288,19 @@ def cmd_design(args: argparse.Namespace) -> int:
         plot_sweep(args.sweep, rows)
         print(f"sweep figure: {args.sweep}")
         return 0
+    from omnitof.sensor.design import apex_sweep, format_apex_sweep
+    from omnitof.sensor.illumination import DEFAULT_LIT_DISTANCE, lit_share
+    from omnitof.sensor.tof_errors import ToFErrors
+
     camera = lenses[args.lens]
     mirrors = pyramid(args.mirrors, args.tilt, yaw_deg=args.yaw, camera=camera)
     print(design_report(camera, mirrors, elev_band_deg=args.band).format())
+    leds = ToFErrors.realistic()
+    share = lit_share(camera, mirrors, leds, DEFAULT_LIT_DISTANCE)
+    print(f"lit by the camera's LEDs ({leds.led_count} on a {100 * leds.led_radius:g} cm ring, surface at "
+          f"{DEFAULT_LIT_DISTANCE:g} m): {100 * share:.1f} % of the mirror pixels")
+    if args.apex_sweep:
+        print(format_apex_sweep(apex_sweep(camera, args.mirrors, args.tilt, args.yaw)))
     if args.figure is not None:
         plot_mirror_regions(args.figure, camera, mirrors)
         print(f"mirror regions: {args.figure}")
@@ -383,6 +393,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--band", type=_number(), default=10.0, help="usable elevations: ± this around horizontal (deg)")
     p.add_argument("--figure", type=Path, help="draw the mirror regions of the image (PNG)")
     p.add_argument("--sweep", type=Path, metavar="PNG", help="sweep tilt, yaw, mirrors and lens; plot to PNG")
+    p.add_argument("--apex-sweep", action="store_true",
+                   help="the share of mirror pixels the LEDs light, for apex heights 2-20 cm")
     p.set_defaults(func=cmd_design)
 
     p = sub.add_parser("simulate", help="simulate a robot driving a world with the omnidirectional ToF sensor and "
