@@ -462,7 +462,9 @@ def test_a_corner_adds_the_two_path_phasor_of_the_neighbouring_wall():
     noiseless = dict(electrons_per_unit=math.inf, read_noise=0.0)
 
     def phasor(multipath: bool) -> complex:
-        sensor = SensorNoise(**noiseless, errors=ToFErrors(multipath=multipath, multipath_rays=256))
+        # An isotropic source (no emission profile): the quadrature below has none either.
+        errors = ToFErrors(multipath=multipath, multipath_rays=256, led_profile_exponent=0.0, led_half_angle_deg=180.0)
+        sensor = SensorNoise(**noiseless, errors=errors)
         r = Renderer(w, camera=cam, mirrors=[], robot_T_camera=mount, sensor=sensor,
                      settings=RenderSettings(sub_rays=16, max_bounces=0, seed=3))
         return complex(r.phasors(pose).phasor[0].astype(np.complex128).mean())

@@ -756,6 +756,9 @@ pub struct RenderParams {
     pub illumination: Option<Illumination>,
     /// Secondary rays per pixel for one diffuse interreflection (multipath); 0: none.
     pub multipath_rays: u32,
+    /// The source that lights the interreflections: one LED at the centre of the LEDs (the
+    /// lens centre without them) with their emission profile.
+    pub bounce: Illumination,
     /// Seed of the secondary rays' directions.
     pub seed: u64,
 }
@@ -923,14 +926,11 @@ pub fn render(scene: &Scene, rig: &Rig, params: &RenderParams, poses: &[[f64; 3]
     let lit = params.illumination.is_some() || params.multipath_rays > 0;
     let coaxial = Illumination::coaxial();
     let source = params.illumination.as_ref().unwrap_or(&coaxial);
-    let centre = match &params.illumination {
-        Some(l) => Illumination { leds: vec![l.centre()], ..l.clone() },
-        None => coaxial.clone(),
-    };
+    let centre = &params.bounce;
     let per_pose = |light: &Illumination| -> Vec<PoseLight> {
         if lit { transforms.iter().map(|m| PoseLight::new(light, &rig.mirrors, m)).collect() } else { vec![] }
     };
-    let (lights, bounce_lights) = (per_pose(source), per_pose(&centre));
+    let (lights, bounce_lights) = (per_pose(source), per_pose(centre));
     // The pixel's secondary rays, spread over its sub-rays: sub-ray j sends rays j, j + s, ...
     let total = params.multipath_rays as usize;
     let weight = if total > 0 { s as f64 / total as f64 } else { 0.0 };
@@ -1184,6 +1184,7 @@ mod tests {
             min_gain: 1e-6,
             illumination: None,
             multipath_rays: 0,
+            bounce: Illumination::coaxial(),
             seed: 0,
         }
     }

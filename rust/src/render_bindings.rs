@@ -158,25 +158,23 @@ impl PyRenderer {
         if !(f_mod > 0.0 && amplitude_at_1m > 0.0 && min_gain >= 0.0) {
             return Err(PyValueError::new_err("f_mod and amplitude_at_1m must be > 0, min_gain >= 0"));
         }
-        let illumination = match &leds {
-            None => None,
-            Some(a) => {
-                let light = Illumination {
-                    leds: rows(a, 3, "leds")?.iter().map(|r| [r[0], r[1], r[2]]).collect(),
-                    profile_exponent: led_profile_exponent,
-                    min_cos: led_min_cos,
-                };
-                light.check().map_err(PyValueError::new_err)?;
-                Some(light)
-            }
+        // Without `leds` the light is coaxial; the interreflections are lit by one LED at the
+        // centre (of the LEDs, or of the lens) with the LEDs' profile either way.
+        let positions: Vec<[f64; 3]> = match &leds {
+            None => vec![[0.0; 3]],
+            Some(a) => rows(a, 3, "leds")?.iter().map(|r| [r[0], r[1], r[2]]).collect(),
         };
+        let light = Illumination { leds: positions, profile_exponent: led_profile_exponent, min_cos: led_min_cos };
+        light.check().map_err(PyValueError::new_err)?;
+        let bounce = Illumination { leds: vec![light.centre()], ..light.clone() };
+        let illumination = leds.is_some().then_some(light);
         if multipath_rays as usize > MAX_SECONDARY * sub_rays {
             return Err(PyValueError::new_err(format!(
                 "multipath_rays must be at most {} per sub-ray, got {multipath_rays}",
                 MAX_SECONDARY
             )));
         }
-        let params = RenderParams { f_mod, amplitude_at_1m, max_bounces, min_gain, illumination, multipath_rays, seed };
+        let params = RenderParams { f_mod, amplitude_at_1m, max_bounces, min_gain, illumination, multipath_rays, bounce, seed };
         let pool = crate::optional_pool(threads)?;
         Ok(PyRenderer { scene, rig, params, pool })
     }

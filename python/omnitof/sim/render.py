@@ -302,12 +302,16 @@ class Renderer:
     def _light_arguments(self) -> dict[str, object]:
         """The LEDs (`errors.illumination`) and secondary rays (`errors.multipath`) for the core."""
         errors = self.sensor.errors
-        args: dict[str, object] = {"seed": int(self.settings.seed),
-                                   "multipath_rays": int(errors.multipath_rays) if errors.multipath else 0}
+        # The profile also lights the interreflections when the LEDs themselves are off (one
+        # LED at the lens centre): the camera's light leaves in a cone, not in every direction.
+        args: dict[str, object] = {
+            "seed": int(self.settings.seed),
+            "multipath_rays": int(errors.multipath_rays) if errors.multipath else 0,
+            "led_profile_exponent": float(errors.led_profile_exponent),
+            "led_min_cos": math.cos(math.radians(errors.led_half_angle_deg)),
+        }
         if errors.illumination:
             args["leds"] = np.ascontiguousarray(errors.led_positions())
-            args["led_profile_exponent"] = float(errors.led_profile_exponent)
-            args["led_min_cos"] = math.cos(math.radians(errors.led_half_angle_deg))
         return args
 
     def _build_core(self) -> _core._Renderer:
