@@ -5,10 +5,14 @@ Three tests, each against one way a ToF pixel lies:
 
 - Neighbourhood consistency (flying pixels). A pixel that straddles a depth edge, or whose four
   samples saw different surfaces while the robot turned, reads a distance between the surfaces,
-  on no surface at all; its neighbours read one surface or the other. A pixel is kept only if at
-  least `min_neighbours` of its 8 neighbours that look through the same mirror read within
-  `neighbour_tolerance + neighbour_tolerance_rel·d` of it (a wall seen obliquely changes by up to
-  a few cm per pixel at 5 m, and the noise is ~10 cm at 7 m, hence the relative part).
+  on no surface at all; its neighbours read one surface or the other. With the tolerance
+  t = `neighbour_tolerance + neighbour_tolerance_rel·d` (a wall seen obliquely changes by up to a
+  few cm per pixel at 5 m, and the noise is ~10 cm at 7 m, hence the relative part), a pixel is
+  dropped if it lies between two opposite neighbours (left and right, above and below, or a
+  diagonal pair) more than t from each (the edge runs through it; a whole column of such
+  pixels along an edge vouches for itself, so counting agreeing neighbours alone would not do),
+  or if fewer than `min_neighbours` of its 8 neighbours read within t of it (a lone outlier).
+  Only neighbours that look through the same mirror count.
 - Amplitude against distance. amplitude·d² is an apparent reflectance (`ScanSettings.
   min_amplitude_1m` drops the too-dark ones, wrapped far walls among them). A mixed pixel keeps
   the near surface's light at a longer distance, and an interreflection adds light: readings
@@ -86,7 +90,12 @@ class PixelFilter:
             ok &= aa * dd * dd <= s.max_amplitude_1m
         if s.min_neighbours > 0:
             nb = np.take(frames, self.neighbours, axis=1)  # (N, K, 8)
-            tolerance = s.neighbour_tolerance + s.neighbour_tolerance_rel * dd
-            agree = (np.abs(nb - dd[..., None]) <= tolerance[..., None]) & self.valid
+            tolerance = (s.neighbour_tolerance + s.neighbour_tolerance_rel * dd)[..., None]
+            gap = nb - dd[..., None]
+            agree = (np.abs(gap) <= tolerance) & self.valid
             ok &= agree.sum(axis=2) >= s.min_neighbours
+            # Opposite neighbours (offsets k and 7 − k): the pixel between them, far from both.
+            far = (np.abs(gap) > tolerance) & self.valid
+            between = far[..., :4] & far[..., 7:3:-1] & (gap[..., :4] * gap[..., 7:3:-1] < 0.0)
+            ok &= ~between.any(axis=2)
         return ok
