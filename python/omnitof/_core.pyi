@@ -188,7 +188,7 @@ class _Renderer:
         threads: int | None = None,
         leds: _F64 | None = None,
         led_profile_exponent: float = 0.0,
-        led_min_cos: float = -1.0,
+        led_half_angle_deg: float = 180.0,
         multipath_rays: int = 0,
         seed: int = 0,
     ) -> _Renderer: ...

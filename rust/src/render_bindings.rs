@@ -84,7 +84,7 @@ impl PyRenderer {
     #[pyo3(signature = (*, walls, wall_materials, boxes, box_materials, materials, floor_material,
         ceiling_material, ceiling_height, cell, directions, height, width, sub_rays, mirror_planes,
         mirror_vertices, mirror_counts, mirror_reflectivity, robot_T_camera, f_mod, amplitude_at_1m,
-        max_bounces, min_gain, threads=None, leds=None, led_profile_exponent=0.0, led_min_cos=-1.0, multipath_rays=0, seed=0))]
+        max_bounces, min_gain, threads=None, leds=None, led_profile_exponent=0.0, led_half_angle_deg=180.0, multipath_rays=0, seed=0))]
     #[allow(clippy::too_many_arguments, non_snake_case)]
     fn new(
         walls: PyReadonlyArray2<f64>,
@@ -112,7 +112,7 @@ impl PyRenderer {
         threads: Option<usize>,
         leds: Option<PyReadonlyArray2<f64>>,
         led_profile_exponent: f64,
-        led_min_cos: f64,
+        led_half_angle_deg: f64,
         multipath_rays: u32,
         seed: u64,
     ) -> PyResult<Self> {
@@ -164,7 +164,8 @@ impl PyRenderer {
             None => vec![[0.0; 3]],
             Some(a) => rows(a, 3, "leds")?.iter().map(|r| [r[0], r[1], r[2]]).collect(),
         };
-        let light = Illumination { leds: positions, profile_exponent: led_profile_exponent, min_cos: led_min_cos };
+        let min_cos = led_half_angle_deg.to_radians().cos();
+        let light = Illumination { leds: positions, profile_exponent: led_profile_exponent, min_cos };
         light.check().map_err(PyValueError::new_err)?;
         let bounce = Illumination { leds: vec![light.centre()], ..light.clone() };
         let illumination = leds.is_some().then_some(light);

@@ -308,7 +308,7 @@ class Renderer:
             "seed": int(self.settings.seed),
             "multipath_rays": int(errors.multipath_rays) if errors.multipath else 0,
             "led_profile_exponent": float(errors.led_profile_exponent),
-            "led_min_cos": math.cos(math.radians(errors.led_half_angle_deg)),
+            "led_half_angle_deg": float(errors.led_half_angle_deg),
         }
         if errors.illumination:
             args["leds"] = np.ascontiguousarray(errors.led_positions())
