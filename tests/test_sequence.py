@@ -107,8 +107,8 @@ def test_bag_reads_back_with_rig_and_poses(tmp_path):
     bag = read_tof_bag(out)
     assert bag.n_frames == 6 and bag.has_samples
     frames = list(bag.frames())
-    # The default bag is made with every systematic error on, and says so in its sidecar.
-    assert bag.rig.sensor.errors == ToFErrors.realistic()
+    # The default bag is made with the default systematic errors, and says so in its sidecar.
+    assert bag.rig.sensor.errors == ToFErrors.simulation_default() and bag.rig.sensor.errors.motion
     renderer = Renderer(world, sensor=bag.rig.sensor, settings=RenderSettings(sub_rays=1, seed=7))
     direct = list(render_sequence(seq, renderer, stop=6, samples=True))
     for got, want in zip(frames, direct):

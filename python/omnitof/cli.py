@@ -229,9 +229,10 @@ def _tof_errors(text: str) -> str:
 
 
 def _add_tof_errors(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--tof-errors", type=_tof_errors, default="all", metavar="LIST",
-                   help="the camera's systematic errors to simulate: all (default), none, or a comma list of "
-                   "wiggling, amplitude_offset, fixed_pattern, motion (docs/guide/simulation.md)")
+    p.add_argument("--tof-errors", type=_tof_errors, default="default", metavar="LIST",
+                   help="the camera's systematic errors to simulate: default (all but multipath), all, none, or a "
+                   "comma list of wiggling, amplitude_offset, fixed_pattern, motion, multipath, illumination "
+                   "(docs/guide/simulation.md)")
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

@@ -50,7 +50,7 @@ class DemoSettings:
     (else use the true rig). map3d_every: frames between those fed to the 3D map (0: no 3D map);
     map3d_pixel_stride: every n-th ray of such a frame. max_frames: stop after this many frames
     (a quick look). speed: m/s. tof_errors: the camera's systematic errors to simulate
-    (`ToFErrors.parse`: "all", the default, "none" or a comma list of switches).
+    (`ToFErrors.parse`: "default", all but multipath; "all", "none" or a comma list).
     """
 
     world: str = DEFAULT_WORLD
@@ -62,7 +62,7 @@ class DemoSettings:
     map3d_pixel_stride: int = 2
     max_frames: int | None = None
     speed: float = 0.4
-    tof_errors: str = "all"
+    tof_errors: str = "default"
 
 
 class _Stages:
@@ -378,7 +378,7 @@ def _print_summary(summary: dict[str, Any], out: Path, echo: Callable[[str], Non
 
 def run_demo(out: str | Path, *, world: str = DEFAULT_WORLD, seed: int = 0, preset: str = DEFAULT_PRESET,
              particles: int | None = DEFAULT_PARTICLES, calibrate: bool = True, max_frames: int | None = None,
-             progress: bool = True, tof_errors: str = "all") -> dict[str, Any]:
+             progress: bool = True, tof_errors: str = "default") -> dict[str, Any]:
     """`omnitof demo`: run_world with the command's options, into the results folder `out` as
     one unit (omnitof.results.results_folder: `out` is replaced only when the run is complete)."""
     from omnitof.results import results_folder

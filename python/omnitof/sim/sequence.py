@@ -296,15 +296,15 @@ def simulate_bag(
 ) -> tuple[Sequence, int]:
     """Simulate the world's sequence and write it as a ROS 2 bag folder `out`.
 
-    `sensor` defaults to the default camera with every systematic error on
-    (`ToFErrors.realistic()`); the sidecar records which (`sensor.errors`).
+    `sensor` defaults to the default camera with the systematic errors of
+    `ToFErrors.simulation_default()`; the sidecar records which (`sensor.errors`).
     The bag holds distance and amplitude images (and A0..A3 with `samples`), camera info,
     odometry and ground truth at every frame; `<out>/omnitof.yaml` the true rig
     (`rig_sidecar`). `max_frames` keeps only the first frames (a quick look). Nothing is left
     at `out` if writing fails. Returns (the sequence, frames written).
     """
     sequence = make_sequence(world, seed=seed, motion=motion, odometry_errors=odometry_errors)
-    renderer = Renderer(world, sensor=sensor or SensorNoise(errors=ToFErrors.realistic()),
+    renderer = Renderer(world, sensor=sensor or SensorNoise(errors=ToFErrors.simulation_default()),
                         settings=settings or RenderSettings(seed=int(seed)))
     stop = len(sequence) if max_frames is None else min(int(max_frames), len(sequence))
     odometry, truth = sequence.trajectories()
