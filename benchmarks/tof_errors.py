@@ -5,7 +5,7 @@ effects cost the renderer.
 Per world, --frames frames spread evenly over the robot's drive (sim.sequence.make_sequence,
 seed 0: straight legs and turns at up to 0.6 rad/s) are rendered with the default rig (4
 sub-rays, sensor noise on) once per setting of the camera's errors: none, each effect alone
-(omnitof.sensor.tof_errors.SWITCHES), all. Each frame becomes a scan with the true rig's
+(omnitof.sensor.tof_errors.SWITCHES), the simulator's default (all but multipath), all. Each frame becomes a scan with the true rig's
 extractor, with the pixel filter off and on; every 1° bin whose nearest surface at the slice
 height is matte is compared with the exact horizontal distance there (World.horizontal_distance
 at the frame's true pose). Reported per world and setting: the median and 90th percentile of
@@ -38,11 +38,12 @@ from omnitof.sim.sequence import make_sequence, sample_poses
 from omnitof.sim.worlds import load_world, world_names
 
 
-def settings() -> list[tuple[str, ToFErrors]]:
+def settings(only: list[str] | None = None) -> list[tuple[str, ToFErrors]]:
     out = [("none", ToFErrors())]
     out += [(name, ToFErrors().only(name)) for name in SWITCHES]
+    out.append(("default (all but multipath)", ToFErrors.simulation_default()))
     out.append(("all", ToFErrors.realistic()))
-    return out
+    return [o for o in out if only is None or o[0].split()[0] in only]
 
 
 def frames(world, errors: ToFErrors, count: int, seed: int = 0):
@@ -73,13 +74,13 @@ def stats(e: np.ndarray) -> str:
     return f"{100 * np.median(a):.1f} / {100 * np.percentile(a, 90):.1f} / {100 * np.mean(a < 0.05):.1f} %"
 
 
-def budget(names: list[str], count: int) -> None:
+def budget(names: list[str], count: int, only: list[str] | None = None) -> None:
     print("| world | effects | bins (off / on) | median / p90 |error| (cm) / within 5 cm, filter off "
           "| the same, filter on |")
     print("|---|---|---|---|---|")
     for name in names:
         world = load_world(name)
-        for label, errors in settings():
+        for label, errors in settings(only):
             renderer, poses, fr = frames(world, errors, count)
             d = np.stack([f.distance for f in fr])
             a = np.stack([f.amplitude for f in fr])
@@ -126,13 +127,14 @@ def main() -> None:
     parser.add_argument("--worlds", nargs="*", default=world_names())
     parser.add_argument("--skip-budget", action="store_true")
     parser.add_argument("--skip-speed", action="store_true")
+    parser.add_argument("--settings", nargs="*", help="only these rows (none, a switch, default, all)")
     args = parser.parse_args()
     print(f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.1f}")
     if not args.skip_speed:
         speed(args.runs)
     if not args.skip_budget:
-        budget(args.worlds, args.frames)
+        budget(args.worlds, args.frames, args.settings)
     print(f"# done, load {os.getloadavg()[0]:.1f}")
 
 
