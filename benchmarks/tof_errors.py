@@ -98,7 +98,8 @@ def speed(runs: int, count: int = 60) -> None:
     poses = seq.ground_truth[idx]
     timing = {}
     renderers = {label: Renderer(world, sensor=SensorNoise(errors=e))
-                 for label, e in (("off", ToFErrors()), ("on", ToFErrors.realistic()))}
+                 for label, e in (("off", ToFErrors()), ("default (all but multipath)", ToFErrors.simulation_default()),
+                                  ("all on", ToFErrors.realistic()))}
     for r in renderers.values():
         r.phasors(poses[:2])
     tracer = {k: [] for k in renderers}
