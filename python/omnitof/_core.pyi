@@ -245,6 +245,11 @@ class _Renderer:
         max_bounces: int,
         min_gain: float,
         threads: int | None = None,
+        leds: _F64 | None = None,
+        led_profile_exponent: float = 0.0,
+        led_half_angle_deg: float = 180.0,
+        multipath_rays: int = 0,
+        seed: int = 0,
     ) -> _Renderer: ...
     def render(self, poses: _F64) -> _F32: ...
     def cast(self, origins: _F64, directions: _F64) -> tuple[_F64, _I64]: ...

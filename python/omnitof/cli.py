@@ -224,11 +224,29 @@ def cmd_config(args: argparse.Namespace) -> int:
     return 0
 
 
+def _tof_errors(text: str) -> str:
+    from omnitof.sensor.tof_errors import ToFErrors, ToFErrorsError
+
+    try:
+        ToFErrors.parse(text)
+    except ToFErrorsError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return text
+
+
+def _add_tof_errors(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--tof-errors", type=_tof_errors, default="default", metavar="LIST",
+                   help="the camera's systematic errors to simulate: default (all but multipath), all, none, or a "
+                   "comma list of wiggling, amplitude_offset, fixed_pattern, motion, multipath, illumination "
+                   "(docs/guide/simulation.md)")
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from omnitof.demo import run_demo
 
     run_demo(args.out, world=args.world, seed=args.seed, preset=args.preset, particles=args.particles,
-             calibrate=not args.true_rig, max_frames=args.max_frames, progress=not args.quiet)
+             calibrate=not args.true_rig, max_frames=args.max_frames, progress=not args.quiet,
+             tof_errors=args.tof_errors)
     return 0
 
 
@@ -237,9 +255,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         from omnitof.cli_calibrate import cmd_render_targets
 
         return cmd_render_targets(args)
+    from omnitof.sensor.tof import SensorNoise
+    from omnitof.sensor.tof_errors import ToFErrors
     from omnitof.sim.sequence import MotionSettings, make_sequence, simulate_bag
     from omnitof.sim.worlds import load_world
 
+    sensor = SensorNoise(errors=ToFErrors.parse(args.tof_errors))
     world = load_world(args.world)
     motion = MotionSettings(speed=args.speed)
     total = len(make_sequence(world, seed=args.seed, motion=motion))
@@ -249,7 +270,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         sequence, written = simulate_bag(
             world, args.out, seed=args.seed, motion=motion, samples=args.samples,
             max_frames=args.max_frames, storage=args.storage, overwrite=args.overwrite,
-            progress=bar.update,
+            progress=bar.update, sensor=sensor,
         )
     drift, turn = sequence.odometry_end_error(written)
     print(
@@ -274,9 +295,19 @@ def cmd_design(args: argparse.Namespace) -> int:
         plot_sweep(args.sweep, rows)
         print(f"sweep figure: {args.sweep}")
         return 0
+    from omnitof.sensor.design import apex_sweep, format_apex_sweep
+    from omnitof.sensor.illumination import DEFAULT_LIT_DISTANCE, lit_share
+    from omnitof.sensor.tof_errors import ToFErrors
+
     camera = lenses[args.lens]
     mirrors = pyramid(args.mirrors, args.tilt, yaw_deg=args.yaw, camera=camera)
     print(design_report(camera, mirrors, elev_band_deg=args.band).format())
+    leds = ToFErrors.realistic()
+    share = lit_share(camera, mirrors, leds, DEFAULT_LIT_DISTANCE)
+    print(f"lit by the camera's LEDs ({leds.led_count} on a {100 * leds.led_radius:g} cm ring, surface at "
+          f"{DEFAULT_LIT_DISTANCE:g} m): {100 * share:.1f} % of the mirror pixels")
+    if args.apex_sweep:
+        print(format_apex_sweep(apex_sweep(camera, args.mirrors, args.tilt, args.yaw)))
     if args.figure is not None:
         plot_mirror_regions(args.figure, camera, mirrors)
         print(f"mirror regions: {args.figure}")
@@ -374,6 +405,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--band", type=_number(), default=10.0, help="usable elevations: ± this around horizontal (deg)")
     p.add_argument("--figure", type=Path, help="draw the mirror regions of the image (PNG)")
     p.add_argument("--sweep", type=Path, metavar="PNG", help="sweep tilt, yaw, mirrors and lens; plot to PNG")
+    p.add_argument("--apex-sweep", action="store_true",
+                   help="the share of mirror pixels the LEDs light, for apex heights 2-20 cm")
     p.set_defaults(func=cmd_design)
 
     p = sub.add_parser("simulate", help="simulate a robot driving a world with the omnidirectional ToF sensor and "
@@ -388,6 +421,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=_seed, default=0, help="fixes the odometry noise, the sensor noise and the sub-ray jitter")
     p.add_argument("--speed", type=_number(above=0), default=0.4, help="driving speed (m/s)")
     p.add_argument("--samples", action="store_true", help="also write the raw samples A0..A3 (3x the size)")
+    _add_tof_errors(p)
     p.add_argument("--max-frames", type=_positive_int, help="write only the first N frames")
     p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="ROS 2 bag storage")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bag")
@@ -405,6 +439,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--true-rig", action="store_true", help="skip the calibration and use the true rig")
     p.add_argument("--max-frames", type=_positive_int, help="stop after N frames (a quick look)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    _add_tof_errors(p)
     p.set_defaults(func=cmd_demo)
     from omnitof.cli_calibrate import add_calibrate_parser
     add_calibrate_parser(sub)

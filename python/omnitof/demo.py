@@ -49,7 +49,8 @@ class DemoSettings:
     particles within 1.7–5.2 cm; BENCHMARKS.md, issue 13). None keeps the preset's. calibrate: estimate the rig from rendered target images
     (else use the true rig). map3d_every: frames between those fed to the 3D map (0: no 3D map);
     map3d_pixel_stride: every n-th ray of such a frame. max_frames: stop after this many frames
-    (a quick look). speed: m/s.
+    (a quick look). speed: m/s. tof_errors: the camera's systematic errors to simulate
+    (`ToFErrors.parse`: "default", all but multipath; "all", "none" or a comma list).
     """
 
     world: str = DEFAULT_WORLD
@@ -61,6 +62,7 @@ class DemoSettings:
     map3d_pixel_stride: int = 2
     max_frames: int | None = None
     speed: float = 0.4
+    tof_errors: str = "default"
 
 
 class _Stages:
@@ -185,6 +187,8 @@ def simulated_scans(settings: DemoSettings, out: str | Path, *, stages: _Stages 
     from omnitof.io.terminal import progress_bar
     from omnitof.scan import ScanExtractor
     from omnitof.scan.tof_input import tof_scans
+    from omnitof.sensor.tof import SensorNoise
+    from omnitof.sensor.tof_errors import ToFErrors
     from omnitof.sim.render import Renderer, RenderSettings
     from omnitof.sim.sequence import MotionSettings, make_sequence, render_sequence
     from omnitof.sim.worlds import load_world
@@ -194,12 +198,14 @@ def simulated_scans(settings: DemoSettings, out: str | Path, *, stages: _Stages 
     with stages.stage("simulate the drive"):
         world = world if world is not None else load_world(settings.world)
         sequence = make_sequence(world, seed=settings.seed, motion=MotionSettings(speed=settings.speed))
-        renderer = Renderer(world, settings=RenderSettings(seed=settings.seed))
+        sensor = SensorNoise(errors=ToFErrors.parse(settings.tof_errors))
+        renderer = Renderer(world, sensor=sensor, settings=RenderSettings(seed=settings.seed))
         n_frames = len(sequence) if settings.max_frames is None else min(len(sequence), settings.max_frames)
         drift, turn = sequence.odometry_end_error(n_frames)
         summary = {
             "world": world.name, "frames": n_frames, "metres": round(sequence.distance_driven(n_frames), 2),
             "odometry_end_error_m": round(drift, 3), "odometry_end_error_deg": round(math.degrees(turn), 2),
+            "tof_errors": list(sensor.errors.switched_on),
         }
 
     with stages.stage("calibrate the rig"):
@@ -372,13 +378,13 @@ def _print_summary(summary: dict[str, Any], out: Path, echo: Callable[[str], Non
 
 def run_demo(out: str | Path, *, world: str = DEFAULT_WORLD, seed: int = 0, preset: str = DEFAULT_PRESET,
              particles: int | None = DEFAULT_PARTICLES, calibrate: bool = True, max_frames: int | None = None,
-             progress: bool = True) -> dict[str, Any]:
+             progress: bool = True, tof_errors: str = "default") -> dict[str, Any]:
     """`omnitof demo`: run_world with the command's options, into the results folder `out` as
     one unit (omnitof.results.results_folder: `out` is replaced only when the run is complete)."""
     from omnitof.results import results_folder
 
     settings = DemoSettings(world=world, seed=seed, preset=preset, particles=particles, calibrate=calibrate,
-                            max_frames=max_frames)
+                            max_frames=max_frames, tof_errors=tof_errors)
     slam_config(preset, seed, particles)  # a bad value is refused before the folder is opened
     with results_folder(out) as folder:
         summary = run_world(settings, folder, progress=progress).summary

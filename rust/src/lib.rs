@@ -6,6 +6,7 @@ pub mod filter;
 pub mod filter3d;
 mod filter3d_bindings;
 pub mod grid;
+pub mod light;
 pub mod loop_closure;
 mod loop_closure_bindings;
 pub mod motion;
