@@ -13,6 +13,7 @@ from omnitof.geometry import compose, relative
 from omnitof.slam import run_slam
 from omnitof.slam.backend import Closure, PoseGraphBackend
 from omnitof.slam.config import load_config
+from omnitof.slam.final_match import grid_along
 from test_scan_match import with_odometry_jump
 
 
@@ -198,3 +199,74 @@ def test_chained_matches_in_the_core_are_the_single_matches_in_turn(corridor_loo
         pose = np.asarray(found) if matched[i - 6] else start
         assert np.allclose(poses[i - 6], relative(anchor, pose), rtol=0, atol=1e-9)
     assert matched.all()
+
+
+def _grid_along_truth(scans, which):
+    g = _core.OccupancyGrid(0.05, 0.9, -0.4, -2.0, 3.5)
+    for k in which:
+        g.integrate(scans.ground_truth[k], scans.angles, scans.ranges[k], 20.0, False, scans.sensor_pose)
+    return g
+
+
+def test_match_each_recovers_displaced_scans_in_a_known_map(corridor_loop):
+    scans = corridor_loop.slice(0, 300)
+    grid = _grid_along_truth(scans, range(0, 300, 5))
+    rng = np.random.default_rng(3)
+    which = np.arange(2, 300, 7)  # mostly scans the map was not built from
+    truth = scans.ground_truth[which]
+    offset = np.column_stack([rng.uniform(-0.05, 0.05, (len(which), 2)), np.radians(rng.uniform(-2, 2, len(which)))])
+    starts = truth + offset
+    poses, share = grid.match_each(starts, scans.ranges[which], scans.angles, sensor_pose=scans.sensor_pose)
+    err_xy = np.hypot(*(poses[:, :2] - truth[:, :2]).T)
+    err_th = np.degrees(np.abs(np.angle(np.exp(1j * (poses[:, 2] - truth[:, 2])))))
+    before = np.hypot(*offset[:, :2].T)
+    assert np.median(err_xy) < 0.01 and np.median(err_th) < 0.3, (np.median(err_xy), np.median(err_th))
+    assert np.median(err_xy) < 0.25 * np.median(before)
+    assert (share > 0.9).mean() > 0.9
+    # One row of angles per scan gives the same as the shared row; one thread the same as two.
+    rows = np.broadcast_to(scans.angles, scans.ranges[which].shape).copy()
+    again, _ = grid.match_each(starts, scans.ranges[which], rows, sensor_pose=scans.sensor_pose, threads=1)
+    twice, _ = grid.match_each(starts, scans.ranges[which], scans.angles, sensor_pose=scans.sensor_pose, threads=2)
+    assert np.array_equal(again, poses) and np.array_equal(twice, poses)
+    # Per-scan geometry pads with NaN bearings and infinite ranges: the padding is skipped.
+    padded_ranges = scans.ranges[which].copy()
+    padded_ranges[:, -3:] = np.inf
+    rows[:, -3:] = np.nan
+    padded, _ = grid.match_each(starts, padded_ranges, rows, sensor_pose=scans.sensor_pose)
+    assert np.abs(padded - poses).max() < 0.005
+    # A scan with no echo keeps its start and finds nothing.
+    empty = np.full((1, scans.ranges.shape[1]), np.inf, dtype=np.float32)
+    kept, none = grid.match_each(starts[:1], empty, scans.angles)
+    assert np.array_equal(kept, starts[:1]) and none[0] == 0.0
+    with pytest.raises(ValueError, match="angles"):
+        grid.match_each(starts, scans.ranges[which], scans.angles[:-1])
+    with pytest.raises(ValueError, match="finite"):
+        grid.match_each(starts, scans.ranges[which], rows)  # NaN bearings where beams have ranges
+    with pytest.raises(ValueError, match="starts"):
+        grid.match_each(starts[:-1], scans.ranges[which], scans.angles)
+
+
+def _relative_errors(poses, truth, step):
+    """Mean translation (m) and heading (deg) error of the motions from scan k to k + step."""
+    est = relative(poses[:-step], poses[step:])
+    true = relative(truth[:-step], truth[step:])
+    d = relative(true, est)
+    return np.hypot(d[:, 0], d[:, 1]).mean(), np.degrees(np.abs(d[:, 2])).mean()
+
+
+def test_final_match_poses_every_scan_closer_to_the_truth(corridor_loop):
+    scans = corridor_loop.slice(0, 700)
+    plain = run_slam(scans, loop_config(True, match_between=True))
+    final = run_slam(scans, loop_config(True, match_between=True, final_match_passes=2))
+    # What a local match can fix is each pose relative to its neighbours (the relations metric's
+    # view), not the drift of the whole loop: compare the motion between scans k and k + 5.
+    before = _relative_errors(plain.trajectory.poses, scans.ground_truth, 5)
+    after = _relative_errors(final.trajectory.poses, scans.ground_truth, 5)
+    # Measured: 0.0099 m / 0.121° -> 0.0032 m / 0.040°.
+    assert after[0] < 0.5 * before[0] and after[1] < 0.5 * before[1], (before, after)
+    assert 0 <= final.stats["final_match_stood"] < 0.1 * len(scans)
+    # The map written is the integrated scans' at their final poses.
+    cfg = loop_config(True)
+    again = grid_along(scans, final.integrated, final.trajectory.poses[final.integrated], cfg.map)
+    log_odds, _, _ = again.to_dense()
+    assert np.array_equal(np.nan_to_num(log_odds), final.map.log_odds)

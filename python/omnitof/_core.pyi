@@ -7,6 +7,7 @@ import numpy.typing as npt
 __all__ = [
     "OccupancyGrid",
     "ParticleFilter",
+    "ParticleFilter3D",
     "Submap",
     "VoxelGrid",
     "beam_likelihood",
@@ -96,6 +97,26 @@ class OccupancyGrid:
         refinements: int = 3,
         gauss_newton: int = 10,
     ) -> tuple[list[float], float]: ...
+    def match_each(
+        self,
+        starts: _F64,
+        ranges: _F32,
+        angles: _F64,
+        *,
+        sensor_pose: _F64 | None = None,
+        sigma: float = 0.05,
+        z_hit: float = 0.9,
+        z_rand: float = 0.1,
+        window: int = 3,
+        fit_walls: bool = False,
+        max_range: float = 20.0,
+        occupied_threshold: float = 0.0,
+        beam_stride: int = 1,
+        gauss_newton: int = 10,
+        threads: int | None = None,
+    ) -> tuple[_F64, _F64]:
+        """Every scan re-posed in this map by Gauss-Newton from its row of `starts`: (poses
+        (N, 3), share of end points near an obstacle (N,)); `angles` (B,) or (N, B)."""
     def expected_ranges(self, sensor_pose: _F64, angles: _F64, max_range: float, occupied_threshold: float) -> _F64: ...
 
 @final
@@ -157,6 +178,44 @@ class VoxelGrid:
     def memory_bytes(self) -> int: ...
     def bounds(self) -> tuple[list[float], list[float]] | None: ...
 
+# The 3D filter (rust/src/filter3d.rs, filter3d_bindings.rs); its driver is omnitof.slam.filter3d.
+# Sections as ParticleFilter's, plus `filter3d` (less enabled, pixel_stride, project_z_*).
+@final
+class ParticleFilter3D:
+    def __new__(
+        cls,
+        *,
+        filter: dict[str, Any],
+        motion: dict[str, Any],
+        sensor_model: dict[str, Any],
+        likelihood_field: dict[str, Any],
+        scan_matcher: dict[str, Any],
+        map: dict[str, Any],
+        filter3d: dict[str, Any],
+    ) -> ParticleFilter3D: ...
+    # origins, endpoints (N, 3) robot frame: (Neff, resampled, scan-match fallbacks, rays scored).
+    def step(
+        self, odom_prev: _F64, odom_cur: _F64, origins: _F64, endpoints: _F64, scan: int
+    ) -> tuple[float, bool, int, int]: ...
+    # Mean log-likelihood and matched end points at each pose (K, 3) in particle `index`'s map.
+    def score(self, index: int, poses: _F64, endpoints: _F64) -> tuple[_F64, _U64]: ...
+    def best_pose(self) -> _F64 | None: ...
+    def best_trajectory(self) -> tuple[_U64, _F64]: ...
+    def map(self, index: int | None = None) -> VoxelGrid: ...
+    def poses(self) -> _F64: ...
+    def log_weights(self) -> _F64: ...
+    def block_counts(self, indices: list[int] | None = None) -> tuple[int, int]: ...
+    @staticmethod
+    def block_bytes() -> int: ...
+    @property
+    def steps(self) -> int: ...
+    @property
+    def resamplings(self) -> int: ...
+    @property
+    def fallbacks(self) -> int: ...
+    @property
+    def resolution(self) -> float: ...
+
 # Private: the renderer behind omnitof.sim.render.Renderer (rust/src/render_bindings.rs).
 @final
 class _Renderer:
@@ -186,6 +245,11 @@ class _Renderer:
         max_bounces: int,
         min_gain: float,
         threads: int | None = None,
+        leds: _F64 | None = None,
+        led_profile_exponent: float = 0.0,
+        led_half_angle_deg: float = 180.0,
+        multipath_rays: int = 0,
+        seed: int = 0,
     ) -> _Renderer: ...
     def render(self, poses: _F64) -> _F32: ...
     def cast(self, origins: _F64, directions: _F64) -> tuple[_F64, _I64]: ...

@@ -51,11 +51,14 @@ def _summary_line(stats: dict) -> str:
 def cmd_slam(args: argparse.Namespace) -> int:
     from omnitof.slam_run import SlamRequest, default_preset, slam_to_folder
 
-    cfg = _config_from_args(args, default_preset=default_preset(args.log))
+    if args.filter == "3d":
+        args.set = [*(args.set or []), "filter3d.enabled=true"]
+    preset = "tof3d" if args.filter == "3d" else default_preset(args.log)
+    cfg = _config_from_args(args, default_preset=preset)
     request = SlamRequest(
         log=args.log, relations=args.relations, max_scans=args.max_scans, skip_bad_lines=args.skip_bad_lines,
         scan_delay=args.scan_delay, calibration=args.calibration, height=args.height, band=args.band,
-        map3d=args.map3d, map3d_every=args.map3d_every,
+        map3d=args.map3d, map3d_every=args.map3d_every, compare_2d=args.compare_2d,
     )
     run = slam_to_folder(request, cfg, args.out, bar=_bar_factory(args))
     print(_summary_line(run.result.stats))
@@ -65,6 +68,9 @@ def cmd_slam(args: argparse.Namespace) -> int:
         te = run.extra["trajectory_error"]
         print(f"trajectory error (mean, final): SLAM {te['slam']['mean']:.3f} m, {te['slam']['final']:.3f} m; "
               f"odometry {te['odometry']['mean']:.3f} m, {te['odometry']['final']:.3f} m")
+    if "filter2d" in run.extra:
+        d = run.extra["filter2d"]["difference_3d_to_2d"]
+        print(f"3D filter vs 2D filter: mean {d['mean']:.3f} m, max {d['max']:.3f} m apart")
     print(f"results in {run.paths['summary'].parent}")
     return 0
 
@@ -218,12 +224,29 @@ def cmd_config(args: argparse.Namespace) -> int:
     return 0
 
 
+def _tof_errors(text: str) -> str:
+    from omnitof.sensor.tof_errors import ToFErrors, ToFErrorsError
+
+    try:
+        ToFErrors.parse(text)
+    except ToFErrorsError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return text
+
+
+def _add_tof_errors(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--tof-errors", type=_tof_errors, default="default", metavar="LIST",
+                   help="the camera's systematic errors to simulate: default (all but multipath), all, none, or a "
+                   "comma list of wiggling, amplitude_offset, fixed_pattern, motion, multipath, illumination "
+                   "(docs/guide/simulation.md)")
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from omnitof.demo import run_demo
 
     run_demo(args.out, world=args.world, seed=args.seed, preset=args.preset, particles=args.particles,
              calibrate=not args.true_rig, max_frames=args.max_frames, progress=not args.quiet,
-             refine=not args.closed_form)
+             refine=not args.closed_form, tof_errors=args.tof_errors)
     return 0
 
 
@@ -232,9 +255,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         from omnitof.cli_calibrate import cmd_render_targets
 
         return cmd_render_targets(args)
+    from omnitof.sensor.tof import SensorNoise
+    from omnitof.sensor.tof_errors import ToFErrors
     from omnitof.sim.sequence import MotionSettings, make_sequence, simulate_bag
     from omnitof.sim.worlds import load_world
 
+    sensor = SensorNoise(errors=ToFErrors.parse(args.tof_errors))
     world = load_world(args.world)
     motion = MotionSettings(speed=args.speed)
     total = len(make_sequence(world, seed=args.seed, motion=motion))
@@ -244,7 +270,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         sequence, written = simulate_bag(
             world, args.out, seed=args.seed, motion=motion, samples=args.samples,
             max_frames=args.max_frames, storage=args.storage, overwrite=args.overwrite,
-            progress=bar.update,
+            progress=bar.update, sensor=sensor,
         )
     drift, turn = sequence.odometry_end_error(written)
     print(
@@ -269,9 +295,19 @@ def cmd_design(args: argparse.Namespace) -> int:
         plot_sweep(args.sweep, rows)
         print(f"sweep figure: {args.sweep}")
         return 0
+    from omnitof.sensor.design import apex_sweep, format_apex_sweep
+    from omnitof.sensor.illumination import DEFAULT_LIT_DISTANCE, lit_share
+    from omnitof.sensor.tof_errors import ToFErrors
+
     camera = lenses[args.lens]
     mirrors = pyramid(args.mirrors, args.tilt, yaw_deg=args.yaw, camera=camera)
     print(design_report(camera, mirrors, elev_band_deg=args.band).format())
+    leds = ToFErrors.realistic()
+    share = lit_share(camera, mirrors, leds, DEFAULT_LIT_DISTANCE)
+    print(f"lit by the camera's LEDs ({leds.led_count} on a {100 * leds.led_radius:g} cm ring, surface at "
+          f"{DEFAULT_LIT_DISTANCE:g} m): {100 * share:.1f} % of the mirror pixels")
+    if args.apex_sweep:
+        print(format_apex_sweep(apex_sweep(camera, args.mirrors, args.tilt, args.yaw)))
     if args.figure is not None:
         plot_mirror_regions(args.figure, camera, mirrors)
         print(f"mirror regions: {args.figure}")
@@ -312,6 +348,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--band", type=_number(above=0), help="ToF bags: half-thickness of the scan slice (m)")
     p.add_argument("--map3d", action="store_true", help="ToF bags: also build the 3D voxel map (map3d.ply, map3d.png)")
     p.add_argument("--map3d-every", type=_positive_int, default=5, help="ToF bags: frames between those fed to the 3D map")
+    p.add_argument("--filter", choices=("2d", "3d"), default="2d",
+                   help="ToF bags: 3d runs the paper's 3D variant (voxel maps per particle, every mirror pixel; "
+                   "default preset tof3d) and writes map3d.ply/png, map.pgm as its projection")
+    p.add_argument("--compare-2d", action="store_true",
+                   help="with --filter 3d: also run the 2D filter and record the trajectories' difference")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_slam)
 
@@ -364,6 +405,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--band", type=_number(), default=10.0, help="usable elevations: ± this around horizontal (deg)")
     p.add_argument("--figure", type=Path, help="draw the mirror regions of the image (PNG)")
     p.add_argument("--sweep", type=Path, metavar="PNG", help="sweep tilt, yaw, mirrors and lens; plot to PNG")
+    p.add_argument("--apex-sweep", action="store_true",
+                   help="the share of mirror pixels the LEDs light, for apex heights 2-20 cm")
     p.set_defaults(func=cmd_design)
 
     p = sub.add_parser("simulate", help="simulate a robot driving a world with the omnidirectional ToF sensor and "
@@ -380,6 +423,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=_seed, default=0, help="fixes the odometry noise, the sensor noise and the sub-ray jitter")
     p.add_argument("--speed", type=_number(above=0), default=0.4, help="driving speed (m/s)")
     p.add_argument("--samples", action="store_true", help="also write the raw samples A0..A3 (3x the size)")
+    _add_tof_errors(p)
     p.add_argument("--max-frames", type=_positive_int, help="write only the first N frames")
     p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="ROS 2 bag storage")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bag")
@@ -399,6 +443,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="keep the closed-form calibration (intrinsics, then mirrors) without the joint refinement")
     p.add_argument("--max-frames", type=_positive_int, help="stop after N frames (a quick look)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    _add_tof_errors(p)
     p.set_defaults(func=cmd_demo)
     from omnitof.cli_calibrate import add_calibrate_parser
     add_calibrate_parser(sub)

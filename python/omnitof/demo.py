@@ -51,7 +51,9 @@ class DemoSettings:
     map3d_pixel_stride: every n-th ray of such a frame. max_frames: stop after this many frames
     (a quick look). speed: m/s. refine: refine the estimated calibration jointly (issue 16:
     two-mirror boards, ToF path lengths; `calibration.refine`) after the closed-form chain, as
-    the demo does by default; False keeps the closed-form estimate.
+    the demo does by default; False keeps the closed-form estimate. tof_errors: the camera's
+    systematic errors to simulate (`ToFErrors.parse`: "default", all but multipath; "all",
+    "none" or a comma list).
     """
 
     world: str = DEFAULT_WORLD
@@ -64,6 +66,7 @@ class DemoSettings:
     max_frames: int | None = None
     speed: float = 0.4
     refine: bool = True
+    tof_errors: str = "default"
 
 
 class _Stages:
@@ -188,6 +191,8 @@ def simulated_scans(settings: DemoSettings, out: str | Path, *, stages: _Stages 
     from omnitof.io.terminal import progress_bar
     from omnitof.scan import ScanExtractor
     from omnitof.scan.tof_input import tof_scans
+    from omnitof.sensor.tof import SensorNoise
+    from omnitof.sensor.tof_errors import ToFErrors
     from omnitof.sim.render import Renderer, RenderSettings
     from omnitof.sim.sequence import MotionSettings, make_sequence, render_sequence
     from omnitof.sim.worlds import load_world
@@ -197,12 +202,14 @@ def simulated_scans(settings: DemoSettings, out: str | Path, *, stages: _Stages 
     with stages.stage("simulate the drive"):
         world = world if world is not None else load_world(settings.world)
         sequence = make_sequence(world, seed=settings.seed, motion=MotionSettings(speed=settings.speed))
-        renderer = Renderer(world, settings=RenderSettings(seed=settings.seed))
+        sensor = SensorNoise(errors=ToFErrors.parse(settings.tof_errors))
+        renderer = Renderer(world, sensor=sensor, settings=RenderSettings(seed=settings.seed))
         n_frames = len(sequence) if settings.max_frames is None else min(len(sequence), settings.max_frames)
         drift, turn = sequence.odometry_end_error(n_frames)
         summary = {
             "world": world.name, "frames": n_frames, "metres": round(sequence.distance_driven(n_frames), 2),
             "odometry_end_error_m": round(drift, 3), "odometry_end_error_deg": round(math.degrees(turn), 2),
+            "tof_errors": list(sensor.errors.switched_on),
         }
 
     with stages.stage("calibrate the rig"):
@@ -375,13 +382,13 @@ def _print_summary(summary: dict[str, Any], out: Path, echo: Callable[[str], Non
 
 def run_demo(out: str | Path, *, world: str = DEFAULT_WORLD, seed: int = 0, preset: str = DEFAULT_PRESET,
              particles: int | None = DEFAULT_PARTICLES, calibrate: bool = True, max_frames: int | None = None,
-             progress: bool = True, refine: bool = True) -> dict[str, Any]:
+             progress: bool = True, refine: bool = True, tof_errors: str = "default") -> dict[str, Any]:
     """`omnitof demo`: run_world with the command's options, into the results folder `out` as
     one unit (omnitof.results.results_folder: `out` is replaced only when the run is complete)."""
     from omnitof.results import results_folder
 
     settings = DemoSettings(world=world, seed=seed, preset=preset, particles=particles, calibrate=calibrate,
-                            max_frames=max_frames, refine=refine)
+                            max_frames=max_frames, refine=refine, tof_errors=tof_errors)
     slam_config(preset, seed, particles)  # a bad value is refused before the folder is opened
     with results_folder(out) as folder:
         summary = run_world(settings, folder, progress=progress).summary

@@ -9,7 +9,9 @@
     map.png               the map with the SLAM and odometry trajectories drawn over it
     pose_graph.png        with the back end: its nodes and loop closures over the map
     summary.yaml          counts, timings and any evaluation
-    map3d.ply, map3d.png  the 3D voxel map of a ToF run, when asked (`write_voxel_outputs`)
+    map3d.ply, map3d.png  the 3D voxel map of a ToF run, when asked (`write_voxel_outputs`); with
+                          the 3D filter, its best particle's (map.pgm is then its projection)
+    trajectory_2d.tum     with the 3D filter and --compare-2d: the 2D filter's trajectory
 
 The folder is one unit (`results_folder`): a run builds it under a hidden name beside its
 place and renames it into place when it is complete, so the folder is always the complete
@@ -47,7 +49,7 @@ from omnitof.io.ply import write_ply
 # holding anything else is not replaced: it is not (only) a results folder.
 RESULT_FILES = frozenset({
     "map.pgm", "map.yaml", "map.png", "trajectory.tum", "odometry.tum", "ground_truth.tum",
-    "config.yaml", "summary.yaml", "pose_graph.png", "map3d.ply", "map3d.png",
+    "config.yaml", "summary.yaml", "pose_graph.png", "map3d.ply", "map3d.png", "trajectory_2d.tum",
     # omnitof demo
     "report.md", "overlay.png", "table1.txt", "calibration.yaml", "fig3_amplitude.png",
     "fig3_depth.png", "scan.png", "slice.png",

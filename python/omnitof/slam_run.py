@@ -37,6 +37,8 @@ class SlamRequest:
     scan_delay: seconds, "auto" (estimated from the log, `omnitof.slam.timing`) or None for the
         default: "auto" for laser logs and LaserScan bags (they are stamped when the reading
         arrives), none for ToF bags. calibration, height, band, map3d, map3d_every: ToF bags only.
+    compare_2d: with the 3D filter (`filter3d.enabled`), also run the 2D filter on the same
+        scans and record how far the two trajectories lie apart (trajectory_2d.tum, summary).
     label: the input's path as summary.yaml records it (default `log`): `omnitof bench` runs on
         a worker's copy of the file and records the path the experiment gave.
     """
@@ -52,6 +54,7 @@ class SlamRequest:
     map3d: bool = False
     map3d_every: int = 5
     label: str | None = None
+    compare_2d: bool = False
 
 
 @dataclass
@@ -123,6 +126,8 @@ def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *,
     tof = is_tof_bag(log)
     if not tof and (request.calibration is not None or request.map3d):
         raise OmnitofError(f"{log}: --calibration and --map3d need a bag of ToF images")
+    if not tof and cfg.filter3d.enabled:
+        raise OmnitofError(f"{log}: the 3D filter (--filter 3d, filter3d.enabled) needs a bag of ToF images")
     relations = None
     if request.relations is not None:
         from omnitof.eval.relations import read_relations
@@ -145,10 +150,15 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
     from omnitof.results import write_results
     from omnitof.slam import check_limits, run_slam
 
+    three_d = tof and cfg.filter3d.enabled
     if tof:
+        import math
+
+        keyframes = (cfg.filter.linear_update, math.radians(cfg.filter.angular_update_deg)) if three_d else None
         tof_data = read_tof_input(log, calibration=request.calibration, height=request.height, band=request.band,
                                   cloud_every=request.map3d_every if request.map3d else 0,
-                                  max_frames=request.max_scans, bar=bar)
+                                  cloud_pixel_stride=cfg.filter3d.pixel_stride if three_d else 1,
+                                  cloud_keyframes=keyframes, max_frames=request.max_scans, bar=bar)
         scans = tof_data.scans
         extra: dict[str, Any] = {"input": {"path": label, "kind": "tof-rosbag", "rig": tof_data.rig_source,
                                            "scan": tof_data.extractor.settings.model_dump()}}
@@ -168,8 +178,12 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
     delay = request.scan_delay if given or tof else "auto"
     if delay is not None:
         scans, extra["input"]["scan_delay"] = _retimed(scans, delay, given=given, echo=echo)
-    with bar(len(scans), "slam", "scan") as b:
-        result = run_slam(scans, cfg, progress=_pausing(b.update, "slam", len(scans) // 2))
+    voxel_paths: dict[str, Path] = {}
+    if three_d:
+        result, voxel_paths = _run_3d(request, cfg, scans, tof_data, out, extra, bar)
+    else:
+        with bar(len(scans), "slam", "scan") as b:
+            result = run_slam(scans, cfg, progress=_pausing(b.update, "slam", len(scans) // 2))
     rel = None
     if relations is not None:
         from omnitof.eval.relations import evaluate_relations
@@ -183,8 +197,7 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
             "slam": absolute_trajectory_error(result.trajectory.poses, scans.ground_truth).to_dict(),
             "odometry": absolute_trajectory_error(scans.odometry, scans.ground_truth).to_dict(),
         }
-    voxel_paths: dict[str, Path] = {}
-    if tof and request.map3d:
+    if tof and request.map3d and not three_d:
         from omnitof.map3d import voxel_map_from_clouds
         from omnitof.results import write_voxel_outputs
 
@@ -195,8 +208,45 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
     return SlamRun(result, extra, {**paths, **voxel_paths}, rel, scans)
 
 
+def _run_3d(request: SlamRequest, cfg: SlamConfig, scans: ScanSequence, tof_data: Any, out: Path,
+            extra: dict[str, Any], bar: BarFactory) -> tuple[Any, dict[str, Path]]:
+    """The 3D filter's run (omnitof.slam.filter3d) on the rays kept while reading: its
+    SlamResult (map: the voxel map's projection onto the floor), the voxel map's files
+    (map3d.ply, map3d.png) and, with request.compare_2d, the 2D filter's trajectory on the same
+    scans (trajectory_2d.tum) and the difference in `extra`."""
+    from omnitof.io.tum import write_tum
+    from omnitof.map3d import VoxelMap
+    from omnitof.results import write_voxel_outputs
+    from omnitof.slam import run_slam
+    from omnitof.slam.filter3d import run_slam3d, trajectory_difference
+
+    # The frames' clouds were kept in the frames' order; a scan delay does not change which.
+    with bar(len(scans), "slam 3d", "scan") as b:
+        run3 = run_slam3d(scans, tof_data.cloud_frames, tof_data.clouds, cfg,
+                          progress=_pausing(b.update, "slam", len(scans) // 2))
+    result = run3.result
+    paths = write_voxel_outputs(VoxelMap.of_grid(run3.voxels), out, trajectory=result.trajectory.poses,
+                                title="3D filter: occupied voxels of the best particle")
+    if request.compare_2d:
+        with bar(len(scans), "slam 2d", "scan") as b:
+            flat = run_slam(scans, cfg, progress=b.update)
+        paths["trajectory_2d"] = out / "trajectory_2d.tum"
+        write_tum(paths["trajectory_2d"], flat.trajectory, sort=True)
+        extra["filter2d"] = {
+            "difference_3d_to_2d": trajectory_difference(result.trajectory.poses, flat.trajectory.poses),
+            "seconds": flat.stats["seconds"],
+        }
+        if scans.ground_truth is not None:
+            from omnitof.eval.trajectory import absolute_trajectory_error
+
+            extra["filter2d"]["trajectory_error"] = absolute_trajectory_error(
+                flat.trajectory.poses, scans.ground_truth).to_dict()
+    return result, paths
+
+
 def read_tof_input(log: str | Path, *, calibration: str | Path | None = None, height: float | None = None,
-                   band: float | None = None, cloud_every: int = 0, max_frames: int | None = None,
+                   band: float | None = None, cloud_every: int = 0, cloud_pixel_stride: int = 1,
+                   cloud_keyframes: tuple[float, float] | None = None, max_frames: int | None = None,
                    bar: BarFactory = no_bar):
     """The scans of a ToF bag (omnitof.scan.tof_input.read_tof_scans) with the slice's height and
     band where given, for `omnitof slam` and `omnitof scans`."""
@@ -210,6 +260,7 @@ def read_tof_input(log: str | Path, *, calibration: str | Path | None = None, he
         total = min(total, max_frames)
     with bar(total, "scans", "frame") as b:
         return read_tof_scans(log, calibration=calibration, settings=settings, cloud_every=cloud_every,
+                              cloud_pixel_stride=cloud_pixel_stride, cloud_keyframes=cloud_keyframes,
                               max_frames=max_frames, progress=b.update)
 
 

@@ -3,7 +3,10 @@
 
 pub mod correlative;
 pub mod filter;
+pub mod filter3d;
+mod filter3d_bindings;
 pub mod grid;
+pub mod light;
 pub mod loop_closure;
 mod loop_closure_bindings;
 pub mod motion;
@@ -17,7 +20,7 @@ mod test_support;
 pub mod voxel;
 
 use numpy::ndarray::Array2;
-use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::exceptions::{PyMemoryError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -585,6 +588,73 @@ impl PyOccupancyGrid {
         Ok((pose, lf.score(&self.grid, geom.sensor_pose(pose), &pts).0))
     }
 
+    /// Re-pose many scans in this (finished) map, each by Gauss-Newton alone from its own row of
+    /// `starts` (N, 3) (scan_match::match_each). `ranges` (N, B), padding +inf; `angles` (B,)
+    /// shared by all scans or (N, B) one row per scan. Returns (poses (N, 3), share of each
+    /// scan's end points with an obstacle within the window (N,)).
+    #[pyo3(signature = (starts, ranges, angles, *, sensor_pose=None, sigma=0.05, z_hit=0.9, z_rand=0.1,
+        window=3, fit_walls=false, max_range=20.0, occupied_threshold=0.0, beam_stride=1, gauss_newton=10, threads=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn match_each<'py>(
+        &self,
+        py: Python<'py>,
+        starts: PyReadonlyArray2<f64>,
+        ranges: PyReadonlyArray2<f32>,
+        angles: PyReadonlyArrayDyn<f64>,
+        sensor_pose: Option<PyReadonlyArray1<f64>>,
+        sigma: f64,
+        z_hit: f64,
+        z_rand: f64,
+        window: i32,
+        fit_walls: bool,
+        max_range: f64,
+        occupied_threshold: f32,
+        beam_stride: usize,
+        gauss_newton: u32,
+        threads: Option<usize>,
+    ) -> PyResult<(Bound<'py, PyArray2<f64>>, Bound<'py, PyArray1<f64>>)> {
+        let starts = points3(&starts, "starts")?;
+        if !starts.iter().flatten().all(|v| v.is_finite()) {
+            return Err(PyValueError::new_err("starts must be finite"));
+        }
+        let (n, beams) = (ranges.shape()[0], ranges.shape()[1]);
+        if n != starts.len() {
+            return Err(PyValueError::new_err(format!("{} starts for {} scans", starts.len(), n)));
+        }
+        let shared = angles.shape() == [beams];
+        if !shared && angles.shape() != [n, beams] {
+            return Err(PyValueError::new_err(format!(
+                "angles {:?} fit neither one scan ({beams},) nor every scan ({n}, {beams})", angles.shape()
+            )));
+        }
+        let angles = angles.as_slice()?;
+        let ranges = ranges.as_slice()?;
+        // Padding (per-scan geometry) is a NaN angle with an infinite range; any beam with a
+        // range needs a bearing.
+        let bearing = |i: usize| if shared { angles[i % beams] } else { angles[i] };
+        if (0..ranges.len()).any(|i| ranges[i].is_finite() && !bearing(i).is_finite()) {
+            return Err(PyValueError::new_err("angles must be finite for every beam with a range"));
+        }
+        if !(sigma > 0.0 && max_range > 0.0 && window >= 1) {
+            return Err(PyValueError::new_err("sigma and max_range must be positive, window at least 1"));
+        }
+        let sensor = match sensor_pose {
+            Some(s) => pose3(s.as_slice()?, "sensor_pose")?,
+            None => [0.0; 3],
+        };
+        let pool = optional_pool(threads)?;
+        let lf = LikelihoodField::new(sigma, z_hit, z_rand, max_range, window, occupied_threshold, fit_walls);
+        let grid = &self.grid;
+        let run = || scan_match::match_each(&lf, grid, sensor, &starts, ranges, angles, beams, beam_stride, gauss_newton);
+        let found = py.detach(|| match &pool {
+            Some(p) => p.install(run),
+            None => run(),
+        });
+        let poses: Vec<[f64; 3]> = found.iter().map(|f| f.0).collect();
+        let shares: Vec<f64> = found.iter().map(|f| f.1).collect();
+        Ok((rows3(py, &poses), PyArray1::from_vec(py, shares)))
+    }
+
     /// Ranges the map predicts from a sensor pose (see BeamModel::expected_range); NaN where
     /// the ray reaches unknown space first.
     fn expected_ranges<'py>(
@@ -780,5 +850,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(low_variance_resample, m)?)?;
     render_bindings::register(m)?;
     loop_closure_bindings::register(m)?;
+    filter3d_bindings::register(m)?;
     Ok(())
 }

@@ -8,7 +8,8 @@ use numpy::{IntoPyArray, PyArray1, PyArray4, PyReadonlyArray1, PyReadonlyArray2,
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
-use crate::render::{render, Block, Kind, Material, Mirror, Rig, RenderParams, Scene, Wall};
+use crate::light::Illumination;
+use crate::render::{render, Block, Kind, Material, Mirror, Rig, RenderParams, Scene, Wall, MAX_SECONDARY};
 
 fn rows<'a>(a: &'a PyReadonlyArray2<'_, f64>, cols: usize, what: &str) -> PyResult<Vec<&'a [f64]>> {
     let shape = a.shape();
@@ -83,7 +84,7 @@ impl PyRenderer {
     #[pyo3(signature = (*, walls, wall_materials, boxes, box_materials, materials, floor_material,
         ceiling_material, ceiling_height, cell, directions, height, width, sub_rays, mirror_planes,
         mirror_vertices, mirror_counts, mirror_reflectivity, robot_T_camera, f_mod, amplitude_at_1m,
-        max_bounces, min_gain, threads=None))]
+        max_bounces, min_gain, threads=None, leds=None, led_profile_exponent=0.0, led_half_angle_deg=180.0, multipath_rays=0, seed=0))]
     #[allow(clippy::too_many_arguments, non_snake_case)]
     fn new(
         walls: PyReadonlyArray2<f64>,
@@ -109,6 +110,11 @@ impl PyRenderer {
         max_bounces: u32,
         min_gain: f64,
         threads: Option<usize>,
+        leds: Option<PyReadonlyArray2<f64>>,
+        led_profile_exponent: f64,
+        led_half_angle_deg: f64,
+        multipath_rays: u32,
+        seed: u64,
     ) -> PyResult<Self> {
         let wall_rows = rows(&walls, 6, "walls")?;
         let wall_mats = wall_materials.as_slice()?;
@@ -152,7 +158,24 @@ impl PyRenderer {
         if !(f_mod > 0.0 && amplitude_at_1m > 0.0 && min_gain >= 0.0) {
             return Err(PyValueError::new_err("f_mod and amplitude_at_1m must be > 0, min_gain >= 0"));
         }
-        let params = RenderParams { f_mod, amplitude_at_1m, max_bounces, min_gain };
+        // Without `leds` the light is coaxial; the interreflections are lit by one LED at the
+        // centre (of the LEDs, or of the lens) with the LEDs' profile either way.
+        let positions: Vec<[f64; 3]> = match &leds {
+            None => vec![[0.0; 3]],
+            Some(a) => rows(a, 3, "leds")?.iter().map(|r| [r[0], r[1], r[2]]).collect(),
+        };
+        let min_cos = led_half_angle_deg.to_radians().cos();
+        let light = Illumination { leds: positions, profile_exponent: led_profile_exponent, min_cos };
+        light.check().map_err(PyValueError::new_err)?;
+        let bounce = Illumination { leds: vec![light.centre()], ..light.clone() };
+        let illumination = leds.is_some().then_some(light);
+        if multipath_rays as usize > MAX_SECONDARY * sub_rays {
+            return Err(PyValueError::new_err(format!(
+                "multipath_rays must be at most {} per sub-ray, got {multipath_rays}",
+                MAX_SECONDARY
+            )));
+        }
+        let params = RenderParams { f_mod, amplitude_at_1m, max_bounces, min_gain, illumination, multipath_rays, bounce, seed };
         let pool = crate::optional_pool(threads)?;
         Ok(PyRenderer { scene, rig, params, pool })
     }

@@ -542,6 +542,43 @@ pub fn gauss_newton(
     best
 }
 
+/// Re-pose many scans in one finished map, each by Gauss-Newton alone from its own `start`
+/// (a pose already within the likelihood field's reach, as the final pass over a run's
+/// trajectory has): (pose, share of its end points with an obstacle in the window) per scan.
+/// `ranges` holds `beams` values per scan; `angles` either one scan's worth (shared) or one row
+/// per scan. The scans are independent, so they run in parallel and the result does not depend
+/// on the number of threads. A scan without end points keeps its start, with share 0.
+#[allow(clippy::too_many_arguments)]
+pub fn match_each(
+    lf: &LikelihoodField,
+    grid: &TiledGrid,
+    sensor: [f64; 3],
+    starts: &[[f64; 3]],
+    ranges: &[f32],
+    angles: &[f64],
+    beams: usize,
+    stride: usize,
+    iterations: u32,
+) -> Vec<([f64; 3], f64)> {
+    use rayon::prelude::*;
+    let shared = angles.len() == beams;
+    starts
+        .par_iter()
+        .enumerate()
+        .map(|(i, &start)| {
+            let scan_angles = if shared { angles } else { &angles[i * beams..(i + 1) * beams] };
+            let geom = ScanGeometry { angles: scan_angles, sensor };
+            let pts = endpoints(&geom, &ranges[i * beams..(i + 1) * beams], stride, lf.max_range);
+            if pts.is_empty() {
+                return (start, 0.0);
+            }
+            let (pose, _) = gauss_newton(lf, grid, &geom, &pts, 1.0, None, start, iterations);
+            let matched = lf.score(grid, geom.sensor_pose(pose), &pts).1;
+            (pose, matched as f64 / pts.len() as f64)
+        })
+        .collect()
+}
+
 /// Solve L·Lᵀ·x = b for lower-triangular L.
 fn solve_cholesky(l: &[[f64; 3]; 3], b: &[f64; 3]) -> [f64; 3] {
     let mut y = [0.0; 3];
@@ -727,7 +764,7 @@ pub fn propose<R: rand::Rng>(
 }
 
 /// Lower-triangular L with L·Lᵀ = a for a symmetric positive definite 3×3 matrix.
-fn cholesky3(a: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
+pub(crate) fn cholesky3(a: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
     let mut l = [[0.0; 3]; 3];
     for i in 0..3 {
         for j in 0..=i {

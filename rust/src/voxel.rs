@@ -30,7 +30,7 @@ use crate::grid::LogOddsModel;
 
 pub const BLOCK_SHIFT: u32 = 3;
 pub const BLOCK: i32 = 1 << BLOCK_SHIFT;
-const BLOCK_VOXELS: usize = (BLOCK * BLOCK * BLOCK) as usize;
+pub(crate) const BLOCK_VOXELS: usize = (BLOCK * BLOCK * BLOCK) as usize;
 /// Voxel indices on each axis lie in [−INDEX_LIMIT, INDEX_LIMIT).
 pub const INDEX_LIMIT: i64 = 1 << 20;
 const AXIS_BITS: u32 = 21;
@@ -41,7 +41,7 @@ const LOCAL_MASK: u64 = (BLOCK - 1) as u64;
 /// Rays per parallel task of `integrate`.
 const RAYS_PER_TASK: usize = 256;
 
-type Block = [f32; BLOCK_VOXELS];
+pub(crate) type Block = [f32; BLOCK_VOXELS];
 // A fixed-key hasher: the map's layout (and so its iteration order) depends on the inputs only.
 type Blocks = HashMap<u64, Box<Block>, BuildHasherDefault<DefaultHasher>>;
 
@@ -156,6 +156,12 @@ impl VoxelGrid {
             ));
         }
         Ok(VoxelGrid { resolution, model, blocks: Blocks::default() })
+    }
+
+    /// A grid holding `blocks` (block key, voxels) as they are: how the 3D particle filter
+    /// (filter3d.rs) hands out a particle's map. The model must be valid (see `new`).
+    pub(crate) fn from_blocks(resolution: f64, model: LogOddsModel, blocks: impl Iterator<Item = (u64, Block)>) -> Self {
+        VoxelGrid { resolution, model, blocks: blocks.map(|(k, b)| (k, Box::new(b))).collect() }
     }
 
     /// The index of the voxel holding world point `p`, or None if `p` is not finite or beyond
@@ -340,14 +346,14 @@ impl VoxelGrid {
 /// A direct-mapped cache of recently freed voxel keys: neighbouring pixels' rays share most of
 /// their voxels, and skipping a key already pushed keeps the lists to sort short. Lossy (a
 /// slot holds the last key that mapped to it), so the lists are still sorted and deduplicated.
-struct SeenFilter {
+pub(crate) struct SeenFilter {
     slots: Vec<u64>,
 }
 
 impl SeenFilter {
     const BITS: u32 = 13;
 
-    fn new() -> Self {
+    pub(crate) fn new() -> Self {
         // u64::MAX is no key: keys use the low 63 bits.
         SeenFilter { slots: vec![u64::MAX; 1 << Self::BITS] }
     }
@@ -368,7 +374,7 @@ impl SeenFilter {
 /// Append the keys of the voxels one ray frees and the one it marks occupied.
 #[inline]
 #[allow(clippy::too_many_arguments)]
-fn ray_voxels(
+pub(crate) fn ray_voxels(
     o: [f64; 3],
     e: [f64; 3],
     max_range: f64,
@@ -417,7 +423,7 @@ fn ray_voxels(
 }
 
 /// The keys of sorted `a` that are not in sorted `b`.
-fn sorted_difference(a: &[u64], b: &[u64]) -> Vec<u64> {
+pub(crate) fn sorted_difference(a: &[u64], b: &[u64]) -> Vec<u64> {
     let mut out = Vec::with_capacity(a.len());
     let mut j = 0;
     for &k in a {

@@ -122,5 +122,5 @@ def _tof_scans(item: InputSpec, world: Any, tmp: Path):
                             map3d_every=0, max_frames=item.max_scans, speed=item.speed)
     sim = simulated_scans(settings, tmp, world=world)
     record = {"world": sim.world.name, "sensor": "tof", "sim_seed": item.sim_seed,
-              "metres": sim.sequence_summary["metres"], "calibration": to_plain(sim.calibration_report)}
+              "metres": sim.sequence_summary["metres"], "tof_errors": sim.sequence_summary["tof_errors"], "calibration": to_plain(sim.calibration_report)}
     return sim.data.scans, record

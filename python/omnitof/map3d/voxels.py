@@ -94,6 +94,14 @@ class VoxelMap:
         self.max_range = float(max_range)
         self.frames = 0
 
+    @classmethod
+    def of_grid(cls, grid: "_core.VoxelGrid", max_range: float = DEFAULT_MAX_RANGE) -> "VoxelMap":
+        """A VoxelMap around a core VoxelGrid made elsewhere (the 3D filter's best map,
+        `_core.ParticleFilter3D.map`)."""
+        vm = cls.__new__(cls)
+        vm._grid, vm.max_range, vm.frames = grid, float(max_range), 0
+        return vm
+
     @property
     def resolution(self) -> float:
         return self._grid.resolution

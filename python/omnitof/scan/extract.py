@@ -52,6 +52,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from omnitof.sensor.camera import Camera
 from omnitof.errors import ConfigError, InputError
 from omnitof.sensor.mirrors import Mirror, MirrorPlane
+from omnitof.scan.pixel_filter import PixelFilter, PixelFilterSettings
 from omnitof.sensor.rig import Rig
 from omnitof.types import ScanSequence
 
@@ -137,6 +138,10 @@ class ScanSettings(BaseModel):
         "percentile (0..100, linear interpolation), e.g. 'p25'",
     )
     min_points: int = Field(2, ge=1, description="bins with fewer points are no reading (a lone flying pixel)")
+    pixel_filter: PixelFilterSettings = Field(
+        default_factory=PixelFilterSettings,
+        description="the flying-pixel and multipath filter (omnitof.scan.pixel_filter)",
+    )
 
     @field_validator("statistic")
     @classmethod
@@ -400,6 +405,7 @@ class ScanExtractor:
             dtype=np.float32,
         )
         self._q = s_cfg.quantile()
+        self._filter = PixelFilter(s_cfg.pixel_filter, self.labels, index) if s_cfg.pixel_filter.enabled else None
 
     def _check(self, distance: Any, amplitude: Any, *, single: bool) -> tuple[np.ndarray, np.ndarray]:
         d = np.asarray(distance)
@@ -433,6 +439,8 @@ class ScanExtractor:
         keep = (aa >= self.settings.min_amplitude) & (dd >= self._d_lo) & (dd <= self._d_hi)
         if self.settings.min_amplitude_1m > 0.0:
             keep &= aa * dd * dd >= self.settings.min_amplitude_1m
+        if self._filter is not None:
+            keep &= self._filter.keep(d.reshape(n, -1), dd, aa)
         flat = np.flatnonzero(keep)
         frame, pixel = np.divmod(flat, len(self._index))
         value = dd.reshape(-1)[flat]

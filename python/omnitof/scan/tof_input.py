@@ -9,6 +9,7 @@ long bag never sits in memory; only the scans (360 floats per frame) and the kep
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -43,17 +44,40 @@ class ToFScans:
 
 
 class _CloudTap:
-    """Passes frames through unchanged and keeps the rays of every `every`-th one."""
+    """Passes frames through unchanged and keeps the rays of every `every`-th one, or with
+    `keyframes` (linear m, angular rad) of each frame after which the odometry moved more than
+    `linear` or turned more than `angular` since the last one kept (the first frame always): the
+    rule by which `slam.driver.select_scans` picks the scans to integrate, so that the 3D filter
+    (`slam.filter3d`) gets the rays of exactly the frames it integrates, and only those."""
 
     def __init__(self, extractor: ScanExtractor, every: int, pixel_stride: int,
-                 progress: Callable[[int], Any] | None) -> None:
+                 progress: Callable[[int], Any] | None,
+                 keyframes: tuple[float, float] | None = None) -> None:
         self.extractor, self.every, self.stride, self.progress = extractor, every, pixel_stride, progress
+        self.keyframes = keyframes
+        self._last: np.ndarray | None = None
         self.frames: list[int] = []
         self.clouds: list[np.ndarray] = []
 
+    def _keep(self, i: int, frame: Any) -> bool:
+        if self.keyframes is None:
+            return self.every > 0 and i % self.every == 0
+        odometry = getattr(frame, "odometry", None)
+        if odometry is None or self._last is None:
+            self._last = None if odometry is None else np.asarray(odometry, dtype=np.float64)
+            return True
+        cur = np.asarray(odometry, dtype=np.float64)
+        c, s = math.cos(self._last[2]), math.sin(self._last[2])
+        dx, dy = cur[0] - self._last[0], cur[1] - self._last[1]
+        turn = math.remainder(cur[2] - self._last[2], 2.0 * math.pi)
+        if math.hypot(c * dx + s * dy, -s * dx + c * dy) > self.keyframes[0] or abs(turn) > self.keyframes[1]:
+            self._last = cur
+            return True
+        return False
+
     def __call__(self, frames: Iterable[Any]) -> Iterable[Any]:
         for i, frame in enumerate(frames):
-            if self.every > 0 and i % self.every == 0:
+            if self._keep(i, frame):
                 origins, points = self.extractor.rays(np.asarray(frame.distance), np.asarray(frame.amplitude))
                 keep = slice(None, None, self.stride)
                 self.frames.append(i)
@@ -69,16 +93,19 @@ def tof_scans(
     *,
     cloud_every: int = 0,
     cloud_pixel_stride: int = 1,
+    cloud_keyframes: tuple[float, float] | None = None,
     source: str = "",
     progress: Callable[[int], Any] | None = None,
 ) -> ToFScans:
     """Scans of every frame (`scan.scans_from_frames`) and, with cloud_every > 0, the rays of
-    every cloud_every-th frame (every cloud_pixel_stride-th point) for the 3D map.
+    every cloud_every-th frame (every cloud_pixel_stride-th point) for the 3D map; with
+    cloud_keyframes (linear m, angular rad), the rays of the frames the odometry rule picks
+    instead (see `_CloudTap`), for the 3D filter.
 
     `frames` are `io.rosbag.ToFFrameStamped` (with timestamp and odometry) as `render_sequence`
     and `ToFBag.frames` give them.
     """
-    tap = _CloudTap(extractor, int(cloud_every), max(1, int(cloud_pixel_stride)), progress)
+    tap = _CloudTap(extractor, int(cloud_every), max(1, int(cloud_pixel_stride)), progress, cloud_keyframes)
     scans = scans_from_frames(extractor, tap(frames), source=source)
     return ToFScans(scans, extractor, np.asarray(tap.frames, dtype=np.int64), tap.clouds)
 
@@ -118,6 +145,7 @@ def read_tof_scans(
     settings: ScanSettings | None = None,
     cloud_every: int = 0,
     cloud_pixel_stride: int = 1,
+    cloud_keyframes: tuple[float, float] | None = None,
     max_frames: int | None = None,
     progress: Callable[[int], Any] | None = None,
 ) -> ToFScans:
@@ -132,7 +160,7 @@ def read_tof_scans(
     if max_frames is not None:
         frames = islice(frames, int(max_frames))
     out = tof_scans(frames, extractor, cloud_every=cloud_every, cloud_pixel_stride=cloud_pixel_stride,
-                    source=str(path), progress=progress)
+                    cloud_keyframes=cloud_keyframes, source=str(path), progress=progress)
     out.rig_source = rig_source
     return out
 

@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from omnitof.sensor.illumination import lit_share
+from omnitof.sensor.tof_errors import ToFErrors
 from omnitof.sensor.camera import Camera
 from omnitof.sensor.rig import Rig
 from omnitof.sensor.mirrors import (
@@ -343,3 +345,29 @@ def sweep_groups(rows: Sequence[SweepRow]) -> dict[tuple[str, int, float], list[
     for r in rows:
         groups.setdefault((r.lens, r.n_mirrors, r.yaw_deg), []).append(r)
     return {k: sorted(v, key=lambda r: r.tilt_deg) for k, v in groups.items()}
+
+
+# --- the camera's own light (issue 15) ---------------------------------------------------------
+
+DEFAULT_APEX_SWEEP = (0.02, 0.03, 0.04, 0.05, 0.06, 0.08, 0.10, 0.15, 0.20)
+
+
+def apex_sweep(camera: Camera, n_mirrors: int, tilt_deg: float, yaw_deg: float,
+               apex_heights: Sequence[float] = DEFAULT_APEX_SWEEP, errors: ToFErrors | None = None,
+               distances: Sequence[float] = (1.0, 2.0, 5.0)) -> list[tuple[float, list[float]]]:
+    """(apex height, [lit share at each surface distance]) for pyramids of one shape at several
+    heights (`illumination.lit_share`; LEDs of `errors`, default `ToFErrors.realistic()`)."""
+    errors = errors if errors is not None else ToFErrors.realistic()
+    out = []
+    for apex in apex_heights:
+        mirrors = pyramid(n_mirrors, tilt_deg, float(apex), None, yaw_deg, camera=camera)
+        out.append((float(apex), [lit_share(camera, mirrors, errors, d) for d in distances]))
+    return out
+
+
+def format_apex_sweep(rows: Sequence[tuple[float, list[float]]], distances: Sequence[float] = (1.0, 2.0, 5.0)) -> str:
+    head = "apex height (m) | " + " | ".join(f"lit at {d:g} m" for d in distances)
+    lines = [head]
+    for apex, shares in rows:
+        lines.append(f"{apex:15.2f} | " + " | ".join(f"{100 * s:8.1f} %" for s in shares))
+    return "\n".join(lines)

@@ -18,7 +18,8 @@ The YAML form (`to_dict` / `from_dict`; plain data, floats exact through a YAML 
         polygon: [[x, y, z], ...]   # optional: the outline, camera frame (designed rigs)
     robot_T_camera: [[4 numbers] × 4]
     sensor: {f_mod, electrons_per_unit, read_noise, full_well, modulation_contrast,
-             amplitude_at_1m, ambient}      # optional: SensorNoise's defaults
+             amplitude_at_1m, ambient,      # optional: SensorNoise's defaults
+             errors: {...}}                 # optional: the systematic errors (ToFErrors), none
 
 The calibration file and the bag sidecar both hold these keys (beside their own ones), so a
 rig read from either is the same object.

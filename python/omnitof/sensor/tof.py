@@ -27,13 +27,15 @@ Arrays may have any shape; images are (rows, cols) = (144, 176).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 import scipy.constants
 
 from omnitof.errors import ConfigError
+from omnitof.sensor.tof_errors import ToFErrors, apply_offsets, correlation_samples
 
 SPEED_OF_LIGHT: float = scipy.constants.c  # m/s, exact by definition of the metre
 
@@ -269,6 +271,9 @@ class SensorNoise:
         modulation_contrast: A / B_active, amplitude over the offset the active light adds.
         amplitude_at_1m: A of an albedo-1 Lambertian target facing the camera at 1 m, units.
         ambient: offset from background light, units.
+        errors: the camera's systematic errors (`omnitof.sensor.tof_errors.ToFErrors`: wiggling,
+            amplitude-dependent and fixed-pattern offsets, motion during a frame); all off by
+            default, a mapping of its fields is accepted (the YAML form).
     """
 
     f_mod: float = DEFAULT_F_MOD
@@ -278,8 +283,13 @@ class SensorNoise:
     modulation_contrast: float = 0.5
     amplitude_at_1m: float = 7300.0
     ambient: float = 400.0
+    errors: ToFErrors = field(default_factory=ToFErrors)
 
     def __post_init__(self) -> None:
+        if isinstance(self.errors, Mapping):
+            object.__setattr__(self, "errors", ToFErrors.from_dict(self.errors))
+        elif not isinstance(self.errors, ToFErrors):
+            raise ToFParameterError(f"SensorNoise.errors must be ToFErrors or a mapping, got {self.errors!r}")
         _positive("SensorNoise.f_mod", self.f_mod)
         _positive("SensorNoise.electrons_per_unit", self.electrons_per_unit)
         _non_negative("SensorNoise.read_noise", self.read_noise)
@@ -324,8 +334,10 @@ class SensorNoise:
         rng: np.random.Generator | int,
         active_offset: np.ndarray | float | None = None,
         dtype: npt.DTypeLike = np.float32,
+        per_sample: bool = False,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """`synthesise` with this sensor's parameters; `ambient` defaults to `self.ambient`."""
+        """`synthesise` with this sensor's parameters and systematic errors; `ambient`
+        defaults to `self.ambient`."""
         return synthesise(
             phasor,
             self.ambient if ambient is None else ambient,
@@ -336,6 +348,9 @@ class SensorNoise:
             modulation_contrast=self.modulation_contrast,
             active_offset=active_offset,
             dtype=dtype,
+            errors=self.errors,
+            f_mod=self.f_mod,
+            per_sample=per_sample,
         )
 
 
@@ -382,6 +397,9 @@ def synthesise(
     modulation_contrast: float = _DEFAULT_NOISE.modulation_contrast,
     active_offset: np.ndarray | float | None = None,
     dtype: npt.DTypeLike = np.float32,
+    errors: ToFErrors | None = None,
+    f_mod: float = DEFAULT_F_MOD,
+    per_sample: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Draw the four noisy, clipped samples of the module's model from a per-pixel phasor.
 
@@ -402,6 +420,11 @@ def synthesise(
             electrons_per_unit = inf and read_noise = 0 give noise-free samples.
         active_offset: the active light's offset, see above.
         dtype: dtype of the returned samples (float32 for images).
+        errors: systematic errors (`ToFErrors`; None: none): the offsets turn the phasor's
+            phase, the wiggling adds the correlation's odd harmonics to μ_k; `f_mod` (Hz)
+            converts the offsets to phase.
+        per_sample: phasor, ambient and active_offset carry a leading axis of 4, sample k's
+            own (the scene at sample k's time: motion during the frame).
 
     Returns:
         (a0, a1, a2, a3, saturated): four sample arrays and a bool mask, all of the broadcast
@@ -412,9 +435,12 @@ def synthesise(
     read_noise = _non_negative("read_noise", read_noise)
     gain = _positive("electrons_per_unit", electrons_per_unit)
     contrast = _positive("modulation_contrast", modulation_contrast)
-    p = np.asarray(phasor, dtype=np.complex128)
+    errors = errors if errors is not None else ToFErrors()
+    p = apply_offsets(np.asarray(phasor, dtype=np.complex128), errors, _positive("f_mod", f_mod))
+    if per_sample and (p.ndim < 1 or p.shape[0] != 4):
+        raise ToFParameterError(f"per_sample: phasor must have a leading axis of 4, got shape {p.shape}")
     offset = _offsets(p, ambient, active_offset, contrast)
-    expected = np.stack(ideal_samples(p, offset))  # (4, ...)
+    expected = correlation_samples(p, offset, errors, per_sample)  # (4, ...)
     sigma = np.sqrt(np.maximum(expected, 0.0) / gain + read_noise**2)
     drawn = expected + sigma * gen.standard_normal(expected.shape)
     saturated = np.any(drawn > full_well, axis=0)

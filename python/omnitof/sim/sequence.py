@@ -42,6 +42,7 @@ from omnitof.sim import laser2d
 from omnitof.sim.render import Renderer, RenderSettings
 from omnitof.sim.worlds import World, WorldError
 from omnitof.sensor.tof import SensorNoise
+from omnitof.sensor.tof_errors import ToFErrors
 from omnitof.types import Trajectory
 
 # The smoothed path must keep this far (m) from anything the robot would touch: half the width
@@ -205,8 +206,10 @@ def render_sequence(
         raise ConfigError(f"batch must be >= 1, got {batch!r}")
     for first in range(int(start), stop, batch):
         last = min(first + batch, stop)
+        errors = renderer.sensor.errors
+        timing = sample_poses(sequence, range(first, last), errors.integration_time) if errors.motion else None
         frames = renderer.render_many(
-            sequence.ground_truth[first:last], seed=sequence.seed + 1, first_index=first
+            sequence.ground_truth[first:last], seed=sequence.seed + 1, first_index=first, sample_poses=timing
         )
         for i, frame in zip(range(first, last), frames):
             yield ToFFrameStamped(
@@ -217,6 +220,34 @@ def render_sequence(
                 odometry=sequence.odometry[i],
                 ground_truth=sequence.ground_truth[i],
             )
+
+
+def sample_poses(sequence: Sequence, frames: range | np.ndarray, integration_time: float) -> np.ndarray:
+    """(len(frames), 4, 3) the robot's true pose when each of a frame's four samples was taken.
+
+    The samples follow one another, `integration_time` seconds each, centred on the frame's
+    time: sample k at t_i + (k − 1.5)·integration_time, so that the frame's ground-truth pose
+    is the middle of its acquisition. Poses between frames are interpolated linearly (x, y, and
+    the heading along the shorter way round) between the neighbouring frames of the drive;
+    before the first and after the last frame, extrapolated from the nearest step.
+    """
+    idx = np.asarray(frames, dtype=np.int64)
+    n = len(sequence)
+    times = sequence.timestamps
+    poses = sequence.ground_truth
+    offsets = (np.arange(4) - 1.5) * float(integration_time)
+    out = np.empty((len(idx), 4, 3))
+    for k, tau in enumerate(offsets):
+        # The neighbouring frame on the side the sample lies (the other one at the ends).
+        other = np.clip(idx + (1 if tau >= 0 else -1), 0, n - 1)
+        other = np.where(other == idx, np.clip(idx - (1 if tau >= 0 else -1), 0, n - 1), other)
+        dt = times[other] - times[idx]
+        frac = np.divide(tau, dt, out=np.zeros(len(idx)), where=dt != 0)[:, None]
+        step = poses[other] - poses[idx]
+        step[:, 2] = laser2d.wrap_angle(step[:, 2])
+        out[:, k] = poses[idx] + frac * step
+    out[..., 2] = laser2d.wrap_angle(out[..., 2])
+    return out
 
 
 # --- the sidecar: the true rig and how the sequence was made --------------------------------
@@ -265,13 +296,15 @@ def simulate_bag(
 ) -> tuple[Sequence, int]:
     """Simulate the world's sequence and write it as a ROS 2 bag folder `out`.
 
+    `sensor` defaults to the default camera with the systematic errors of
+    `ToFErrors.simulation_default()`; the sidecar records which (`sensor.errors`).
     The bag holds distance and amplitude images (and A0..A3 with `samples`), camera info,
     odometry and ground truth at every frame; `<out>/omnitof.yaml` the true rig
     (`rig_sidecar`). `max_frames` keeps only the first frames (a quick look). Nothing is left
     at `out` if writing fails. Returns (the sequence, frames written).
     """
     sequence = make_sequence(world, seed=seed, motion=motion, odometry_errors=odometry_errors)
-    renderer = Renderer(world, sensor=sensor or SensorNoise(),
+    renderer = Renderer(world, sensor=sensor or SensorNoise(errors=ToFErrors.simulation_default()),
                         settings=settings or RenderSettings(seed=int(seed)))
     stop = len(sequence) if max_frames is None else min(int(max_frames), len(sequence))
     odometry, truth = sequence.trajectories()

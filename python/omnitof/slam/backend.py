@@ -51,6 +51,7 @@ import numpy as np
 from omnitof import _core
 from omnitof.geometry import compose, relative, wrap_angle
 from omnitof.slam.config import BackendConfig, MapConfig
+from omnitof.slam.final_match import grid_along
 from omnitof.types import ScanSequence
 
 LM_ITERATIONS = 20
@@ -477,13 +478,7 @@ class PoseGraphBackend:
 
     def build_grid(self) -> _core.OccupancyGrid:
         """A grid of every node's scan at its current estimate (the corrected map)."""
-        m = self.map_cfg
-        grid = _core.OccupancyGrid(m.resolution, m.l_occ, m.l_free, m.l_min, m.l_max)
-        for j, pose in enumerate(self.estimate):
-            k = self.scan_of[j]
-            grid.integrate(pose, self.scans.scan_angles(k), self.scans.scan_ranges(k), self.max_range,
-                           m.clear_no_echo, self.scans.sensor_pose)
-        return grid
+        return grid_along(self.scans, self.scan_of, self.estimate, self.map_cfg)
 
     # --- reporting --------------------------------------------------------------------------
 

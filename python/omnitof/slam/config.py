@@ -210,6 +210,13 @@ class FilterConfig(_Section):
         False,
         description="pose every scan between integrated ones by one local match in the best map (else by odometry)",
     )
+    final_match_passes: int = Field(
+        0, ge=0, le=10,
+        description="when the run is over, pose every scan once more by one local match in the finished map "
+        "(built from the final, optimised poses), from the pose the run gave it, this many times, the map "
+        "rebuilt from the new poses between passes and at the end; where too few of a scan's end points find "
+        "the map (scan_matcher.min_matched) its pose stands (omnitof.slam.final_match). 0: off",
+    )
     angular_update_deg: float = Field(25.0, ge=0, description="... or turned this much (deg)")
     seed: int = Field(0, ge=0, lt=2**63, description="seed of every random draw; same seed, same map")
     threads: int = Field(
@@ -271,6 +278,54 @@ class BackendConfig(_Section):
     feedback_deg: float = Field(2.5, ge=0, description="... or turns it this much (deg)")
 
 
+class Filter3DConfig(_Section):
+    """The paper's 3D variant (sec. V, Fig. 11(b); rust/src/filter3d.rs): the filter above
+    (particles, proposal, seed, threads, resampling; the motion model; the scan matcher's steps;
+    the map's log-odds increments and threshold) with a 3D voxel map per particle, weighed by a
+    3D likelihood field on a subsample of every mirror pixel's ray. ToF bags only; the pose stays
+    planar (x, y, θ)."""
+
+    enabled: bool = Field(False, description="run the 3D filter instead of the 2D one (`omnitof slam --filter 3d`)")
+    pixel_stride: int = Field(4, ge=1, le=10_000, description="keep every n-th valid mirror pixel's ray of a frame")
+    score_rays: int = Field(
+        300, ge=1, le=1_000_000,
+        description="of those, weigh the particles by at most this many, evenly spread (the scan matcher's cost)",
+    )
+    free_stride: int = Field(
+        4, ge=1, le=10_000,
+        description="of those, every n-th frees the voxels it passes through (all mark their end points)",
+    )
+    min_matched: float = Field(
+        0.3, ge=0, le=1,
+        description="scan-matching proposal: fall back to the odometry proposal when fewer of the scored rays than "
+        "this share end near an occupied voxel (3D's own: rays to the ceiling and to unmapped space are many; "
+        "scan_matcher.min_matched's 0.5 made 2 % of the office's proposals fall back and cost 0.05-0.12 m)",
+    )
+    climb_stride: int = Field(
+        1, ge=1, le=10_000,
+        description="scan-matching proposal: climb on every n-th scored ray (the Gaussian and the weight use all)",
+    )
+    resolution: float = Field(0.1, ge=0.01, le=10, description="voxel edge (m); the paper's Fig. 11(b): 0.1")
+    max_range: float = Field(7.0, gt=0, le=100, description="rays longer than this (m) free space only")
+    sigma: float = Field(0.05, ge=0.001, le=10, description="likelihood field: standard deviation of the end-point distance (m)")
+    z_hit: float = Field(0.9, ge=0, le=1, description="likelihood field: weight of the Gaussian part")
+    z_rand: float = Field(0.1, gt=0, le=1, description="likelihood field: weight of the uniform part")
+    effective_rays: float = Field(
+        9.0, gt=0, le=1e6,
+        description="a frame's log-likelihood is the mean over its scored rays times this (rays are not independent)",
+    )
+    score_z_min: float = Field(0.1, ge=-100, le=100, description="score end points at this height (m) or above: the floor tells nothing of the pose")
+    score_z_max: float = Field(100.0, ge=-100, le=1000, description="... and at this height (m) or below")
+    project_z_min: float = Field(0.1, ge=-100, le=100, description="2D projection (map.pgm): voxels from this height (m) ...")
+    project_z_max: float = Field(2.0, ge=-100, le=1000, description="... up to this height (m)")
+
+    @model_validator(mode="after")
+    def _bands_are_bands(self) -> "Filter3DConfig":
+        if self.score_z_max <= self.score_z_min or self.project_z_max <= self.project_z_min:
+            raise ValueError("score_z_max must exceed score_z_min and project_z_max project_z_min")
+        return self
+
+
 class SlamConfig(_Section):
     """Everything a SLAM run needs besides its data."""
 
@@ -281,6 +336,7 @@ class SlamConfig(_Section):
     scan_matcher: ScanMatcherConfig = ScanMatcherConfig()
     map: MapConfig = MapConfig()
     backend: BackendConfig = BackendConfig()
+    filter3d: Filter3DConfig = Filter3DConfig()
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.model_dump(), sort_keys=False)

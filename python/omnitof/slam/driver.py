@@ -22,6 +22,7 @@ from omnitof.errors import InputError, ResourceError
 from omnitof.slam.backend import PoseGraphBackend
 from omnitof.slam.limits import check_limits
 from omnitof.slam.config import SlamConfig
+from omnitof.slam.final_match import final_match, grid_along
 from omnitof.geometry import compose, relative
 from omnitof.types import OccupancyMap, ScanSequence, Trajectory
 
@@ -76,10 +77,11 @@ def fill_trajectory(odometry: np.ndarray, integrated: np.ndarray, corrected: np.
 
 def core_sections(cfg: SlamConfig) -> dict:
     """The configuration's sections as the core's filter takes them: every section but the
-    back end's, less the fields this driver uses itself (which scans to integrate, the poses of
+    back end's and the 3D filter's, less the fields this driver uses itself (which scans to integrate, the poses of
     the others)."""
     return cfg.model_dump(
-        exclude={"filter": {"linear_update", "angular_update_deg", "match_between"}, "backend": True}
+        exclude={"filter": {"linear_update", "angular_update_deg", "match_between", "final_match_passes"},
+                 "backend": True, "filter3d": True}
     )
 
 
@@ -206,14 +208,15 @@ def _run(scans: ScanSequence, cfg: SlamConfig, progress: Callable[[int], None] |
     if progress is not None and done < len(scans):
         progress(len(scans) - done)
     unique_tiles, tile_refs = pf.tile_counts()
-    graph = None
+    graph = grid = None
     if backend is None:
         scan_idx, corrected = pf.best_trajectory()
         assert np.array_equal(scan_idx, integrated)
         log_odds, ix0, iy0 = pf.best_map()
     else:
         corrected = backend.finish(pf)
-        log_odds, ix0, iy0 = backend.build_grid().to_dense()
+        grid = backend.build_grid()
+        log_odds, ix0, iy0 = grid.to_dense()
         graph = {
             "nodes": corrected,
             "closures": np.array([[c.anchor, c.node] for c in backend.closures if c.accepted], dtype=np.int64).reshape(-1, 2),
@@ -223,6 +226,14 @@ def _run(scans: ScanSequence, cfg: SlamConfig, progress: Callable[[int], None] |
         poses = fill_trajectory(scans.odometry, integrated, corrected)
     else:
         poses = between.trajectory(integrated, corrected)
+    stood = None
+    final_seconds = time.perf_counter()
+    if cfg.filter.final_match_passes:
+        if grid is None:  # the filter's own map: the best particle's, along its trajectory
+            grid = grid_along(scans, integrated, corrected, cfg.map)
+        poses, grid, stood = final_match(grid, scans, integrated, poses, cfg)
+        log_odds, ix0, iy0 = grid.to_dense()
+    final_seconds = time.perf_counter() - final_seconds
     stats = {
         "scans": len(scans),
         "integrated": int(len(integrated)),
@@ -239,6 +250,9 @@ def _run(scans: ScanSequence, cfg: SlamConfig, progress: Callable[[int], None] |
     if between is not None:
         stats["between_scans_matched"] = between.matched
         stats["between_scans_by_odometry"] = between.by_odometry
+    if stood is not None:
+        stats["final_match_stood"] = stood
+        stats["final_match_seconds"] = final_seconds
     if backend is not None:
         stats["backend"] = backend.stats()
         stats["loop_closures"] = backend.closure_table()

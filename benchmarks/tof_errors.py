@@ -1,0 +1,143 @@
+"""The ToF error budget (issue 15): what each systematic error of the camera costs the scans,
+alone and all together, before and after the flying-pixel/multipath filter; and what the
+effects cost the renderer.
+
+Per world, --frames frames spread evenly over the robot's drive (sim.sequence.make_sequence,
+seed 0: straight legs and turns at up to 0.6 rad/s) are rendered with the default rig (4
+sub-rays, sensor noise on) once per setting of the camera's errors: none, each effect alone
+(omnitof.sensor.tof_errors.SWITCHES), the simulator's default (all but multipath), all. Each frame becomes a scan with the true rig's
+extractor, with the pixel filter off and on; every 1° bin whose nearest surface at the slice
+height is matte is compared with the exact horizontal distance there (World.horizontal_distance
+at the frame's true pose). Reported per world and setting: the median and 90th percentile of
+|error| (cm) and the share within 5 cm, filter off → on.
+
+No distance correction is applied (issue 16 builds it): these are the numbers before it.
+
+Speed: the renderer's phasors (tracer) and whole frames (noise and decoding too) per second on
+corridor1, all effects off and all on, medians of --runs runs measured alternately in one
+process.
+
+Usage:
+    python benchmarks/tof_errors.py [--frames 24] [--runs 5] [--worlds room office ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+
+import numpy as np
+
+from omnitof.scan import ScanExtractor
+from omnitof.sensor.tof import SensorNoise
+from omnitof.sensor.tof_errors import SWITCHES, ToFErrors
+from omnitof.sim.render import Renderer
+from omnitof.sim.sequence import make_sequence, sample_poses
+from omnitof.sim.worlds import load_world, world_names
+
+
+def settings(only: list[str] | None = None) -> list[tuple[str, ToFErrors]]:
+    out = [("none", ToFErrors())]
+    out += [(name, ToFErrors().only(name)) for name in SWITCHES]
+    out.append(("default (all but multipath)", ToFErrors.simulation_default()))
+    out.append(("all", ToFErrors.realistic()))
+    return [o for o in out if only is None or o[0].split()[0] in only]
+
+
+def frames(world, errors: ToFErrors, count: int, seed: int = 0):
+    seq = make_sequence(world, seed=seed)
+    idx = np.linspace(0, len(seq) - 1, count).round().astype(int)
+    renderer = Renderer(world, sensor=SensorNoise(errors=errors))
+    timing = sample_poses(seq, idx, errors.integration_time)
+    out = renderer.render_many(seq.ground_truth[idx], seed=seed + 1, sample_poses=timing)
+    return renderer, seq.ground_truth[idx], out
+
+
+def matte_errors(world, renderer, extractor, poses, ranges) -> np.ndarray:
+    h = extractor.settings.height
+    errs = []
+    for pose, r in zip(poses, ranges):
+        bearings = extractor.angles + pose[2]
+        truth = world.horizontal_distance(pose[:2], bearings, h)
+        directions = np.column_stack([np.cos(bearings), np.sin(bearings), np.zeros(len(bearings))])
+        _, names = renderer.first_surface(np.tile([pose[0], pose[1], h], (len(bearings), 1)), directions)
+        matte = np.array([bool(n) and world.materials[n].kind == "matte" for n in names])
+        e = (r - truth)[matte]
+        errs.append(e[np.isfinite(e)])
+    return np.concatenate(errs)
+
+
+def stats(e: np.ndarray) -> str:
+    a = np.abs(e)
+    return f"{100 * np.median(a):.1f} / {100 * np.percentile(a, 90):.1f} / {100 * np.mean(a < 0.05):.1f} %"
+
+
+def budget(names: list[str], count: int, only: list[str] | None = None) -> None:
+    print("| world | effects | bins (off / on) | median / p90 |error| (cm) / within 5 cm, filter off "
+          "| the same, filter on |")
+    print("|---|---|---|---|---|")
+    for name in names:
+        world = load_world(name)
+        for label, errors in settings(only):
+            renderer, poses, fr = frames(world, errors, count)
+            d = np.stack([f.distance for f in fr])
+            a = np.stack([f.amplitude for f in fr])
+            off = ScanExtractor.from_rig(renderer.rig, pixel_filter={"enabled": False})
+            on = ScanExtractor.from_rig(renderer.rig)
+            e_off = matte_errors(world, renderer, off, poses, off.extract_many(d, a))
+            e_on = matte_errors(world, renderer, on, poses, on.extract_many(d, a))
+            print(f"| {name} | {label} | {len(e_off)} / {len(e_on)} | {stats(e_off)} | {stats(e_on)} |", flush=True)
+
+
+def speed(runs: int, count: int = 60) -> None:
+    world = load_world("corridor1")
+    seq = make_sequence(world, seed=0)
+    idx = np.linspace(0, len(seq) - 1, count).round().astype(int)
+    poses = seq.ground_truth[idx]
+    timing = {}
+    renderers = {label: Renderer(world, sensor=SensorNoise(errors=e))
+                 for label, e in (("off", ToFErrors()), ("default (all but multipath)", ToFErrors.simulation_default()),
+                                  ("all on", ToFErrors.realistic()))}
+    for r in renderers.values():
+        r.phasors(poses[:2])
+    tracer = {k: [] for k in renderers}
+    full = {k: [] for k in renderers}
+    for _ in range(runs):
+        for label, r in renderers.items():
+            timing = sample_poses(seq, idx, r.sensor.errors.integration_time)
+            t = time.perf_counter()
+            r.phasors(poses)
+            tracer[label].append(count / (time.perf_counter() - t))
+            t = time.perf_counter()
+            r.render_many(poses, seed=1, sample_poses=timing)
+            full[label].append(count / (time.perf_counter() - t))
+    print("| effects | tracer fps (median, min–max) | full frames fps (median, min–max) |")
+    print("|---|---|---|")
+    for label in renderers:
+        tr, fu = tracer[label], full[label]
+        print(f"| {label} | {statistics.median(tr):.1f} ({min(tr):.1f}–{max(tr):.1f}) | "
+              f"{statistics.median(fu):.1f} ({min(fu):.1f}–{max(fu):.1f}) |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=24)
+    parser.add_argument("--runs", type=int, default=5)
+    parser.add_argument("--worlds", nargs="*", default=world_names())
+    parser.add_argument("--skip-budget", action="store_true")
+    parser.add_argument("--skip-speed", action="store_true")
+    parser.add_argument("--settings", nargs="*", help="only these rows (none, a switch, default, all)")
+    args = parser.parse_args()
+    print(f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores, "
+          f"load {os.getloadavg()[0]:.1f}")
+    if not args.skip_speed:
+        speed(args.runs)
+    if not args.skip_budget:
+        budget(args.worlds, args.frames, args.settings)
+    print(f"# done, load {os.getloadavg()[0]:.1f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,112 @@
+"""Filters on the simulated worlds' ToF scans, many runs from one extraction per drive.
+
+Each (world, drive) is simulated, calibrated from rendered targets and extracted once, as
+`omnitof demo` does it (in memory, float64 beam angles), and cached under `--cache`; every
+(preset, particles, seed) then runs `run_slam` on those scans and is scored as the demo scores
+it: the trajectory's error to the truth and the map's share of occupied cells within 5 cm of a
+wall. This is what the issue-13 tables of BENCHMARKS.md were made with. (`omnitof bench
+benchmarks/worlds.yaml` runs the same filters through ROS bags, whose float32 beam angles move
+a few seeds' numbers in the last digits.)
+
+    python benchmarks/world_filters.py --worlds corridor1 office --drives 0 1 --seeds 0 1 2 \
+        [--preset tof-scanmatch] [--particles 30] [--set backend.min_score=0.65 ...] \
+        [--cache results/world_scans]
+
+Prints one JSON line per run, then a Markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pickle
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+from omnitof.demo import DemoSettings, _calibrate, evaluate_run
+from omnitof.scan import ScanExtractor
+from omnitof.scan.tof_input import tof_scans
+from omnitof.sim.render import Renderer, RenderSettings
+from omnitof.sim.sequence import MotionSettings, make_sequence, render_sequence
+from omnitof.sim.worlds import load_world
+from omnitof.slam import run_slam
+from omnitof.slam.config import load_config
+
+
+def extracted_scans(name: str, drive: int, cache: Path):
+    """The scans of world `name`, drive seed `drive`, with the estimated calibration (cached)."""
+    path = cache / f"{name}_{drive}.pkl"
+    if path.exists():
+        return pickle.loads(path.read_bytes())["scans"]
+    settings = DemoSettings(world=name, seed=drive)
+    world = load_world(name)
+    sequence = make_sequence(world, seed=drive, motion=MotionSettings(speed=settings.speed))
+    renderer = Renderer(world, settings=RenderSettings(seed=drive))
+    work = cache / f"{name}_{drive}"
+    work.mkdir(parents=True, exist_ok=True)
+    calibration, _ = _calibrate(renderer, settings, work)
+    extractor = ScanExtractor.from_calibration(calibration)
+    scans = tof_scans(render_sequence(sequence, renderer), extractor, cloud_every=0, source=name).scans
+    path.write_bytes(pickle.dumps({"world": name, "scans": scans}))
+    return scans
+
+
+def overrides(items: list[str]) -> dict:
+    out: dict = {}
+    for item in items:
+        key, value = item.split("=", 1)
+        section, field = key.split(".", 1)
+        out.setdefault(section, {})[field] = yaml.safe_load(value)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--worlds", nargs="+", default=["room", "office", "corridor1", "corridor2"])
+    parser.add_argument("--drives", nargs="+", type=int, default=[0])
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--preset", default="tof-scanmatch")
+    parser.add_argument("--particles", type=int, default=30)
+    parser.add_argument("--set", nargs="*", default=[], metavar="SECTION.FIELD=VALUE")
+    parser.add_argument("--cache", type=Path, default=Path("results/world_scans"))
+    args = parser.parse_args(argv)
+
+    rows = []
+    for name in args.worlds:
+        world = load_world(name)
+        for drive in args.drives:
+            scans = extracted_scans(name, drive, args.cache)
+            for seed in args.seeds:
+                ov = overrides(args.set)
+                ov.setdefault("filter", {}).update({"particles": args.particles, "seed": seed})
+                cfg = load_config(preset=args.preset, overrides=ov)
+                start = time.perf_counter()
+                result = run_slam(scans, cfg)
+                wall = time.perf_counter() - start
+                ev = evaluate_run(world, scans, result, None)
+                backend = result.stats.get("backend") or {}
+                row = {
+                    "world": name, "drive": drive, "seed": seed, "preset": args.preset,
+                    "particles": args.particles, "set": args.set,
+                    "final_m": round(ev["trajectory"]["slam"]["final"], 3),
+                    "mean_m": round(ev["trajectory"]["slam"]["mean"], 3),
+                    "within_5cm_pct": round(100 * ev["floorplan"]["occupied_within_5cm"], 1),
+                    "closures_kept": backend.get("closures_accepted"),
+                    "closures_found": backend.get("closures_found"),
+                    "wall_s": round(wall, 1),
+                }
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+    print("\n| world | drive | seed | final error m | mean error m | occupied ≤ 5 cm of a wall % | closures kept / found |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['world']} | {r['drive']} | {r['seed']} | {r['final_m']:.3f} | {r['mean_m']:.3f} | "
+              f"{r['within_5cm_pct']:.1f} | {r['closures_kept']} / {r['closures_found']} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,817 @@
+//! The paper's 3D variant (sec. V, Fig. 11(b)): the Rao-Blackwellized particle filter of
+//! filter.rs with a 3D occupancy map per particle, weighed by the frame's 3D rays.
+//!
+//! - Pose: planar (x, y, θ), the robot drives on the floor; sampled from the odometry motion
+//!   model (motion.rs), or from a Gaussian around a scan-match mode (the proposal of Grisetti,
+//!   Stachniss & Burgard 2007, as scan_match::propose does it in 2D).
+//! - Map: a sparse log-odds voxel grid (voxel.rs indexing, 8³ blocks) whose blocks are held
+//!   through `Arc`: particles copied from one another by resampling share every block neither
+//!   has changed since, and a write copies a block first where another particle holds it
+//!   (`Arc::make_mut`), as the 2D tiles do (grid.rs).
+//! - Inverse sensor model: voxel.rs's (paper eq. 8 in 3D): each frame's rays free the voxels they
+//!   pass through and mark the voxel of their end point occupied, each voxel updated at most once
+//!   per frame, a voxel some ray ends in not freed by the frame.
+//! - Observation model: a 3D likelihood field (Probabilistic Robotics, sec. 6.4) on a subsample
+//!   of the frame's end points: p(z) = z_hit·exp(−d²/2σ²) + z_rand, d the distance from the end
+//!   point to the centre of the nearest occupied voxel within a 3×3×3 window. Why not the beam
+//!   model: its expected range needs a 3D ray cast per ray and particle (tens of voxel look-ups
+//!   each, and the scan-matching proposal evaluates a hundred poses), where the field needs one
+//!   look-up where the end point lies in an occupied voxel and 27 at most; and the field is what
+//!   the scan matcher climbs, so both proposals weigh with one model.
+//!
+//! Determinism: every random draw comes from a generator seeded by (seed, step, particle)
+//! (filter::rng_for); each particle's work is serial and writes its own slot; the map update of a
+//! frame does not depend on the order of its rays. The result does not depend on the number of
+//! threads.
+
+use std::collections::{HashMap, HashSet};
+use std::hash::{BuildHasherDefault, Hasher};
+use std::sync::Arc;
+
+use rand::RngExt;
+use rand_distr::StandardNormal;
+use rayon::prelude::*;
+
+use crate::filter::{low_variance_resample, neff, normalise, rng_for, ProposalKind, TrajectoryNode};
+use crate::grid::LogOddsModel;
+use crate::motion::{compose, relative, wrap, OdometryMotion};
+use crate::scan_match::{cholesky3, climb, motion_prior, MatcherParams, PosePrior};
+use crate::voxel::{pack, ray_voxels, sorted_difference, Block, IntegrateStats, SeenFilter, VoxelGrid, BLOCK_VOXELS, INDEX_LIMIT};
+
+/// One 8³ block of a particle's map: log-odds (NaN = unknown) and, per voxel, the running mean
+/// of the end points that fell into it, as an offset in 1/256 of a voxel per axis (as grid.rs
+/// keeps it per cell), with the number averaged so far (saturating at 255). The likelihood
+/// field measures distances to that point, not to the voxel's centre: walls on voxel
+/// boundaries (common in buildings laid out in round metres) would otherwise pull every pose
+/// by half a voxel, 5 cm at 0.1 m.
+#[derive(Clone)]
+pub struct Block3 {
+    pub log_odds: Block,
+    offset: [[u8; 3]; BLOCK_VOXELS],
+    hits: [u8; BLOCK_VOXELS],
+}
+
+impl Block3 {
+    fn unknown() -> Self {
+        Block3 { log_odds: [f32::NAN; BLOCK_VOXELS], offset: [[128; 3]; BLOCK_VOXELS], hits: [0; BLOCK_VOXELS] }
+    }
+}
+
+/// A multiplicative hash of a block key (Fibonacci hashing): keys are already well spread, and
+/// the default SipHash cost half the likelihood field's time. Fixed, so that a map's layout
+/// depends on its inputs only.
+#[derive(Default)]
+pub struct KeyHasher(u64);
+
+impl Hasher for KeyHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+    fn write(&mut self, bytes: &[u8]) {
+        for b in bytes {
+            self.0 = (self.0.rotate_left(8) ^ *b as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        }
+    }
+    fn write_u64(&mut self, k: u64) {
+        self.0 = (k ^ (k >> 29)).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    }
+}
+
+type Blocks = HashMap<u64, Arc<Block3>, BuildHasherDefault<KeyHasher>>;
+
+/// A sparse log-odds voxel grid with copy-on-write blocks (see the module docs).
+#[derive(Clone)]
+pub struct SharedVoxels {
+    pub resolution: f64,
+    pub model: LogOddsModel,
+    blocks: Blocks,
+}
+
+impl SharedVoxels {
+    pub fn new(resolution: f64, model: LogOddsModel) -> Result<Self, String> {
+        // The checks of VoxelGrid::new, in one place.
+        VoxelGrid::new(resolution, model)?;
+        Ok(SharedVoxels { resolution, model, blocks: Blocks::default() })
+    }
+
+    #[inline]
+    fn voxel(&self, i: [i64; 3]) -> Option<(&Block3, usize)> {
+        if i.iter().any(|v| !(-INDEX_LIMIT..INDEX_LIMIT).contains(v)) {
+            return None;
+        }
+        let key = pack(i);
+        self.blocks.get(&(key >> 9)).map(|b| (&**b, (key & 511) as usize))
+    }
+
+    /// Log-odds of voxel `i`; NaN where unknown.
+    #[inline]
+    pub fn get(&self, i: [i64; 3]) -> f32 {
+        self.voxel(i).map_or(f32::NAN, |(b, k)| b.log_odds[k])
+    }
+
+    /// Write one frame of rays (world frame) into the grid, serially (the filter runs the
+    /// particles in parallel): voxel.rs's inverse sensor model, with copy-on-write blocks, and
+    /// each end point averaged into its voxel's mean end point. Only every `free_stride`-th ray
+    /// frees the voxels it passes through; every ray marks its end point (the likelihood field
+    /// reads occupied voxels only, and neighbouring rays free nearly the same voxels).
+    pub fn integrate(&mut self, origins: &[[f64; 3]], endpoints: &[[f64; 3]], max_range: f64, free_stride: usize) -> IntegrateStats {
+        let mut stats = IntegrateStats::default();
+        let (mut free, mut ignored) = (Vec::new(), Vec::new());
+        let mut ends: Vec<(u64, [u8; 3])> = Vec::new();
+        let mut seen = SeenFilter::new();
+        let res = self.resolution;
+        let limit = (INDEX_LIMIT - 2) as f64 * res;
+        let free_stride = free_stride.max(1);
+        for (n, (o, e)) in origins.iter().zip(endpoints).enumerate() {
+            // Rays beyond the index range are skipped (the binding rejects them up front).
+            if o.iter().chain(e).any(|v| !v.is_finite() || v.abs() > limit) {
+                stats.skipped += 1;
+                continue;
+            }
+            let hits_before = stats.hits;
+            if n % free_stride == 0 {
+                ray_voxels(*o, *e, max_range, res, &mut seen, &mut free, &mut ignored, &mut stats);
+            } else if (0..3).map(|a| (e[a] - o[a]).powi(2)).sum::<f64>().sqrt() <= max_range {
+                stats.hits += 1;
+            } else {
+                stats.max_range += 1;
+            }
+            if stats.hits > hits_before {
+                let u = e.map(|v| v / res);
+                let i = u.map(|v| v.floor() as i64);
+                let off = [0, 1, 2].map(|a| ((u[a] - i[a] as f64) * 256.0).clamp(0.0, 255.0) as u8);
+                ends.push((pack(i), off));
+            }
+        }
+        free.sort_unstable();
+        free.dedup();
+        // Sorted by key and offset: the means do not depend on the order of the rays.
+        ends.sort_unstable();
+        let mut hit: Vec<u64> = ends.iter().map(|e| e.0).collect();
+        hit.dedup();
+        let free = sorted_difference(&free, &hit);
+        stats.free_voxels = free.len();
+        stats.occupied_voxels = hit.len();
+        self.apply(&free, self.model.l_free);
+        self.apply(&hit, self.model.l_occ);
+        self.average_ends(&ends);
+        stats
+    }
+
+    /// Add `delta` to the voxels of sorted keys, copying a shared block before its first write.
+    fn apply(&mut self, keys: &[u64], delta: f32) {
+        let (lo, hi) = (self.model.l_min, self.model.l_max);
+        let mut i = 0;
+        while i < keys.len() {
+            let block_key = keys[i] >> 9;
+            let block = Arc::make_mut(self.blocks.entry(block_key).or_insert_with(|| Arc::new(Block3::unknown())));
+            while i < keys.len() && keys[i] >> 9 == block_key {
+                let cell = &mut block.log_odds[(keys[i] & 511) as usize];
+                let prior = if cell.is_nan() { 0.0 } else { *cell };
+                *cell = (prior + delta).clamp(lo, hi);
+                i += 1;
+            }
+        }
+    }
+
+    /// Fold end points (sorted (key, offset)) into their voxels' running means.
+    fn average_ends(&mut self, ends: &[(u64, [u8; 3])]) {
+        let mut i = 0;
+        while i < ends.len() {
+            let block_key = ends[i].0 >> 9;
+            let block = Arc::make_mut(self.blocks.entry(block_key).or_insert_with(|| Arc::new(Block3::unknown())));
+            while i < ends.len() && ends[i].0 >> 9 == block_key {
+                let k = (ends[i].0 & 511) as usize;
+                let n = block.hits[k].saturating_add(1);
+                block.hits[k] = n;
+                for a in 0..3 {
+                    let m = block.offset[k][a] as f32;
+                    block.offset[k][a] = (m + (ends[i].1[a] as f32 - m) / n as f32).round().clamp(0.0, 255.0) as u8;
+                }
+                i += 1;
+            }
+        }
+    }
+
+    /// Squared distance from world point `p` to the mean end point of the nearest voxel with
+    /// log-odds above `threshold` among the 27 around the voxel holding `p`; None if there is
+    /// none. Where the voxel holding p is occupied, its own mean is taken (one look-up; a
+    /// neighbour's mean can lie nearer, by less than a voxel).
+    #[inline]
+    pub fn nearest_occupied(&self, p: [f64; 3], threshold: f32) -> Option<f64> {
+        let res = self.resolution;
+        let u = p.map(|v| v / res);
+        let c = u.map(|v| v.floor() as i64);
+        let d2_in = |i: [i64; 3]| -> Option<f64> {
+            let (b, k) = self.voxel(i)?;
+            // NaN (unknown) compares false.
+            if !(b.log_odds[k] > threshold) {
+                return None;
+            }
+            let off = b.offset[k];
+            Some((0..3).map(|a| (u[a] - (i[a] as f64 + (off[a] as f64 + 0.5) / 256.0)).powi(2)).sum::<f64>() * res * res)
+        };
+        if let Some(d2) = d2_in(c) {
+            return Some(d2);
+        }
+        // The 26 neighbours lie in at most 8 blocks: look each block up once.
+        let mut cache: [(u64, Option<&Block3>); 8] = [(u64::MAX, None); 8];
+        let mut cached = 0;
+        let mut best: Option<f64> = None;
+        for dx in -1..=1 {
+            for dy in -1..=1 {
+                for dz in -1..=1 {
+                    if dx == 0 && dy == 0 && dz == 0 {
+                        continue;
+                    }
+                    let i = [c[0] + dx, c[1] + dy, c[2] + dz];
+                    if i.iter().any(|v| !(-INDEX_LIMIT..INDEX_LIMIT).contains(v)) {
+                        continue;
+                    }
+                    let key = pack(i);
+                    let bk = key >> 9;
+                    let block = match cache[..cached].iter().find(|e| e.0 == bk) {
+                        Some(e) => e.1,
+                        None => {
+                            let b = self.blocks.get(&bk).map(|b| &**b);
+                            if cached < cache.len() {
+                                cache[cached] = (bk, b);
+                                cached += 1;
+                            }
+                            b
+                        }
+                    };
+                    let Some(b) = block else { continue };
+                    let k = (key & 511) as usize;
+                    if !(b.log_odds[k] > threshold) {
+                        continue;
+                    }
+                    let off = b.offset[k];
+                    let d2 = (0..3).map(|a| (u[a] - (i[a] as f64 + (off[a] as f64 + 0.5) / 256.0)).powi(2)).sum::<f64>() * res * res;
+                    if best.is_none_or(|bb| d2 < bb) {
+                        best = Some(d2);
+                    }
+                }
+            }
+        }
+        best
+    }
+
+    pub fn block_count(&self) -> usize {
+        self.blocks.len()
+    }
+
+    pub fn blocks(&self) -> impl Iterator<Item = &Arc<Block3>> {
+        self.blocks.values()
+    }
+
+    /// Bytes of one block (log-odds, mean end points, counts).
+    pub const fn block_bytes() -> usize {
+        std::mem::size_of::<Block3>()
+    }
+
+    /// A plain VoxelGrid with this grid's log-odds (for output: PLY, figures, the 2D projection).
+    pub fn to_voxel_grid(&self) -> VoxelGrid {
+        VoxelGrid::from_blocks(self.resolution, self.model, self.blocks.iter().map(|(k, b)| (*k, b.log_odds)))
+    }
+}
+
+/// The 3D likelihood field (see the module docs).
+#[derive(Clone, Copy, Debug)]
+pub struct Field3d {
+    pub sigma: f64,
+    pub z_hit: f64,
+    pub z_rand: f64,
+    pub occupied_threshold: f32,
+}
+
+impl Field3d {
+    /// (mean over `pts` (robot frame) of log p at planar pose `pose`, points with an occupied
+    /// voxel within the window). Mean, not sum: see FilterParams3d::effective_rays.
+    pub fn score(&self, map: &SharedVoxels, pose: [f64; 3], pts: &[[f64; 3]]) -> (f64, usize) {
+        if pts.is_empty() {
+            return (0.0, 0);
+        }
+        let (s, c) = pose[2].sin_cos();
+        let inv = 1.0 / (2.0 * self.sigma * self.sigma);
+        let floor = self.z_rand.max(1e-300).ln();
+        let mut sum = 0.0;
+        let mut matched = 0;
+        for p in pts {
+            let w = [pose[0] + c * p[0] - s * p[1], pose[1] + s * p[0] + c * p[1], p[2]];
+            sum += match map.nearest_occupied(w, self.occupied_threshold) {
+                Some(d2) => {
+                    matched += 1;
+                    (self.z_hit * (-d2 * inv).exp() + self.z_rand).ln()
+                }
+                None => floor,
+            };
+        }
+        (sum / pts.len() as f64, matched)
+    }
+}
+
+#[derive(Clone, Debug)]
+pub struct FilterParams3d {
+    pub n_particles: usize,
+    pub seed: u64,
+    pub threads: usize,
+    pub motion: OdometryMotion,
+    pub proposal: ProposalKind,
+    pub field: Field3d,
+    pub matcher: MatcherParams,
+    /// A frame's log-likelihood is the mean over its scored end points times this number (as
+    /// filter.rs's effective_beams): neighbouring rays are far from independent.
+    pub effective_rays: f64,
+    /// Score at most this many of the frame's rays, evenly spread over them (the map gets them
+    /// all): the scan matcher evaluates about a hundred poses per particle, each over every scored ray.
+    pub score_rays: usize,
+    /// End points scored: those at heights within [score_z_min, score_z_max] (m) and within
+    /// max_range of their origin. The floor tells nothing of (x, y, θ).
+    pub score_z_min: f64,
+    pub score_z_max: f64,
+    pub log_odds: LogOddsModel,
+    pub resolution: f64,
+    /// Rays longer than this (m) free space up to it and mark nothing.
+    pub max_range: f64,
+    /// Every n-th ray frees the voxels it passes through (see SharedVoxels::integrate).
+    pub free_stride: usize,
+    /// The scan-matching proposal climbs on every n-th scored ray (then fits its Gaussian and
+    /// weighs on all of them): the climb evaluates most of the poses.
+    pub climb_stride: usize,
+    pub resample_threshold: f64,
+}
+
+#[derive(Clone)]
+pub struct Particle3d {
+    pub pose: [f64; 3],
+    pub log_weight: f64,
+    pub map: SharedVoxels,
+    pub trajectory: Arc<TrajectoryNode>,
+}
+
+#[derive(Clone, Copy, Debug, Default)]
+pub struct StepInfo3d {
+    pub neff: f64,
+    pub resampled: bool,
+    pub fallbacks: usize,
+    /// Rays scored for the weights.
+    pub scored: usize,
+}
+
+pub struct ParticleFilter3d {
+    pub params: FilterParams3d,
+    pub particles: Vec<Particle3d>,
+    pub steps: u64,
+    pub resamplings: u64,
+    pub fallbacks: u64,
+    best: usize,
+    pool: rayon::ThreadPool,
+}
+
+/// (x, y, z) of a planar pose applied to a robot-frame point.
+#[inline]
+fn to_world(pose: [f64; 3], p: [f64; 3]) -> [f64; 3] {
+    let (s, c) = pose[2].sin_cos();
+    [pose[0] + c * p[0] - s * p[1], pose[1] + s * p[0] + c * p[1], p[2]]
+}
+
+/// A scan-match proposal's outcome (as scan_match::Proposal).
+struct Drawn {
+    pose: [f64; 3],
+    log_normaliser: f64,
+}
+
+impl ParticleFilter3d {
+    pub fn new(params: FilterParams3d) -> Result<Self, String> {
+        if params.n_particles == 0 {
+            return Err("n_particles must be at least 1".into());
+        }
+        if params.score_rays == 0 {
+            return Err("score_rays must be at least 1".into());
+        }
+        if !(params.field.sigma > 0.0 && params.field.z_rand > 0.0 && params.field.z_hit >= 0.0) {
+            return Err("the likelihood field needs sigma > 0, z_rand > 0, z_hit >= 0".into());
+        }
+        if !(params.max_range > 0.0) {
+            return Err(format!("max_range must be > 0, got {}", params.max_range));
+        }
+        SharedVoxels::new(params.resolution, params.log_odds)?;
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(params.threads.max(1)).build().map_err(|e| e.to_string())?;
+        Ok(ParticleFilter3d { params, particles: Vec::new(), steps: 0, resamplings: 0, fallbacks: 0, best: 0, pool })
+    }
+
+    /// The robot-frame end points a frame is weighed by (see FilterParams3d): of the rays whose
+    /// end points lie in the height band and within max_range, at most score_rays, evenly spread.
+    pub fn scored_points(&self, origins: &[[f64; 3]], endpoints: &[[f64; 3]]) -> Vec<[f64; 3]> {
+        let p = &self.params;
+        let candidates: Vec<[f64; 3]> = origins
+            .iter()
+            .zip(endpoints)
+            .filter(|(o, e)| {
+                let d2: f64 = (0..3).map(|a| (e[a] - o[a]).powi(2)).sum();
+                e.iter().all(|v| v.is_finite()) && d2.sqrt() <= p.max_range && e[2] >= p.score_z_min && e[2] <= p.score_z_max
+            })
+            .map(|(_, e)| *e)
+            .collect();
+        let n = candidates.len();
+        if n <= p.score_rays {
+            return candidates;
+        }
+        (0..p.score_rays).map(|k| candidates[k * n / p.score_rays]).collect()
+    }
+
+    /// Integrate one frame of rays (robot frame: origins on the mirrors, end points) taken at
+    /// odometry pose `odom_cur`, the robot having come from `odom_prev` since the last one. The
+    /// first call starts every particle's map at `odom_cur`. Origins and end points must be
+    /// finite and within the grid's reach (the binding checks).
+    pub fn step(&mut self, odom_prev: [f64; 3], odom_cur: [f64; 3], origins: &[[f64; 3]], endpoints: &[[f64; 3]], scan: u64) -> StepInfo3d {
+        let step_index = self.steps;
+        self.steps += 1;
+        let n = self.params.n_particles;
+        if self.particles.is_empty() {
+            // Resolution and model were checked by `new`.
+            let mut map = SharedVoxels { resolution: self.params.resolution, model: self.params.log_odds, blocks: Blocks::default() };
+            let (wo, we) = Self::world_rays(odom_cur, origins, endpoints);
+            map.integrate(&wo, &we, self.params.max_range, self.params.free_stride);
+            let root = Arc::new(TrajectoryNode { pose: odom_cur, scan, parent: None });
+            let first = Particle3d { pose: odom_cur, log_weight: 0.0, map, trajectory: root };
+            self.particles = vec![first; n];
+            return StepInfo3d { neff: n as f64, resampled: false, fallbacks: 0, scored: 0 };
+        }
+        let pts = self.scored_points(origins, endpoints);
+        let p = &self.params;
+        let seed = p.seed;
+        let fell: Vec<bool> = self.pool.install(|| {
+            self.particles
+                .par_iter_mut()
+                .enumerate()
+                .map(|(i, part)| {
+                    let mut rng = rng_for(seed, step_index, i as u64);
+                    let drawn = match p.proposal {
+                        ProposalKind::ScanMatch => propose3d(p, &part.map, &pts, part.pose, odom_prev, odom_cur, &mut rng),
+                        ProposalKind::Odometry => None,
+                    };
+                    let fell_back = p.proposal == ProposalKind::ScanMatch && drawn.is_none();
+                    let pose = match drawn {
+                        Some(d) => {
+                            part.log_weight += d.log_normaliser;
+                            d.pose
+                        }
+                        None => {
+                            let pose = p.motion.sample(part.pose, odom_prev, odom_cur, &mut rng);
+                            part.log_weight += p.effective_rays * p.field.score(&part.map, pose, &pts).0;
+                            pose
+                        }
+                    };
+                    part.pose = pose;
+                    part.trajectory = Arc::new(TrajectoryNode { pose, scan, parent: Some(part.trajectory.clone()) });
+                    let (wo, we) = Self::world_rays(pose, origins, endpoints);
+                    part.map.integrate(&wo, &we, p.max_range, p.free_stride);
+                    fell_back
+                })
+                .collect()
+        });
+        let fallbacks = fell.iter().filter(|&&f| f).count();
+        self.fallbacks += fallbacks as u64;
+        let log_w: Vec<f64> = self.particles.iter().map(|q| q.log_weight).collect();
+        let w = normalise(&log_w);
+        let n_eff = neff(&w);
+        let best = (0..w.len()).fold(0, |b, i| if w[i] > w[b] { i } else { b });
+        let mut resampled = false;
+        if n_eff < self.params.resample_threshold * n as f64 {
+            let mut rng = rng_for(seed, step_index, u64::MAX);
+            let idx = low_variance_resample(&w, &mut rng);
+            self.best = idx.iter().position(|&j| j == best).unwrap_or(0);
+            self.particles = idx
+                .iter()
+                .map(|&j| {
+                    let mut q = self.particles[j].clone();
+                    q.log_weight = 0.0;
+                    q
+                })
+                .collect();
+            self.resamplings += 1;
+            resampled = true;
+        } else {
+            let max = log_w.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+            for q in &mut self.particles {
+                q.log_weight -= max;
+            }
+            self.best = best;
+        }
+        StepInfo3d { neff: n_eff, resampled, fallbacks, scored: pts.len() }
+    }
+
+    fn world_rays(pose: [f64; 3], origins: &[[f64; 3]], endpoints: &[[f64; 3]]) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+        (origins.iter().map(|o| to_world(pose, *o)).collect(), endpoints.iter().map(|e| to_world(pose, *e)).collect())
+    }
+
+    pub fn best(&self) -> Option<&Particle3d> {
+        self.particles.get(self.best)
+    }
+
+    /// (distinct blocks over all particles, block references over all particles).
+    pub fn block_counts(&self) -> (usize, usize) {
+        self.block_counts_of(&self.particles.iter().collect::<Vec<_>>())
+    }
+
+    /// (distinct blocks, block references) over the maps of `particles`.
+    pub fn block_counts_of(&self, particles: &[&Particle3d]) -> (usize, usize) {
+        let mut seen = HashSet::new();
+        let mut refs = 0;
+        for q in particles {
+            for b in q.map.blocks() {
+                refs += 1;
+                seen.insert(Arc::as_ptr(b) as usize);
+            }
+        }
+        (seen.len(), refs)
+    }
+}
+
+/// The scan-matching proposal in 3D (Grisetti et al. 2007, as scan_match::propose): hill
+/// climbing (scan_match::climb) of gain·(mean log-likelihood of the scored end points) + the
+/// odometry prior's log density from the odometry prediction; then the target at the 27 poses
+/// around the mode, a Gaussian fitted to them, one pose drawn from it, and the log of the
+/// target's sum there as the weight's factor. None where fewer than min_matched of the points
+/// find an occupied voxel at the mode (the caller falls back to the odometry proposal).
+fn propose3d<R: rand::Rng>(
+    p: &FilterParams3d,
+    map: &SharedVoxels,
+    pts: &[[f64; 3]],
+    prev_pose: [f64; 3],
+    odom_prev: [f64; 3],
+    odom_cur: [f64; 3],
+    rng: &mut R,
+) -> Option<Drawn> {
+    if pts.is_empty() {
+        return None;
+    }
+    let m: &MatcherParams = &p.matcher;
+    let predicted = compose(prev_pose, relative(odom_prev, odom_cur));
+    let prior: PosePrior = motion_prior(&p.motion, odom_prev, odom_cur, predicted);
+    let target = |pose: [f64; 3]| p.effective_rays * p.field.score(map, pose, pts).0 + prior.log_prob(pose);
+    let start = if m.climb_from_sample { p.motion.sample(prev_pose, odom_prev, odom_cur, rng) } else { predicted };
+    let sparse: Vec<[f64; 3]> = pts.iter().step_by(p.climb_stride.max(1)).copied().collect();
+    let climb_goal = |pose: [f64; 3]| {
+        let s = p.effective_rays * p.field.score(map, pose, &sparse).0;
+        if m.odometry_prior { s + prior.log_prob(pose) } else { s }
+    };
+    let (mode, _) = climb(climb_goal, start, m);
+    let matched = p.field.score(map, mode, pts).1;
+    if (matched as f64) < m.min_matched * pts.len() as f64 {
+        return None;
+    }
+    let mut offsets = Vec::with_capacity(27);
+    let mut logs = Vec::with_capacity(27);
+    for i in -1..=1 {
+        for j in -1..=1 {
+            for k in -1..=1 {
+                let off = [i as f64 * m.sample_xy, j as f64 * m.sample_xy, k as f64 * m.sample_theta];
+                logs.push(target([mode[0] + off[0], mode[1] + off[1], wrap(mode[2] + off[2])]));
+                offsets.push(off);
+            }
+        }
+    }
+    let max = logs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+    let w: Vec<f64> = logs.iter().map(|l| (l - max).exp()).collect();
+    let sum: f64 = w.iter().sum();
+    let mut mean = [0.0; 3];
+    for (wk, o) in w.iter().zip(&offsets) {
+        for a in 0..3 {
+            mean[a] += wk / sum * o[a];
+        }
+    }
+    let mut cov = [[0.0; 3]; 3];
+    for (wk, o) in w.iter().zip(&offsets) {
+        let d = [o[0] - mean[0], o[1] - mean[1], o[2] - mean[2]];
+        for a in 0..3 {
+            for b in 0..3 {
+                cov[a][b] += wk / sum * d[a] * d[b];
+            }
+        }
+    }
+    // Keep the Gaussian proper where one pose takes all the weight.
+    let floor = [1e-2 * m.sample_xy * m.sample_xy, 1e-2 * m.sample_xy * m.sample_xy, 1e-2 * m.sample_theta * m.sample_theta];
+    for a in 0..3 {
+        cov[a][a] += floor[a];
+    }
+    let l = cholesky3(&cov);
+    let z: [f64; 3] = [rng.sample(StandardNormal), rng.sample(StandardNormal), rng.sample(StandardNormal)];
+    let mut draw = mean;
+    for a in 0..3 {
+        for b in 0..=a {
+            draw[a] += l[a][b] * z[b];
+        }
+    }
+    Some(Drawn { pose: [mode[0] + draw[0], mode[1] + draw[1], wrap(mode[2] + draw[2])], log_normaliser: max + sum.ln() })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MODEL: LogOddsModel = LogOddsModel { l_occ: 0.9, l_free: -0.4, l_min: -2.0, l_max: 3.5 };
+    /// Robot-frame origin of every ray: the mirrors, half a metre above the floor.
+    const SENSOR: [f64; 3] = [0.0, 0.0, 0.5];
+
+    /// Axis-aligned boxes (min, max): the room (seen from inside) and obstacles (from outside).
+    const ROOM: ([f64; 3], [f64; 3]) = ([-3.0, -2.0, 0.0], [3.0, 2.0, 2.5]);
+    const OBSTACLES: [([f64; 3], [f64; 3]); 2] = [
+        ([1.0, 0.5, 0.0], [1.4, 0.9, 2.5]),   // a pillar
+        ([-3.0, -1.0, 1.5], [-2.6, 1.0, 2.0]), // a shelf high on a wall
+    ];
+
+    /// Slab test: the entry and exit distances of a ray through a box.
+    fn slab(o: [f64; 3], d: [f64; 3], b: ([f64; 3], [f64; 3])) -> (f64, f64) {
+        let (mut t0, mut t1) = (f64::NEG_INFINITY, f64::INFINITY);
+        for a in 0..3 {
+            let (ta, tb) = ((b.0[a] - o[a]) / d[a], (b.1[a] - o[a]) / d[a]);
+            t0 = t0.max(ta.min(tb));
+            t1 = t1.min(ta.max(tb));
+        }
+        (t0, t1)
+    }
+
+    /// An exact ray cast in the analytic world: the nearest surface along o + t·d.
+    fn cast(o: [f64; 3], d: [f64; 3]) -> f64 {
+        let mut t = slab(o, d, ROOM).1;
+        for b in OBSTACLES {
+            let (t0, t1) = slab(o, d, b);
+            if t0 > 0.0 && t0 <= t1 {
+                t = t.min(t0);
+            }
+        }
+        t
+    }
+
+    /// One frame at world pose `pose`: (origins, end points) in the robot frame, rays every
+    /// `az_deg` in azimuth and every 5° in elevation from −20° to +30°.
+    fn frame(pose: [f64; 3], az_deg: f64, az_range: (f64, f64)) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+        let (mut os, mut es) = (vec![], vec![]);
+        let ow = to_world(pose, SENSOR);
+        let mut az = az_range.0;
+        while az < az_range.1 {
+            for k in -4..=6 {
+                let (el, a) = ((k as f64 * 5.0).to_radians(), az.to_radians());
+                let dr = [el.cos() * a.cos(), el.cos() * a.sin(), el.sin()];
+                let (s, c) = pose[2].sin_cos();
+                let dw = [c * dr[0] - s * dr[1], s * dr[0] + c * dr[1], dr[2]];
+                let t = cast(ow, dw);
+                os.push(SENSOR);
+                es.push([SENSOR[0] + t * dr[0], SENSOR[1] + t * dr[1], SENSOR[2] + t * dr[2]]);
+            }
+            az += az_deg;
+        }
+        (os, es)
+    }
+
+    fn params(n: usize, threads: usize, proposal: ProposalKind) -> FilterParams3d {
+        FilterParams3d {
+            n_particles: n,
+            seed: 7,
+            threads,
+            motion: OdometryMotion { alpha: [0.01, 0.001, 0.01, 0.001] },
+            proposal,
+            field: Field3d { sigma: 0.1, z_hit: 0.9, z_rand: 0.1, occupied_threshold: 0.0 },
+            matcher: MatcherParams {
+                step_xy: 0.05,
+                step_theta: 2f64.to_radians(),
+                refinements: 3,
+                gauss_newton: 0,
+                sample_xy: 0.01,
+                sample_theta: 0.25f64.to_radians(),
+                min_matched: 0.3,
+                effective_beams: 9.0,
+                odometry_prior: true,
+                climb_from_sample: false,
+                search: None,
+                search_below: 0.0,
+            },
+            effective_rays: 9.0,
+            score_rays: 600,
+            score_z_min: 0.05,
+            score_z_max: 10.0,
+            log_odds: MODEL,
+            resolution: 0.1,
+            max_range: 7.0,
+            free_stride: 2,
+            climb_stride: 1,
+            resample_threshold: 0.5,
+        }
+    }
+
+    fn known_map() -> SharedVoxels {
+        let mut map = SharedVoxels::new(0.1, MODEL).unwrap();
+        for pose in [[0.0, 0.0, 0.0], [0.4, 0.2, 0.3], [-0.5, -0.3, -0.4], [0.2, -0.6, 1.2]] {
+            let (o, e) = frame(pose, 2.0, (-180.0, 180.0));
+            let (wo, we) = ParticleFilter3d::world_rays(pose, &o, &e);
+            for _ in 0..3 {
+                map.integrate(&wo, &we, 7.0, 1);
+            }
+        }
+        map
+    }
+
+    #[test]
+    fn likelihood_peaks_at_the_true_pose_and_falls_off_in_x_y_theta() {
+        let map = known_map();
+        let field = params(1, 1, ProposalKind::Odometry).field;
+        let truth = [0.13, -0.07, 0.21];
+        let (_, e) = frame(truth, 3.0, (-180.0, 180.0));
+        let pts: Vec<[f64; 3]> = e.into_iter().filter(|p| p[2] > 0.05).collect();
+        let at = |d: [f64; 3]| field.score(&map, [truth[0] + d[0], truth[1] + d[1], truth[2] + d[2]], &pts).0;
+        let best = at([0.0; 3]);
+        for axis in 0..3 {
+            let unit = if axis == 2 { 0.05 } else { 0.1 };
+            for sign in [-1.0, 1.0] {
+                let mut d1 = [0.0; 3];
+                d1[axis] = sign * unit;
+                let mut d2 = [0.0; 3];
+                d2[axis] = sign * 2.0 * unit;
+                let (l1, l2) = (at(d1), at(d2));
+                assert!(best > l1 && l1 > l2, "axis {axis} sign {sign}: {best} {l1} {l2}");
+            }
+        }
+    }
+
+    #[test]
+    fn resampled_particles_share_the_blocks_they_did_not_change() {
+        let mut p = params(20, 2, ProposalKind::Odometry);
+        p.resample_threshold = 2.0; // resample at every step
+        let mut pf = ParticleFilter3d::new(p).unwrap();
+        let (o, e) = frame([0.0; 3], 2.0, (-180.0, 180.0));
+        pf.step([0.0; 3], [0.0; 3], &o, &e, 0);
+        let b0 = pf.particles[0].map.block_count();
+        assert_eq!(pf.block_counts(), (b0, 20 * b0));
+        let initial: HashSet<usize> = pf.particles[0].map.blocks().map(|b| Arc::as_ptr(b) as usize).collect();
+        let before: HashMap<u64, Block> = pf.particles[0].map.blocks.iter().map(|(k, b)| (*k, b.log_odds)).collect();
+        // A frame that looks along +x only touches a few blocks.
+        let (o, e) = frame([0.1, 0.0, 0.0], 2.0, (-10.0, 10.0));
+        let info = pf.step([0.0; 3], [0.1, 0.0, 0.0], &o, &e, 1);
+        assert!(info.resampled);
+        let (distinct, refs) = pf.block_counts();
+        assert!(refs >= 20 * b0);
+        for q in &pf.particles {
+            let mut changed = 0;
+            for (k, b) in &q.map.blocks {
+                let same = before.get(k).is_some_and(|v| v.iter().zip(b.log_odds.iter()).all(|(x, y)| x.to_bits() == y.to_bits()));
+                if same {
+                    // An unchanged block is the one all particles held: no copy was made.
+                    assert!(initial.contains(&(Arc::as_ptr(b) as usize)));
+                } else {
+                    changed += 1;
+                }
+            }
+            assert!(changed > 0 && changed * 4 < b0, "changed {changed} of {b0}");
+        }
+        // Memory measured: distinct blocks hold far less than one map per particle.
+        assert!(distinct * 4 < refs, "distinct {distinct}, references {refs}");
+    }
+
+    fn run(threads: usize, proposal: ProposalKind) -> (Vec<[u64; 3]>, Vec<u64>, (usize, usize)) {
+        let mut pf = ParticleFilter3d::new(params(12, threads, proposal)).unwrap();
+        let truth = [[0.0, 0.0, 0.0], [0.2, 0.05, 0.1], [0.4, 0.1, 0.25], [0.55, 0.2, 0.45], [0.6, 0.35, 0.7]];
+        let mut prev = truth[0];
+        for (k, t) in truth.iter().enumerate() {
+            let (o, e) = frame(*t, 4.0, (-180.0, 180.0));
+            // Odometry that drifts: 10 % long in translation.
+            let odom = [t[0] * 1.1, t[1] * 1.1, t[2]];
+            pf.step(prev, odom, &o, &e, k as u64);
+            prev = odom;
+        }
+        let poses = pf.particles.iter().map(|q| q.pose.map(f64::to_bits)).collect();
+        let weights = pf.particles.iter().map(|q| q.log_weight.to_bits()).collect();
+        (poses, weights, pf.block_counts())
+    }
+
+    #[test]
+    fn same_seed_same_result_for_one_and_two_threads() {
+        for proposal in [ProposalKind::Odometry, ProposalKind::ScanMatch] {
+            assert_eq!(run(1, proposal), run(2, proposal));
+        }
+    }
+
+    #[test]
+    fn scan_matching_proposal_recovers_the_true_pose() {
+        let mut p = params(8, 2, ProposalKind::ScanMatch);
+        // The likelihood's mode alone (GMapping's way): the odometry below is off by more than
+        // the motion model allows.
+        p.matcher.odometry_prior = false;
+        let mut pf = ParticleFilter3d::new(p).unwrap();
+        let (o, e) = frame([0.0; 3], 2.0, (-180.0, 180.0));
+        for k in 0..3 {
+            pf.step([0.0; 3], [0.0; 3], &o, &e, k);
+        }
+        // The robot moved 0.3 m and turned 0.1 rad; the odometry says 0.38 m and 0.16 rad.
+        let truth = [0.3, 0.0, 0.1];
+        let (o, e) = frame(truth, 2.0, (-180.0, 180.0));
+        let info = pf.step([0.0; 3], [0.38, 0.0, 0.16], &o, &e, 3);
+        assert_eq!(info.fallbacks, 0);
+        for q in &pf.particles {
+            assert!((q.pose[0] - truth[0]).abs() < 0.03 && q.pose[1].abs() < 0.03, "{:?}", q.pose);
+            assert!((q.pose[2] - truth[2]).abs() < 0.02, "{:?}", q.pose);
+        }
+    }
+}

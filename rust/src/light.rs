@@ -1,0 +1,298 @@
+//! Where the light comes from: the camera's LEDs (beside the lens, not at its centre), their
+//! images in the mirrors, and light that reaches a surface from another surface (multipath).
+//! Pure Rust, used by the renderer (render.rs). Frames and units as there.
+//!
+//! Light model. An LED at L (camera frame, a few cm from the optical centre) lights a world
+//! point x directly if the segment L→x crosses no mirror, and through mirror m if the segment
+//! from x to L's image in m's plane, L'_m, crosses the plane inside m's outline (the unfolded
+//! path; its length |x − L'_m| is the light's path LED → mirror → x). Each such path gives the
+//! irradiance factor
+//!
+//!     gain = w · cosᵖ(ε) · ρ_m · cos(θ_x) / ℓ²
+//!
+//! with w = 1/(number of LEDs), ε the emission angle from the optical axis (the LED's profile,
+//! exponent p), ρ_m the mirror's reflectivity (1 directly), θ_x the incidence at x and ℓ the
+//! path's length. An LED at the camera centre with p = 0 gives back the coaxial model of
+//! render.rs (ρ_m·cos θ/r²). With no path, x is dark.
+//!
+//! Multipath: from a diffuse point P seen by the camera, secondary rays are drawn cosine-weighted
+//! about P's normal; where one meets a diffuse Q, Q's light paths (checked for occlusion by the
+//! scene) give P the extra radiance ρ_P·ρ_Q·gain/M per ray (M rays: the Monte-Carlo estimate of
+//! ρ_P/π·∫L_Q cos dω with the pdf cos/π), with the path camera → P → Q → LED. Random numbers
+//! come from a SplitMix64 hash of (seed, pose, pixel, ray), so frames do not depend on threads.
+
+use crate::render::{add, cross, dot, norm, reflect_point, rotate, scale, sub, Kind, Mailbox, Mirror, Scene, T_MIN};
+
+/// The LEDs (camera frame, metres), the exponent p of their emission profile cosᵖ(ε), and
+/// the cosine of the largest emission angle (the LEDs' optics and the housing let nothing out
+/// beyond it; −1: no limit).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Illumination {
+    pub leds: Vec<[f64; 3]>,
+    pub profile_exponent: f64,
+    pub min_cos: f64,
+}
+
+impl Illumination {
+    /// The coaxial point source of the simple model: one isotropic LED at the camera centre.
+    pub fn coaxial() -> Illumination {
+        Illumination { leds: vec![[0.0; 3]], profile_exponent: 0.0, min_cos: -1.0 }
+    }
+
+    /// The mean position of the LEDs.
+    pub fn centre(&self) -> [f64; 3] {
+        let n = self.leds.len().max(1) as f64;
+        let sum = self.leds.iter().fold([0.0; 3], |a, &l| add(a, l));
+        scale(sum, 1.0 / n)
+    }
+
+    pub fn check(&self) -> Result<(), String> {
+        if self.leds.is_empty() || self.leds.iter().flatten().any(|v| !v.is_finite()) {
+            return Err("illumination needs at least one LED with finite coordinates".into());
+        }
+        if !(self.profile_exponent >= 0.0 && self.profile_exponent.is_finite()) {
+            return Err("the LEDs' profile exponent must be >= 0".into());
+        }
+        if !(-1.0..=1.0).contains(&self.min_cos) {
+            return Err("the cosine of the LEDs' largest emission angle must lie in [-1, 1]".into());
+        }
+        Ok(())
+    }
+}
+
+#[derive(Clone, Debug)]
+struct WorldMirror {
+    normal: [f64; 3],
+    d: f64,
+    polygon: Vec<[f64; 3]>,
+    reflectivity: f64,
+}
+
+impl WorldMirror {
+    /// Where the segment a→b crosses the plane inside the outline, if it does.
+    fn crossing(&self, a: [f64; 3], b: [f64; 3]) -> Option<[f64; 3]> {
+        let (da, db) = (dot(self.normal, a) - self.d, dot(self.normal, b) - self.d);
+        if da * db >= 0.0 {
+            return None;
+        }
+        let p = add(a, scale(sub(b, a), da / (da - db)));
+        let k = self.polygon.len();
+        let (mut pos, mut neg) = (false, false);
+        for i in 0..k {
+            let (u, v) = (self.polygon[i], self.polygon[(i + 1) % k]);
+            let side = dot(self.normal, cross(sub(v, u), sub(p, u)));
+            pos |= side > 0.0;
+            neg |= side < 0.0;
+        }
+        (!(pos && neg)).then_some(p)
+    }
+}
+
+/// An LED, or its image in a mirror, in the world frame. For an image, `cone` holds the
+/// inward normals of the planes through the image and each edge of the mirror's outline: a
+/// point on the mirror's reflective side is lit through the mirror iff it lies inside all of
+/// them (the segment to the image then crosses the outline), a few dot products instead of a
+/// plane crossing and a polygon test for every source.
+#[derive(Clone, Debug)]
+struct Source {
+    position: [f64; 3],
+    led: [f64; 3],
+    mirror: Option<usize>,
+    cone: Vec<[f64; 3]>,
+}
+
+/// The light sources of one pose, in the world frame.
+#[derive(Clone, Debug)]
+pub struct PoseLight {
+    sources: Vec<Source>,
+    mirrors: Vec<WorldMirror>,
+    axis: [f64; 3],
+    weight: f64,
+    exponent: f64,
+    min_cos: f64,
+}
+
+impl PoseLight {
+    /// The LEDs and their mirror images for the camera at world_T_camera (3×4).
+    pub fn new(light: &Illumination, mirrors: &[Mirror], m: &[[f64; 4]; 3]) -> PoseLight {
+        let t = [m[0][3], m[1][3], m[2][3]];
+        let mirrors: Vec<WorldMirror> = mirrors
+            .iter()
+            .map(|mi| {
+                let normal = rotate(m, mi.normal);
+                WorldMirror {
+                    normal,
+                    d: mi.d + dot(normal, t),
+                    polygon: mi.polygon.iter().map(|&p| add(rotate(m, p), t)).collect(),
+                    reflectivity: mi.reflectivity,
+                }
+            })
+            .collect();
+        let mut sources = Vec::new();
+        for &l in &light.leds {
+            let led = add(rotate(m, l), t);
+            sources.push(Source { position: led, led, mirror: None, cone: vec![] });
+            for (k, mi) in mirrors.iter().enumerate() {
+                // Only an LED in front of a mirror's reflective side has an image in it.
+                if dot(mi.normal, led) < mi.d {
+                    let image = reflect_point(led, mi.normal, mi.d);
+                    let n = mi.polygon.len();
+                    let centroid = scale(mi.polygon.iter().fold([0.0; 3], |a, &p| add(a, p)), 1.0 / n as f64);
+                    let cone = (0..n)
+                        .map(|i| {
+                            let c = cross(sub(mi.polygon[i], image), sub(mi.polygon[(i + 1) % n], image));
+                            if dot(c, sub(centroid, image)) < 0.0 { scale(c, -1.0) } else { c }
+                        })
+                        .collect();
+                    sources.push(Source { position: image, led, mirror: Some(k), cone });
+                }
+            }
+        }
+        PoseLight {
+            sources,
+            mirrors,
+            axis: rotate(m, [0.0, 0.0, 1.0]),
+            weight: 1.0 / light.leds.len() as f64,
+            exponent: light.profile_exponent,
+            min_cos: light.min_cos,
+        }
+    }
+
+    /// Calls `f(gain, length)` for every light path from an LED to the point `x` whose unit
+    /// normal `n` faces the side the light must come from (module docs). With `occlusion`,
+    /// paths the scene blocks are left out (the mirrors are not part of the scene).
+    pub fn paths(&self, scene: &Scene, x: [f64; 3], n: [f64; 3], occlusion: bool, mail: &mut Mailbox, mut f: impl FnMut(f64, f64)) {
+        for s in &self.sources {
+            // The point where the light leaves the last optical surface towards x.
+            let (last, reflectivity) = match s.mirror {
+                None => {
+                    // Cheap test first: nothing beyond the largest emission angle.
+                    let e = sub(x, s.led);
+                    if dot(e, self.axis) < self.min_cos * norm(e) {
+                        continue;
+                    }
+                    if self.mirrors.iter().any(|mi| mi.crossing(x, s.led).is_some()) {
+                        continue;
+                    }
+                    (s.led, 1.0)
+                }
+                Some(k) => {
+                    let mi = &self.mirrors[k];
+                    let da = dot(mi.normal, x) - mi.d;
+                    if da >= 0.0 {
+                        continue;
+                    }
+                    let rel = sub(x, s.position);
+                    if s.cone.iter().any(|&c| dot(c, rel) < 0.0) {
+                        continue;
+                    }
+                    let db = dot(mi.normal, s.position) - mi.d;
+                    (add(x, scale(sub(s.position, x), da / (da - db))), mi.reflectivity)
+                }
+            };
+            // The LED emits towards `last` (x itself, or the mirror point); an isotropic source
+            // (p = 0) in every direction, a real LED only forwards.
+            let emitted = if s.mirror.is_none() { sub(x, s.led) } else { sub(last, s.led) };
+            let cos_e = dot(emitted, self.axis) / norm(emitted);
+            if cos_e < self.min_cos {
+                continue;
+            }
+            let to_light = sub(last, x);
+            let reach = norm(to_light);
+            let dir = scale(to_light, 1.0 / reach);
+            let cos_x = dot(n, dir);
+            if !(cos_x > 0.0) {
+                continue;
+            }
+            if occlusion && scene.intersect_with(x, dir, T_MIN, reach * (1.0 - 1e-9), mail).is_some() {
+                continue;
+            }
+            let length = norm(sub(x, s.position));
+            let profile = if self.exponent == 0.0 { 1.0 } else { cos_e.max(0.0).powf(self.exponent) };
+            f(self.weight * profile * reflectivity * cos_x / (length * length), length);
+        }
+    }
+
+    /// Light that reaches the diffuse point `p` (facing normal `n`) from the scene along a
+    /// direction drawn from `u` (two uniforms in [0, 1)): `f(gain, length)` per light path of
+    /// the secondary point Q, gain already multiplied by Q's albedo, length = |P − Q| + the
+    /// path from an LED to Q. The caller scales by ρ_P and the number of rays.
+    pub fn bounce(&self, scene: &Scene, p: [f64; 3], n: [f64; 3], u: [f64; 2], mail: &mut Mailbox, mut f: impl FnMut(f64, f64)) {
+        let dir = cosine_direction(n, u);
+        let Some(hit) = scene.intersect_with(p, dir, T_MIN, f64::INFINITY, mail) else { return };
+        let q = add(p, scale(dir, hit.t));
+        let m = scene.material(hit.material);
+        if m.albedo <= 0.0 || (m.kind == Kind::Grid && !m.on_bar(q, hit.normal)) {
+            return;
+        }
+        self.paths(scene, q, hit.normal, true, mail, |gain, length| f(m.albedo * gain, hit.t + length));
+    }
+}
+
+/// A unit direction drawn with density cos(θ)/π about the unit normal n (Malley's method).
+pub fn cosine_direction(n: [f64; 3], u: [f64; 2]) -> [f64; 3] {
+    let r = u[0].sqrt();
+    let phi = std::f64::consts::TAU * u[1];
+    let z = (1.0 - u[0]).max(0.0).sqrt();
+    // An orthonormal basis (t, b, n).
+    let helper = if n[0].abs() < 0.9 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] };
+    let t = cross(helper, n);
+    let t = scale(t, 1.0 / norm(t));
+    let b = cross(n, t);
+    add(add(scale(t, r * phi.cos()), scale(b, r * phi.sin())), scale(n, z))
+}
+
+/// SplitMix64 finaliser.
+fn mix(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// Two uniforms in [0, 1) for (seed, pose, pixel, ray): the same for any thread count, and
+/// for a pose whatever batch it is rendered in.
+pub fn uniforms(seed: u64, pose: [f64; 3], pixel: u64, ray: u64) -> [f64; 2] {
+    let mut h = mix(seed);
+    for v in pose {
+        h = mix(h ^ v.to_bits());
+    }
+    h = mix(mix(h ^ pixel) ^ ray);
+    let g = mix(h);
+    let unit = |x: u64| (x >> 11) as f64 * (1.0 / (1u64 << 53) as f64);
+    [unit(h), unit(g)]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::{Material, Wall};
+
+    #[test]
+    fn cosine_directions_have_the_cosine_mean() {
+        // E[cos θ] = 2/3 under the density cos θ/π.
+        let n = [0.0, 0.6, 0.8];
+        let (mut sum, count) = (0.0, 20000);
+        for i in 0..count {
+            let d = cosine_direction(n, uniforms(1, [0.0; 3], i, 0));
+            assert!((norm(d) - 1.0).abs() < 1e-12 && dot(d, n) >= 0.0);
+            sum += dot(d, n);
+        }
+        assert!((sum / count as f64 - 2.0 / 3.0).abs() < 0.01);
+    }
+
+    #[test]
+    fn coaxial_source_without_mirrors_gives_the_inverse_square_law() {
+        let walls = [Wall { a: [2.0, -5.0], b: [2.0, 5.0], bottom: 0.0, top: 3.0, material: 0 }];
+        let scene = Scene::new(&walls, &[], vec![Material::matte(0.5)], 0, 0, 3.0, 0.5).unwrap();
+        let m = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 1.0]];
+        let light = PoseLight::new(&Illumination::coaxial(), &[], &m);
+        let mut got = vec![];
+        let x = [2.0, 1.0, 1.0];
+        light.paths(&scene, x, [-1.0, 0.0, 0.0], true, &mut Mailbox::for_scene(&scene), |g, l| got.push((g, l)));
+        let r2: f64 = 5.0;
+        assert_eq!(got.len(), 1);
+        assert!((got[0].1 - r2.sqrt()).abs() < 1e-12);
+        assert!((got[0].0 - (2.0 / r2.sqrt()) / r2).abs() < 1e-12);
+    }
+}

@@ -1,0 +1,216 @@
+"""The 3D particle filter (paper sec. V; rust/src/filter3d.rs, omnitof.slam.filter3d) on frames of
+the ToF simulator: its observation model against a known map, shared voxel blocks, determinism
+over thread counts, and an atrium whose slice at scan height is empty but whose upper parts are
+not: the 3D filter localises there, the 2D one cannot."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from omnitof import _core
+from omnitof.eval.trajectory import absolute_trajectory_error
+from omnitof.scan.extract import ScanExtractor
+from omnitof.scan.tof_input import tof_scans
+from omnitof.sim.render import Renderer, RenderSettings
+from omnitof.sim.sequence import MotionSettings, OdometryErrors, make_sequence, render_sequence
+from omnitof.sim.worlds import load_world, parse_world
+from omnitof.slam import run_slam
+from omnitof.slam.config import load_config
+from omnitof.slam.filter3d import core_sections_3d, project_to_floor, run_slam3d
+
+
+def _config(**filter_fields):
+    cfg = load_config(preset="tof3d")
+    for key, value in filter_fields.items():
+        setattr(cfg.filter, key, value)
+    return cfg
+
+
+def _frames(world, poses, seed=0):
+    renderer = Renderer(world, settings=RenderSettings(seed=seed, sub_rays=1))
+    extractor = ScanExtractor.from_rig(renderer.rig)
+    return [extractor.rays(f.distance, f.amplitude) for f in renderer.render_many(np.asarray(poses), seed=seed)]
+
+
+# --- the observation model in a known map --------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def room_map():
+    """A 1-particle filter whose map holds frames of the room rendered at their true poses
+    (noise-free motion, odometry = truth), and a further rendered frame with its true pose."""
+    world = load_world("room")
+    poses = np.array([[1.5, 1.5, 0.0], [2.5, 1.6, 0.3], [4.0, 1.8, 1.2], [3.0, 3.0, 2.8], [1.8, 2.7, -1.8]])
+    truth = np.array([2.2, 2.0, 0.4])
+    frames = _frames(world, np.vstack([poses, truth]))
+    cfg = _config(particles=1, proposal="odometry")
+    for k in ("alpha1", "alpha2", "alpha3", "alpha4"):
+        setattr(cfg.motion, k, 0.0)
+    pf = _core.ParticleFilter3D(**core_sections_3d(cfg))
+    for i, (pose, (o, e)) in enumerate(zip(poses, frames)):
+        prev = poses[max(i - 1, 0)]
+        pf.step(prev, pose, o, e, i)
+    return pf, truth, frames[-1]
+
+
+def test_likelihood_is_highest_at_the_true_pose_and_falls_off(room_map):
+    pf, truth, (_, ends) = room_map
+    ends = ends[ends[:, 2] > 0.1]  # the floor says nothing of the pose
+    steps = {0: [0.05, 0.1, 0.2], 1: [0.05, 0.1, 0.2], 2: [math.radians(d) for d in (2, 4, 8)]}
+    for axis, offsets in steps.items():
+        for sign in (-1.0, 1.0):
+            poses = [truth.copy()]
+            for off in offsets:
+                p = truth.copy()
+                p[axis] += sign * off
+                poses.append(p)
+            ll, matched = pf.score(0, np.array(poses), ends)
+            # Strictly falling with distance from the true pose along every axis, both ways.
+            assert np.all(np.diff(ll) < 0), (axis, sign, ll)
+    ll, matched = pf.score(0, truth[None, :], ends)
+    assert matched[0] > 0.9 * len(ends)
+
+
+def test_resampling_shares_unchanged_blocks():
+    world = load_world("room")
+    poses = np.array([[1.5, 1.5, 0.0], [1.8, 1.5, 0.0]])
+    frames = _frames(world, poses)
+    cfg = _config(particles=20, proposal="odometry", resample_threshold=1.0)  # resample every step
+    pf = _core.ParticleFilter3D(**core_sections_3d(cfg))
+    pf.step(poses[0], poses[0], *frames[0], 0)
+    one = pf.map().block_count()
+    assert pf.block_counts() == (one, 20 * one)
+    # A frame that looks along +x only (a 40° sector) changes a few blocks of each map; the
+    # others stay those of the first frame, shared by all. Measured in bytes of distinct blocks.
+    origins, ends = frames[1]
+    sector = (ends[:, 0] > 0) & (np.abs(ends[:, 1]) < 0.35 * ends[:, 0])
+    pf.step(poses[0], poses[1], origins[sector], ends[sector], 1)
+    distinct, refs = pf.block_counts()
+    size = _core.ParticleFilter3D.block_bytes()
+    assert refs >= 20 * one
+    assert distinct * size < 0.5 * refs * size, (distinct, refs)
+    # After the resampling, copies of one particle (same pose) share every block of their map.
+    assert pf.resamplings == 1
+    _, groups = np.unique(pf.poses(), axis=0, return_inverse=True)
+    groups = groups.reshape(-1)
+    group = np.flatnonzero(groups == np.bincount(groups).argmax())
+    assert len(group) >= 2
+    blocks = pf.map(int(group[0])).block_count()
+    assert pf.block_counts(group.tolist()) == (blocks, len(group) * blocks)
+
+
+# --- an atrium: nothing at scan height within 7 m, galleries above --------------------------
+
+ATRIUM = {
+    "name": "atrium",
+    "description": "a 26 m x 22 m hall; galleries from 1.0 m to 2.2 m high around a loop",
+    "ceiling_height": 5.0,
+    "walls": [{"points": [[-1.0, -1.0], [25.0, -1.0], [25.0, 21.0], [-1.0, 21.0]], "closed": True}],
+    "boxes": [
+        {"centre": [12.0, 5.0], "size": [7.0, 0.5], "bottom": 1.0, "height": 1.2},
+        {"centre": [12.5, 15.0], "size": [5.0, 0.5], "bottom": 1.0, "height": 1.2},
+        {"centre": [6.0, 10.0], "size": [0.5, 5.0], "bottom": 1.0, "height": 1.2},
+        {"centre": [18.0, 9.0], "size": [0.5, 3.0], "bottom": 1.0, "height": 1.2},
+        {"centre": [12.0, 10.0], "size": [1.5, 0.6], "bottom": 1.0, "height": 1.2},
+        {"centre": [10.5, 11.0], "size": [0.6, 0.6], "bottom": 1.0, "height": 1.2},
+    ],
+    "path": {"waypoints": [[9.0, 8.0], [15.0, 8.0], [15.0, 12.0], [9.0, 12.0]]},
+}
+
+
+@pytest.fixture(scope="module")
+def atrium_run():
+    world = parse_world(ATRIUM)
+    seq = make_sequence(world, seed=3, motion=MotionSettings(speed=1.0, rate_hz=5.0),
+                        odometry_errors=OdometryErrors(wheel_radius_error=0.02, wheel_base_error=0.02,
+                                                       heading_drift=math.radians(0.2)))
+    renderer = Renderer(world, settings=RenderSettings(seed=3, sub_rays=1))
+    cfg = _config()
+    keyframes = (cfg.filter.linear_update, math.radians(cfg.filter.angular_update_deg))
+    data = tof_scans(render_sequence(seq, renderer), ScanExtractor.from_rig(renderer.rig),
+                     cloud_keyframes=keyframes, cloud_pixel_stride=cfg.filter3d.pixel_stride)
+    return data, cfg
+
+
+def test_the_slice_is_empty_but_the_upper_rays_are_not(atrium_run):
+    data, _ = atrium_run
+    # A few stray readings (mixed pixels at the galleries' lower edges), no wall.
+    assert np.isfinite(data.scans.ranges).mean() < 0.01
+    heights = np.concatenate([c[:, 5] for c in data.clouds])
+    assert np.sum(heights > 0.9) > 100 * len(data.clouds)
+
+
+def test_3d_filter_localises_where_the_2d_filter_cannot(atrium_run):
+    data, cfg = atrium_run
+    truth, odometry = data.scans.ground_truth, data.scans.odometry
+    odo = absolute_trajectory_error(odometry, truth)
+    assert odo.mean > 0.15  # the drift to beat
+    run = run_slam3d(data.scans, data.cloud_frames, data.clouds, cfg)
+    err3 = absolute_trajectory_error(run.result.trajectory.poses, truth)
+    assert err3.mean < 0.35 * odo.mean and err3.final < 0.15, (err3, odo)
+    # The 2D filter has next to nothing to map, hence to localise against: it follows the odometry.
+    flat = run_slam(data.scans, cfg)
+    err2 = absolute_trajectory_error(flat.trajectory.poses, truth)
+    print(f"mean error: odometry {odo.mean:.3f} m, 2D filter {err2.mean:.3f} m, 3D filter {err3.mean:.3f} m")
+    assert err2.mean > 0.5 * odo.mean and err2.mean > 3 * err3.mean, (err2, err3, odo)
+
+
+def test_same_seed_same_result_for_one_and_two_threads(atrium_run):
+    data, cfg = atrium_run
+    keep = 8
+    stop = int(data.cloud_frames[keep - 1]) + 1
+    scans = data.scans.slice(0, stop)
+    runs = []
+    for threads in (1, 2):
+        c = cfg.model_copy(deep=True)
+        c.filter.threads = threads
+        runs.append(run_slam3d(scans, data.cloud_frames[:keep], data.clouds[:keep], c).result.trajectory.poses)
+    assert np.array_equal(runs[0], runs[1])
+
+
+def test_projection_takes_the_largest_log_odds_of_each_column():
+    idx = np.array([[0, 0, 1], [0, 0, 5], [0, 0, 30], [2, 1, 3], [2, 1, 4]])
+    lo = np.array([-1.0, 2.0, 3.5, -0.5, -0.4], dtype=np.float32)
+    m = project_to_floor(idx, lo, 0.1, z_min=0.1, z_max=2.0)
+    assert m.log_odds.shape == (2, 3) and m.origin == (0.0, 0.0)
+    # Column (0, 0): 3.5 lies at 3.05 m, above the band: 2.0 wins. Column (2, 1): -0.4.
+    assert m.log_odds[0, 0] == 2.0 and m.log_odds[1, 2] == np.float32(-0.4)
+    assert m.known.sum() == 2
+
+
+# --- the command ---------------------------------------------------------------------------
+
+
+def test_slam_filter_3d_writes_the_voxel_map_its_projection_and_the_difference(tmp_path, capsys):
+    import yaml
+
+    from omnitof.cli import main
+    from omnitof.io.ply import read_ply
+    from omnitof.io.rosmap import read_ros_map
+    from omnitof.io.tum import read_tum
+
+    bag = tmp_path / "room_bag"
+    assert main(["simulate", "--world", "room", "--out", str(bag), "--max-frames", "40", "--quiet"]) == 0
+    out = tmp_path / "out"
+    assert main(["slam", str(bag), "--filter", "3d", "--compare-2d", "--particles", "5", "--out", str(out),
+                 "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "3D filter vs 2D filter" in printed
+    summary = yaml.safe_load((out / "summary.yaml").read_text())
+    assert summary["run"]["filter"] == "3d" and summary["run"]["particles"] == 5
+    assert summary["run"]["voxel_blocks_distinct"] <= summary["run"]["voxel_blocks_referenced"]
+    traj3, traj2 = read_tum(out / "trajectory.tum"), read_tum(out / "trajectory_2d.tum")
+    apart = np.hypot(*(traj3.poses[:, :2] - traj2.poses[:, :2]).T)
+    assert summary["filter2d"]["difference_3d_to_2d"]["mean"] == pytest.approx(apart.mean(), abs=1e-4)
+    points, _ = read_ply(out / "map3d.ply")
+    assert len(points) > 1000 and (out / "map3d.png").stat().st_size > 0
+    occ = read_ros_map(out / "map.yaml")
+    assert occ.known.sum() > 500
+    # Not on a laser log.
+    log = tmp_path / "laser.clf"
+    log.write_text("ODOM 0 0 0 0 0 0 1.0 host 0\n")
+    assert main(["slam", str(log), "--filter", "3d", "--out", str(tmp_path / "x"), "--quiet"]) == 2
+    assert "needs a bag of ToF images" in capsys.readouterr().err
