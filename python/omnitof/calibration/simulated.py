@@ -76,8 +76,11 @@ def calibrate_from_simulation(
 
         closed_form = _errors(calibration, truth)
         pair_images, _ = render_pair_images(camera, mirrors, pair_boards, seed, sensor=renderer.sensor)
+        # The path lengths only if the simulated distances carry no systematic error (issue 15's
+        # ToFErrors): uncorrected, such errors pull the focal length and the planes.
+        unbiased = not getattr(getattr(renderer.sensor, "errors", None), "switched_on", ())
         calibration, _ = refine_calibration(calibration, board_images, dot_images, pair_images,
-                                            outside=design_labels < 0, seed=seed)
+                                            outside=design_labels < 0, seed=seed, path_lengths=unbiased)
         calibration.provenance["source"] += f", {pair_boards} two-mirror boards per pair, refined jointly"
     est, true = calibration.camera, truth.camera
     report: dict[str, Any] = {
