@@ -8,7 +8,9 @@
 //! path; its length |x − L'_m| is the light's path LED → mirror → x). Each such path gives the
 //! irradiance factor
 //!
-//!     gain = w · cosᵖ(ε) · ρ_m · cos(θ_x) / ℓ²
+//! ```text
+//! gain = w · cosᵖ(ε) · ρ_m · cos(θ_x) / ℓ²
+//! ```
 //!
 //! with w = 1/(number of LEDs), ε the emission angle from the optical axis (the LED's profile,
 //! exponent p), ρ_m the mirror's reflectivity (1 directly), θ_x the incidence at x and ℓ the
