@@ -28,14 +28,12 @@ use std::collections::{HashMap, HashSet};
 use std::hash::{BuildHasherDefault, Hasher};
 use std::sync::Arc;
 
-use rand::RngExt;
-use rand_distr::StandardNormal;
 use rayon::prelude::*;
 
 use crate::filter::{low_variance_resample, neff, normalise, rng_for, ProposalKind, TrajectoryNode};
 use crate::grid::LogOddsModel;
-use crate::motion::{compose, relative, wrap, OdometryMotion};
-use crate::scan_match::{cholesky3, climb, motion_prior, MatcherParams, PosePrior};
+use crate::motion::{compose, relative, OdometryMotion};
+use crate::scan_match::{climb, draw_around_mode, motion_prior, MatcherParams, PosePrior};
 use crate::voxel::{pack, ray_voxels, sorted_difference, Block, IntegrateStats, SeenFilter, VoxelGrid, BLOCK_VOXELS, INDEX_LIMIT};
 
 /// One 8³ block of a particle's map: log-odds (NaN = unknown) and, per voxel, the running mean
@@ -563,49 +561,8 @@ fn propose3d<R: rand::Rng>(
     if (matched as f64) < m.min_matched * pts.len() as f64 {
         return None;
     }
-    let mut offsets = Vec::with_capacity(27);
-    let mut logs = Vec::with_capacity(27);
-    for i in -1..=1 {
-        for j in -1..=1 {
-            for k in -1..=1 {
-                let off = [i as f64 * m.sample_xy, j as f64 * m.sample_xy, k as f64 * m.sample_theta];
-                logs.push(target([mode[0] + off[0], mode[1] + off[1], wrap(mode[2] + off[2])]));
-                offsets.push(off);
-            }
-        }
-    }
-    let max = logs.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
-    let w: Vec<f64> = logs.iter().map(|l| (l - max).exp()).collect();
-    let sum: f64 = w.iter().sum();
-    let mut mean = [0.0; 3];
-    for (wk, o) in w.iter().zip(&offsets) {
-        for a in 0..3 {
-            mean[a] += wk / sum * o[a];
-        }
-    }
-    let mut cov = [[0.0; 3]; 3];
-    for (wk, o) in w.iter().zip(&offsets) {
-        let d = [o[0] - mean[0], o[1] - mean[1], o[2] - mean[2]];
-        for a in 0..3 {
-            for b in 0..3 {
-                cov[a][b] += wk / sum * d[a] * d[b];
-            }
-        }
-    }
-    // Keep the Gaussian proper where one pose takes all the weight.
-    let floor = [1e-2 * m.sample_xy * m.sample_xy, 1e-2 * m.sample_xy * m.sample_xy, 1e-2 * m.sample_theta * m.sample_theta];
-    for a in 0..3 {
-        cov[a][a] += floor[a];
-    }
-    let l = cholesky3(&cov);
-    let z: [f64; 3] = [rng.sample(StandardNormal), rng.sample(StandardNormal), rng.sample(StandardNormal)];
-    let mut draw = mean;
-    for a in 0..3 {
-        for b in 0..=a {
-            draw[a] += l[a][b] * z[b];
-        }
-    }
-    Some(Drawn { pose: [mode[0] + draw[0], mode[1] + draw[1], wrap(mode[2] + draw[2])], log_normaliser: max + sum.ln() })
+    let (pose, log_normaliser) = draw_around_mode(target, mode, m.sample_xy, m.sample_theta, rng);
+    Some(Drawn { pose, log_normaliser })
 }
 
 #[cfg(test)]
