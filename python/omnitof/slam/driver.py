@@ -75,13 +75,17 @@ def fill_trajectory(odometry: np.ndarray, integrated: np.ndarray, corrected: np.
     return compose(corrected[last], relative(odometry[anchor], odometry))
 
 
+# The filter section's fields this driver uses itself (which scans to integrate, the poses of the
+# others); the core's filters (2D and 3D) refuse them as unknown.
+DRIVER_FILTER_FIELDS = frozenset({"linear_update", "angular_update_deg", "match_between", "final_match_passes"})
+
+
 def core_sections(cfg: SlamConfig) -> dict:
     """The configuration's sections as the core's filter takes them: every section but the
     back end's and the 3D filter's, less the fields this driver uses itself (which scans to integrate, the poses of
     the others)."""
     return cfg.model_dump(
-        exclude={"filter": {"linear_update", "angular_update_deg", "match_between", "final_match_passes"},
-                 "backend": True, "filter3d": True}
+        exclude={"filter": set(DRIVER_FILTER_FIELDS), "backend": True, "filter3d": True}
     )
 
 
@@ -227,13 +231,12 @@ def _run(scans: ScanSequence, cfg: SlamConfig, progress: Callable[[int], None] |
     else:
         poses = between.trajectory(integrated, corrected)
     stood = None
-    final_seconds = time.perf_counter()
+    final_start = time.perf_counter()
     if cfg.filter.final_match_passes:
         if grid is None:  # the filter's own map: the best particle's, along its trajectory
             grid = grid_along(scans, integrated, corrected, cfg.map)
         poses, grid, stood = final_match(grid, scans, integrated, poses, cfg)
         log_odds, ix0, iy0 = grid.to_dense()
-    final_seconds = time.perf_counter() - final_seconds
     stats = {
         "scans": len(scans),
         "integrated": int(len(integrated)),
@@ -252,7 +255,7 @@ def _run(scans: ScanSequence, cfg: SlamConfig, progress: Callable[[int], None] |
         stats["between_scans_by_odometry"] = between.by_odometry
     if stood is not None:
         stats["final_match_stood"] = stood
-        stats["final_match_seconds"] = final_seconds
+        stats["final_match_seconds"] = time.perf_counter() - final_start
     if backend is not None:
         stats["backend"] = backend.stats()
         stats["loop_closures"] = backend.closure_table()

@@ -25,7 +25,7 @@ import numpy as np
 from omnitof import _core
 from omnitof.errors import InputError, ResourceError
 from omnitof.slam.config import SlamConfig
-from omnitof.slam.driver import SlamResult, fill_trajectory
+from omnitof.slam.driver import DRIVER_FILTER_FIELDS, SlamResult, fill_trajectory
 from omnitof.types import OccupancyMap, ScanSequence, Trajectory
 
 
@@ -44,7 +44,7 @@ def core_sections_3d(cfg: SlamConfig) -> dict:
     what this driver uses itself)."""
     return cfg.model_dump(
         include={"filter", "motion", "sensor_model", "likelihood_field", "scan_matcher", "map", "filter3d"},
-        exclude={"filter": {"linear_update", "angular_update_deg", "match_between", "final_match_passes"},
+        exclude={"filter": set(DRIVER_FILTER_FIELDS),
                  "filter3d": {"enabled", "pixel_stride", "project_z_min", "project_z_max"}},
     )
 
