@@ -10,7 +10,10 @@ a few seeds' numbers in the last digits.)
 
     python benchmarks/world_filters.py --worlds corridor1 office --drives 0 1 --seeds 0 1 2 \
         [--preset tof-scanmatch] [--particles 30] [--set backend.min_score=0.65 ...] \
-        [--cache results/world_scans]
+        [--tof-errors default|all|none|LIST] [--cache results/world_scans]
+
+The camera's systematic errors (issue 15) are those of the demo, `default` unless told; the
+cache is kept per setting.
 
 Prints one JSON line per run, then a Markdown table.
 """
@@ -29,6 +32,8 @@ import yaml
 from omnitof.demo import DemoSettings, _calibrate, evaluate_run
 from omnitof.scan import ScanExtractor
 from omnitof.scan.tof_input import tof_scans
+from omnitof.sensor.tof import SensorNoise
+from omnitof.sensor.tof_errors import ToFErrors
 from omnitof.sim.render import Renderer, RenderSettings
 from omnitof.sim.sequence import MotionSettings, make_sequence, render_sequence
 from omnitof.sim.worlds import load_world
@@ -36,16 +41,18 @@ from omnitof.slam import run_slam
 from omnitof.slam.config import load_config
 
 
-def extracted_scans(name: str, drive: int, cache: Path):
+def extracted_scans(name: str, drive: int, cache: Path, tof_errors: str = "default"):
     """The scans of world `name`, drive seed `drive`, with the estimated calibration (cached)."""
-    path = cache / f"{name}_{drive}.pkl"
+    tag = "" if tof_errors == "none" else "_" + tof_errors.replace(",", "+")
+    path = cache / f"{name}_{drive}{tag}.pkl"
     if path.exists():
         return pickle.loads(path.read_bytes())["scans"]
     settings = DemoSettings(world=name, seed=drive)
     world = load_world(name)
     sequence = make_sequence(world, seed=drive, motion=MotionSettings(speed=settings.speed))
-    renderer = Renderer(world, settings=RenderSettings(seed=drive))
-    work = cache / f"{name}_{drive}"
+    sensor = SensorNoise(errors=ToFErrors.parse(tof_errors))
+    renderer = Renderer(world, sensor=sensor, settings=RenderSettings(seed=drive))
+    work = cache / f"{name}_{drive}{tag}"
     work.mkdir(parents=True, exist_ok=True)
     calibration, _ = _calibrate(renderer, settings, work)
     extractor = ScanExtractor.from_calibration(calibration)
@@ -71,6 +78,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", default="tof-scanmatch")
     parser.add_argument("--particles", type=int, default=30)
     parser.add_argument("--set", nargs="*", default=[], metavar="SECTION.FIELD=VALUE")
+    parser.add_argument("--tof-errors", default="default",
+                        help="the camera's systematic errors, as `omnitof demo --tof-errors` (default: the demo's)")
     parser.add_argument("--cache", type=Path, default=Path("results/world_scans"))
     args = parser.parse_args(argv)
 
@@ -78,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.worlds:
         world = load_world(name)
         for drive in args.drives:
-            scans = extracted_scans(name, drive, args.cache)
+            scans = extracted_scans(name, drive, args.cache, args.tof_errors)
             for seed in args.seeds:
                 ov = overrides(args.set)
                 ov.setdefault("filter", {}).update({"particles": args.particles, "seed": seed})

@@ -326,8 +326,7 @@ impl ParticleFilter {
         // centimetres of motion, well inside the likelihood field's window): Gauss-Newton alone
         // converges from there. A hill climb first cost four times as much for the same poses
         // (Intel: 4.2 of the back end's 11 s).
-        let (pose, _) = gauss_newton(&p.field, &best.map, &geom, &pts, p.matcher.effective_beams, None, start, BETWEEN_GAUSS_NEWTON);
-        let matched = p.field.score(&best.map, geom.sensor_pose(pose), &pts).1;
+        let (pose, _, matched) = gauss_newton(&p.field, &best.map, &geom, &pts, p.matcher.effective_beams, None, start, BETWEEN_GAUSS_NEWTON);
         Some((pose, matched as f64 / pts.len() as f64))
     }
 

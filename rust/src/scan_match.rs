@@ -373,6 +373,9 @@ pub fn climb<F: Fn([f64; 3]) -> f64>(eval: F, start: [f64; 3], m: &MatcherParams
     let mut best = eval(pose);
     let (mut dxy, mut dth) = (m.step_xy, m.step_theta);
     for _ in 0..=m.refinements {
+        // Moves in opposite pairs: after a move, its opposite leads back to the pose just left,
+        // which scored lower; it is not evaluated again (a sixth of the climb's evaluations).
+        let mut came_by: Option<usize> = None;
         // Bounded: a level moves the pose by at most 50 steps.
         for _ in 0..50 {
             let moves = [
@@ -384,16 +387,22 @@ pub fn climb<F: Fn([f64; 3]) -> f64>(eval: F, start: [f64; 3], m: &MatcherParams
                 [0.0, 0.0, -dth],
             ];
             let mut improved = None;
-            for mv in moves {
+            for (k, mv) in moves.iter().enumerate() {
+                if came_by == Some(k ^ 1) {
+                    continue;
+                }
                 let cand = [pose[0] + mv[0], pose[1] + mv[1], wrap(pose[2] + mv[2])];
                 let s = eval(cand);
                 if s > best + 1e-12 {
                     best = s;
-                    improved = Some(cand);
+                    improved = Some((k, cand));
                 }
             }
             match improved {
-                Some(c) => pose = c,
+                Some((k, c)) => {
+                    pose = c;
+                    came_by = Some(k);
+                }
                 None => break,
             }
         }
@@ -440,10 +449,11 @@ pub fn objective(
 
 /// One sweep over the end points at `pose`: (sum over the points of
 /// log(z_hit·N(d; 0, σ) + z_rand/max_range), its gradient g and Gauss-Newton Hessian H in
-/// (x, y, θ)), unscaled. Each end point pulls towards the mean end point of its nearest
+/// (x, y, θ), unscaled, and the number of points with an obstacle in the window, as
+/// `LikelihoodField::score` counts them). Each end point pulls towards the mean end point of its nearest
 /// occupied cell, weighted as iteratively reweighted least squares of the log-likelihood
 /// (points with no obstacle in the window drop out).
-fn linearise(lf: &LikelihoodField, grid: &TiledGrid, geom: &ScanGeometry, pts: &[[f64; 2]], pose: [f64; 3]) -> (f64, [f64; 3], [[f64; 3]; 3]) {
+fn linearise(lf: &LikelihoodField, grid: &TiledGrid, geom: &ScanGeometry, pts: &[[f64; 2]], pose: [f64; 3]) -> (f64, [f64; 3], [[f64; 3]; 3], usize) {
     let norm = lf.z_hit / (lf.sigma * (2.0 * std::f64::consts::PI).sqrt());
     let floor = lf.z_rand / lf.max_range;
     let radius2 = lf.radius(grid.resolution).powi(2);
@@ -452,6 +462,7 @@ fn linearise(lf: &LikelihoodField, grid: &TiledGrid, geom: &ScanGeometry, pts: &
     let mut h = [[0.0; 3]; 3];
     let mut g = [0.0; 3];
     let mut total = 0.0;
+    let mut matched = 0;
     for p in pts {
         let qx = sp[0] + c * p[0] - s * p[1];
         let qy = sp[1] + s * p[0] + c * p[1];
@@ -460,6 +471,7 @@ fn linearise(lf: &LikelihoodField, grid: &TiledGrid, geom: &ScanGeometry, pts: &
             total += floor.ln();
             continue;
         }
+        matched += 1;
         let g_d = norm * (-0.5 * d2 / (lf.sigma * lf.sigma)).exp();
         let e = if lf.fit_walls { lf.z_hit * lf.hit_density(d2, radius2) } else { g_d };
         total += (e + floor).ln();
@@ -482,12 +494,13 @@ fn linearise(lf: &LikelihoodField, grid: &TiledGrid, geom: &ScanGeometry, pts: &
             }
         }
     }
-    (total, g, h)
+    (total, g, h, matched)
 }
 
 /// Refine a pose by Gauss-Newton on the likelihood field (see `linearise`); the points' mean
 /// is scaled by `gain`, and the Gaussian `prior` (if any) adds its own pull.
-/// A step that lowers the objective is undone and ends the refinement.
+/// A step that lowers the objective is undone and ends the refinement. Returns (pose, its
+/// objective, its end points with an obstacle in the window), the count saving callers a sweep.
 #[allow(clippy::too_many_arguments)]
 pub fn gauss_newton(
     lf: &LikelihoodField,
@@ -498,14 +511,14 @@ pub fn gauss_newton(
     prior: Option<&PosePrior>,
     start: [f64; 3],
     iterations: u32,
-) -> ([f64; 3], f64) {
+) -> ([f64; 3], f64, usize) {
     let scale = if pts.is_empty() { 0.0 } else { gain / pts.len() as f64 };
     let mut pose = start;
-    let mut best = (start, f64::NEG_INFINITY);
+    let mut best = (start, f64::NEG_INFINITY, 0);
     // Each pass scores the pose and linearises there in one sweep over the points; a pass
     // that scores lower than the one before undoes the last step and ends the refinement.
     for _ in 0..=iterations {
-        let (total, mut g, mut h) = linearise(lf, grid, geom, pts, pose);
+        let (total, mut g, mut h, matched) = linearise(lf, grid, geom, pts, pose);
         let mut score = scale * total;
         for a in 0..3 {
             g[a] *= scale;
@@ -525,7 +538,7 @@ pub fn gauss_newton(
         if score < best.1 {
             break;
         }
-        best = (pose, score);
+        best = (pose, score, matched);
         if h[0][0] <= 0.0 || h[2][2] <= 0.0 {
             break;
         }
@@ -572,8 +585,7 @@ pub fn match_each(
             if pts.is_empty() {
                 return (start, 0.0);
             }
-            let (pose, _) = gauss_newton(lf, grid, &geom, &pts, 1.0, None, start, iterations);
-            let matched = lf.score(grid, geom.sensor_pose(pose), &pts).1;
+            let (pose, _, matched) = gauss_newton(lf, grid, &geom, &pts, 1.0, None, start, iterations);
             (pose, matched as f64 / pts.len() as f64)
         })
         .collect()
@@ -623,8 +635,8 @@ pub fn local_match(
 ) -> ([f64; 3], f64, usize) {
     let goal = |pose: [f64; 3]| objective(lf, grid, geom, pts, m.effective_beams, prior, pose);
     let (mode, _) = climb(goal, start, m);
-    let (mode, value) = gauss_newton(lf, grid, geom, pts, m.effective_beams, prior, mode, m.gauss_newton);
-    (mode, value, lf.score(grid, geom.sensor_pose(mode), pts).1)
+    let (mode, value, matched) = gauss_newton(lf, grid, geom, pts, m.effective_beams, prior, mode, m.gauss_newton);
+    (mode, value, matched)
 }
 
 /// Check the odometry increment from `odom_prev` to `odom_cur` against the map of a particle at
@@ -666,7 +678,11 @@ pub fn check_odometry(
     let floor = lf.z_rand / lf.max_range;
     let start = correlative_search(grid, lf.occupied_threshold, floor, geom, pts, predicted, window)?;
     let (found, value, matched) = local_match(lf, m, grid, geom, pts, start, None);
-    let better = matched as f64 >= local_matched as f64 + 0.1 * n && value > local_value;
+    // The jump must put the scan on the map as well as a good prediction does (`enough`), not
+    // merely better than the local match: where people walk beside the robot or doors stand open
+    // (the Freiburg hospital log), no pose explains the scan, and a pose that explains a little
+    // more of it is as likely wrong, a metre and 20 degrees away.
+    let better = enough(matched) && matched as f64 >= local_matched as f64 + 0.1 * n && value > local_value;
     Ok(better.then(|| compose(odom_prev, relative(pose, found))))
 }
 
@@ -818,6 +834,47 @@ mod tests {
         (g, angles, ranges)
     }
 
+    fn searching_matcher() -> MatcherParams {
+        MatcherParams {
+            step_xy: 0.05, step_theta: 0.035, refinements: 3, gauss_newton: 10, sample_xy: 0.005, sample_theta: 0.002,
+            min_matched: 0.5, effective_beams: 9.0, odometry_prior: false, climb_from_sample: false,
+            search: Some(SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians() }),
+            search_below: 0.8,
+        }
+    }
+
+    #[test]
+    fn the_wide_search_undoes_an_odometry_glitch() {
+        // The wheels report 0.76 m and 11 degrees that the robot never drove, more than the hill
+        // climbing undoes (it stops at 2.27 m, a third of the scan off the map); the scan, taken
+        // where the robot stands, puts the increment back near zero.
+        let (g, angles, ranges) = room();
+        let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
+        let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, 3, 0.0, false);
+        let pts = endpoints(&geom, &ranges, 1, 20.0);
+        let odom = check_odometry(&lf, &searching_matcher(), &g, &geom, &pts, [2.0, 1.5, 0.0], [0.0; 3], [0.7, 0.3, 0.2]).unwrap();
+        let odom = odom.expect("the glitch is found");
+        assert!(odom[0].abs() < 0.03 && odom[1].abs() < 0.03 && odom[2].abs() < 0.01, "{odom:?}");
+    }
+
+    #[test]
+    fn the_wide_search_keeps_the_odometry_where_no_pose_explains_the_scan() {
+        // The same glitch, but 30 % of the beams end on something the map does not hold (people
+        // beside the robot, 0.5 m away). The true pose explains only 70 % of the scan, less than
+        // `search_below`: a jump is then as likely wrong as right, and the odometry stands.
+        let (g, angles, mut ranges) = room();
+        for (k, r) in ranges.iter_mut().enumerate() {
+            if k % 10 < 3 {
+                *r = 0.5;
+            }
+        }
+        let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
+        let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, 3, 0.0, false);
+        let pts = endpoints(&geom, &ranges, 1, 20.0);
+        let odom = check_odometry(&lf, &searching_matcher(), &g, &geom, &pts, [2.0, 1.5, 0.0], [0.0; 3], [0.7, 0.3, 0.2]).unwrap();
+        assert!(odom.is_none(), "{odom:?}");
+    }
+
     #[test]
     fn climbing_recovers_a_displaced_pose() {
         let (g, angles, ranges) = room();
@@ -836,7 +893,7 @@ mod tests {
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
         let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, 3, 0.0, false);
         let pts = endpoints(&geom, &ranges, 1, 20.0);
-        let (pose, _) = gauss_newton(&lf, &g, &geom, &pts, 1.0, None, [2.06, 1.46, 0.02], 20);
+        let (pose, _, _) = gauss_newton(&lf, &g, &geom, &pts, 1.0, None, [2.06, 1.46, 0.02], 20);
         assert!((pose[0] - 2.0).abs() < 0.02 && (pose[1] - 1.5).abs() < 0.02, "{pose:?}");
         assert!(pose[2].abs() < 0.01, "{pose:?}");
     }
@@ -849,7 +906,7 @@ mod tests {
         let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 10, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, search: None, search_below: 0.0 };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let (mode, _) = climb(|p| objective(&lf, &g, &geom, &pts, 1.0, None, p), [2.04, 1.46, 0.02], &m);
-        let (pose, _) = gauss_newton(&lf, &g, &geom, &pts, 1.0, None, mode, m.gauss_newton);
+        let (pose, _, _) = gauss_newton(&lf, &g, &geom, &pts, 1.0, None, mode, m.gauss_newton);
         assert!((pose[0] - 2.0).abs() < 0.01 && (pose[1] - 1.5).abs() < 0.01, "{pose:?}");
         assert!(pose[2].abs() < 0.003, "{pose:?}");
         // Every end point of the true pose lies on a fitted wall: continuous score, no step.

@@ -149,7 +149,8 @@ class ScanMatcherConfig(_Section):
     search_below: float = Field(
         0.8, ge=0, le=1,
         description="run the wide search only when fewer than this share of end points lie near an obstacle "
-        "after the local match from the odometry",
+        "after the local match from the odometry, and take its pose only where at least this share does "
+        "(where no pose explains the scan, people beside the robot or open doors, a jump is as likely wrong)",
     )
 
     @model_validator(mode="after")
