@@ -25,6 +25,9 @@
 
 use crate::render::{add, cross, dot, norm, reflect_point, rotate, scale, sub, Kind, Mailbox, Mirror, Scene, T_MIN};
 
+/// Mirrors whose side of a point is computed once per point (more are handled, just slower).
+const MAX_MIRRORS: usize = 8;
+
 /// The LEDs (camera frame, metres), the exponent p of their emission profile cosᵖ(ε), and
 /// the cosine of the largest emission angle (the LEDs' optics and the housing let nothing out
 /// beyond it; −1: no limit).
@@ -68,14 +71,18 @@ struct WorldMirror {
     d: f64,
     polygon: Vec<[f64; 3]>,
     reflectivity: f64,
+    /// The optical axis mirrored in this mirror's plane: the LED's emission angle of the light
+    /// that reaches x through the mirror is the angle between x − (LED's image) and this axis,
+    /// so no mirror point has to be computed for it.
+    axis: [f64; 3],
 }
 
 impl WorldMirror {
-    /// Where the segment a→b crosses the plane inside the outline, if it does.
-    fn crossing(&self, a: [f64; 3], b: [f64; 3]) -> Option<[f64; 3]> {
+    /// Whether the segment a→b crosses the plane inside the outline.
+    fn crosses(&self, a: [f64; 3], b: [f64; 3]) -> bool {
         let (da, db) = (dot(self.normal, a) - self.d, dot(self.normal, b) - self.d);
         if da * db >= 0.0 {
-            return None;
+            return false;
         }
         let p = add(a, scale(sub(b, a), da / (da - db)));
         let k = self.polygon.len();
@@ -86,7 +93,7 @@ impl WorldMirror {
             pos |= side > 0.0;
             neg |= side < 0.0;
         }
-        (!(pos && neg)).then_some(p)
+        !(pos && neg)
     }
 }
 
@@ -94,13 +101,14 @@ impl WorldMirror {
 /// inward normals of the planes through the image and each edge of the mirror's outline: a
 /// point on the mirror's reflective side is lit through the mirror iff it lies inside all of
 /// them (the segment to the image then crosses the outline), a few dot products instead of a
-/// plane crossing and a polygon test for every source.
+/// plane crossing and a polygon test for every source. `depth` is the image's signed distance
+/// to the mirror's plane (> 0: behind it), fixed per pose.
 #[derive(Clone, Debug)]
 struct Source {
     position: [f64; 3],
-    led: [f64; 3],
     mirror: Option<usize>,
     cone: Vec<[f64; 3]>,
+    depth: f64,
 }
 
 /// The light sources of one pose, in the world frame.
@@ -115,9 +123,11 @@ pub struct PoseLight {
 }
 
 impl PoseLight {
-    /// The LEDs and their mirror images for the camera at world_T_camera (3×4).
+    /// The LEDs and their mirror images for the camera at world_T_camera (3×4). Everything that
+    /// does not depend on the lit point is computed here, once per pose.
     pub fn new(light: &Illumination, mirrors: &[Mirror], m: &[[f64; 4]; 3]) -> PoseLight {
         let t = [m[0][3], m[1][3], m[2][3]];
+        let axis = rotate(m, [0.0, 0.0, 1.0]);
         let mirrors: Vec<WorldMirror> = mirrors
             .iter()
             .map(|mi| {
@@ -127,13 +137,14 @@ impl PoseLight {
                     d: mi.d + dot(normal, t),
                     polygon: mi.polygon.iter().map(|&p| add(rotate(m, p), t)).collect(),
                     reflectivity: mi.reflectivity,
+                    axis: sub(axis, scale(normal, 2.0 * dot(axis, normal))),
                 }
             })
             .collect();
         let mut sources = Vec::new();
         for &l in &light.leds {
             let led = add(rotate(m, l), t);
-            sources.push(Source { position: led, led, mirror: None, cone: vec![] });
+            sources.push(Source { position: led, mirror: None, cone: vec![], depth: 0.0 });
             for (k, mi) in mirrors.iter().enumerate() {
                 // Only an LED in front of a mirror's reflective side has an image in it.
                 if dot(mi.normal, led) < mi.d {
@@ -146,17 +157,23 @@ impl PoseLight {
                             if dot(c, sub(centroid, image)) < 0.0 { scale(c, -1.0) } else { c }
                         })
                         .collect();
-                    sources.push(Source { position: image, led, mirror: Some(k), cone });
+                    let depth = dot(mi.normal, image) - mi.d;
+                    sources.push(Source { position: image, mirror: Some(k), cone, depth });
                 }
             }
         }
-        PoseLight {
-            sources,
-            mirrors,
-            axis: rotate(m, [0.0, 0.0, 1.0]),
-            weight: 1.0 / light.leds.len() as f64,
-            exponent: light.profile_exponent,
-            min_cos: light.min_cos,
+        PoseLight { sources, mirrors, axis, weight: 1.0 / light.leds.len() as f64, exponent: light.profile_exponent, min_cos: light.min_cos }
+    }
+
+    /// cosᵖ(ε) of the emission profile; the common exponents without `powf`.
+    #[inline]
+    fn profile(&self, cos_e: f64) -> f64 {
+        let c = cos_e.max(0.0);
+        match self.exponent {
+            e if e == 0.0 => 1.0,
+            e if e == 1.0 => c,
+            e if e == 2.0 => c * c,
+            e => c.powf(e),
         }
     }
 
@@ -164,44 +181,47 @@ impl PoseLight {
     /// normal `n` faces the side the light must come from (module docs). With `occlusion`,
     /// paths the scene blocks are left out (the mirrors are not part of the scene).
     pub fn paths(&self, scene: &Scene, x: [f64; 3], n: [f64; 3], occlusion: bool, mail: &mut Mailbox, mut f: impl FnMut(f64, f64)) {
+        // x's signed distance to each mirror's plane (< 0: on its reflective side), computed
+        // once for all the LEDs' images in that mirror.
+        let mut side = [0.0f64; MAX_MIRRORS];
+        let sided = self.mirrors.len() <= MAX_MIRRORS;
+        if sided {
+            for (s, mi) in side.iter_mut().zip(&self.mirrors) {
+                *s = dot(mi.normal, x) - mi.d;
+            }
+        }
         for s in &self.sources {
-            // The point where the light leaves the last optical surface towards x.
-            let (last, reflectivity) = match s.mirror {
+            // rel: from the source (an LED or its image) to x, a straight (unfolded) path.
+            let rel = sub(x, s.position);
+            let (cos_e, length, reach, reflectivity) = match s.mirror {
                 None => {
-                    // Cheap test first: nothing beyond the largest emission angle.
-                    let e = sub(x, s.led);
-                    if dot(e, self.axis) < self.min_cos * norm(e) {
+                    let length = norm(rel);
+                    // The LED emits towards x itself; nothing beyond the largest emission angle
+                    // (an isotropic source, p = 0, in every direction).
+                    let cos_e = dot(rel, self.axis) / length;
+                    if cos_e < self.min_cos || self.mirrors.iter().any(|mi| mi.crosses(x, s.position)) {
                         continue;
                     }
-                    if self.mirrors.iter().any(|mi| mi.crossing(x, s.led).is_some()) {
-                        continue;
-                    }
-                    (s.led, 1.0)
+                    (cos_e, length, length, 1.0)
                 }
                 Some(k) => {
                     let mi = &self.mirrors[k];
-                    let da = dot(mi.normal, x) - mi.d;
-                    if da >= 0.0 {
+                    let da = if sided { side[k] } else { dot(mi.normal, x) - mi.d };
+                    if da >= 0.0 || s.cone.iter().any(|&c| dot(c, rel) < 0.0) {
                         continue;
                     }
-                    let rel = sub(x, s.position);
-                    if s.cone.iter().any(|&c| dot(c, rel) < 0.0) {
+                    let length = norm(rel);
+                    // The LED emits towards the mirror point, along rel mirrored in the plane.
+                    let cos_e = dot(rel, mi.axis) / length;
+                    if cos_e < self.min_cos {
                         continue;
                     }
-                    let db = dot(mi.normal, s.position) - mi.d;
-                    (add(x, scale(sub(s.position, x), da / (da - db))), mi.reflectivity)
+                    // The light leaves the mirror at the point where rel crosses its plane.
+                    (cos_e, length, length * da / (da - s.depth), mi.reflectivity)
                 }
             };
-            // The LED emits towards `last` (x itself, or the mirror point); an isotropic source
-            // (p = 0) in every direction, a real LED only forwards.
-            let emitted = if s.mirror.is_none() { sub(x, s.led) } else { sub(last, s.led) };
-            let cos_e = dot(emitted, self.axis) / norm(emitted);
-            if cos_e < self.min_cos {
-                continue;
-            }
-            let to_light = sub(last, x);
-            let reach = norm(to_light);
-            let dir = scale(to_light, 1.0 / reach);
+            // Unit direction from x towards where the light leaves the last optical surface.
+            let dir = scale(rel, -1.0 / length);
             let cos_x = dot(n, dir);
             if !(cos_x > 0.0) {
                 continue;
@@ -209,9 +229,7 @@ impl PoseLight {
             if occlusion && scene.intersect_with(x, dir, T_MIN, reach * (1.0 - 1e-9), mail).is_some() {
                 continue;
             }
-            let length = norm(sub(x, s.position));
-            let profile = if self.exponent == 0.0 { 1.0 } else { cos_e.max(0.0).powf(self.exponent) };
-            f(self.weight * profile * reflectivity * cos_x / (length * length), length);
+            f(self.weight * self.profile(cos_e) * reflectivity * cos_x / (length * length), length);
         }
     }
 
