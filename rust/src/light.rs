@@ -263,7 +263,7 @@ pub fn cosine_direction(n: [f64; 3], u: [f64; 2]) -> [f64; 3] {
 }
 
 /// SplitMix64 finaliser.
-fn mix(mut z: u64) -> u64 {
+pub(crate) fn mix(mut z: u64) -> u64 {
     z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
