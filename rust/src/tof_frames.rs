@@ -13,8 +13,9 @@
 //! A_j  = clip(μ_j + √(max(μ_j, 0)/g + σ_r²)·z_j, 0, full_well)
 //! ```
 //!
-//! Randomness: z_j are standard normals from a generator seeded with (frame seed, pixel), so a
-//! frame is the same for any thread count and whatever batch it is made in. They are not
+//! Randomness: z_j are standard normals from a generator seeded with (frame seed, image row),
+//! drawn along the row (one task handles a whole row), so a frame is the same for any thread
+//! count and whatever batch it is made in. They are not
 //! numpy's draws: the same model with another random stream.
 
 use rand::{RngExt, SeedableRng};
@@ -135,9 +136,11 @@ pub fn frames(model: &SensorModel, images: &Images, layout: &Layout, pixels: usi
             .zip(s.par_chunks_mut(width))
             .enumerate()
             .for_each(|(row, (((((((r0, r1), r2), r3), rd), ra), ro), rs))| {
+                // One generator per image row (a row is never split between threads).
+                let mut rng = Pcg64Mcg::seed_from_u64(mix(seed ^ mix(row as u64)));
                 for col in 0..rd.len() {
                     let pixel = row * width + col;
-                    let a = pixel_samples(model, images, first + pixel, step, pixel, seed);
+                    let a = pixel_samples(model, images, first + pixel, step, pixel, &mut rng);
                     (r0[col], r1[col], r2[col], r3[col]) = (a[0], a[1], a[2], a[3]);
                     rs[col] = a[4] != 0.0;
                     let (dist, amp, off) = decode(model.f_mod, [a[0], a[1], a[2], a[3]]);
@@ -150,35 +153,39 @@ pub fn frames(model: &SensorModel, images: &Images, layout: &Layout, pixels: usi
 /// The four clipped samples of one pixel and a saturation flag (1.0: a sample exceeded the
 /// full well). `index`: the pixel in its frame's first image, `step`: the distance to the next
 /// sample's image (0: one image for all four), `pixel`: its index in the image.
-fn pixel_samples(model: &SensorModel, images: &Images, index: usize, step: usize, pixel: usize, seed: u64) -> [f32; 5] {
-    let mut rng = Pcg64Mcg::seed_from_u64(mix(seed ^ mix(pixel as u64)));
+fn pixel_samples(model: &SensorModel, images: &Images, index: usize, step: usize, pixel: usize, rng: &mut Pcg64Mcg) -> [f32; 5] {
     let mut out = [0f32; 5];
-    let mut p = [0.0; 2];
+    // Per image: the phasor p after the offsets, and for the wiggling |p|·u³, |p|·u⁵ (u = p/|p|).
+    // Sample j sees t_j = p·i^j, so |t_j| = |p| and u_j^n = i^{nj}·u^n: turning by i^{nj} is
+    // exact (a swap and a sign), so each image needs one magnitude and no powers per sample.
+    let (mut p, mut w3, mut w5) = ([0.0; 2], [0.0; 2], [0.0; 2]);
+    let (inv_gain, read2) = (1.0 / model.gain, model.read_noise * model.read_noise);
     for j in 0..4 {
         let i = index + j * step;
         if j == 0 || step != 0 {
             p = offset_phasor(model, [images.phasor[2 * i], images.phasor[2 * i + 1]], pixel);
-        }
-        let b = images.ambient[i] as f64 + images.active[i] as f64;
-        // t = p·i^j: the correlation sampled a quarter period later for each j.
-        let t = match j {
-            0 => p,
-            1 => [-p[1], p[0]],
-            2 => [-p[0], -p[1]],
-            _ => [p[1], -p[0]],
-        };
-        let mut mu = b + t[0];
-        if let Some([h3, h5]) = model.harmonics {
-            let magnitude = t[0].hypot(t[1]);
-            if magnitude > 0.0 {
-                let u = [t[0] / magnitude, t[1] / magnitude];
-                let u2 = cmul(u, u);
-                let u3 = cmul(u2, u);
-                let u5 = cmul(u3, u2);
-                mu += magnitude * (h3 * u3[0] + h5 * u5[0]);
+            (w3, w5) = ([0.0; 2], [0.0; 2]);
+            if let Some([h3, h5]) = model.harmonics {
+                let magnitude = (p[0] * p[0] + p[1] * p[1]).sqrt();
+                if magnitude > 0.0 {
+                    let u = [p[0] / magnitude, p[1] / magnitude];
+                    let u2 = cmul(u, u);
+                    let u3 = cmul(u2, u);
+                    let u5 = cmul(u3, u2);
+                    (w3, w5) = ([h3 * magnitude * u3[0], h3 * magnitude * u3[1]], [h5 * magnitude * u5[0], h5 * magnitude * u5[1]]);
+                }
             }
         }
-        let sigma = (mu.max(0.0) / model.gain + model.read_noise * model.read_noise).sqrt();
+        let b = images.ambient[i] as f64 + images.active[i] as f64;
+        // μ_j = B + Re(p·i^j) + Re(w3·i^{3j}) + Re(w5·i^{5j}) (i^{5j} = i^j); Re(z·i^k) for k mod 4.
+        let re_turned = |z: [f64; 2], k: usize| match k % 4 {
+            0 => z[0],
+            1 => -z[1],
+            2 => -z[0],
+            _ => z[1],
+        };
+        let mu = b + re_turned(p, j) + re_turned(w3, 3 * j) + re_turned(w5, j);
+        let sigma = (mu.max(0.0) * inv_gain + read2).sqrt();
         let z: f64 = rng.sample(StandardNormal);
         let drawn = mu + sigma * z;
         if drawn > model.full_well {
@@ -202,7 +209,7 @@ fn offset_phasor(model: &SensorModel, phasor: [f32; 2], pixel: usize) -> [f64; 2
     }
     let mut delta = 0.0;
     if let Some([metres, reference]) = model.amplitude_offset {
-        delta += metres * (reference / p[0].hypot(p[1]).max(1.0)).ln();
+        delta += metres * (reference / (p[0] * p[0] + p[1] * p[1]).sqrt().max(1.0)).ln();
     }
     if let Some(fp) = &model.fixed_pattern {
         delta += fp[pixel];
@@ -217,9 +224,10 @@ pub fn decode(f_mod: f64, a: [f32; 4]) -> (f32, f32, f32) {
     let [s0, s1, s2, s3] = a.map(|v| v as f64);
     let (sin, cos) = (s3 - s1, s0 - s2);
     let tau = 2.0 * std::f64::consts::PI;
-    // numpy's mod: the result takes the divisor's sign; a tiny negative phase rounds to 2π.
-    let mut phase = sin.atan2(cos) % tau;
-    if phase != 0.0 && phase < 0.0 {
+    // numpy's mod(Φ, 2π) for Φ = atan2 in [−π, π]: Φ + 2π where negative (a tiny negative
+    // phase rounds to 2π, which the next test folds to 0).
+    let mut phase = sin.atan2(cos);
+    if phase < 0.0 {
         phase += tau;
     }
     if phase >= tau {
