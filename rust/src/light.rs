@@ -165,6 +165,15 @@ impl PoseLight {
         PoseLight { sources, mirrors, axis, weight: 1.0 / light.leds.len() as f64, exponent: light.profile_exponent, min_cos: light.min_cos }
     }
 
+    /// Whether the emission direction v (v·axis = `along`) lies clearly beyond the largest
+    /// emission angle: a test without the square root and the division of cos ε = along/|v|,
+    /// with a margin far above rounding, so that only directions the exact test would also
+    /// refuse are refused here (most of the LEDs' direct paths to points seen in the mirrors).
+    #[inline]
+    fn beyond_cone(&self, along: f64, v: [f64; 3]) -> bool {
+        self.min_cos > 0.0 && (along < 0.0 || along * along < self.min_cos * self.min_cos * dot(v, v) * (1.0 - 1e-9))
+    }
+
     /// cosᵖ(ε) of the emission profile; the common exponents without `powf`.
     #[inline]
     fn profile(&self, cos_e: f64) -> f64 {
@@ -195,10 +204,14 @@ impl PoseLight {
             let rel = sub(x, s.position);
             let (cos_e, length, reach, reflectivity) = match s.mirror {
                 None => {
-                    let length = norm(rel);
                     // The LED emits towards x itself; nothing beyond the largest emission angle
                     // (an isotropic source, p = 0, in every direction).
-                    let cos_e = dot(rel, self.axis) / length;
+                    let along = dot(rel, self.axis);
+                    if self.beyond_cone(along, rel) {
+                        continue;
+                    }
+                    let length = norm(rel);
+                    let cos_e = along / length;
                     if cos_e < self.min_cos || self.mirrors.iter().any(|mi| mi.crosses(x, s.position)) {
                         continue;
                     }
@@ -210,9 +223,13 @@ impl PoseLight {
                     if da >= 0.0 || s.cone.iter().any(|&c| dot(c, rel) < 0.0) {
                         continue;
                     }
-                    let length = norm(rel);
                     // The LED emits towards the mirror point, along rel mirrored in the plane.
-                    let cos_e = dot(rel, mi.axis) / length;
+                    let along = dot(rel, mi.axis);
+                    if self.beyond_cone(along, rel) {
+                        continue;
+                    }
+                    let length = norm(rel);
+                    let cos_e = along / length;
                     if cos_e < self.min_cos {
                         continue;
                     }
