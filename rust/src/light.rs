@@ -202,7 +202,12 @@ impl PoseLight {
         for s in &self.sources {
             // rel: from the source (an LED or its image) to x, a straight (unfolded) path.
             let rel = sub(x, s.position);
-            let (cos_e, length, reach, reflectivity) = match s.mirror {
+            // x's side must face the light: cos θ_x = −n·rel/|rel| > 0 (decided before the root).
+            let facing = -dot(n, rel);
+            if !(facing > 0.0) {
+                continue;
+            }
+            let (cos_e, length, inv_length, reach, reflectivity) = match s.mirror {
                 None => {
                     // The LED emits towards x itself; nothing beyond the largest emission angle
                     // (an isotropic source, p = 0, in every direction).
@@ -211,11 +216,12 @@ impl PoseLight {
                         continue;
                     }
                     let length = norm(rel);
-                    let cos_e = along / length;
+                    let inv_length = 1.0 / length;
+                    let cos_e = along * inv_length;
                     if cos_e < self.min_cos || self.mirrors.iter().any(|mi| mi.crosses(x, s.position)) {
                         continue;
                     }
-                    (cos_e, length, length, 1.0)
+                    (cos_e, length, inv_length, length, 1.0)
                 }
                 Some(k) => {
                     let mi = &self.mirrors[k];
@@ -229,24 +235,24 @@ impl PoseLight {
                         continue;
                     }
                     let length = norm(rel);
-                    let cos_e = along / length;
+                    let inv_length = 1.0 / length;
+                    let cos_e = along * inv_length;
                     if cos_e < self.min_cos {
                         continue;
                     }
                     // The light leaves the mirror at the point where rel crosses its plane.
-                    (cos_e, length, length * da / (da - s.depth), mi.reflectivity)
+                    (cos_e, length, inv_length, length * da / (da - s.depth), mi.reflectivity)
                 }
             };
-            // Unit direction from x towards where the light leaves the last optical surface.
-            let dir = scale(rel, -1.0 / length);
-            let cos_x = dot(n, dir);
-            if !(cos_x > 0.0) {
-                continue;
+            if occlusion {
+                // Unit direction from x towards where the light leaves the last optical surface.
+                let dir = scale(rel, -inv_length);
+                if scene.intersect_with(x, dir, T_MIN, reach * (1.0 - 1e-9), mail).is_some() {
+                    continue;
+                }
             }
-            if occlusion && scene.intersect_with(x, dir, T_MIN, reach * (1.0 - 1e-9), mail).is_some() {
-                continue;
-            }
-            f(self.weight * self.profile(cos_e) * reflectivity * cos_x / (length * length), length);
+            let cos_x = facing * inv_length;
+            f(self.weight * self.profile(cos_e) * reflectivity * cos_x * inv_length * inv_length, length);
         }
     }
 
