@@ -5,8 +5,10 @@ sub-rays through the lens, the mirror they meet and the world, and returns each 
 (the mean over its sub-rays of albedo·cos(incidence)/r²·e^{i·4πf·r/c}, times the mirror's and
 any metal's or glass's reflectivity, squared for the round trip). This module prepares what the
 core needs once per world and rig (sub-ray directions from the lens model, mirrors, materials)
-and turns its phasors into frames: A0..A3 with the sensor's noise (`tof.SensorNoise.synthesise`)
-and their decoding (`tof.decode`: distance, amplitude, offset).
+and has the core turn its phasors into frames: A0..A3 with the sensor's noise and systematic
+errors and their decoding (distance, amplitude, offset) in one pass per pixel
+(rust/src/tof_frames.rs, the model of `tof.SensorNoise.synthesise` and `tof.decode`, which stay
+the numpy reference: without noise both give the same samples).
 
 Frames and units: robot poses (x, y, θ) in the world frame, metres and radians; the camera sits
 at robot_T_camera (default `mirrors.camera_mount()`), mirrors and sub-ray directions are in the
@@ -20,8 +22,11 @@ surface seen directly (the sensor's working point); each pixel gets that, times 
 reflectivity once) relative to albedo 0.5.
 
 Determinism: the sub-ray jitter is drawn once from `RenderSettings.seed`; the core is
-deterministic and independent of the thread count; the noise of frame i of `render_many` comes
-from the generator seeded with (seed, i).
+deterministic and independent of the thread count; the noise of frame i of `render_many` is
+seeded by the first number the generator seeded with (seed, i) draws, and the core draws it
+along each image row from that seed and the row, so a frame does not depend on the thread
+count or on the batch it is rendered in. (Before issue 15's speed work the noise was numpy's:
+the same model, other draws.)
 """
 
 from __future__ import annotations
