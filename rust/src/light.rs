@@ -200,6 +200,12 @@ impl PoseLight {
             }
         }
         for s in &self.sources {
+            // An image lights only points on its mirror's reflective side.
+            if let (Some(k), true) = (s.mirror, sided) {
+                if side[k] >= 0.0 {
+                    continue;
+                }
+            }
             // rel: from the source (an LED or its image) to x, a straight (unfolded) path.
             let rel = sub(x, s.position);
             // x's side must face the light: cos θ_x = −n·rel/|rel| > 0 (decided before the root).
@@ -247,7 +253,7 @@ impl PoseLight {
             if occlusion {
                 // Unit direction from x towards where the light leaves the last optical surface.
                 let dir = scale(rel, -inv_length);
-                if scene.intersect_with(x, dir, T_MIN, reach * (1.0 - 1e-9), mail).is_some() {
+                if scene.occluded(x, dir, T_MIN, reach * (1.0 - 1e-9), mail) {
                     continue;
                 }
             }

@@ -309,6 +309,18 @@ impl Scene {
         t_max: f64,
         mail: &mut Mailbox,
     ) -> Option<Hit> {
+        self.cast(o, d, t_min, t_max, mail, false)
+    }
+
+    /// Whether anything lies on the ray o + t·d with t in (t_min, t_max) (a shadow test): the
+    /// same answer as `intersect_with(..).is_some()`, but the walk stops at the first hit
+    /// instead of looking for the nearest.
+    pub fn occluded(&self, o: [f64; 3], d: [f64; 3], t_min: f64, t_max: f64, mail: &mut Mailbox) -> bool {
+        self.cast(o, d, t_min, t_max, mail, true).is_some()
+    }
+
+    /// The nearest hit, or with `any` the first one found.
+    fn cast(&self, o: [f64; 3], d: [f64; 3], t_min: f64, t_max: f64, mail: &mut Mailbox, any: bool) -> Option<Hit> {
         let ray = mail.next_ray();
         let mut best: Option<Hit> = None;
         let mut best_t = t_max;
@@ -320,6 +332,9 @@ impl Scene {
                 if t > t_min && t < best_t {
                     best_t = t;
                     best = Some(Hit { t, normal: [0.0, 0.0, facing], material });
+                    if any {
+                        return best;
+                    }
                 }
             }
         }
@@ -341,6 +356,9 @@ impl Scene {
                 if let Some(hit) = hit {
                     *best_t = hit.t;
                     *best = Some(hit);
+                    if any {
+                        return;
+                    }
                 }
             }
         };
@@ -374,7 +392,7 @@ impl Scene {
             let Some(items) = grid.cell_items(ix, iy) else { return false };
             test_items(items, &mut best, &mut best_t);
             // Hits found beyond this cell stay candidates; stop once the nearest one lies in it.
-            best_t * h > s_start + s_exit
+            !(any && best.is_some()) && best_t * h > s_start + s_exit
         });
         best
     }
@@ -1166,6 +1184,10 @@ mod tests {
                 let got = scene.intersect(o, d, T_MIN, f64::INFINITY).map(|h| h.t);
                 let want = brute_force(&scene, o, d);
                 assert_eq!(got.is_some(), want.is_some());
+                // The shadow test agrees with the nearest hit for any segment length.
+                let reach: f64 = rng.random_range(0.1..12.0);
+                let shadowed = scene.occluded(o, d, T_MIN, reach, &mut Mailbox::for_scene(&scene));
+                assert_eq!(shadowed, want.is_some_and(|w| w < reach));
                 if let (Some(g), Some(w)) = (got, want) {
                     assert!((g - w).abs() < 1e-9, "cell {cell}: grid {g} vs brute force {w}");
                 }
