@@ -102,7 +102,7 @@ pub fn check_layout(images: &Images, layout: &Layout, pixels: usize) -> Result<(
         return Err("first, per_sample and seeds must have one entry per frame".into());
     }
     for (i, (&f, &ps)) in layout.first.iter().zip(layout.per_sample).enumerate() {
-        if f + if ps { 4 } else { 1 } > count {
+        if f.checked_add(if ps { 4 } else { 1 }).is_none_or(|end| end > count) {
             return Err(format!("frame {i} needs images beyond the {count} given"));
         }
     }
@@ -274,6 +274,20 @@ mod tests {
             frames(model, &images, &layout, pixels, 8, out)
         });
         (s, d)
+    }
+
+    #[test]
+    fn a_layout_beyond_the_images_is_an_error_not_a_panic() {
+        let (phasor, active, ambient) = (vec![0f32; 8], vec![0f32; 4], vec![0f32; 4]);
+        let images = Images { phasor: &phasor, active: &active, ambient: &ambient };
+        let seeds = [0u64];
+        for (first, per_sample) in [(usize::MAX, false), (0, true), (1, false)] {
+            let layout = Layout { first: &[first], per_sample: &[per_sample], seeds: &seeds };
+            assert!(check_layout(&images, &layout, 4).is_err());
+        }
+        let layout = Layout { first: &[0], per_sample: &[false], seeds: &seeds };
+        assert!(check_layout(&images, &layout, 4).is_ok());
+        assert!(check_layout(&images, &layout, 3).is_err());
     }
 
     #[test]
