@@ -494,3 +494,70 @@ def test_a_corner_adds_the_two_path_phasor_of_the_neighbouring_wall():
     # Monte-Carlo over 256 pixels × 256 rays: about 1 % noise (the spread of the estimator), 4 %
     # tolerance.
     assert abs(indirect - expected) < 0.04 * abs(expected)
+
+
+# --- noise and decoding in the core ------------------------------------------------------------------
+
+
+def test_core_frames_follow_the_numpy_sensor_model_exactly_without_noise():
+    # Frames are made in the core (rust/src/tof_frames.rs); tof.synthesise + tof.decode, in numpy,
+    # are the independent reference. Without noise both must give the same samples (to f32
+    # rounding) and the same distances, with every systematic error on and for a frame whose
+    # four samples are rendered at four poses (motion during the frame) as for a still one.
+    from omnitof.sensor.tof_errors import ToFErrors
+
+    sensor = SensorNoise(electrons_per_unit=math.inf, read_noise=0.0,
+                         errors=ToFErrors.realistic(fixed_pattern_seed=2, multipath=False))
+    r = Renderer(load_world("room"), camera=CAMERA, mirrors=MIRRORS, sensor=sensor,
+                 settings=RenderSettings(sub_rays=1))
+    poses = np.array([[1.5, 1.5, 0.0], [4.5, 3.0, 1.0]])
+    turning = np.stack([poses[1] + [0.0, 0.0, 0.1 * k] for k in range(4)])
+    sample_poses = np.stack([np.repeat(poses[:1], 4, axis=0), turning])
+    frames = r.render_many(poses, seed=3, sample_poses=sample_poses)
+    still = r.phasors(poses[0])
+    moving = r.phasors(turning)
+    want_still = sensor.synthesise(still.phasor[0], still.ambient[0], rng=0, active_offset=still.active_offset[0])
+    want_moving = sensor.synthesise(moving.phasor, moving.ambient, rng=0, active_offset=moving.active_offset,
+                                    per_sample=True)
+    for frame, want in zip(frames, (want_still, want_moving)):
+        np.testing.assert_allclose(frame.samples, np.stack(want[:4]), rtol=1e-6, atol=1e-3)
+        np.testing.assert_array_equal(frame.tof.saturated, want[4])
+        decoded = decode(*want[:4], SENSOR.f_mod)
+        lit = decoded.amplitude > 1.0
+        assert lit.mean() > 0.5
+        np.testing.assert_allclose(wrapped_error(frame.distance[lit], decoded.distance[lit]), 0.0, atol=1e-5)
+    np.testing.assert_allclose(frames[1].phasor, moving.phasor.mean(axis=0), rtol=1e-6)
+
+
+def test_core_frame_noise_has_the_spread_of_the_sensor_model_and_no_thread_dependence():
+    # A wall square-on through the front mirror, the same pose 200 times: each pixel's sample
+    # spread over the frames against √(μ/g + σ_r²) of the model (μ from the noise-free samples).
+    from omnitof.sensor.tof_errors import ToFErrors
+
+    w = world([wall_across_x(2.5)])
+    poses = np.zeros((200, 3))
+    r = renderer(w, sub_rays=1)
+    frames = r.render_many(poses, seed=11)
+    samples = np.stack([f.samples for f in frames]).astype(np.float64)  # (200, 4, H, W)
+    noise_free = Renderer(w, camera=CAMERA, mirrors=MIRRORS, settings=RenderSettings(sub_rays=1),
+                          sensor=SensorNoise(electrons_per_unit=math.inf, read_noise=0.0))
+    mu = noise_free.render_many(poses[:1], seed=0)[0].samples.astype(np.float64)
+    seen = (LABELS >= 0) & (mu[0] > 100.0) & (mu.max(axis=0) < 0.9 * SENSOR.full_well)
+    assert seen.sum() > 1000
+    want = np.sqrt(mu / SENSOR.electrons_per_unit + SENSOR.read_noise**2)
+    ratio = samples.std(axis=0, ddof=1)[:, seen] / want[:, seen]
+    assert abs(np.median(ratio) - 1.0) < 0.02  # 200 draws: 5 % per pixel, 0.1 % for the median
+    assert np.abs(samples.mean(axis=0)[:, seen] - mu[:, seen]).max() < 5 * want[:, seen].max() / math.sqrt(200)
+    # Pixels draw independent noise: neighbours' deviations do not correlate.
+    dev = samples[:, 0] - mu[0]
+    a, b = dev[:, seen][:, :-1].ravel(), dev[:, seen][:, 1:].ravel()
+    assert abs(np.corrcoef(a, b)[0, 1]) < 0.02
+    # Every effect on (LEDs, multipath, motion): the same frames on one thread and on two.
+    errors = ToFErrors.realistic()
+    seq_poses = np.array([[1.5, 1.5, 0.0], [4.5, 3.0, 1.0]])
+    timing = np.stack([seq_poses + [0.0, 0.0, 0.02 * k] for k in range(4)], axis=1)
+    made = [Renderer(load_world("room"), camera=CAMERA, mirrors=MIRRORS, sensor=SensorNoise(errors=errors),
+                     settings=RenderSettings(threads=t)).render_many(seq_poses, seed=4, sample_poses=timing)
+            for t in (1, 2)]
+    for one, two in zip(*made):
+        assert np.array_equal(one.samples, two.samples) and np.array_equal(one.distance, two.distance)

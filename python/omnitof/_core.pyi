@@ -252,6 +252,24 @@ class _Renderer:
         seed: int = 0,
     ) -> _Renderer: ...
     def render(self, poses: _F64) -> _F32: ...
+    # Frames from images of `render` (rust/src/tof_frames.rs): samples (N, 4, H, W), distance,
+    # amplitude, offset (N, H, W) and saturated (N, H, W).
+    def frames(
+        self,
+        phasor: _F32,
+        active: _F32,
+        ambient: _F32,
+        first: _U64,
+        per_sample: npt.NDArray[np.bool_],
+        seeds: _U64,
+        *,
+        electrons_per_unit: float,
+        read_noise: float,
+        full_well: float,
+        harmonics: tuple[float, float] | None = None,
+        amplitude_offset: tuple[float, float] | None = None,
+        fixed_pattern: _F64 | None = None,
+    ) -> tuple[_F32, _F32, _F32, _F32, npt.NDArray[np.bool_]]: ...
     def cast(self, origins: _F64, directions: _F64) -> tuple[_F64, _I64]: ...
     @property
     def shape(self) -> tuple[int, int, int]: ...

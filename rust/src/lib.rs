@@ -17,6 +17,7 @@ pub mod scan_match;
 pub mod sensor_model;
 #[cfg(test)]
 mod test_support;
+pub mod tof_frames;
 pub mod voxel;
 
 use numpy::ndarray::Array2;

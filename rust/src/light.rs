@@ -25,6 +25,9 @@
 
 use crate::render::{add, cross, dot, norm, reflect_point, rotate, scale, sub, Kind, Mailbox, Mirror, Scene, T_MIN};
 
+/// Mirrors whose side of a point is computed once per point (more are handled, just slower).
+const MAX_MIRRORS: usize = 8;
+
 /// The LEDs (camera frame, metres), the exponent p of their emission profile cosᵖ(ε), and
 /// the cosine of the largest emission angle (the LEDs' optics and the housing let nothing out
 /// beyond it; −1: no limit).
@@ -68,14 +71,18 @@ struct WorldMirror {
     d: f64,
     polygon: Vec<[f64; 3]>,
     reflectivity: f64,
+    /// The optical axis mirrored in this mirror's plane: the LED's emission angle of the light
+    /// that reaches x through the mirror is the angle between x − (LED's image) and this axis,
+    /// so no mirror point has to be computed for it.
+    axis: [f64; 3],
 }
 
 impl WorldMirror {
-    /// Where the segment a→b crosses the plane inside the outline, if it does.
-    fn crossing(&self, a: [f64; 3], b: [f64; 3]) -> Option<[f64; 3]> {
+    /// Whether the segment a→b crosses the plane inside the outline.
+    fn crosses(&self, a: [f64; 3], b: [f64; 3]) -> bool {
         let (da, db) = (dot(self.normal, a) - self.d, dot(self.normal, b) - self.d);
         if da * db >= 0.0 {
-            return None;
+            return false;
         }
         let p = add(a, scale(sub(b, a), da / (da - db)));
         let k = self.polygon.len();
@@ -86,7 +93,7 @@ impl WorldMirror {
             pos |= side > 0.0;
             neg |= side < 0.0;
         }
-        (!(pos && neg)).then_some(p)
+        !(pos && neg)
     }
 }
 
@@ -94,13 +101,14 @@ impl WorldMirror {
 /// inward normals of the planes through the image and each edge of the mirror's outline: a
 /// point on the mirror's reflective side is lit through the mirror iff it lies inside all of
 /// them (the segment to the image then crosses the outline), a few dot products instead of a
-/// plane crossing and a polygon test for every source.
+/// plane crossing and a polygon test for every source. `depth` is the image's signed distance
+/// to the mirror's plane (> 0: behind it), fixed per pose.
 #[derive(Clone, Debug)]
 struct Source {
     position: [f64; 3],
-    led: [f64; 3],
     mirror: Option<usize>,
     cone: Vec<[f64; 3]>,
+    depth: f64,
 }
 
 /// The light sources of one pose, in the world frame.
@@ -115,9 +123,11 @@ pub struct PoseLight {
 }
 
 impl PoseLight {
-    /// The LEDs and their mirror images for the camera at world_T_camera (3×4).
+    /// The LEDs and their mirror images for the camera at world_T_camera (3×4). Everything that
+    /// does not depend on the lit point is computed here, once per pose.
     pub fn new(light: &Illumination, mirrors: &[Mirror], m: &[[f64; 4]; 3]) -> PoseLight {
         let t = [m[0][3], m[1][3], m[2][3]];
+        let axis = rotate(m, [0.0, 0.0, 1.0]);
         let mirrors: Vec<WorldMirror> = mirrors
             .iter()
             .map(|mi| {
@@ -127,13 +137,14 @@ impl PoseLight {
                     d: mi.d + dot(normal, t),
                     polygon: mi.polygon.iter().map(|&p| add(rotate(m, p), t)).collect(),
                     reflectivity: mi.reflectivity,
+                    axis: sub(axis, scale(normal, 2.0 * dot(axis, normal))),
                 }
             })
             .collect();
         let mut sources = Vec::new();
         for &l in &light.leds {
             let led = add(rotate(m, l), t);
-            sources.push(Source { position: led, led, mirror: None, cone: vec![] });
+            sources.push(Source { position: led, mirror: None, cone: vec![], depth: 0.0 });
             for (k, mi) in mirrors.iter().enumerate() {
                 // Only an LED in front of a mirror's reflective side has an image in it.
                 if dot(mi.normal, led) < mi.d {
@@ -146,17 +157,32 @@ impl PoseLight {
                             if dot(c, sub(centroid, image)) < 0.0 { scale(c, -1.0) } else { c }
                         })
                         .collect();
-                    sources.push(Source { position: image, led, mirror: Some(k), cone });
+                    let depth = dot(mi.normal, image) - mi.d;
+                    sources.push(Source { position: image, mirror: Some(k), cone, depth });
                 }
             }
         }
-        PoseLight {
-            sources,
-            mirrors,
-            axis: rotate(m, [0.0, 0.0, 1.0]),
-            weight: 1.0 / light.leds.len() as f64,
-            exponent: light.profile_exponent,
-            min_cos: light.min_cos,
+        PoseLight { sources, mirrors, axis, weight: 1.0 / light.leds.len() as f64, exponent: light.profile_exponent, min_cos: light.min_cos }
+    }
+
+    /// Whether the emission direction v (v·axis = `along`) lies clearly beyond the largest
+    /// emission angle: a test without the square root and the division of cos ε = along/|v|,
+    /// with a margin far above rounding, so that only directions the exact test would also
+    /// refuse are refused here (most of the LEDs' direct paths to points seen in the mirrors).
+    #[inline]
+    fn beyond_cone(&self, along: f64, v: [f64; 3]) -> bool {
+        self.min_cos > 0.0 && (along < 0.0 || along * along < self.min_cos * self.min_cos * dot(v, v) * (1.0 - 1e-9))
+    }
+
+    /// cosᵖ(ε) of the emission profile; the common exponents without `powf`.
+    #[inline]
+    fn profile(&self, cos_e: f64) -> f64 {
+        let c = cos_e.max(0.0);
+        match self.exponent {
+            e if e == 0.0 => 1.0,
+            e if e == 1.0 => c,
+            e if e == 2.0 => c * c,
+            e => c.powf(e),
         }
     }
 
@@ -164,54 +190,75 @@ impl PoseLight {
     /// normal `n` faces the side the light must come from (module docs). With `occlusion`,
     /// paths the scene blocks are left out (the mirrors are not part of the scene).
     pub fn paths(&self, scene: &Scene, x: [f64; 3], n: [f64; 3], occlusion: bool, mail: &mut Mailbox, mut f: impl FnMut(f64, f64)) {
+        // x's signed distance to each mirror's plane (< 0: on its reflective side), computed
+        // once for all the LEDs' images in that mirror.
+        let mut side = [0.0f64; MAX_MIRRORS];
+        let sided = self.mirrors.len() <= MAX_MIRRORS;
+        if sided {
+            for (s, mi) in side.iter_mut().zip(&self.mirrors) {
+                *s = dot(mi.normal, x) - mi.d;
+            }
+        }
         for s in &self.sources {
-            // The point where the light leaves the last optical surface towards x.
-            let (last, reflectivity) = match s.mirror {
+            // An image lights only points on its mirror's reflective side.
+            if let (Some(k), true) = (s.mirror, sided) {
+                if side[k] >= 0.0 {
+                    continue;
+                }
+            }
+            // rel: from the source (an LED or its image) to x, a straight (unfolded) path.
+            let rel = sub(x, s.position);
+            // x's side must face the light: cos θ_x = −n·rel/|rel| > 0 (decided before the root).
+            let facing = -dot(n, rel);
+            if !(facing > 0.0) {
+                continue;
+            }
+            let (cos_e, length, inv_length, reach, reflectivity) = match s.mirror {
                 None => {
-                    // Cheap test first: nothing beyond the largest emission angle.
-                    let e = sub(x, s.led);
-                    if dot(e, self.axis) < self.min_cos * norm(e) {
+                    // The LED emits towards x itself; nothing beyond the largest emission angle
+                    // (an isotropic source, p = 0, in every direction).
+                    let along = dot(rel, self.axis);
+                    if self.beyond_cone(along, rel) {
                         continue;
                     }
-                    if self.mirrors.iter().any(|mi| mi.crossing(x, s.led).is_some()) {
+                    let length = norm(rel);
+                    let inv_length = 1.0 / length;
+                    let cos_e = along * inv_length;
+                    if cos_e < self.min_cos || self.mirrors.iter().any(|mi| mi.crosses(x, s.position)) {
                         continue;
                     }
-                    (s.led, 1.0)
+                    (cos_e, length, inv_length, length, 1.0)
                 }
                 Some(k) => {
                     let mi = &self.mirrors[k];
-                    let da = dot(mi.normal, x) - mi.d;
-                    if da >= 0.0 {
+                    let da = if sided { side[k] } else { dot(mi.normal, x) - mi.d };
+                    if da >= 0.0 || s.cone.iter().any(|&c| dot(c, rel) < 0.0) {
                         continue;
                     }
-                    let rel = sub(x, s.position);
-                    if s.cone.iter().any(|&c| dot(c, rel) < 0.0) {
+                    // The LED emits towards the mirror point, along rel mirrored in the plane.
+                    let along = dot(rel, mi.axis);
+                    if self.beyond_cone(along, rel) {
                         continue;
                     }
-                    let db = dot(mi.normal, s.position) - mi.d;
-                    (add(x, scale(sub(s.position, x), da / (da - db))), mi.reflectivity)
+                    let length = norm(rel);
+                    let inv_length = 1.0 / length;
+                    let cos_e = along * inv_length;
+                    if cos_e < self.min_cos {
+                        continue;
+                    }
+                    // The light leaves the mirror at the point where rel crosses its plane.
+                    (cos_e, length, inv_length, length * da / (da - s.depth), mi.reflectivity)
                 }
             };
-            // The LED emits towards `last` (x itself, or the mirror point); an isotropic source
-            // (p = 0) in every direction, a real LED only forwards.
-            let emitted = if s.mirror.is_none() { sub(x, s.led) } else { sub(last, s.led) };
-            let cos_e = dot(emitted, self.axis) / norm(emitted);
-            if cos_e < self.min_cos {
-                continue;
+            if occlusion {
+                // Unit direction from x towards where the light leaves the last optical surface.
+                let dir = scale(rel, -inv_length);
+                if scene.occluded(x, dir, T_MIN, reach * (1.0 - 1e-9), mail) {
+                    continue;
+                }
             }
-            let to_light = sub(last, x);
-            let reach = norm(to_light);
-            let dir = scale(to_light, 1.0 / reach);
-            let cos_x = dot(n, dir);
-            if !(cos_x > 0.0) {
-                continue;
-            }
-            if occlusion && scene.intersect_with(x, dir, T_MIN, reach * (1.0 - 1e-9), mail).is_some() {
-                continue;
-            }
-            let length = norm(sub(x, s.position));
-            let profile = if self.exponent == 0.0 { 1.0 } else { cos_e.max(0.0).powf(self.exponent) };
-            f(self.weight * profile * reflectivity * cos_x / (length * length), length);
+            let cos_x = facing * inv_length;
+            f(self.weight * self.profile(cos_e) * reflectivity * cos_x * inv_length * inv_length, length);
         }
     }
 
@@ -245,7 +292,7 @@ pub fn cosine_direction(n: [f64; 3], u: [f64; 2]) -> [f64; 3] {
 }
 
 /// SplitMix64 finaliser.
-fn mix(mut z: u64) -> u64 {
+pub(crate) fn mix(mut z: u64) -> u64 {
     z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);

@@ -3,12 +3,13 @@
 //! One private class, `_core._Renderer`, built once per world and rig from plain arrays and then
 //! asked for frames. Its Python face is `omnitof.sim.render.Renderer`; nobody else should use it.
 
-use numpy::ndarray::{Array1, Array4};
-use numpy::{IntoPyArray, PyArray1, PyArray4, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
+use numpy::ndarray::{Array1, Array3, Array4};
+use numpy::{IntoPyArray, PyArray1, PyArray3, PyArray4, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
 use crate::light::Illumination;
+use crate::tof_frames::{self, check_layout, Decoded, Images, Layout, SensorModel};
 use crate::render::{render, Block, Kind, Material, Mirror, Rig, RenderParams, Scene, Wall, MAX_SECONDARY};
 
 fn rows<'a>(a: &'a PyReadonlyArray2<'_, f64>, cols: usize, what: &str) -> PyResult<Vec<&'a [f64]>> {
@@ -65,6 +66,15 @@ fn mirrors(
     }
     Ok(out)
 }
+
+/// (samples, distance, amplitude, offset, saturated) of `_Renderer.frames`.
+type Frames<'py> = (
+    Bound<'py, PyArray4<f32>>,
+    Bound<'py, PyArray3<f32>>,
+    Bound<'py, PyArray3<f32>>,
+    Bound<'py, PyArray3<f32>>,
+    Bound<'py, PyArray3<bool>>,
+);
 
 /// (distances, material indices) of `_Renderer.cast`.
 type Casts<'py> = (Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<i64>>);
@@ -221,6 +231,77 @@ impl PyRenderer {
             }
         }
         Ok((t.into_pyarray(py), material.into_pyarray(py)))
+    }
+
+    /// Noisy samples and their decoding for frames made of the images (M, H, W) of `render`
+    /// (rust/src/tof_frames.rs): phasor as (M·H·W, 2) float32 (re, im), active and ambient
+    /// offsets (M·H·W,); frame n uses image first[n] (or first[n]..first[n] + 3 where
+    /// per_sample[n]) and the noise seed seeds[n]. Returns samples (N, 4, H, W), distance,
+    /// amplitude, offset (N, H, W) float32 and saturated (N, H, W) bool.
+    #[pyo3(signature = (phasor, active, ambient, first, per_sample, seeds, *, electrons_per_unit, read_noise,
+        full_well, harmonics=None, amplitude_offset=None, fixed_pattern=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn frames<'py>(
+        &self,
+        py: Python<'py>,
+        phasor: PyReadonlyArray2<f32>,
+        active: PyReadonlyArray1<f32>,
+        ambient: PyReadonlyArray1<f32>,
+        first: PyReadonlyArray1<u64>,
+        per_sample: PyReadonlyArray1<bool>,
+        seeds: PyReadonlyArray1<u64>,
+        electrons_per_unit: f64,
+        read_noise: f64,
+        full_well: f64,
+        harmonics: Option<(f64, f64)>,
+        amplitude_offset: Option<(f64, f64)>,
+        fixed_pattern: Option<PyReadonlyArray1<f64>>,
+    ) -> PyResult<Frames<'py>> {
+        let (h, w) = (self.rig.height, self.rig.width);
+        let pixels = h * w;
+        if phasor.shape()[1] != 2 {
+            return Err(PyValueError::new_err("phasor must have shape (M·H·W, 2)"));
+        }
+        let model = SensorModel {
+            f_mod: self.params.f_mod,
+            gain: electrons_per_unit,
+            read_noise,
+            full_well,
+            harmonics: harmonics.map(|(a, b)| [a, b]),
+            amplitude_offset: amplitude_offset.map(|(a, b)| [a, b]),
+            fixed_pattern: fixed_pattern.map(|a| a.as_slice().map(|s| s.to_vec())).transpose()?,
+        };
+        model.check(pixels).map_err(PyValueError::new_err)?;
+        let images = Images { phasor: phasor.as_slice()?, active: active.as_slice()?, ambient: ambient.as_slice()? };
+        let first: Vec<usize> = first.as_slice()?.iter().map(|&f| f as usize).collect();
+        let layout = Layout { first: &first, per_sample: per_sample.as_slice()?, seeds: seeds.as_slice()? };
+        check_layout(&images, &layout, pixels).map_err(PyValueError::new_err)?;
+        let n = first.len();
+        let mut samples = vec![0f32; n * 4 * pixels];
+        let (mut distance, mut amplitude, mut offset) = (vec![0f32; n * pixels], vec![0f32; n * pixels], vec![0f32; n * pixels]);
+        let mut saturated = vec![false; n * pixels];
+        py.detach(|| {
+            let out = Decoded {
+                samples: &mut samples,
+                distance: &mut distance,
+                amplitude: &mut amplitude,
+                offset: &mut offset,
+                saturated: &mut saturated,
+            };
+            let run = || tof_frames::frames(&model, &images, &layout, pixels, w, out);
+            match &self.pool {
+                Some(pool) => pool.install(run),
+                None => run(),
+            }
+        });
+        let image = |v: Vec<f32>| Array3::from_shape_vec((n, h, w), v).unwrap().into_pyarray(py);
+        Ok((
+            Array4::from_shape_vec((n, 4, h, w), samples).unwrap().into_pyarray(py),
+            image(distance),
+            image(amplitude),
+            image(offset),
+            Array3::from_shape_vec((n, h, w), saturated).unwrap().into_pyarray(py),
+        ))
     }
 
     /// (height, width, sub_rays) of the rig.

@@ -429,6 +429,9 @@ def synthesise(
     Returns:
         (a0, a1, a2, a3, saturated): four sample arrays and a bool mask, all of the broadcast
         shape of phasor and ambient.
+
+    The renderer (`omnitof.sim.render`) makes its frames with the same model in the Rust core
+    (rust/src/tof_frames.rs, with its own random stream); this function is the reference.
     """
     gen = _generator(rng)
     full_well = _positive("full_well", full_well)

@@ -5,8 +5,10 @@ sub-rays through the lens, the mirror they meet and the world, and returns each 
 (the mean over its sub-rays of albedo·cos(incidence)/r²·e^{i·4πf·r/c}, times the mirror's and
 any metal's or glass's reflectivity, squared for the round trip). This module prepares what the
 core needs once per world and rig (sub-ray directions from the lens model, mirrors, materials)
-and turns its phasors into frames: A0..A3 with the sensor's noise (`tof.SensorNoise.synthesise`)
-and their decoding (`tof.decode`: distance, amplitude, offset).
+and has the core turn its phasors into frames: A0..A3 with the sensor's noise and systematic
+errors and their decoding (distance, amplitude, offset) in one pass per pixel
+(rust/src/tof_frames.rs, the model of `tof.SensorNoise.synthesise` and `tof.decode`, which stay
+the numpy reference: without noise both give the same samples).
 
 Frames and units: robot poses (x, y, θ) in the world frame, metres and radians; the camera sits
 at robot_T_camera (default `mirrors.camera_mount()`), mirrors and sub-ray directions are in the
@@ -20,8 +22,11 @@ surface seen directly (the sensor's working point); each pixel gets that, times 
 reflectivity once) relative to albedo 0.5.
 
 Determinism: the sub-ray jitter is drawn once from `RenderSettings.seed`; the core is
-deterministic and independent of the thread count; the noise of frame i of `render_many` comes
-from the generator seeded with (seed, i).
+deterministic and independent of the thread count; the noise of frame i of `render_many` is
+seeded by the first number the generator seeded with (seed, i) draws, and the core draws it
+along each image row from that seed and the row, so a frame does not depend on the thread
+count or on the batch it is rendered in. (Before issue 15's speed work the noise was numpy's:
+the same model, other draws.)
 """
 
 from __future__ import annotations
@@ -40,7 +45,8 @@ from omnitof.errors import ConfigError
 from omnitof.sensor.mirrors import Mirror, camera_mount, mount_rotation, pyramid
 from omnitof.sensor.rig import Rig
 from omnitof.sim.worlds import World
-from omnitof.sensor.tof import SensorNoise, ToFFrame, decode, unambiguous_range
+from omnitof.sensor.tof import SensorNoise, ToFFrame, unambiguous_range
+from omnitof.sensor.tof_errors import fixed_pattern
 
 # Front-surface mirrors of protected aluminium reflect about 0.86–0.9 at 850 nm (an assumption
 # for the paper's mirrors, which it does not specify).
@@ -228,7 +234,8 @@ class Renderer:
         """One frame at the robot pose (x, y, θ): phasors, noisy samples and their decoding."""
         pose = np.asarray(pose, dtype=np.float64)
         gen = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-        return self._frames(self.phasors(pose), pose.reshape(1, 3), [gen])[0]
+        return self._frames(self.phasors(pose), pose.reshape(1, 3), [gen], np.zeros(1, dtype=np.int64),
+                            np.zeros(1, dtype=bool))[0]
 
     def render_many(self, poses: np.ndarray, *, seed: int, first_index: int = 0,
                     sample_poses: np.ndarray | None = None) -> list[Frame]:
@@ -241,21 +248,23 @@ class Renderer:
         that each sample sees the scene from its own pose (`RenderSettings.motion_tolerance`).
         """
         poses2 = _poses(poses)
+        n = len(poses2)
         if first_index < 0:
             raise RenderConfigError(f"first_index must be >= 0, got {first_index!r}")
-        gens = [np.random.default_rng([int(seed), int(first_index) + i]) for i in range(len(poses2))]
+        gens = [np.random.default_rng([int(seed), int(first_index) + i]) for i in range(n)]
         if sample_poses is None or not self.sensor.errors.motion:
-            return self._frames(self.phasors(poses2), poses2, gens)
+            return self._frames(self.phasors(poses2), poses2, gens, np.arange(n), np.zeros(n, dtype=bool))
         sp = np.asarray(sample_poses, dtype=np.float64)
-        if sp.shape != (len(poses2), 4, 3) or not np.all(np.isfinite(sp)):
-            raise RenderConfigError(f"sample_poses must be finite with shape ({len(poses2)}, 4, 3), got {sp.shape}")
+        if sp.shape != (n, 4, 3) or not np.all(np.isfinite(sp)):
+            raise RenderConfigError(f"sample_poses must be finite with shape ({n}, 4, 3), got {sp.shape}")
         moving = self._apparent_motion(sp) > self.settings.motion_tolerance
         # One call of the core: the still frames at their poses, the moving ones at each sample's.
         n_still = int((~moving).sum())
         ph = self.phasors(np.concatenate([poses2[~moving], sp[moving].reshape(-1, 3)]))
-        still = dict(zip(np.flatnonzero(~moving), _split(_slice(ph, 0, n_still), 1)))
-        per_sample = dict(zip(np.flatnonzero(moving), _split(_slice(ph, n_still, len(ph.phasor)), 4)))
-        return self._frames(None, poses2, gens, {**still, **per_sample})
+        first = np.empty(n, dtype=np.int64)
+        first[~moving] = np.arange(n_still)
+        first[moving] = n_still + 4 * np.arange(n - n_still)
+        return self._frames(ph, poses2, gens, first, moving)
 
     def first_surface(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The first surface along world rays (N, 3) origins, (N, 3) directions (any length):
@@ -277,26 +286,37 @@ class Renderer:
         reach = unambiguous_range(self.sensor.f_mod) + float(np.hypot(*self.robot_T_camera[:2, 3]))  # type: ignore[index]
         return np.hypot(d[:, 0], d[:, 1]) + reach * turn
 
-    def _frames(self, ph: Phasors | None, poses: np.ndarray, gens: list[np.random.Generator],
-                own_phasors: dict[int, Phasors] | None = None) -> list[Frame]:
-        """Noise, clipping and decoding of each frame: frame i's phasors are ph's i-th, or
-        own_phasors[i] (one image: the frame's; four: one per sample, motion during the frame)."""
+    def _frames(self, ph: Phasors, poses: np.ndarray, gens: list[np.random.Generator],
+                first: np.ndarray, per_sample: np.ndarray) -> list[Frame]:
+        """Noise, clipping and decoding of each frame, in the core (rust/src/tof_frames.rs, the
+        model of `SensorNoise.synthesise` and `decode` in one pass per pixel): frame i is made of
+        ph's image first[i], or of images first[i] .. first[i] + 3, one per sample, where
+        per_sample[i] (motion during the frame). Frame i's noise is seeded by the first number
+        its generator draws, so the frames do not depend on the thread count or the batch."""
+        seeds = np.array([gen.integers(0, 2**63) for gen in gens], dtype=np.uint64)
+        sensor, errors = self.sensor, self.sensor.errors
+        pattern = fixed_pattern(self.shape, errors) if errors.fixed_pattern and errors.fixed_pattern_std > 0 else None
+        samples, distance, amplitude, offset, saturated = self._core.frames(
+            np.ascontiguousarray(ph.phasor).view(np.float32).reshape(-1, 2),
+            np.ascontiguousarray(ph.active_offset).reshape(-1),
+            np.ascontiguousarray(ph.ambient).reshape(-1),
+            np.asarray(first, dtype=np.uint64),
+            np.asarray(per_sample, dtype=bool),
+            seeds,
+            electrons_per_unit=float(sensor.electrons_per_unit),
+            read_noise=float(sensor.read_noise),
+            full_well=float(sensor.full_well),
+            harmonics=(float(errors.harmonic3), float(errors.harmonic5)) if errors.wiggling else None,
+            amplitude_offset=((float(errors.amplitude_offset_m), float(errors.amplitude_reference))
+                              if errors.amplitude_offset else None),
+            fixed_pattern=None if pattern is None else np.ascontiguousarray(pattern, dtype=np.float64).reshape(-1),
+        )
         frames = []
-        for i, gen in enumerate(gens):
-            own, index = (ph, i) if own_phasors is None else (own_phasors[i], 0)
-            assert own is not None
-            if own_phasors is None or len(own.phasor) == 1:
-                a0, a1, a2, a3, saturated = self.sensor.synthesise(
-                    own.phasor[index], own.ambient[index], rng=gen, active_offset=own.active_offset[index]
-                )
-                phasor = own.phasor[index]
-            else:  # each sample at its own pose (motion during the frame)
-                a0, a1, a2, a3, saturated = self.sensor.synthesise(
-                    own.phasor, own.ambient, rng=gen, active_offset=own.active_offset, per_sample=True
-                )
-                phasor = own.phasor.mean(axis=0)
-            decoded = decode(a0, a1, a2, a3, self.sensor.f_mod, saturated=saturated)
-            frames.append(Frame(poses[i].copy(), phasor, np.stack([a0, a1, a2, a3]), decoded))
+        for i in range(len(gens)):
+            k = int(first[i])
+            phasor = ph.phasor[k:k + 4].mean(axis=0) if per_sample[i] else ph.phasor[k]
+            decoded = ToFFrame(distance[i], amplitude[i], offset[i], saturated[i])
+            frames.append(Frame(poses[i].copy(), phasor, samples[i], decoded))
         return frames
 
     def _light_arguments(self) -> dict[str, object]:
@@ -389,17 +409,6 @@ def sub_ray_directions(camera: Camera, sub_rays: int, seed: int) -> np.ndarray:
         directions = camera.rays(pixels.reshape(-1, 2)).reshape(h, w, sub_rays, 3)
     directions.setflags(write=False)
     return directions
-
-
-def _slice(ph: Phasors, start: int, stop: int) -> Phasors:
-    return Phasors(ph.phasor[start:stop], ph.active_offset[start:stop], ph.ambient[start:stop])
-
-
-def _split(ph: Phasors, k: int) -> list[Phasors]:
-    """Phasors of N·k poses as N groups of k."""
-    n = len(ph.phasor) // k
-    return [Phasors(ph.phasor[i * k:(i + 1) * k], ph.active_offset[i * k:(i + 1) * k],
-                    ph.ambient[i * k:(i + 1) * k]) for i in range(n)]
 
 
 def _poses(poses: np.ndarray) -> np.ndarray:
