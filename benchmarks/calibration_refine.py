@@ -105,7 +105,8 @@ def distance_table(seed: int = 0) -> None:
         for label, errs in rows.items():
             per_wall = np.abs([np.median(e) for e in errs])
             e = np.abs(np.concatenate(errs))
-            print(f"| {frames} | {label} | {len(errs)} | {1000 * np.median(per_wall):.2f} | {1000 * np.max(per_wall):.2f} | "
+            print(f"| {frames} | {label} | {len(errs)} | {1000 * np.median(per_wall):.2f} | "
+                  f"{1000 * np.max(per_wall):.2f} | "
                   f"{1000 * np.median(e):.2f} | {1000 * np.percentile(e, 90):.2f} |", flush=True)
     print(f"total {time.perf_counter() - started:.0f} s")
 

@@ -103,7 +103,8 @@ def calibration_for(kind: str, renderer, cache: dict):
     return cache[key]
 
 
-def budget(names: list[str], count: int, only: list[str] | None = None, corrections: tuple[str, ...] = ("none",)) -> None:
+def budget(names: list[str], count: int, only: list[str] | None = None,
+           corrections: tuple[str, ...] = ("none",)) -> None:
     print("| world | effects | correction | bins (off / on) | median / p90 |error| (cm) / within 5 cm, filter off "
           "| the same, filter on |")
     print("|---|---|---|---|---|---|")
