@@ -4,12 +4,11 @@
    8 dot placements per mirror, and for the refinement 2 plain boards per pair of neighbouring
    mirrors) with and without the joint refinement; errors against the simulator's true rig and
    the refinement's reported standard deviations.
-2. Distance calibration: flat matte walls rendered through the mirrors at 0.5–4.5 m
-   (reflectances 0.2, 0.5, 0.85), with a systematic distance error injected into the rendered
-   distances (the functional form the simulator's error model has: a wiggling curve of period a
-   quarter of the unambiguous range, an amplitude-dependent offset, a per-pixel fixed pattern;
-   see `injected_error`). Walls at every other distance fit `DistanceCorrection`, the walls in
-   between test it; error = measured (or corrected) − true path length, pixels on the wall.
+2. Distance calibration: the correction `calibrate_from_simulation` fits (flat walls at known
+   distances, `calibration.walls`) with the simulator's default systematic errors on (issue 15:
+   wiggling, amplitude offset, fixed pattern), tested on walls half-way between the fitted
+   positions (0.56–6.06 m, other albedos, other noise), one frame and four averaged; error =
+   measured (or corrected) − true path length of the true rig, pixels on the wall.
 
 Usage: python benchmarks/calibration_refine.py [--seeds 0 1 2 3 4] [--skip-refine] [--skip-distance]
 """
@@ -66,107 +65,49 @@ def refinement_table(seeds) -> None:
 
 # --- distance calibration ------------------------------------------------------------------
 
-UNAMBIGUOUS = 5.0  # metres at the SR4000's 30 MHz
-
-
-def injected_error(seed: int, shape):
-    """A systematic error of the simulator's functional form (metres): wiggling of period
-    U/4 (first and second harmonic of it), amplitude term growing by 8 mm per decade of
-    darkness below 1000 sample units, per-pixel fixed pattern N(0, 3 mm)."""
-    pattern = np.random.default_rng(seed).normal(0.0, 0.003, shape)
-    period = UNAMBIGUOUS / 4.0
-
-    def error(d, a):
-        wiggle = 0.012 * np.sin(2 * np.pi * d / period) + 0.004 * np.sin(4 * np.pi * d / period + 0.7)
-        amp = 0.008 * np.log10(1000.0 / np.maximum(a, 1.0))
-        return wiggle + amp + pattern
-
-    return error
-
-
-def wall_frames(rig, distances, reflectances, seed):
-    """Per (distance, reflectance, mirror): a flat wall facing the mirror's view, rendered with
-    the sensor's noise; yields (frame, wall normal, wall c) in the camera frame."""
-    from omnitof.calibration.targets import PlainBoard, Room, look_at_pose, render_target
-    from omnitof.sensor.mirrors import viewing_rays
-
-    camera, mirrors = rig.camera, rig.mirrors
-    labels = rig.masks(3.0)
-    room = Room(half_width=10.0)  # the default room's walls (2.5 m) would hide walls beyond them
-    rays = viewing_rays(camera, mirrors, labels)
-    for i, dist in enumerate(distances):
-        albedo = reflectances[i % len(reflectances)]
-        for k, mirror in enumerate(mirrors):
-            sel = labels == k
-            origin = np.nanmean(rays.origins[sel], axis=0)
-            out = np.nanmean(rays.directions[sel], axis=0)
-            out[2] = 0.0
-            out /= np.linalg.norm(out)
-            pose = look_at_pose(origin + dist * out, -out, 0.0)
-            wall = PlainBoard(width=12.0, height=6.0, reflectance=albedo)
-            frame, _ = render_target(camera, wall, pose, mirrors, rng=np.random.default_rng([seed, i, k]),
-                                     sensor=rig.sensor, room=room)
-            yield frame, pose[:3, 2], float(pose[:3, 2] @ pose[:3, 3])
-
 
 def distance_table(seed: int = 0) -> None:
-    from omnitof.calibration.distance import DistanceCorrection, samples_from_plane
+    """The correction `calibrate_from_simulation` fits (walls, refined geometry) against the
+    simulator's own systematic errors, on walls at distances and albedos the fit never saw."""
+    from omnitof.calibration.walls import render_wall_views, wall_samples
+    from omnitof.sensor.tof import SensorNoise
+    from omnitof.sensor.tof_errors import ToFErrors
 
     rig = default_rig()
-    shape = rig.camera.shape
-    error = injected_error(seed, shape)
-    fit_d = np.arange(0.5, 4.51, 0.25)
-    test_d = fit_d[:-1] + 0.125
-    refl = [0.2, 0.5, 0.85]
-
-    # The walls' true poses; the geometry is the refined calibration's (seed 0), so its errors
-    # are in the fit as they would be in practice.
-    cal, _ = calibrate_from_simulation(renderer_of(rig), seed=seed)
-    labels = rig.masks(3.0)
-
-    def samples(distances, reflect):
-        out = []
-        for frame, normal, c in wall_frames(rig, distances, reflect, seed):
-            measured = frame.distance.astype(np.float64)
-            measured = measured + error(measured, frame.amplitude)
-            amp = np.where(frame.amplitude > 50, frame.amplitude, np.nan)  # the extraction's rough filter
-            out.append(samples_from_plane(cal.camera, cal.planes, labels, measured, amp, normal, c))
-        return [np.concatenate(x) for x in zip(*out)]
-
+    sensor = SensorNoise(errors=ToFErrors.simulation_default())
     started = time.perf_counter()
-    m, t, a, p = samples(fit_d, refl)
-    correction = DistanceCorrection.fit(m, t, a, p, shape)
-    # Tested against the truth: the path lengths of the true rig. Per test wall (one distance,
-    # one mirror's view) the median signed error is the systematic part; single readings also
-    # carry the sensor's noise (tens of mm on dark walls at 4 m), which no calibration removes.
-    mt, tt, at, pt, wall, injected = [], [], [], [], [], []
-    for w, (frame, normal, c) in enumerate(wall_frames(rig, test_d, refl[::-1], seed + 1)):
-        raw = frame.distance.astype(np.float64)
-        measured = raw + error(raw, frame.amplitude)
-        amp = np.where(frame.amplitude > 50, frame.amplitude, np.nan)
-        got = samples_from_plane(rig.camera, rig.planes, labels, measured, amp, normal, c)
-        for lst, v in zip((mt, tt, at, pt), got):
-            lst.append(v)
-        wall.append(np.full(len(got[0]), w))
-        injected.append((measured - raw).ravel()[got[3]])
-    mt, tt, at, pt, wall, injected = (np.concatenate(v) for v in (mt, tt, at, pt, wall, injected))
-    corrected = correction.correct(mt, at, pt)
-    before = np.abs(mt - tt)
-    after = np.abs(corrected - tt)
+    renderer = SimpleNamespace(**{**vars(renderer_of(rig)), "sensor": sensor})
+    cal, report = calibrate_from_simulation(renderer, seed=seed)
+    seconds = time.perf_counter() - started
+    correction = cal.distance_correction
+    truth = Calibration.from_rig(rig)
+    # Half-way between the fitted positions, albedos in another order, other noise; true paths
+    # from the true rig. Per wall (one distance, one mirror) the median signed error is the
+    # systematic part; readings of 1 frame and of 4 frames averaged carry the sensor's noise.
+    distances = np.arange(0.5625, 6.3, 0.5)
     print()
-    print("## Distance calibration on matte walls (injected error of the simulator's form)")
-    print(f"fit: {len(m)} samples at {len(fit_d)} distances; test: {len(mt)} samples at {len(test_d)} other "
-          f"distances × {len(rig.mirrors)} mirrors")
-    print("| | systematic: median over walls of |median error| (mm) | worst wall (mm) | single readings: median abs error (mm) | 90th percentile (mm) |")
-    print("|---|---|---|---|---|")
-    for label, e in (("before correction", mt - tt), ("after correction", corrected - tt)):
-        per_wall = np.array([np.median(e[wall == w]) for w in np.unique(wall)])
-        print(f"| {label} | {1000 * np.median(np.abs(per_wall)):.2f} | {1000 * np.max(np.abs(per_wall)):.2f} | "
-              f"{1000 * np.median(np.abs(e)):.2f} | {1000 * np.percentile(np.abs(e), 90):.2f} |")
-    model = correction.error(mt, at, pt)
-    print(f"the fitted error against the injected one, per reading: RMS difference "
-          f"{1000 * np.sqrt(np.mean((model - injected) ** 2)):.2f} mm (injected RMS "
-          f"{1000 * np.sqrt(np.mean(injected ** 2)):.2f} mm)")
+    print(f"## Distance correction of calibrate_from_simulation (seed {seed}; simulator's errors: "
+          f"{', '.join(sensor.errors.switched_on)})")
+    print(f"fit: {report['distance_correction']}; calibration {seconds:.0f} s")
+    print("| test frames | | walls | systematic: median over walls of \\|median error\\| (mm) | worst wall (mm) | "
+          "readings: median abs error (mm) | 90th percentile (mm) |")
+    print("|---|---|---|---|---|---|---|")
+    for frames in (1, 4):
+        views = render_wall_views(rig.camera, rig.mirrors, seed + 101, sensor=sensor, distances=distances,
+                                  reflectances=(0.85, 0.2, 0.5), frames=frames)
+        rows = {"before": [], "after": []}
+        for view in views:
+            m, t, a, p = wall_samples(truth, [view])
+            if len(m) < 100:
+                continue
+            rows["before"].append(m - t)
+            rows["after"].append(correction.correct(m, a, p) - t)
+        for label, errs in rows.items():
+            per_wall = np.abs([np.median(e) for e in errs])
+            e = np.abs(np.concatenate(errs))
+            print(f"| {frames} | {label} | {len(errs)} | {1000 * np.median(per_wall):.2f} | "
+                  f"{1000 * np.max(per_wall):.2f} | "
+                  f"{1000 * np.median(e):.2f} | {1000 * np.percentile(e, 90):.2f} |", flush=True)
     print(f"total {time.perf_counter() - started:.0f} s")
 
 

@@ -11,7 +11,11 @@ height is matte is compared with the exact horizontal distance there (World.hori
 at the frame's true pose). Reported per world and setting: the median and 90th percentile of
 |error| (cm) and the share within 5 cm, filter off → on.
 
-No distance correction is applied (issue 16 builds it): these are the numbers before it.
+--corrections adds rows with issue 16's distance correction (`calibration.walls`: fitted to
+flat walls at known distances, four frames averaged per position) applied by the extractor:
+"true" fits it with the true rig's geometry and extracts with the true rig; "estimated" is the
+whole simulated calibration the demo runs (`calibrate_from_simulation`: closed form, joint
+refinement, the correction) and extracts with it. "none" is no correction (the default).
 
 Speed: the renderer's phasors (tracer) and whole frames (noise and decoding too) per second on
 corridor1, all effects off and all on, medians of --runs runs measured alternately in one
@@ -19,6 +23,7 @@ process.
 
 Usage:
     python benchmarks/tof_errors.py [--frames 24] [--runs 5] [--worlds room office ...]
+        [--settings default all] [--corrections none true estimated]
 """
 
 from __future__ import annotations
@@ -74,21 +79,50 @@ def stats(e: np.ndarray) -> str:
     return f"{100 * np.median(a):.1f} / {100 * np.percentile(a, 90):.1f} / {100 * np.mean(a < 0.05):.1f} %"
 
 
-def budget(names: list[str], count: int, only: list[str] | None = None) -> None:
-    print("| world | effects | bins (off / on) | median / p90 |error| (cm) / within 5 cm, filter off "
+def calibration_for(kind: str, renderer, cache: dict):
+    """The Calibration the scans are extracted with for a --corrections kind (cached per kind
+    and sensor: every world has the same rig)."""
+    from omnitof.calibration import Calibration
+    from omnitof.calibration.simulated import calibrate_from_simulation
+    from omnitof.calibration.walls import fit_from_walls, render_wall_views
+
+    key = (kind, renderer.sensor.errors)
+    if key not in cache:
+        truth = Calibration.from_rig(renderer.rig)
+        if kind == "none":
+            cal = truth
+        elif kind == "true":
+            walls = render_wall_views(renderer.camera, renderer.mirrors, 0, sensor=renderer.sensor)
+            truth.distance_correction = fit_from_walls(truth, walls)
+            cal = truth
+        elif kind == "estimated":
+            cal, _ = calibrate_from_simulation(renderer, seed=0, truth=truth)
+        else:
+            raise SystemExit(f"unknown correction {kind!r}: none, true, estimated")
+        cache[key] = cal
+    return cache[key]
+
+
+def budget(names: list[str], count: int, only: list[str] | None = None,
+           corrections: tuple[str, ...] = ("none",)) -> None:
+    print("| world | effects | correction | bins (off / on) | median / p90 |error| (cm) / within 5 cm, filter off "
           "| the same, filter on |")
-    print("|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|")
+    cache: dict = {}
     for name in names:
         world = load_world(name)
         for label, errors in settings(only):
             renderer, poses, fr = frames(world, errors, count)
             d = np.stack([f.distance for f in fr])
             a = np.stack([f.amplitude for f in fr])
-            off = ScanExtractor.from_rig(renderer.rig, pixel_filter={"enabled": False})
-            on = ScanExtractor.from_rig(renderer.rig)
-            e_off = matte_errors(world, renderer, off, poses, off.extract_many(d, a))
-            e_on = matte_errors(world, renderer, on, poses, on.extract_many(d, a))
-            print(f"| {name} | {label} | {len(e_off)} / {len(e_on)} | {stats(e_off)} | {stats(e_on)} |", flush=True)
+            for kind in corrections:
+                cal = calibration_for(kind, renderer, cache)
+                off = ScanExtractor.from_calibration(cal, pixel_filter={"enabled": False})
+                on = ScanExtractor.from_calibration(cal)
+                e_off = matte_errors(world, renderer, off, poses, off.extract_many(d, a))
+                e_on = matte_errors(world, renderer, on, poses, on.extract_many(d, a))
+                print(f"| {name} | {label} | {kind} | {len(e_off)} / {len(e_on)} | {stats(e_off)} | {stats(e_on)} |",
+                      flush=True)
 
 
 def speed(runs: int, count: int = 60) -> None:
@@ -129,13 +163,15 @@ def main() -> None:
     parser.add_argument("--skip-budget", action="store_true")
     parser.add_argument("--skip-speed", action="store_true")
     parser.add_argument("--settings", nargs="*", help="only these rows (none, a switch, default, all)")
+    parser.add_argument("--corrections", nargs="+", default=["none"], choices=["none", "true", "estimated"],
+                        help="distance corrections to apply (module docstring)")
     args = parser.parse_args()
     print(f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.1f}")
     if not args.skip_speed:
         speed(args.runs)
     if not args.skip_budget:
-        budget(args.worlds, args.frames, args.settings)
+        budget(args.worlds, args.frames, args.settings, tuple(args.corrections))
     print(f"# done, load {os.getloadavg()[0]:.1f}")
 
 

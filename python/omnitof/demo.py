@@ -53,7 +53,9 @@ class DemoSettings:
     two-mirror boards, ToF path lengths; `calibration.refine`) after the closed-form chain, as
     the demo does by default; False keeps the closed-form estimate. tof_errors: the camera's
     systematic errors to simulate (`ToFErrors.parse`: "default", all but multipath; "all",
-    "none" or a comma list).
+    "none" or a comma list). true_rig_correction: with calibrate False, give the true rig the
+    distance correction fitted to walls (`calibration.walls`) as the estimated calibrations get
+    it (the true geometry, but the distance error measured; for benchmarks/calibration_maps.py).
     """
 
     world: str = DEFAULT_WORLD
@@ -67,6 +69,7 @@ class DemoSettings:
     speed: float = 0.4
     refine: bool = True
     tof_errors: str = "default"
+    true_rig_correction: bool = False
 
 
 class _Stages:
@@ -233,8 +236,15 @@ def _calibrate(renderer: Any, settings: DemoSettings, out: Path) -> tuple[Any, d
 
     truth = Calibration.from_rig(renderer.rig)
     if not settings.calibrate:
+        source = "true rig (no calibration run)"
+        if settings.true_rig_correction:
+            from omnitof.calibration.walls import fit_from_walls, render_wall_views
+
+            walls = render_wall_views(renderer.camera, renderer.mirrors, settings.seed, sensor=renderer.sensor)
+            truth.distance_correction = fit_from_walls(truth, walls)
+            source += f", distance correction from {len(walls)} wall views"
         save_calibration(truth, out / "calibration.yaml")
-        return truth, {"source": "true rig (no calibration run)"}
+        return truth, {"source": source}
     from omnitof.calibration.simulated import calibrate_from_simulation
 
     cal, report = calibrate_from_simulation(renderer, seed=settings.seed, truth=truth, refine=settings.refine)

@@ -10,6 +10,15 @@ rig's design), and reports how far every estimate is from the truth.
 With `refine` (the default) it also renders a plain board seen through each two neighbouring
 mirrors (`targets.render_pair_images`) and refines everything jointly from all the images
 (`observations.refine_calibration`, issue 16), starting from the closed-form estimates.
+
+When the simulated sensor makes systematic distance errors (issue 15's wiggling, amplitude
+offset, fixed pattern: `sensor.tof_errors`), it fits the distance correction
+(`calibration.distance.DistanceCorrection`) to flat walls at known distances, a few frames
+averaged per position (`calibration.walls`), with the true paths from the (refined) geometry,
+and stores it in the calibration, so the scan extraction of the demo, the bench inputs and
+`omnitof slam --calibration` removes those errors. The refinement itself leaves the ToF path
+lengths out in that case (uncorrected they pulled the focal length 10 %); with
+`corrected_path_lengths` it refines once more with the path lengths of the corrected distances.
 """
 
 from __future__ import annotations
@@ -33,6 +42,8 @@ DEFAULT_BOARDS = 30
 DEFAULT_PLACEMENTS = 8
 # Two-mirror boards per pair of neighbouring mirrors (refinement only).
 DEFAULT_PAIR_BOARDS = 2
+# The systematic errors a distance correction removes (ToFErrors switches).
+DISTANCE_ERRORS = ("wiggling", "amplitude_offset", "fixed_pattern")
 
 
 def calibrate_from_simulation(
@@ -45,12 +56,17 @@ def calibrate_from_simulation(
     edge_margin_px: float = 2.0,
     refine: bool = True,
     pair_boards: int = DEFAULT_PAIR_BOARDS,
+    distance_correction: bool = True,
+    corrected_path_lengths: bool = False,
 ) -> tuple[Calibration, dict[str, Any]]:
     """(estimated Calibration, report) for the rig of a `sim.render.Renderer`.
 
     The report holds the intrinsics' RMS reprojection error and focal-length error, and per
     mirror the angle between the estimated and the true normal (degrees) and the error of the
-    plane distance (mm), with what the robust steps rejected.
+    plane distance (mm), with what the robust steps rejected, and the distance correction's fit.
+    distance_correction: fit one when the sensor has systematic distance errors (module
+    docstring). corrected_path_lengths: with a correction, refine again with the path lengths
+    of the corrected distances.
     """
     camera, mirrors = renderer.camera, list(renderer.mirrors)
     truth = truth or Calibration.from_rig(renderer.rig, edge_margin_px)
@@ -70,6 +86,7 @@ def calibrate_from_simulation(
         provenance={"source": f"simulated targets, seed {seed}: {boards} boards, {placements} placements per mirror"},
     )
     closed_form = None
+    distance_errors = set(getattr(getattr(renderer.sensor, "errors", None), "switched_on", ())) & set(DISTANCE_ERRORS)
     if refine:
         from omnitof.calibration.observations import refine_calibration
         from omnitof.calibration.targets import render_pair_images
@@ -82,6 +99,25 @@ def calibrate_from_simulation(
         calibration, _ = refine_calibration(calibration, board_images, dot_images, pair_images,
                                             outside=design_labels < 0, seed=seed, path_lengths=unbiased)
         calibration.provenance["source"] += f", {pair_boards} two-mirror boards per pair, refined jointly"
+    correction_report = None
+    if distance_correction and distance_errors:
+        from omnitof.calibration.walls import render_wall_views, fit_from_walls
+
+        walls = render_wall_views(camera, mirrors, seed, sensor=renderer.sensor)
+        calibration.distance_correction = fit_from_walls(calibration, walls)
+        dc = calibration.distance_correction
+        calibration.provenance["source"] += f", distance correction from {len(walls)} wall views"
+        correction_report = {"walls": len(walls), "samples": dc.samples,
+                             "rms_before_mm": round(1000.0 * dc.rms_before, 2),
+                             "rms_after_mm": round(1000.0 * dc.rms_after, 2)}
+        if refine and corrected_path_lengths:
+            before_path_lengths = _errors(calibration, truth)
+            fixed = [corrected_image(im, dc) for im in (*board_images, *dot_images, *pair_images)]
+            nb, nd = len(board_images), len(dot_images)
+            calibration, _ = refine_calibration(calibration, fixed[:nb], fixed[nb:nb + nd], fixed[nb + nd:],
+                                                outside=design_labels < 0, seed=seed, path_lengths=True)
+            calibration.provenance["source"] += ", refined again with the corrected path lengths"
+            correction_report["refined_without_path_lengths"] = before_path_lengths
     est, true = calibration.camera, truth.camera
     report: dict[str, Any] = {
         "source": calibration.provenance["source"],
@@ -107,11 +143,25 @@ def calibrate_from_simulation(
                          f"{report['intrinsics']['fx_error_pct']:+.2f} %; mirrors: normals within "
                          f"{worst_angle:.3f}°, plane distances within {worst_d:.2f} mm")
     report["mask_pixels_differing_from_truth"] = int(np.sum(calibration.labels != truth.labels))
+    if correction_report is not None:
+        report["distance_correction"] = correction_report
+        report["summary"] += (f"; distance correction from {correction_report['walls']} wall views "
+                              f"(fit RMS {correction_report['rms_before_mm']:.1f} → "
+                              f"{correction_report['rms_after_mm']:.1f} mm)")
     if closed_form is not None:
         report["closed_form"] = closed_form
         report["std"] = calibration.quality["refinement"]["std"]
         report["summary"] += f" (closed form: {closed_form['summary']})"
     return calibration, report
+
+
+def corrected_image(image: Any, correction: Any) -> Any:
+    """An AmplitudeImage with its distances corrected (`DistanceCorrection.correct`)."""
+    from dataclasses import replace
+
+    if image.distance is None:
+        return image
+    return replace(image, distance=correction.correct(image.distance, image.amplitude).astype(np.float32))
 
 
 def _errors(calibration: Calibration, truth: Calibration) -> dict[str, Any]:

@@ -210,6 +210,48 @@ def render_target(
         decoding of the expected samples.
     """
     sensor = sensor or SensorNoise()
+    p_pix, active, ambient, exposure = _target_signal(camera, target, camera_T_target, mirrors, sensor, room,
+                                                      sub_rays, mirror_reflectivity)
+    if noise:
+        return _noisy_frame(sensor, p_pix, active, ambient, rng), exposure
+    from omnitof.sensor.tof import ideal_samples
+
+    offset = ambient + np.maximum(active, np.abs(p_pix))
+    b0, b1, b2, b3 = (q.astype(np.float32) for q in ideal_samples(p_pix, offset))
+    return decode(b0, b1, b2, b3, sensor.f_mod), exposure
+
+
+def render_target_frames(
+    camera: Camera,
+    target: Checkerboard | DotTarget | PlainBoard,
+    camera_T_target: np.ndarray,
+    mirrors: Sequence[Mirror] = (),
+    *,
+    rngs: Sequence[np.random.Generator | int],
+    sensor: SensorNoise | None = None,
+    room: Room = Room(),
+    sub_rays: int = DEFAULT_SUB_RAYS,
+    mirror_reflectivity: float = DEFAULT_MIRROR_REFLECTIVITY,
+) -> list[ToFFrame]:
+    """Several noisy frames of one target pose (one per generator in `rngs`): the scene is
+    traced once, only the sensor's noise differs (a camera held still, for averaging)."""
+    sensor = sensor or SensorNoise()
+    p_pix, active, ambient, _ = _target_signal(camera, target, camera_T_target, mirrors, sensor, room,
+                                               sub_rays, mirror_reflectivity)
+    return [_noisy_frame(sensor, p_pix, active, ambient, rng) for rng in rngs]
+
+
+def _noisy_frame(sensor: SensorNoise, p_pix: np.ndarray, active: np.ndarray, ambient: np.ndarray,
+                 rng: np.random.Generator | int) -> ToFFrame:
+    a0, a1, a2, a3, saturated = sensor.synthesise(
+        p_pix, ambient, rng=rng, active_offset=np.maximum(active, np.abs(p_pix))
+    )
+    return decode(a0, a1, a2, a3, sensor.f_mod, saturated=saturated)
+
+
+def _target_signal(camera, target, camera_T_target, mirrors, sensor, room, sub_rays, mirror_reflectivity):
+    """(pixel phasors, active light, ambient, exposure factor) of a target pose: the traced
+    scene before the sensor's noise."""
     h, w = camera.shape
     scene = _scene(camera, tuple(mirrors), room, int(sub_rays))
     dirs, valid = scene["dirs"], scene["valid"]
@@ -244,19 +286,7 @@ def render_target(
     ambient = ambient_rays.reshape(h, w, s).mean(axis=2)
     brightest = float(np.max(ambient + active + np.abs(p_pix)))
     exposure = min(1.0, EXPOSURE_TARGET * sensor.full_well / brightest) if brightest > 0 else 1.0
-    p_pix, active, ambient = p_pix * exposure, active * exposure, ambient * exposure
-    if noise:
-        a0, a1, a2, a3, saturated = sensor.synthesise(
-            p_pix, ambient, rng=rng, active_offset=np.maximum(active, np.abs(p_pix))
-        )
-        frame = decode(a0, a1, a2, a3, sensor.f_mod, saturated=saturated)
-    else:
-        from omnitof.sensor.tof import ideal_samples
-
-        offset = ambient + np.maximum(active, np.abs(p_pix))
-        b0, b1, b2, b3 = (q.astype(np.float32) for q in ideal_samples(p_pix, offset))
-        frame = decode(b0, b1, b2, b3, sensor.f_mod)
-    return frame, exposure
+    return p_pix * exposure, active * exposure, ambient * exposure, exposure
 
 
 _SCENES: dict = {}
