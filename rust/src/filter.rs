@@ -181,6 +181,41 @@ pub fn low_variance_resample<R: rand::Rng>(normalised: &[f64], rng: &mut R) -> V
     out
 }
 
+/// The end of a filter step, shared by the 2D and the 3D filter: the particles' log weights
+/// normalised, their effective sample size (eq. 10), the heaviest particle, and, where the
+/// effective size falls below `threshold`·N, the ancestors that low-variance resampling draws
+/// (from the step's own random stream, so the thread count does not matter).
+pub struct Weighing {
+    pub n_eff: f64,
+    /// The heaviest particle before any resampling.
+    pub best: usize,
+    /// The largest log weight, which the particles subtract where they are not resampled, so
+    /// that their log weights stay near zero and never lose precision.
+    pub max_log_weight: f64,
+    /// Each new particle's ancestor, if the step resamples.
+    pub ancestors: Option<Vec<usize>>,
+}
+
+impl Weighing {
+    pub fn new(log_weights: &[f64], threshold: f64, seed: u64, step: u64) -> Self {
+        let w = normalise(log_weights);
+        let n_eff = neff(&w);
+        let best = (0..w.len()).fold(0, |b, i| if w[i] > w[b] { i } else { b });
+        let max_log_weight = log_weights.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        let ancestors = (n_eff < threshold * w.len() as f64)
+            .then(|| low_variance_resample(&w, &mut rng_for(seed, step, u64::MAX)));
+        Weighing { n_eff, best, max_log_weight, ancestors }
+    }
+
+    /// Where the heaviest particle went: its first copy after resampling, else itself.
+    pub fn best_after(&self) -> usize {
+        match &self.ancestors {
+            Some(idx) => idx.iter().position(|&j| j == self.best).unwrap_or(0),
+            None => self.best,
+        }
+    }
+}
+
 impl ParticleFilter {
     pub fn new(params: FilterParams, angles: Vec<f64>, sensor: [f64; 3]) -> Result<Self, String> {
         if params.n_particles == 0 {
@@ -285,30 +320,22 @@ impl ParticleFilter {
         }
         self.fallbacks += fallbacks as u64;
         let log_w: Vec<f64> = self.particles.iter().map(|q| q.log_weight).collect();
-        let w = normalise(&log_w);
-        let n_eff = neff(&w);
-        let best = (0..w.len()).fold(0, |b, i| if w[i] > w[b] { i } else { b });
-        let mut resampled = false;
-        if n_eff < self.params.resample_threshold * self.particles.len() as f64 {
-            let mut rng = rng_for(seed, step_index, u64::MAX);
-            let idx = low_variance_resample(&w, &mut rng);
-            self.best = idx.iter().position(|&j| j == best).unwrap_or(0);
+        let weighing = Weighing::new(&log_w, self.params.resample_threshold, seed, step_index);
+        if let Some(idx) = &weighing.ancestors {
             let mut next = try_vec(idx.len(), "the resampled particles")?;
-            for &j in &idx {
+            for &j in idx {
                 next.push(self.particles[j].try_copy(0.0)?);
             }
             self.particles = next;
             self.resamplings += 1;
-            resampled = true;
         } else {
-            // Keep log weights near zero so that they never lose precision.
-            let max = log_w.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
             for q in &mut self.particles {
-                q.log_weight -= max;
+                q.log_weight -= weighing.max_log_weight;
             }
-            self.best = best;
         }
-        Ok(StepInfo { neff: n_eff, resampled, fallbacks, odometry_corrected: corrected.is_some() })
+        self.best = weighing.best_after();
+        let resampled = weighing.ancestors.is_some();
+        Ok(StepInfo { neff: weighing.n_eff, resampled, fallbacks, odometry_corrected: corrected.is_some() })
     }
 
     /// One local match, from `start`, of a scan in the best particle's map (with the filter's

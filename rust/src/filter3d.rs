@@ -30,7 +30,7 @@ use std::sync::Arc;
 
 use rayon::prelude::*;
 
-use crate::filter::{low_variance_resample, neff, normalise, rng_for, ProposalKind, TrajectoryNode};
+use crate::filter::{rng_for, ProposalKind, TrajectoryNode, Weighing};
 use crate::grid::LogOddsModel;
 use crate::motion::{compose, relative, OdometryMotion};
 use crate::scan_match::{climb, draw_around_mode, motion_prior, MatcherParams, PosePrior};
@@ -473,14 +473,8 @@ impl ParticleFilter3d {
         let fallbacks = fell.iter().filter(|&&f| f).count();
         self.fallbacks += fallbacks as u64;
         let log_w: Vec<f64> = self.particles.iter().map(|q| q.log_weight).collect();
-        let w = normalise(&log_w);
-        let n_eff = neff(&w);
-        let best = (0..w.len()).fold(0, |b, i| if w[i] > w[b] { i } else { b });
-        let mut resampled = false;
-        if n_eff < self.params.resample_threshold * n as f64 {
-            let mut rng = rng_for(seed, step_index, u64::MAX);
-            let idx = low_variance_resample(&w, &mut rng);
-            self.best = idx.iter().position(|&j| j == best).unwrap_or(0);
+        let weighing = Weighing::new(&log_w, self.params.resample_threshold, seed, step_index);
+        if let Some(idx) = &weighing.ancestors {
             self.particles = idx
                 .iter()
                 .map(|&j| {
@@ -490,15 +484,13 @@ impl ParticleFilter3d {
                 })
                 .collect();
             self.resamplings += 1;
-            resampled = true;
         } else {
-            let max = log_w.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
             for q in &mut self.particles {
-                q.log_weight -= max;
+                q.log_weight -= weighing.max_log_weight;
             }
-            self.best = best;
         }
-        StepInfo3d { neff: n_eff, resampled, fallbacks, scored: pts.len() }
+        self.best = weighing.best_after();
+        StepInfo3d { neff: weighing.n_eff, resampled: weighing.ancestors.is_some(), fallbacks, scored: pts.len() }
     }
 
     fn world_rays(pose: [f64; 3], origins: &[[f64; 3]], endpoints: &[[f64; 3]]) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
