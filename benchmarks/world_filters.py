@@ -10,10 +10,13 @@ a few seeds' numbers in the last digits.)
 
     python benchmarks/world_filters.py --worlds corridor1 office --drives 0 1 --seeds 0 1 2 \
         [--preset tof-scanmatch] [--particles 30] [--set backend.min_score=0.65 ...] \
-        [--tof-errors default|all|none|LIST] [--cache results/world_scans]
+        [--tof-errors default|all|none|LIST] [--ideal-scans] [--cache results/world_scans]
 
 The camera's systematic errors (issue 15) are those of the demo, `default` unless told; the
-cache is kept per setting.
+cache is kept per setting. `--ideal-scans` replaces every range by the exact distance to the
+floor plan at the slice height from the true pose (same bearings, same 7 m limit, every bearing
+seen): what the filter makes of a perfect omnidirectional scanner, to tell the sensor's share of
+an error from the filter's.
 
 Prints one JSON line per run, then a Markdown table.
 """
@@ -21,19 +24,22 @@ Prints one JSON line per run, then a Markdown table.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import pickle
 import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from omnitof.demo import DemoSettings, _calibrate, evaluate_run
-from omnitof.scan import ScanExtractor
+from omnitof.scan import ScanExtractor, ScanSettings
 from omnitof.scan.tof_input import tof_scans
 from omnitof.sensor.tof import SensorNoise
 from omnitof.sensor.tof_errors import ToFErrors
+from omnitof.sim.laser2d import World2D
 from omnitof.sim.render import Renderer, RenderSettings
 from omnitof.sim.sequence import MotionSettings, make_sequence, render_sequence
 from omnitof.sim.worlds import load_world
@@ -61,6 +67,15 @@ def extracted_scans(name: str, drive: int, cache: Path, tof_errors: str = "defau
     return scans
 
 
+def ideal_scans(world, scans):
+    """`scans` with every range replaced by the exact distance to the floor plan at the slice
+    height from the true pose (+inf beyond the scans' max_range)."""
+    plan = World2D(world.segments_at(ScanSettings().height))
+    gt = scans.ground_truth
+    ranges = plan.raycast(gt[:, :2], scans.angles[None, :] + gt[:, 2:3], scans.max_range)
+    return dataclasses.replace(scans, ranges=ranges.astype(np.float32))
+
+
 def overrides(items: list[str]) -> dict:
     out: dict = {}
     for item in items:
@@ -80,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", nargs="*", default=[], metavar="SECTION.FIELD=VALUE")
     parser.add_argument("--tof-errors", default="default",
                         help="the camera's systematic errors, as `omnitof demo --tof-errors` (default: the demo's)")
+    parser.add_argument("--ideal-scans", action="store_true",
+                        help="exact ranges from the floor plan at the true poses instead of the ToF scans")
     parser.add_argument("--cache", type=Path, default=Path("results/world_scans"))
     args = parser.parse_args(argv)
 
@@ -88,6 +105,8 @@ def main(argv: list[str] | None = None) -> int:
         world = load_world(name)
         for drive in args.drives:
             scans = extracted_scans(name, drive, args.cache, args.tof_errors)
+            if args.ideal_scans:
+                scans = ideal_scans(world, scans)
             for seed in args.seeds:
                 ov = overrides(args.set)
                 ov.setdefault("filter", {}).update({"particles": args.particles, "seed": seed})
@@ -99,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
                 backend = result.stats.get("backend") or {}
                 row = {
                     "world": name, "drive": drive, "seed": seed, "preset": args.preset,
-                    "particles": args.particles, "set": args.set,
+                    "particles": args.particles, "set": args.set, "ideal_scans": args.ideal_scans,
                     "final_m": round(ev["trajectory"]["slam"]["final"], 3),
                     "mean_m": round(ev["trajectory"]["slam"]["mean"], 3),
                     "within_5cm_pct": round(100 * ev["floorplan"]["occupied_within_5cm"], 1),

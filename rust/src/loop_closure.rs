@@ -74,6 +74,9 @@ pub struct SubmapParams {
     pub unknown_probability: f32,
     /// Height H of the branch-and-bound tree (number of precomputed grids less one).
     pub depth: u32,
+    /// Standard deviation (m) of an end point about its obstacle: the search's cell values are
+    /// the probabilities spread by it (`spread`; 0: the raw probabilities).
+    pub spread_sigma: f64,
 }
 
 impl SubmapParams {
@@ -93,6 +96,9 @@ impl SubmapParams {
         }
         if self.depth > MAX_DEPTH {
             return Err(format!("depth must be at most {MAX_DEPTH}"));
+        }
+        if !(self.spread_sigma.is_finite() && self.spread_sigma >= 0.0) {
+            return Err("spread_sigma must be finite and not negative".into());
         }
         Ok(())
     }
@@ -160,7 +166,7 @@ impl Submap {
     pub fn finish(&mut self) -> Result<&PrecomputedGrids, GridError> {
         if self.grids.is_none() {
             let p = self.params;
-            self.grids = Some(PrecomputedGrids::new(&self.grid, p.depth, p.unknown_probability)?);
+            self.grids = Some(PrecomputedGrids::new(&self.grid, p.depth, p.unknown_probability, p.spread_sigma)?);
         }
         Ok(self.grids.as_ref().expect("just made"))
     }
@@ -308,14 +314,49 @@ pub struct PrecomputedGrids {
     levels: Vec<MaxGrid>,
 }
 
+/// The search's cell values: each cell's probability raised to the most probable cell within
+/// `sigma` (m) of it, discounted by a Gaussian of standard deviation `sigma` over the distance
+/// between the cell centres: max_n p(n)·exp(−d(c, n)²/2σ²), the rasterised lookup table of Olson
+/// (ICRA 2009, sec. III) with the max in place of the sum. Why: an end point a few millimetres in
+/// front of a wall that runs along a cell border falls into the free cell before it, and scored
+/// by the raw cells such points count as misses; where every wall lies on the lattice (the
+/// simulated worlds) a true match then scores below a false one a few metres along a corridor
+/// (corridor1: 0.585 against 0.646 at a pose 2.6 m away). `sigma` 0 leaves the values as they are.
+fn spread(p: &[f32], nx: usize, ny: usize, resolution: f64, sigma: f64) -> Vec<f32> {
+    let radius = if sigma > 0.0 { (sigma / resolution).ceil().min(8.0) as i32 } else { 0 };
+    if radius == 0 {
+        return p.to_vec();
+    }
+    let weight = |dx: i32, dy: i32| (-((dx * dx + dy * dy) as f64) * resolution * resolution / (2.0 * sigma * sigma)).exp() as f32;
+    let kernel: Vec<(i32, i32, f32)> = (-radius..=radius)
+        .flat_map(|dy| (-radius..=radius).map(move |dx| (dx, dy)))
+        .filter(|&(dx, dy)| (dx, dy) != (0, 0))
+        .map(|(dx, dy)| (dx, dy, weight(dx, dy)))
+        .collect();
+    let mut out = p.to_vec();
+    out.par_chunks_mut(nx).enumerate().for_each(|(y, row)| {
+        for (x, value) in row.iter_mut().enumerate() {
+            for &(dx, dy, k) in &kernel {
+                let (u, v) = (x as i32 + dx, y as i32 + dy);
+                if u >= 0 && v >= 0 && (u as usize) < nx && (v as usize) < ny {
+                    *value = value.max(k * p[v as usize * nx + u as usize]);
+                }
+            }
+        }
+    });
+    out
+}
+
 impl PrecomputedGrids {
     /// Precompute the grids of heights 0..=depth from a log-odds grid (NaN = unknown, which
-    /// gets `unknown_probability`). O(cells) per height; the heights are built in parallel.
-    pub fn new(grid: &TiledGrid, depth: u32, unknown_probability: f32) -> Result<Self, GridError> {
+    /// gets `unknown_probability`), its probabilities first spread by `spread_sigma` (m; see
+    /// `spread`, 0: none). O(cells) per height; the heights are built in parallel.
+    pub fn new(grid: &TiledGrid, depth: u32, unknown_probability: f32, spread_sigma: f64) -> Result<Self, GridError> {
         let depth = depth.min(MAX_DEPTH);
         let (ny, nx, ix0, iy0, log_odds) = grid.to_dense()?;
-        let probability: Vec<f32> =
+        let raw: Vec<f32> =
             log_odds.iter().map(|&l| if l.is_nan() { unknown_probability } else { probability(l) }).collect();
+        let probability = spread(&raw, nx, ny, grid.resolution, spread_sigma);
         let base: Vec<u8> = probability.iter().map(|&p| quantise(p)).collect();
         let outside = quantise(unknown_probability);
         let levels = (0..=depth)
@@ -858,6 +899,7 @@ mod tests {
             clear_no_echo: false,
             unknown_probability: DEFAULT_UNKNOWN_PROBABILITY,
             depth: DEFAULT_DEPTH,
+            spread_sigma: 0.0,
         }
     }
 
@@ -965,7 +1007,7 @@ mod tests {
         }
         let unknown = 0.1;
         let depth = 5;
-        let grids = PrecomputedGrids::new(&g, depth, unknown).unwrap();
+        let grids = PrecomputedGrids::new(&g, depth, unknown, 0.0).unwrap();
         assert_eq!(grids.depth(), depth);
         let base = |ix: i32, iy: i32| {
             let l = g.get(ix, iy);
@@ -1093,7 +1135,7 @@ mod tests {
             pool.install(|| {
                 let m = search(grids, &pts, [5.0, 4.0, 0.0], 5.0, std::f64::consts::PI, 0.3).unwrap().unwrap();
                 let w = search(grids, &pts, [4.4, 2.7, 0.05], 2.0, 0.5, 0.3).unwrap().unwrap();
-                let regrids = PrecomputedGrids::new(submap.grid(), DEFAULT_DEPTH, DEFAULT_UNKNOWN_PROBABILITY).unwrap();
+                let regrids = PrecomputedGrids::new(submap.grid(), DEFAULT_DEPTH, DEFAULT_UNKNOWN_PROBABILITY, 0.0).unwrap();
                 let levels: Vec<Vec<u8>> = regrids.levels.iter().map(|l| l.cells.clone()).collect();
                 (refine(grids, &pts, &m), refine(grids, &pts, &w), levels)
             })
@@ -1139,6 +1181,74 @@ mod tests {
         assert!(cholesky_ok(&c));
         assert!(c[0][0] < 2.0 * 0.05f64.powi(2) && c[1][1] < 2.0 * 0.05f64.powi(2));
         assert!(c[2][2] < 2.0 * r.angular_step.powi(2));
+    }
+
+    #[test]
+    fn loop_closure_spread_is_the_gaussian_discounted_neighbour_maximum() {
+        // One cell of 0.9 among cells of 0.1: with σ one cell, its four neighbours get 0.9·e^(-1/2),
+        // its diagonal ones 0.9·e^(-1), and the cells two away keep their 0.1 (beyond σ).
+        let (nx, ny) = (5, 5);
+        let mut p = vec![0.1f32; nx * ny];
+        p[2 * nx + 2] = 0.9;
+        let s = spread(&p, nx, ny, 0.05, 0.05);
+        let near = |a: f32, b: f32| (a - b).abs() < 1e-6;
+        assert!(near(s[2 * nx + 2], 0.9));
+        for (x, y) in [(1, 2), (3, 2), (2, 1), (2, 3)] {
+            assert!(near(s[y * nx + x], 0.9 * (-0.5f32).exp()), "{x} {y}: {}", s[y * nx + x]);
+        }
+        for (x, y) in [(1, 1), (3, 3), (1, 3), (3, 1)] {
+            assert!(near(s[y * nx + x], 0.9 * (-1.0f32).exp()));
+        }
+        assert!(near(s[0], 0.1) && near(s[2 * nx], 0.1));
+        // σ two cells reaches two cells: 0.9·e^(-4/8) there; σ 0 changes nothing.
+        let s2 = spread(&p, nx, ny, 0.05, 0.1);
+        assert!(near(s2[2 * nx], 0.9 * (-0.5f32).exp()));
+        assert_eq!(spread(&p, nx, ny, 0.05, 0.0), p);
+    }
+
+    #[test]
+    fn loop_closure_spread_finds_a_corridor_junction_whose_walls_lie_on_cell_borders() {
+        // A corridor along x whose walls run along cell borders, a junction at x 3..5 and its end
+        // wall at x = 0, seen as the omnidirectional ToF rig sees it (nothing within 20° of the
+        // diagonals, where the pyramid's edges are) with range noise of about 1 cm: end points
+        // fall on either side of the borders. A scan at the junction, searched from 2 m along
+        // the corridor in the spread submap, must be found at the junction, and score higher
+        // there than in the raw one.
+        let walls = [
+            [0.0, 0.0, 30.0, 0.0],
+            [0.0, 2.2, 3.0, 2.2],
+            [5.0, 2.2, 30.0, 2.2],
+            [3.0, 2.2, 3.0, 6.0],
+            [5.0, 2.2, 5.0, 6.0],
+            [0.0, 0.0, 0.0, 2.2],
+        ];
+        let angles: Vec<f64> = beams(360)
+            .into_iter()
+            .filter(|a| (a.rem_euclid(std::f64::consts::FRAC_PI_2) - std::f64::consts::FRAC_PI_4).abs() > 20f64.to_radians())
+            .collect();
+        let noisy = |r: Vec<f32>, seed: u64| -> Vec<f32> {
+            let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+            r.iter().map(|&v| v + rng.random_range(-0.017f32..0.017)).collect()
+        };
+        let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
+        let truth = [4.1, 1.1, 0.0];
+        let pts = scan_points(&geom, &noisy(cast(&walls, truth, &angles), 99), 7.0);
+        let submap = |sigma: f64| {
+            let mut s = Submap::new(SubmapParams { spread_sigma: sigma, ..params(0.05, 7.0) }).unwrap();
+            for k in 0..12 {
+                let pose = [1.0 + 0.5 * k as f64, 1.1, 0.0];
+                s.insert(pose, &geom, &noisy(cast(&walls, pose, &angles), k)).unwrap();
+            }
+            s.finish().unwrap();
+            s
+        };
+        let (raw, spread) = (submap(0.0), submap(0.05));
+        let m = search(spread.grids().unwrap(), &pts, [6.1, 1.1, 0.0], 2.5, 0.2, 0.3).unwrap().unwrap();
+        let (dxy, dth) = pose_error(m.pose, truth);
+        assert!(dxy <= 0.05 && dth <= m.angular_step, "{dxy} m, {dth} rad");
+        let at_raw = search(raw.grids().unwrap(), &pts, m.pose, 0.0, 0.0, 0.0).unwrap().unwrap();
+        println!("junction: score {:.3} spread, {:.3} raw", m.score, at_raw.score);
+        assert!(m.score > at_raw.score + 0.05);
     }
 
     #[test]
@@ -1197,7 +1307,7 @@ mod tests {
         let submap = build(&walls, &poses, params(0.05, 20.0));
         let built = t.elapsed();
         let t = Instant::now();
-        let grids = PrecomputedGrids::new(submap.grid(), DEFAULT_DEPTH, DEFAULT_UNKNOWN_PROBABILITY).unwrap();
+        let grids = PrecomputedGrids::new(submap.grid(), DEFAULT_DEPTH, DEFAULT_UNKNOWN_PROBABILITY, 0.0).unwrap();
         let precomputed = t.elapsed();
         let truth = [11.3, 9.2, 2.1];
         let pts = query(&walls, truth, 20.0);

@@ -40,7 +40,8 @@ fn sensor(sensor_pose: Option<&PyReadonlyArray1<'_, f64>>) -> PyResult<[f64; 3]>
 type Match<'py> = (Bound<'py, PyArray1<f64>>, f64, Bound<'py, PyArray2<f64>>);
 
 /// A local occupancy grid for loop closure: scans go in at robot poses; once finished, scans
-/// are searched in it by branch and bound.
+/// are searched in it by branch and bound, on its probabilities spread by `spread_sigma` (m: an
+/// end point's standard deviation about its obstacle; 0 searches the raw probabilities).
 #[pyclass(name = "Submap", module = "omnitof._core")]
 struct PySubmap {
     inner: Submap,
@@ -51,7 +52,7 @@ struct PySubmap {
 impl PySubmap {
     #[new]
     #[pyo3(signature = (resolution, l_occ, l_free, l_min, l_max, max_range, *, clear_no_echo=false,
-        unknown_probability=DEFAULT_UNKNOWN_PROBABILITY, depth=DEFAULT_DEPTH, threads=None))]
+        unknown_probability=DEFAULT_UNKNOWN_PROBABILITY, depth=DEFAULT_DEPTH, spread_sigma=0.0, threads=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         resolution: f64,
@@ -63,6 +64,7 @@ impl PySubmap {
         clear_no_echo: bool,
         unknown_probability: f32,
         depth: u32,
+        spread_sigma: f64,
         threads: Option<usize>,
     ) -> PyResult<Self> {
         let params = SubmapParams {
@@ -72,6 +74,7 @@ impl PySubmap {
             clear_no_echo,
             unknown_probability,
             depth,
+            spread_sigma,
         };
         let inner = Submap::new(params).map_err(PyValueError::new_err)?;
         let pool = crate::optional_pool(threads)?;

@@ -13,7 +13,10 @@ scan, its best particle gives a pose. Behind it, as in Cartographer (Hess, Kohle
   bound grids once (rust/src/loop_closure.rs).
 - **Loop closures**: each new node's scan is searched in the finished submaps near its
   estimated pose, in a window around it, by branch and bound over precomputed max-grids
-  (Hess et al. sec. V-C; Olson, ICRA 2009) and refined below the cell size. A match whose
+  (Hess et al. sec. V-C; Olson, ICRA 2009) and refined below the cell size. The search's cell
+  values are the submap's probabilities spread by the likelihood field's sigma (each cell
+  raised to its Gaussian-discounted neighbours; rust/src/loop_closure.rs, `spread`), so that
+  end points a few millimetres in front of a wall on a cell border still count. A match whose
   score reaches `min_score` gives an edge between the submap's first node and the new node,
   with the covariance of the score surface. The matched pose is then refined as the front end
   matches its own scans (the likelihood field of the cells' mean end points), so that a
@@ -196,7 +199,7 @@ class PoseGraphBackend:
     def _new_submap(self, first: int) -> _Submap:
         m = self.map_cfg
         grid = _core.Submap(m.resolution, m.l_occ, m.l_free, m.l_min, m.l_max, self.max_range,
-                            clear_no_echo=m.clear_no_echo, threads=self.threads)
+                            clear_no_echo=m.clear_no_echo, spread_sigma=self.field_sigma, threads=self.threads)
         sub = _Submap(grid, first)
         self.submaps.append(sub)
         return sub
