@@ -1,0 +1,101 @@
+"""Where the front end's scan matcher puts a scan that it starts at the true pose, in a map built
+from the true poses: the matcher's own error, with no filter, odometry or drift around it.
+
+For a simulated world and drive, every `--every`-th scan is integrated into one occupancy grid
+at its true pose (the map settings of `--preset`), and each scan from the fourth on is first
+matched against the grid built from the scans before it (hill climbing then Gauss-Newton on the
+likelihood field, `OccupancyGrid.match_scan`, the preset's field and step settings, no odometry
+prior), started at its true pose. The error of the pose it ends at, in the robot's frame (along
+its heading, across it) and in heading, is the matcher's bias where it is consistent and its
+scatter where it is not. With `--ideal-scans` the ranges are the exact distances to the floor
+plan (benchmarks/world_filters.py), so the sensor plays no part.
+
+    python benchmarks/matcher_bias.py --world corridor1 --drive 0 --every 12 3 [--ideal-scans] \
+        [--preset tof-scanmatch] [--cache results/world_scans]
+
+Prints one JSON line per (world, every), then a Markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from omnitof import _core
+from omnitof.geometry import wrap_angle
+from omnitof.sim.worlds import load_world
+from omnitof.slam.config import load_config
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from world_filters import extracted_scans, ideal_scans  # noqa: E402
+
+
+def matcher_errors(scans, cfg, every: int) -> np.ndarray:
+    """(K, 3): along, across (m) and heading (rad) error of each matched scan."""
+    m, lf, sm = cfg.map, cfg.likelihood_field, cfg.scan_matcher
+    max_range = min(cfg.sensor_model.max_range, scans.max_range)
+    grid = _core.OccupancyGrid(m.resolution, m.l_occ, m.l_free, m.l_min, m.l_max)
+    truth = scans.ground_truth
+    errors = []
+    for n, i in enumerate(range(0, len(scans), every)):
+        ranges, angles = scans.scan_ranges(i), scans.scan_angles(i)
+        if n >= 3:
+            pose, _ = grid.match_scan(truth[i], angles, ranges, sensor_pose=scans.sensor_pose, sigma=lf.sigma,
+                                      window=lf.window_cells, max_range=max_range, step_xy=sm.step_xy,
+                                      step_theta=np.radians(sm.step_deg), refinements=sm.refinements,
+                                      gauss_newton=sm.gauss_newton)
+            d = np.asarray(pose) - truth[i]
+            c, s = np.cos(truth[i, 2]), np.sin(truth[i, 2])
+            errors.append([c * d[0] + s * d[1], -s * d[0] + c * d[1], wrap_angle(d[2])])
+        grid.integrate(truth[i], angles, ranges, max_range, sensor_pose=scans.sensor_pose)
+    return np.asarray(errors)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--world", default="corridor1")
+    parser.add_argument("--drive", type=int, default=0)
+    parser.add_argument("--every", nargs="+", type=int, default=[12, 3],
+                        help="integrate every n-th scan (12: about the filter's 0.5 m at the demo's speed)")
+    parser.add_argument("--preset", default="tof-scanmatch")
+    parser.add_argument("--ideal-scans", action="store_true")
+    parser.add_argument("--cache", type=Path, default=Path("results/world_scans"))
+    args = parser.parse_args(argv)
+
+    world = load_world(args.world)
+    scans = extracted_scans(args.world, args.drive, args.cache)
+    if args.ideal_scans:
+        scans = ideal_scans(world, scans)
+    cfg = load_config(preset=args.preset)
+    rows = []
+    for every in args.every:
+        e = matcher_errors(scans, cfg, every)
+        along, across, heading = 1000 * e[:, 0], 1000 * e[:, 1], np.degrees(e[:, 2])
+        row = {
+            "world": args.world, "drive": args.drive, "every": every, "ideal_scans": args.ideal_scans,
+            "matches": len(e),
+            "along_mean_mm": round(float(along.mean()), 1), "along_median_mm": round(float(np.median(along)), 1),
+            "along_over_1cm": round(float(np.mean(np.abs(along) > 10)), 2),
+            "along_over_5cm": round(float(np.mean(np.abs(along) > 50)), 2),
+            "across_median_mm": round(float(np.median(across)), 1),
+            "across_p90_mm": round(float(np.percentile(np.abs(across), 90)), 1),
+            "heading_median_deg": round(float(np.median(heading)), 3),
+            "heading_p90_deg": round(float(np.percentile(np.abs(heading), 90)), 3),
+        }
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    print("\n| world | drive | scans | every | along mean (median) mm | along > 1 cm / > 5 cm | across median (p90 abs) mm | heading median (p90 abs) ° |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['world']} | {r['drive']} | {'ideal' if r['ideal_scans'] else 'ToF'} | {r['every']} | "
+              f"{r['along_mean_mm']:+.1f} ({r['along_median_mm']:+.1f}) | {r['along_over_1cm']:.2f} / {r['along_over_5cm']:.2f} | "
+              f"{r['across_median_mm']:+.1f} ({r['across_p90_mm']:.1f}) | {r['heading_median_deg']:+.3f} ({r['heading_p90_deg']:.3f}) |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
