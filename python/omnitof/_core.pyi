@@ -133,6 +133,7 @@ class Submap:
         clear_no_echo: bool = False,
         unknown_probability: float = ...,
         depth: int = ...,
+        spread_sigma: float = 0.0,
         threads: int | None = None,
     ) -> Submap: ...
     def insert(self, pose: _F64, ranges: _F32, angles: _F64, sensor_pose: _F64 | None = None) -> None: ...

@@ -420,6 +420,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--boards", type=_positive_int, default=30, help="calibration: checkerboard images")
     p.add_argument("--pair-boards", type=_positive_int, default=2,
                    help="calibration: plain boards seen through each two neighbouring mirrors (for `calibrate refine`)")
+    p.add_argument("--walls", action="store_true",
+                   help="calibration: also a flat wall facing each mirror at 0.5-6.5 m, with --tof-errors, and "
+                        "walls/walls.yaml (for `calibrate distance`)")
     p.add_argument("--seed", type=_seed, default=0, help="fixes the odometry noise, the sensor noise and the sub-ray jitter")
     p.add_argument("--speed", type=_number(above=0), default=0.4, help="driving speed (m/s)")
     p.add_argument("--samples", action="store_true", help="also write the raw samples A0..A3 (3x the size)")

@@ -1,9 +1,10 @@
 """`omnitof calibrate ...`: intrinsics, mirrors, masks, checks and simulated target images.
 
-    omnitof calibrate render-targets --out DIR [--world W] [--seed S] [--placements N]
+    omnitof calibrate render-targets --out DIR [--world W] [--seed S] [--placements N] [--walls]
     omnitof calibrate intrinsics DIR/intrinsics --out cal.yaml
     omnitof calibrate mirrors DIR/mirrors --calibration cal.yaml
     omnitof calibrate refine DIR --calibration cal.yaml [--out refined.yaml]
+    omnitof calibrate distance DIR/walls/walls.yaml --calibration refined.yaml
     omnitof calibrate report cal.yaml --out REPORT_DIR [--truth DIR/truth.yaml]
     omnitof calibrate check cal.yaml [--truth DIR/truth.yaml] [--figure side.png]
     omnitof calibrate masks cal.yaml --export regions.yaml | --polygons regions.yaml
@@ -19,6 +20,14 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+
+WALLS_FILE_HELP = """\
+walls:                      # one entry per position of the rig before a flat matte wall
+  - frames: wall_0.50_front # .npz files (amplitude + distance), a folder of them, or a ToF bag,
+                            # relative to this file; all its frames are averaged
+    mirror: front           # the mirror whose view the wall fills (its name in the calibration)
+    distance: 0.50          # metres, horizontally from the camera's optical centre to the wall,
+                            # the wall square to that mirror's view"""
 
 
 def add_calibrate_parser(sub) -> None:
@@ -77,7 +86,19 @@ def add_calibrate_parser(sub) -> None:
     c.add_argument("--boards", type=_positive_int, default=15, help="checkerboard images")
     c.add_argument("--pair-boards", type=_positive_int, default=2,
                    help="plain boards seen through each two neighbouring mirrors (for `calibrate refine`)")
+    c.add_argument("--walls", action="store_true",
+                   help="also a flat wall facing each mirror at 0.5-6.5 m, with the camera's systematic distance "
+                        "errors, and walls/walls.yaml (for `calibrate distance`)")
     c.set_defaults(func=cmd_render_targets)
+
+    c = csub.add_parser("distance", help="fit the distance correction (wiggling, amplitude, per-pixel offsets) "
+                        "to frames of a flat wall at measured distances",
+                        epilog="the walls file:\n" + WALLS_FILE_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    c.add_argument("walls", type=Path, help="YAML listing the wall positions (frames, mirror, distance; below)")
+    c.add_argument("--calibration", type=Path, required=True,
+                   help="the calibration whose geometry gives the true paths (`calibrate mirrors` or `refine`)")
+    c.add_argument("--out", type=Path, help="where to write (default: update --calibration)")
+    c.set_defaults(func=cmd_distance)
 
     c = csub.add_parser("check", help="equal-height objects seen in every mirror (paper Fig. 6)")
     c.add_argument("calibration", type=Path)
@@ -265,6 +286,39 @@ def cmd_render_targets(args: argparse.Namespace) -> int:
           f"{', '.join(summary['mirrors'])}) to {args.out / 'mirrors'}, "
           f"{summary['pair_images']} two-mirror board images to {args.out / 'pairs'}, "
           f"and the true calibration {summary['truth']} ({time.perf_counter() - started:.1f} s)")
+    if args.walls:
+        from omnitof.calibration.walls import render_wall_recordings, write_wall_recordings
+        from omnitof.sensor.design import default_rig
+        from omnitof.sensor.tof import SensorNoise
+        from omnitof.sensor.tof_errors import ToFErrors
+
+        rig = default_rig()
+        # The camera's systematic errors (`simulate calibration --tof-errors`; the simulator's
+        # default for `calibrate render-targets`): what the correction is for.
+        errors = getattr(args, "tof_errors", None)
+        sensor = SensorNoise(errors=ToFErrors.parse(errors) if errors else ToFErrors.simulation_default())
+        recordings = [r for r, _ in render_wall_recordings(rig.camera, rig.mirrors, args.seed, sensor=sensor)]
+        listing = write_wall_recordings(args.out / "walls", recordings, [m.name for m in rig.mirrors])
+        print(f"wrote {len(recordings)} wall positions to {listing} ({time.perf_counter() - started:.1f} s)")
+    return 0
+
+
+def cmd_distance(args: argparse.Namespace) -> int:
+    from omnitof.calibration import load_calibration, save_calibration
+    from omnitof.calibration.walls import fit_from_walls, read_wall_recordings, recorded_view
+
+    cal = load_calibration(args.calibration)
+    started = time.perf_counter()
+    recordings = read_wall_recordings(args.walls, cal)
+    views = [recorded_view(cal, r) for r in recordings]
+    cal.distance_correction = dc = fit_from_walls(cal, views)
+    cal.provenance["distance_correction"] = f"{len(views)} wall positions from {args.walls}"
+    out = args.out or args.calibration
+    save_calibration(cal, out)
+    print(f"fitted the distance correction to {dc.samples} wall pixels of {len(views)} positions "
+          f"({sum(len(r.distances) for r in recordings)} frames): rms error {1000 * dc.rms_before:.1f} mm "
+          f"before, {1000 * dc.rms_after:.1f} mm after ({time.perf_counter() - started:.1f} s)")
+    print(f"wrote {out}")
     return 0
 
 

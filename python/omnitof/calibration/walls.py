@@ -24,9 +24,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from omnitof.calibration.distance import DistanceCorrection, samples_from_plane
 
@@ -95,7 +97,21 @@ def average_frames(distances: np.ndarray, amplitudes: np.ndarray,
     return mean, a.mean(axis=0)
 
 
-def render_wall_views(
+@dataclass
+class WallRecording:
+    """The frames of one wall position as a camera records them: the wall square to mirror
+    `mirror`'s view (`view_axes`), `distance` metres horizontally from the camera's optical
+    centre; `distances` and `amplitudes` (N, H, W), `saturated` (N, H, W) or None."""
+
+    name: str
+    mirror: int
+    distance: float
+    distances: np.ndarray
+    amplitudes: np.ndarray
+    saturated: np.ndarray | None = None
+
+
+def render_wall_recordings(
     camera: Any,
     mirrors: Sequence[Any],
     seed: int,
@@ -104,17 +120,17 @@ def render_wall_views(
     distances: Sequence[float] = WALL_DISTANCES,
     reflectances: Sequence[float] = WALL_REFLECTANCES,
     frames: int = FRAMES_PER_POSITION,
-) -> list[WallView]:
+) -> list[tuple[WallRecording, np.ndarray]]:
     """A matte wall 12 m × 6 m facing each mirror at each distance (mirror k's wall k/len(mirrors)
-    of the step further, see the module docstring), `frames` noisy frames each, averaged
-    (simulator; the wall placed by the rig's design, its plane known exactly)."""
+    of the step further, see the module docstring), `frames` noisy frames each (simulator; the
+    wall placed by the rig's design). Returns (the recording, camera_T_wall) per position."""
     from omnitof.calibration.targets import PlainBoard, Room, render_target_frames
     from omnitof.sensor.mirrors import assign_pixels
 
     axes = view_axes(camera, mirrors, assign_pixels(camera, mirrors))
     room = Room(half_width=12.0)  # the default room's walls (2.5 m) would hide the far walls
     step = float(np.median(np.diff(distances))) if len(distances) > 1 else 0.0
-    views = []
+    out = []
     for i, base in enumerate(distances):
         for k, mirror in enumerate(mirrors):
             albedo = reflectances[(i + k) % len(reflectances)]
@@ -123,12 +139,46 @@ def render_wall_views(
             wall = PlainBoard(width=12.0, height=6.0, reflectance=albedo)
             rngs = [np.random.default_rng([seed, 0x3A11, i, k, f]) for f in range(frames)]
             shots = render_target_frames(camera, wall, pose, mirrors, rngs=rngs, sensor=sensor, room=room)
-            d, a = average_frames(np.stack([s.distance for s in shots]), np.stack([s.amplitude for s in shots]),
-                                  np.stack([s.saturated for s in shots]))
-            normal = pose[:3, 2].copy()
-            views.append(WallView(f"wall {dist:.2f} m, {mirror.name}, albedo {albedo}", d, a, normal,
-                                  float(normal @ pose[:3, 3]), k))
+            origin, direction = axes[k]
+            recording = WallRecording(
+                f"wall {dist:.2f} m, {mirror.name}, albedo {albedo}", k,
+                float(direction[:2] @ origin[:2] + dist),  # from the optical centre, not the mirror
+                np.stack([s.distance for s in shots]), np.stack([s.amplitude for s in shots]),
+                np.stack([s.saturated for s in shots]),
+            )
+            out.append((recording, pose))
+    return out
+
+
+def render_wall_views(camera: Any, mirrors: Sequence[Any], seed: int, **settings: Any) -> list[WallView]:
+    """`render_wall_recordings`, each position's frames averaged, with the wall's exact plane
+    (the simulator knows it)."""
+    views = []
+    for rec, pose in render_wall_recordings(camera, mirrors, seed, **settings):
+        d, a = average_frames(rec.distances, rec.amplitudes, rec.saturated)
+        normal = pose[:3, 2].copy()
+        views.append(WallView(rec.name, d, a, normal, float(normal @ pose[:3, 3]), rec.mirror))
     return views
+
+
+def recorded_view(calibration: Any, recording: WallRecording) -> WallView:
+    """A recorded wall position as a WallView: its frames averaged, its plane from the
+    calibration's geometry. The wall stands square to the mirror's mean horizontal view
+    direction (`view_axes` of the calibrated planes) at the recorded distance from the optical
+    centre: {x : −u·x = −distance}, u that direction, the plane the simulator puts it in. A wall
+    turned by 1° off square lengthens the paths by 0.015 %; a distance measured 1 mm off shifts
+    the fitted curve by 1 mm."""
+    axes = view_axes(calibration.camera, [_PlaneMirror(p) for p in calibration.planes], calibration.labels)
+    _, direction = axes[recording.mirror]
+    d, a = average_frames(recording.distances, recording.amplitudes, recording.saturated)
+    return WallView(recording.name, d, a, -direction, -float(recording.distance), recording.mirror)
+
+
+@dataclass(frozen=True)
+class _PlaneMirror:
+    """A calibrated mirror plane where the rig's geometry functions expect a mirror."""
+
+    plane: Any
 
 
 def wall_samples(calibration: Any, views: Sequence[WallView]) -> tuple[np.ndarray, ...]:
@@ -147,3 +197,79 @@ def fit_from_walls(calibration: Any, views: Sequence[WallView]) -> DistanceCorre
     """The DistanceCorrection (wiggling + amplitude + per-pixel terms) fitted to wall views."""
     m, t, a, p = wall_samples(calibration, views)
     return DistanceCorrection.fit(m, t, a, p, calibration.camera.shape)
+
+
+# --- recorded walls: the file `omnitof calibrate distance` reads ------------------------------
+
+def read_wall_recordings(path: str | Path, calibration: Any) -> list[WallRecording]:
+    """The wall positions listed in a walls file (its form: `omnitof calibrate distance --help`),
+    their frames loaded.
+    Raises CalibrationError naming the file and the entry for anything missing or malformed."""
+    from omnitof.calibration import CalibrationError
+    from omnitof.calibration.images import load_images
+
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as err:
+        raise CalibrationError(f"cannot read the walls file: {err.strerror or err}", path) from None
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        raise CalibrationError(f"not valid YAML: {getattr(err, 'problem', err)}", path,
+                               None if mark is None else mark.line + 1) from None
+    entries = data.get("walls") if isinstance(data, dict) else None
+    if not isinstance(entries, list) or not entries:
+        raise CalibrationError("expected a list 'walls:' of positions, each with frames, mirror and distance", path)
+    recordings = []
+    for i, entry in enumerate(entries):
+        where = f"walls[{i}]"
+        if not isinstance(entry, dict):
+            raise CalibrationError(f"{where}: expected a mapping with frames, mirror and distance", path)
+        missing = [k for k in ("frames", "mirror", "distance") if k not in entry]
+        if missing:
+            raise CalibrationError(f"{where}: missing {', '.join(missing)}", path)
+        name = str(entry["mirror"])
+        if name not in calibration.names:
+            raise CalibrationError(f"{where}.mirror: {name!r} is not a mirror of the calibration "
+                                   f"({', '.join(calibration.names)})", path)
+        distance = entry["distance"]
+        if isinstance(distance, bool) or not isinstance(distance, (int, float)) or not 0.05 <= distance <= 50:
+            raise CalibrationError(f"{where}.distance: expected metres between 0.05 and 50, got {distance!r}", path)
+        frames_path = path.parent / str(entry["frames"])
+        if not frames_path.exists():
+            raise CalibrationError(f"{where}.frames: no such file or folder {frames_path}", path)
+        images = load_images([frames_path])
+        flat = [im.name for im in images if im.distance is None]
+        if flat:
+            raise CalibrationError(f"{where}.frames: {flat[0]} has no distance image (a ToF frame is needed)", path)
+        if len({im.amplitude.shape for im in images}) != 1 or images[0].amplitude.shape != calibration.camera.shape:
+            raise CalibrationError(f"{where}.frames: the frames must be {calibration.camera.shape} images "
+                                   "like the calibration's camera", path)
+        recordings.append(WallRecording(
+            f"{frames_path.name}, {name}, {float(distance):.3f} m", calibration.index_of(name), float(distance),
+            np.stack([im.distance for im in images]), np.stack([im.amplitude for im in images]),
+        ))
+    return recordings
+
+
+def write_wall_recordings(folder: str | Path, recordings: Sequence[WallRecording], names: Sequence[str]) -> Path:
+    """Write recordings as a walls file would list them: folder/walls.yaml and one folder of
+    .npz frames per position (for `omnitof calibrate distance`); `names` are the mirrors'."""
+    from omnitof.io.atomic import atomic_write
+
+    folder = Path(folder)
+    entries = []
+    for i, rec in enumerate(recordings):
+        sub = f"wall_{i:02d}_{names[rec.mirror]}"
+        (folder / sub).mkdir(parents=True, exist_ok=True)
+        for f, (d, a) in enumerate(zip(rec.distances, rec.amplitudes)):
+            if rec.saturated is not None:
+                d = np.where(rec.saturated[f], np.nan, d)
+            with atomic_write(folder / sub / f"frame_{f:02d}.npz", "wb") as handle:
+                np.savez_compressed(handle, amplitude=a.astype(np.float32), distance=d.astype(np.float32))
+        entries.append({"frames": sub, "mirror": names[rec.mirror], "distance": round(rec.distance, 4)})
+    out = folder / "walls.yaml"
+    with atomic_write(out) as handle:
+        handle.write("# Wall positions for `omnitof calibrate distance` (see docs/guide/calibration.md).\n")
+        yaml.safe_dump({"walls": entries}, handle, sort_keys=False)
+    return out
