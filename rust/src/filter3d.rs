@@ -3,7 +3,8 @@
 //!
 //! - Pose: planar (x, y, θ), the robot drives on the floor; sampled from the odometry motion
 //!   model (motion.rs), or from a Gaussian around a scan-match mode (the proposal of Grisetti,
-//!   Stachniss & Burgard 2007, as scan_match::propose does it in 2D).
+//!   Stachniss & Burgard 2007, as scan_match::propose does it in 2D: hill climbing, then
+//!   Gauss-Newton on the field, `Field3d::linearise`).
 //! - Map: a sparse log-odds voxel grid (voxel.rs indexing, 8³ blocks) whose blocks are held
 //!   through `Arc`: particles copied from one another by resampling share every block neither
 //!   has changed since, and a write copies a block first where another particle holds it
@@ -33,7 +34,7 @@ use rayon::prelude::*;
 use crate::filter::{rng_for, ProposalKind, TrajectoryNode, Weighing};
 use crate::grid::LogOddsModel;
 use crate::motion::{compose, relative, OdometryMotion};
-use crate::scan_match::{climb, draw_around_mode, motion_prior, MatcherParams, PosePrior};
+use crate::scan_match::{climb, draw_around_mode, gauss_newton_with, motion_prior, MatcherParams, PosePrior};
 use crate::voxel::{pack, ray_voxels, sorted_difference, Block, IntegrateStats, SeenFilter, VoxelGrid, BLOCK_VOXELS, INDEX_LIMIT};
 
 /// One 8³ block of a particle's map: log-odds (NaN = unknown) and, per voxel, the running mean
@@ -197,25 +198,36 @@ impl SharedVoxels {
     /// neighbour's mean can lie nearer, by less than a voxel).
     #[inline]
     pub fn nearest_occupied(&self, p: [f64; 3], threshold: f32) -> Option<f64> {
+        self.nearest_occupied_offset(p, threshold).map(|(d2, _)| d2)
+    }
+
+    /// As `nearest_occupied`, with the offset (m) from `p` to that mean end point.
+    #[inline]
+    pub fn nearest_occupied_offset(&self, p: [f64; 3], threshold: f32) -> Option<(f64, [f64; 3])> {
         let res = self.resolution;
         let u = p.map(|v| v / res);
         let c = u.map(|v| v.floor() as i64);
-        let d2_in = |i: [i64; 3]| -> Option<f64> {
+        // Offset (m) from p to the mean end point `off` (1/256 voxel) of voxel i, and its square.
+        let offset = |i: [i64; 3], off: [u8; 3]| -> (f64, [f64; 3]) {
+            let m = [0, 1, 2].map(|a| i[a] as f64 + (off[a] as f64 + 0.5) / 256.0);
+            let d2 = (0..3).map(|a| (u[a] - m[a]).powi(2)).sum::<f64>() * res * res;
+            (d2, [0, 1, 2].map(|a| (m[a] - u[a]) * res))
+        };
+        let own = |i: [i64; 3]| -> Option<(f64, [f64; 3])> {
             let (b, k) = self.voxel(i)?;
             // NaN (unknown) compares false.
             if !(b.log_odds[k] > threshold) {
                 return None;
             }
-            let off = b.offset[k];
-            Some((0..3).map(|a| (u[a] - (i[a] as f64 + (off[a] as f64 + 0.5) / 256.0)).powi(2)).sum::<f64>() * res * res)
+            Some(offset(i, b.offset[k]))
         };
-        if let Some(d2) = d2_in(c) {
-            return Some(d2);
+        if let Some(found) = own(c) {
+            return Some(found);
         }
         // The 26 neighbours lie in at most 8 blocks: look each block up once.
         let mut cache: [(u64, Option<&Block3>); 8] = [(u64::MAX, None); 8];
         let mut cached = 0;
-        let mut best: Option<f64> = None;
+        let mut best: Option<(f64, [f64; 3])> = None;
         for dx in -1..=1 {
             for dy in -1..=1 {
                 for dz in -1..=1 {
@@ -244,10 +256,9 @@ impl SharedVoxels {
                     if !(b.log_odds[k] > threshold) {
                         continue;
                     }
-                    let off = b.offset[k];
-                    let d2 = (0..3).map(|a| (u[a] - (i[a] as f64 + (off[a] as f64 + 0.5) / 256.0)).powi(2)).sum::<f64>() * res * res;
-                    if best.is_none_or(|bb| d2 < bb) {
-                        best = Some(d2);
+                    let found = offset(i, b.offset[k]);
+                    if best.is_none_or(|bb| found.0 < bb.0) {
+                        best = Some(found);
                     }
                 }
             }
@@ -306,6 +317,45 @@ impl Field3d {
             };
         }
         (sum / pts.len() as f64, matched)
+    }
+}
+
+impl Field3d {
+    /// For Gauss-Newton (`scan_match::gauss_newton_with`): at planar pose `pose`, (the sum over
+    /// `pts` (robot frame) of what `score` averages, its gradient and Gauss-Newton Hessian in
+    /// (x, y, θ), points with an occupied voxel in reach). Each point pulls towards its nearest
+    /// occupied voxel's mean end point, weighted as iteratively reweighted least squares of its
+    /// log-likelihood; points with none drop out of the step (they score the floor).
+    pub fn linearise(&self, map: &SharedVoxels, pose: [f64; 3], pts: &[[f64; 3]]) -> (f64, [f64; 3], [[f64; 3]; 3], usize) {
+        let (s, c) = pose[2].sin_cos();
+        let inv = 1.0 / (2.0 * self.sigma * self.sigma);
+        let floor = self.z_rand.max(1e-300).ln();
+        let (mut total, mut matched) = (0.0, 0);
+        let mut g = [0.0; 3];
+        let mut h = [[0.0; 3]; 3];
+        for p in pts {
+            let (rx, ry) = (c * p[0] - s * p[1], s * p[0] + c * p[1]);
+            let w = [pose[0] + rx, pose[1] + ry, p[2]];
+            let Some((d2, off)) = map.nearest_occupied_offset(w, self.occupied_threshold) else {
+                total += floor;
+                continue;
+            };
+            matched += 1;
+            let e = self.z_hit * (-d2 * inv).exp();
+            total += (e + self.z_rand).ln();
+            let weight = e / (e + self.z_rand) / (self.sigma * self.sigma);
+            // Residual r = w − mean end point = −off; dw/d(x, y, θ) = [[1, 0, −ry], [0, 1, rx], [0, 0, 0]].
+            let rows = [[1.0, 0.0, -ry], [0.0, 1.0, rx]];
+            for (k, row) in rows.iter().enumerate() {
+                for a in 0..3 {
+                    g[a] += weight * row[a] * -off[k];
+                    for b in 0..3 {
+                        h[a][b] += weight * row[a] * row[b];
+                    }
+                }
+            }
+        }
+        (total, g, h, matched)
     }
 }
 
@@ -549,7 +599,11 @@ fn propose3d<R: rand::Rng>(
         if m.odometry_prior { s + prior.log_prob(pose) } else { s }
     };
     let (mode, _) = climb(climb_goal, start, m);
-    let matched = p.field.score(map, mode, pts).1;
+    // Below the climb's last step, Gauss-Newton on all the scored rays (as the 2D matcher).
+    let (mode, _, matched) = gauss_newton_with(
+        |pose| p.field.linearise(map, pose, pts), pts.len(), p.effective_rays,
+        m.odometry_prior.then_some(&prior), mode, m.gauss_newton,
+    );
     if (matched as f64) < m.min_matched * pts.len() as f64 {
         return None;
     }
@@ -661,6 +715,26 @@ mod tests {
             }
         }
         map
+    }
+
+    #[test]
+    fn gauss_newton_brings_a_pose_below_the_climbs_step_to_the_truth() {
+        // Started up to 4 cm and 0.6° off in the known room (0.1 m voxels, below the climb's
+        // 5 cm first step), Gauss-Newton on the field ends within a tenth of a voxel and 0.35°
+        // of the true pose (3-5 mm, 0.17-0.25°), and its objective rose.
+        let map = known_map();
+        let field = params(1, 1, ProposalKind::Odometry).field;
+        let truth = [0.13, -0.07, 0.21];
+        let (_, e) = frame(truth, 3.0, (-180.0, 180.0));
+        let pts: Vec<[f64; 3]> = e.into_iter().filter(|p| p[2] > 0.05).collect();
+        for start in [[0.17, -0.07, 0.21], [0.13, -0.11, 0.22], [0.10, -0.04, 0.20]] {
+            let first = field.linearise(&map, start, &pts).0;
+            let (pose, value, matched) = gauss_newton_with(|p| field.linearise(&map, p, &pts), pts.len(), 1.0, None, start, 20);
+            let err = (pose[0] - truth[0]).hypot(pose[1] - truth[1]);
+            println!("from {start:?}: {:.4} m, {:.4} rad", err, (pose[2] - truth[2]).abs());
+            assert!(err < 0.01 && (pose[2] - truth[2]).abs() < 0.006, "from {start:?}: {pose:?}");
+            assert!(value > first / pts.len() as f64 && matched > pts.len() / 2);
+        }
     }
 
     #[test]

@@ -512,13 +512,28 @@ pub fn gauss_newton(
     start: [f64; 3],
     iterations: u32,
 ) -> ([f64; 3], f64, usize) {
-    let scale = if pts.is_empty() { 0.0 } else { gain / pts.len() as f64 };
+    gauss_newton_with(|pose| linearise(lf, grid, geom, pts, pose), pts.len(), gain, prior, start, iterations)
+}
+
+/// The Gauss-Newton loop of `gauss_newton` on any linearisation: `linearise(pose)` gives (sum of
+/// the points' log-likelihoods, their gradient and Gauss-Newton Hessian in (x, y, θ), points
+/// with an obstacle in reach) over `n_points` points; the sum's mean is scaled by `gain`.
+/// Shared by the 2D matcher and the 3D filter's (filter3d.rs).
+pub(crate) fn gauss_newton_with(
+    linearise: impl Fn([f64; 3]) -> (f64, [f64; 3], [[f64; 3]; 3], usize),
+    n_points: usize,
+    gain: f64,
+    prior: Option<&PosePrior>,
+    start: [f64; 3],
+    iterations: u32,
+) -> ([f64; 3], f64, usize) {
+    let scale = if n_points == 0 { 0.0 } else { gain / n_points as f64 };
     let mut pose = start;
     let mut best = (start, f64::NEG_INFINITY, 0);
     // Each pass scores the pose and linearises there in one sweep over the points; a pass
     // that scores lower than the one before undoes the last step and ends the refinement.
     for _ in 0..=iterations {
-        let (total, mut g, mut h, matched) = linearise(lf, grid, geom, pts, pose);
+        let (total, mut g, mut h, matched) = linearise(pose);
         let mut score = scale * total;
         for a in 0..3 {
             g[a] *= scale;
