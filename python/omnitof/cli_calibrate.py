@@ -26,8 +26,9 @@ walls:                      # one entry per position of the rig before a flat ma
   - frames: wall_0.50_front # .npz files (amplitude + distance), a folder of them, or a ToF bag,
                             # relative to this file; all its frames are averaged
     mirror: front           # the mirror whose view the wall fills (its name in the calibration)
-    distance: 0.50          # metres, horizontally from the camera's optical centre to the wall,
-                            # the wall square to that mirror's view"""
+    distance: 0.50          # metres, the shortest horizontal distance from the camera's optical
+                            # centre to the wall, which faces that mirror (its turn off square
+                            # is fitted to the frames)"""
 
 
 def add_calibrate_parser(sub) -> None:
@@ -297,7 +298,10 @@ def cmd_render_targets(args: argparse.Namespace) -> int:
         # default for `calibrate render-targets`): what the correction is for.
         errors = getattr(args, "tof_errors", None)
         sensor = SensorNoise(errors=ToFErrors.parse(errors) if errors else ToFErrors.simulation_default())
-        recordings = [r for r, _ in render_wall_recordings(rig.camera, rig.mirrors, args.seed, sensor=sensor)]
+        # Set up by hand: each wall a little off square (`calibrate distance` fits the turn).
+        turns = (1.5, -1.0, 0.5, -2.0, 0.0, 2.5, -0.5)
+        recordings = [r for r, _ in render_wall_recordings(rig.camera, rig.mirrors, args.seed, sensor=sensor,
+                                                           turns_deg=turns)]
         listing = write_wall_recordings(args.out / "walls", recordings, [m.name for m in rig.mirrors])
         print(f"wrote {len(recordings)} wall positions to {listing} ({time.perf_counter() - started:.1f} s)")
     return 0
@@ -305,19 +309,24 @@ def cmd_render_targets(args: argparse.Namespace) -> int:
 
 def cmd_distance(args: argparse.Namespace) -> int:
     from omnitof.calibration import load_calibration, save_calibration
-    from omnitof.calibration.walls import fit_from_walls, read_wall_recordings, recorded_view
+    from omnitof.calibration.walls import fit_from_recordings, read_wall_recordings
 
     cal = load_calibration(args.calibration)
     started = time.perf_counter()
     recordings = read_wall_recordings(args.walls, cal)
-    views = [recorded_view(cal, r) for r in recordings]
-    cal.distance_correction = dc = fit_from_walls(cal, views)
+    dc, views = fit_from_recordings(cal, recordings)
+    cal.distance_correction = dc
     cal.provenance["distance_correction"] = f"{len(views)} wall positions from {args.walls}"
     out = args.out or args.calibration
     save_calibration(cal, out)
     print(f"fitted the distance correction to {dc.samples} wall pixels of {len(views)} positions "
           f"({sum(len(r.distances) for r in recordings)} frames): rms error {1000 * dc.rms_before:.1f} mm "
           f"before, {1000 * dc.rms_after:.1f} mm after ({time.perf_counter() - started:.1f} s)")
+    turns = [float(v.name.rsplit("turned ", 1)[1].rstrip("°")) for v in views if "turned " in v.name]
+    square = len(views) - len(turns)
+    if turns:
+        print(f"  the walls stood {min(turns):+.2f}° to {max(turns):+.2f}° off square (fitted to their points)"
+              + (f"; {square} too dark to fit, taken as square" if square else ""))
     print(f"wrote {out}")
     return 0
 

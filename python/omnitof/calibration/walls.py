@@ -22,6 +22,7 @@ design, rendered with the sensor's noise and systematic errors (`sensor.tof_erro
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +41,8 @@ WALL_DISTANCES = tuple(np.round(np.arange(0.5, 6.51, 0.5), 3))
 WALL_REFLECTANCES = (0.2, 0.5, 0.85)
 # Frames averaged per position: σ/2 per pixel.
 FRAMES_PER_POSITION = 4
+# How far off square (degrees) a recorded wall's turn is searched (`recorded_view`).
+MAX_WALL_TURN_DEG = 5.0
 # Pixels darker than this (sample units) are left out, as the scan extraction leaves them out
 # (`ScanSettings.min_amplitude`).
 MIN_AMPLITUDE = 40.0
@@ -120,10 +123,13 @@ def render_wall_recordings(
     distances: Sequence[float] = WALL_DISTANCES,
     reflectances: Sequence[float] = WALL_REFLECTANCES,
     frames: int = FRAMES_PER_POSITION,
+    turns_deg: Sequence[float] = (0.0,),
 ) -> list[tuple[WallRecording, np.ndarray]]:
     """A matte wall 12 m × 6 m facing each mirror at each distance (mirror k's wall k/len(mirrors)
     of the step further, see the module docstring), `frames` noisy frames each (simulator; the
-    wall placed by the rig's design). Returns (the recording, camera_T_wall) per position."""
+    wall placed by the rig's design, turned about its centre and the camera's axis by the next of
+    `turns_deg` in turn, as a wall set up by hand is). Returns (the recording, camera_T_wall) per
+    position; the recording's distance is the wall's shortest from the optical centre."""
     from omnitof.calibration.targets import PlainBoard, Room, render_target_frames
     from omnitof.sensor.mirrors import assign_pixels
 
@@ -136,13 +142,14 @@ def render_wall_recordings(
             albedo = reflectances[(i + k) % len(reflectances)]
             dist = float(base) + step * k / len(mirrors)
             pose = wall_pose(axes[k], dist)
+            turn = math.radians(turns_deg[(i * len(mirrors) + k) % len(turns_deg)])
+            pose[:3, :3] = _turn(turn) @ pose[:3, :3]
             wall = PlainBoard(width=12.0, height=6.0, reflectance=albedo)
             rngs = [np.random.default_rng([seed, 0x3A11, i, k, f]) for f in range(frames)]
             shots = render_target_frames(camera, wall, pose, mirrors, rngs=rngs, sensor=sensor, room=room)
-            origin, direction = axes[k]
             recording = WallRecording(
                 f"wall {dist:.2f} m, {mirror.name}, albedo {albedo}", k,
-                float(direction[:2] @ origin[:2] + dist),  # from the optical centre, not the mirror
+                -float(pose[:3, 2] @ pose[:3, 3]),  # the shortest distance from the optical centre
                 np.stack([s.distance for s in shots]), np.stack([s.amplitude for s in shots]),
                 np.stack([s.saturated for s in shots]),
             )
@@ -161,17 +168,101 @@ def render_wall_views(camera: Any, mirrors: Sequence[Any], seed: int, **settings
     return views
 
 
-def recorded_view(calibration: Any, recording: WallRecording) -> WallView:
+def recorded_view(calibration: Any, recording: WallRecording, *, fit_turn: bool = True,
+                  correction: DistanceCorrection | None = None) -> WallView:
     """A recorded wall position as a WallView: its frames averaged, its plane from the
-    calibration's geometry. The wall stands square to the mirror's mean horizontal view
-    direction (`view_axes` of the calibrated planes) at the recorded distance from the optical
-    centre: {x : −u·x = −distance}, u that direction, the plane the simulator puts it in. A wall
-    turned by 1° off square lengthens the paths by 0.015 %; a distance measured 1 mm off shifts
-    the fitted curve by 1 mm."""
+    calibration's geometry and the recorded distance (the wall's shortest from the optical
+    centre): {x : n·x = −distance}, n = −R(ψ)·u, u the mirror's mean horizontal view direction
+    (`view_axes` of the calibrated planes) and R(ψ) a turn by ψ about the camera's axis.
+
+    Nobody sets a wall square to a mirror's view to a tenth of a degree, and a turn of 1° moves
+    the true paths at the edges of a view ±45° wide by about ±5 cm at 3 m, far more than the
+    errors to be fitted. So, with `fit_turn`, ψ is fitted (within ±MAX_WALL_TURN_DEG) to the
+    frames themselves (`_fitted_turn`): the wall's points, each pixel's measured path along its
+    reflected ray, must lie on the plane. The camera's own error hardly pulls it: a turn tilts
+    the points' offsets from the plane across the wall (odd in the bearing), the wiggling and
+    amplitude terms follow the path length (even). The distance is what it is measured to be:
+    1 mm off shifts the fitted curve by 1 mm. The turn found is in the view's name. With
+    `correction`, the turn is fitted to the distances it corrects (`fit_from_recordings`); the
+    view keeps the measured ones."""
     axes = view_axes(calibration.camera, [_PlaneMirror(p) for p in calibration.planes], calibration.labels)
     _, direction = axes[recording.mirror]
     d, a = average_frames(recording.distances, recording.amplitudes, recording.saturated)
-    return WallView(recording.name, d, a, -direction, -float(recording.distance), recording.mirror)
+    c = -float(recording.distance)
+    if not fit_turn:
+        return WallView(recording.name, d, a, -direction, c, recording.mirror)
+    seen = d
+    if correction is not None:
+        flat = np.arange(d.size)
+        seen = correction.correct(d.reshape(-1), a.reshape(-1), flat).reshape(d.shape)
+    turn = _fitted_turn(calibration, recording.mirror, direction, recording.distance, seen, a)
+    told = "square (too few lit pixels to fit its turn)" if turn is None else f"turned {math.degrees(turn):+.2f}°"
+    normal = -direction if turn is None else -(_turn(turn) @ direction)
+    return WallView(f"{recording.name}, {told}", d, a, normal, c, recording.mirror)
+
+
+def fit_from_recordings(calibration: Any, recordings: Sequence[WallRecording],
+                        rounds: int = 2) -> tuple[DistanceCorrection, list[WallView]]:
+    """The DistanceCorrection fitted to recorded walls (`recorded_view`), and the views: the
+    walls' turns fitted to the measured distances first, then `rounds` times again to the
+    distances the correction of the round before corrects (near walls the camera's own error,
+    centimetres, tilts the fitted turn by up to 0.7° until it is corrected)."""
+    views = [recorded_view(calibration, r) for r in recordings]
+    correction = fit_from_walls(calibration, views)
+    for _ in range(rounds):
+        views = [recorded_view(calibration, r, correction=correction) for r in recordings]
+        correction = fit_from_walls(calibration, views)
+    return correction, views
+
+
+# Fewer lit pixels than this (a dark wall far off) fit no turn: the wall is taken as square.
+MIN_TURN_PIXELS = 2000
+
+
+def _fitted_turn(calibration: Any, mirror: int, direction: np.ndarray, distance: float,
+                 measured: np.ndarray, amplitude: np.ndarray) -> float | None:
+    """The turn ψ (rad) about the camera's axis that puts the wall's measured points (each lit
+    pixel of `mirror`'s view at its measured path along its reflected ray) on the plane
+    {x : −R(ψ)·u·x = −distance}, u = `direction`: the least trimmed squares of the points'
+    offsets from it over a grid of 0.05°, then refined (scipy's bounded scalar search). Points
+    more than 0.1 m off the best grid plane (floor, ceiling, mixed pixels) are left out. None
+    where fewer than MIN_TURN_PIXELS pixels are lit."""
+    from scipy.optimize import minimize_scalar
+
+    from omnitof.sensor.mirrors import viewing_rays
+
+    labels = np.where(calibration.labels == mirror, mirror, -1)
+    rays = viewing_rays(calibration.camera, [_PlaneMirror(p) for p in calibration.planes], labels)
+    with np.errstate(invalid="ignore"):
+        ok = (labels >= 0) & np.isfinite(measured) & (amplitude >= MIN_AMPLITUDE)
+    o, v = rays.origins[ok], rays.directions[ok]
+    points = o + (measured[ok] - np.linalg.norm(o, axis=1))[:, None] * v
+    if len(points) < MIN_TURN_PIXELS:
+        return None
+    xy = points[:, :2]
+
+    def offsets(turn: float) -> np.ndarray:
+        n = _turn(turn) @ direction
+        return xy @ n[:2] - distance
+
+    def trimmed(turn: float, keep: np.ndarray | None = None) -> float:
+        r = offsets(turn) if keep is None else offsets(turn)[keep]
+        return float(np.mean(np.minimum(np.abs(r), 0.1) ** 2))
+
+    bound = math.radians(MAX_WALL_TURN_DEG)
+    grid = np.arange(-bound, bound + 1e-12, math.radians(0.05))
+    start = float(grid[np.argmin([trimmed(t) for t in grid])])
+    keep = np.abs(offsets(start)) < 0.1
+    step = math.radians(0.05)
+    best = minimize_scalar(lambda t: trimmed(t, keep), bounds=(start - step, start + step), method="bounded",
+                           options={"xatol": 1e-5})
+    return float(best.x)
+
+
+def _turn(angle: float) -> np.ndarray:
+    """Rotation by `angle` (rad) about the camera's optical axis (z)."""
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 @dataclass(frozen=True)
