@@ -151,6 +151,13 @@ def test_calibrate_distance_refuses_a_walls_file_that_lacks_what_it_needs(tmp_pa
         "walls:\n  - {frames: pngs, mirror: front, distance: 1.0}\n": "has no distance image",
         "walls: [\n": "not valid YAML",
     }
+    # Frames of a real wall 1 m off, with a mistyped distance.
+    from omnitof.calibration.walls import render_wall_recordings, write_wall_recordings
+
+    rig = default_rig()
+    recording = render_wall_recordings(rig.camera, rig.mirrors, 1, distances=[1.0], frames=1)[0][0]
+    write_wall_recordings(tmp_path / "rec", [recording], [m.name for m in rig.mirrors])
+    cases["walls:\n  - {frames: rec/wall_00_front, mirror: front, distance: 3.0}\n"] = "check the distance and the mirror"
     for text, expected in cases.items():
         (tmp_path / "walls.yaml").write_text(text)
         assert main(["calibrate", "distance", str(tmp_path / "walls.yaml"), "--calibration",

@@ -195,7 +195,7 @@ def recorded_view(calibration: Any, recording: WallRecording, *, fit_turn: bool 
     if correction is not None:
         flat = np.arange(d.size)
         seen = correction.correct(d.reshape(-1), a.reshape(-1), flat).reshape(d.shape)
-    turn = _fitted_turn(calibration, recording.mirror, direction, recording.distance, seen, a)
+    turn = _fitted_turn(calibration, recording.mirror, direction, recording.distance, seen, a, recording.name)
     told = "square (too few lit pixels to fit its turn)" if turn is None else f"turned {math.degrees(turn):+.2f}°"
     normal = -direction if turn is None else -(_turn(turn) @ direction)
     return WallView(f"{recording.name}, {told}", d, a, normal, c, recording.mirror)
@@ -220,13 +220,15 @@ MIN_TURN_PIXELS = 2000
 
 
 def _fitted_turn(calibration: Any, mirror: int, direction: np.ndarray, distance: float,
-                 measured: np.ndarray, amplitude: np.ndarray) -> float | None:
+                 measured: np.ndarray, amplitude: np.ndarray, name: str = "") -> float | None:
     """The turn ψ (rad) about the camera's axis that puts the wall's measured points (each lit
     pixel of `mirror`'s view at its measured path along its reflected ray) on the plane
     {x : −R(ψ)·u·x = −distance}, u = `direction`: the least trimmed squares of the points'
     offsets from it over a grid of 0.05°, then refined (scipy's bounded scalar search). Points
     more than 0.1 m off the best grid plane (floor, ceiling, mixed pixels) are left out. None
-    where fewer than MIN_TURN_PIXELS pixels are lit."""
+    where fewer than MIN_TURN_PIXELS pixels are lit. Raises CalibrationError (naming `name`)
+    where most points lie off every such plane: a mistyped distance, or another mirror's wall."""
+    from omnitof.calibration import CalibrationError
     from scipy.optimize import minimize_scalar
 
     from omnitof.sensor.mirrors import viewing_rays
@@ -253,6 +255,12 @@ def _fitted_turn(calibration: Any, mirror: int, direction: np.ndarray, distance:
     grid = np.arange(-bound, bound + 1e-12, math.radians(0.05))
     start = float(grid[np.argmin([trimmed(t) for t in grid])])
     keep = np.abs(offsets(start)) < 0.1
+    if keep.mean() < 0.5:
+        raise CalibrationError(
+            f"{name}: most of the wall's points lie more than 0.1 m off a wall {distance:.3f} m away facing "
+            f"this mirror (their median distance is {float(np.median(xy @ direction[:2])):.2f} m): check the "
+            "distance and the mirror"
+        )
     step = math.radians(0.05)
     best = minimize_scalar(lambda t: trimmed(t, keep), bounds=(start - step, start + step), method="bounded",
                            options={"xatol": 1e-5})
@@ -337,7 +345,8 @@ def read_wall_recordings(path: str | Path, calibration: Any) -> list[WallRecordi
             raise CalibrationError(f"{where}.frames: the frames must be {calibration.camera.shape} images "
                                    "like the calibration's camera", path)
         recordings.append(WallRecording(
-            f"{frames_path.name}, {name}, {float(distance):.3f} m", calibration.index_of(name), float(distance),
+            f"{path}: {where} ({frames_path.name}, {name}, {float(distance):.3f} m)", calibration.index_of(name),
+            float(distance),
             np.stack([im.distance for im in images]), np.stack([im.amplitude for im in images]),
         ))
     return recordings
