@@ -3,9 +3,9 @@
 For each world (drive seed 0 unless told), the drive is rendered with the demo's ToF errors and
 extracted twice, as `omnitof demo` does it: with the calibration estimated from rendered targets
 (refined, with the wall-fitted distance correction; `world_filters.extracted_scans`, cached) and
-with the true rig given the same wall-fitted correction (`DemoSettings(calibrate=False,
-true_rig_correction=True)`). Every bin that both the scan and the exact floor plan at the slice
-height (from the true pose, `world_filters.ideal_scans`) have a range for is compared: the median
+with the true rig given the same wall-fitted correction (`extracted_scans(..., true_rig=True)`).
+Every bin that both the scan and the exact floor plan at the slice height (from the true pose,
+`world_filters.ideal_scans`) have a range for is compared: the median
 and 90th percentile of |error| and the share within 5 cm. Why: the maps' share of cells within
 5 cm of a wall swings by tens of points between filter seeds (BENCHMARKS.md, issue 13), far more
 than a calibration moves it, so the maps cannot tell two calibrations apart; the scans can.
@@ -19,42 +19,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import pickle
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from omnitof.demo import DemoSettings, _calibrate
-from omnitof.scan import ScanExtractor
-from omnitof.scan.tof_input import tof_scans
-from omnitof.sensor.tof import SensorNoise
-from omnitof.sensor.tof_errors import ToFErrors
-from omnitof.sim.render import Renderer, RenderSettings
-from omnitof.sim.sequence import MotionSettings, make_sequence, render_sequence
 from omnitof.sim.worlds import load_world
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from world_filters import extracted_scans, ideal_scans  # noqa: E402
-
-
-def true_rig_scans(name: str, drive: int, cache: Path):
-    """The scans of world `name`, drive `drive`, extracted with the true rig and its wall-fitted
-    distance correction (cached)."""
-    path = cache / f"{name}_{drive}_truerig.pkl"
-    if path.exists():
-        return pickle.loads(path.read_bytes())
-    world = load_world(name)
-    settings = DemoSettings(world=name, seed=drive, calibrate=False, true_rig_correction=True)
-    sequence = make_sequence(world, seed=drive, motion=MotionSettings(speed=settings.speed))
-    renderer = Renderer(world, sensor=SensorNoise(errors=ToFErrors.parse("default")), settings=RenderSettings(seed=drive))
-    work = cache / f"{name}_{drive}_truerig"
-    work.mkdir(parents=True, exist_ok=True)
-    calibration, _ = _calibrate(renderer, settings, work)
-    scans = tof_scans(render_sequence(sequence, renderer), ScanExtractor.from_calibration(calibration),
-                      cloud_every=0, source=name).scans
-    path.write_bytes(pickle.dumps(scans))
-    return scans
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -67,7 +40,8 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.worlds:
         estimated = extracted_scans(name, args.drive, args.cache)
         exact = ideal_scans(load_world(name), estimated).ranges
-        for label, scans in (("estimated", estimated), ("true rig", true_rig_scans(name, args.drive, args.cache))):
+        true_rig = extracted_scans(name, args.drive, args.cache, true_rig=True)
+        for label, scans in (("estimated", estimated), ("true rig", true_rig)):
             both = np.isfinite(scans.ranges) & np.isfinite(exact)
             error = np.abs(scans.ranges[both] - exact[both])
             print(json.dumps({

@@ -47,13 +47,14 @@ from omnitof.slam import run_slam
 from omnitof.slam.config import load_config
 
 
-def extracted_scans(name: str, drive: int, cache: Path, tof_errors: str = "default"):
-    """The scans of world `name`, drive seed `drive`, with the estimated calibration (cached)."""
-    tag = "" if tof_errors == "none" else "_" + tof_errors.replace(",", "+")
+def extracted_scans(name: str, drive: int, cache: Path, tof_errors: str = "default", *, true_rig: bool = False):
+    """The scans of world `name`, drive seed `drive`, with the estimated calibration, or with
+    `true_rig` the true rig given the same wall-fitted distance correction (cached)."""
+    tag = ("" if tof_errors == "none" else "_" + tof_errors.replace(",", "+")) + ("_truerig" if true_rig else "")
     path = cache / f"{name}_{drive}{tag}.pkl"
     if path.exists():
         return pickle.loads(path.read_bytes())["scans"]
-    settings = DemoSettings(world=name, seed=drive)
+    settings = DemoSettings(world=name, seed=drive, calibrate=not true_rig, true_rig_correction=true_rig)
     world = load_world(name)
     sequence = make_sequence(world, seed=drive, motion=MotionSettings(speed=settings.speed))
     sensor = SensorNoise(errors=ToFErrors.parse(tof_errors))

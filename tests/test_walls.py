@@ -111,9 +111,8 @@ def test_calibrate_distance_fits_the_correction_from_recorded_walls(tmp_path, ca
     dc = load_calibration(tmp_path / "corrected.yaml").distance_correction
     assert dc is not None
     # The turns it found, against those the walls were set up with (where lit enough to fit).
-    fitted = {v.name: v for v in fit_from_recordings(truth, recordings)[1]}
-    errors = [abs(float(name.rsplit("turned ", 1)[1].rstrip("°")) - turns[i % len(turns)])
-              for i, name in enumerate(fitted) if "turned " in name]
+    fitted = fit_from_recordings(truth, recordings)[1]
+    errors = [abs(v.turn_deg - turns[i % len(turns)]) for i, v in enumerate(fitted) if v.turn_deg is not None]
     assert len(errors) > 0.8 * len(recordings) and np.median(errors) < 0.15 and max(errors) < 0.5, errors
     square = fit_from_walls(truth, [recorded_view(truth, r, fit_turn=False) for r in recordings])
     held = render_wall_views(rig.camera, rig.mirrors, 9, sensor=sensor, distances=[1.2, 2.7, 4.2], frames=2)

@@ -322,7 +322,7 @@ def cmd_distance(args: argparse.Namespace) -> int:
     print(f"fitted the distance correction to {dc.samples} wall pixels of {len(views)} positions "
           f"({sum(len(r.distances) for r in recordings)} frames): rms error {1000 * dc.rms_before:.1f} mm "
           f"before, {1000 * dc.rms_after:.1f} mm after ({time.perf_counter() - started:.1f} s)")
-    turns = [float(v.name.rsplit("turned ", 1)[1].rstrip("°")) for v in views if "turned " in v.name]
+    turns = [v.turn_deg for v in views if v.turn_deg is not None]
     square = len(views) - len(turns)
     if turns:
         print(f"  the walls stood {min(turns):+.2f}° to {max(turns):+.2f}° off square (fitted to their points)"

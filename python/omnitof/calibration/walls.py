@@ -43,6 +43,8 @@ WALL_REFLECTANCES = (0.2, 0.5, 0.85)
 FRAMES_PER_POSITION = 4
 # How far off square (degrees) a recorded wall's turn is searched (`recorded_view`).
 MAX_WALL_TURN_DEG = 5.0
+# Fewer lit pixels than this (a dark wall far off) fit no turn: the wall is taken as square.
+MIN_TURN_PIXELS = 2000
 # Pixels darker than this (sample units) are left out, as the scan extraction leaves them out
 # (`ScanSettings.min_amplitude`).
 MIN_AMPLITUDE = 40.0
@@ -51,7 +53,8 @@ MIN_AMPLITUDE = 40.0
 @dataclass
 class WallView:
     """One wall position, its frames averaged: the mean distance and amplitude (H, W), the
-    wall's plane {x : normal·x = c} in the camera frame, and the mirror facing it."""
+    wall's plane {x : normal·x = c} in the camera frame, the mirror facing it, and for a
+    recorded wall the turn off square fitted to it (degrees; None where none was fitted)."""
 
     name: str
     distance: np.ndarray
@@ -59,6 +62,7 @@ class WallView:
     normal: np.ndarray
     c: float
     mirror: int
+    turn_deg: float | None = None
 
 
 def view_axes(camera: Any, mirrors: Sequence[Any], labels: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -66,10 +70,14 @@ def view_axes(camera: Any, mirrors: Sequence[Any], labels: np.ndarray) -> list[t
     horizontal direction), camera frame."""
     from omnitof.sensor.mirrors import viewing_rays
 
-    rays = viewing_rays(camera, mirrors, labels)
+    return _axes(viewing_rays(camera, mirrors, labels), len(mirrors))
+
+
+def _axes(rays: Any, count: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """`view_axes` from the pixels' viewing rays (`mirrors.viewing_rays`)."""
     out = []
-    for k in range(len(mirrors)):
-        sel = labels == k
+    for k in range(count):
+        sel = rays.labels == k
         direction = np.nanmean(rays.directions[sel], axis=0)
         direction[2] = 0.0
         out.append((np.nanmean(rays.origins[sel], axis=0), direction / np.linalg.norm(direction)))
@@ -102,9 +110,10 @@ def average_frames(distances: np.ndarray, amplitudes: np.ndarray,
 
 @dataclass
 class WallRecording:
-    """The frames of one wall position as a camera records them: the wall square to mirror
-    `mirror`'s view (`view_axes`), `distance` metres horizontally from the camera's optical
-    centre; `distances` and `amplitudes` (N, H, W), `saturated` (N, H, W) or None."""
+    """The frames of one wall position as a camera records them: the wall facing mirror
+    `mirror` (roughly square to its view, `view_axes`), its shortest horizontal distance from the
+    camera's optical centre `distance` metres; `distances` and `amplitudes` (N, H, W),
+    `saturated` (N, H, W) or None."""
 
     name: str
     mirror: int
@@ -169,7 +178,7 @@ def render_wall_views(camera: Any, mirrors: Sequence[Any], seed: int, **settings
 
 
 def recorded_view(calibration: Any, recording: WallRecording, *, fit_turn: bool = True,
-                  correction: DistanceCorrection | None = None) -> WallView:
+                  correction: DistanceCorrection | None = None, rays: Any = None) -> WallView:
     """A recorded wall position as a WallView: its frames averaged, its plane from the
     calibration's geometry and the recorded distance (the wall's shortest from the optical
     centre): {x : n·x = −distance}, n = −R(ψ)·u, u the mirror's mean horizontal view direction
@@ -182,23 +191,29 @@ def recorded_view(calibration: Any, recording: WallRecording, *, fit_turn: bool 
     reflected ray, must lie on the plane. The camera's own error hardly pulls it: a turn tilts
     the points' offsets from the plane across the wall (odd in the bearing), the wiggling and
     amplitude terms follow the path length (even). The distance is what it is measured to be:
-    1 mm off shifts the fitted curve by 1 mm. The turn found is in the view's name. With
-    `correction`, the turn is fitted to the distances it corrects (`fit_from_recordings`); the
-    view keeps the measured ones."""
-    axes = view_axes(calibration.camera, [_PlaneMirror(p) for p in calibration.planes], calibration.labels)
-    _, direction = axes[recording.mirror]
+    1 mm off shifts the fitted curve by 1 mm. With `correction`, the turn is fitted to the
+    distances it corrects (`fit_from_recordings`); the view keeps the measured ones. `rays`: the
+    calibration's viewing rays (`calibration_rays`), when several walls are viewed."""
+    rays = calibration_rays(calibration) if rays is None else rays
+    _, direction = _axes(rays, len(calibration.planes))[recording.mirror]
     d, a = average_frames(recording.distances, recording.amplitudes, recording.saturated)
     c = -float(recording.distance)
     if not fit_turn:
         return WallView(recording.name, d, a, -direction, c, recording.mirror)
     seen = d
     if correction is not None:
-        flat = np.arange(d.size)
-        seen = correction.correct(d.reshape(-1), a.reshape(-1), flat).reshape(d.shape)
-    turn = _fitted_turn(calibration, recording.mirror, direction, recording.distance, seen, a, recording.name)
-    told = "square (too few lit pixels to fit its turn)" if turn is None else f"turned {math.degrees(turn):+.2f}°"
-    normal = -direction if turn is None else -(_turn(turn) @ direction)
-    return WallView(f"{recording.name}, {told}", d, a, normal, c, recording.mirror)
+        seen = correction.correct(d.reshape(-1), a.reshape(-1), np.arange(d.size)).reshape(d.shape)
+    turn = _fitted_turn(rays, recording.mirror, direction, recording.distance, seen, a, recording.name)
+    if turn is None:
+        return WallView(recording.name, d, a, -direction, c, recording.mirror)
+    return WallView(recording.name, d, a, -(_turn(turn) @ direction), c, recording.mirror, math.degrees(turn))
+
+
+def calibration_rays(calibration: Any) -> Any:
+    """Every pixel's viewing ray through its own mirror in the calibration (`mirrors.viewing_rays`)."""
+    from omnitof.sensor.mirrors import viewing_rays
+
+    return viewing_rays(calibration.camera, [_PlaneMirror(p) for p in calibration.planes], calibration.labels)
 
 
 def fit_from_recordings(calibration: Any, recordings: Sequence[WallRecording],
@@ -207,36 +222,30 @@ def fit_from_recordings(calibration: Any, recordings: Sequence[WallRecording],
     walls' turns fitted to the measured distances first, then `rounds` times again to the
     distances the correction of the round before corrects (near walls the camera's own error,
     centimetres, tilts the fitted turn by up to 0.7° until it is corrected)."""
-    views = [recorded_view(calibration, r) for r in recordings]
+    rays = calibration_rays(calibration)
+    views = [recorded_view(calibration, r, rays=rays) for r in recordings]
     correction = fit_from_walls(calibration, views)
     for _ in range(rounds):
-        views = [recorded_view(calibration, r, correction=correction) for r in recordings]
+        views = [recorded_view(calibration, r, correction=correction, rays=rays) for r in recordings]
         correction = fit_from_walls(calibration, views)
     return correction, views
 
 
-# Fewer lit pixels than this (a dark wall far off) fit no turn: the wall is taken as square.
-MIN_TURN_PIXELS = 2000
-
-
-def _fitted_turn(calibration: Any, mirror: int, direction: np.ndarray, distance: float,
+def _fitted_turn(rays: Any, mirror: int, direction: np.ndarray, distance: float,
                  measured: np.ndarray, amplitude: np.ndarray, name: str = "") -> float | None:
     """The turn ψ (rad) about the camera's axis that puts the wall's measured points (each lit
-    pixel of `mirror`'s view at its measured path along its reflected ray) on the plane
+    pixel of `mirror`'s view at its measured path along its viewing ray, `rays`) on the plane
     {x : −R(ψ)·u·x = −distance}, u = `direction`: the least trimmed squares of the points'
     offsets from it over a grid of 0.05°, then refined (scipy's bounded scalar search). Points
     more than 0.1 m off the best grid plane (floor, ceiling, mixed pixels) are left out. None
     where fewer than MIN_TURN_PIXELS pixels are lit. Raises CalibrationError (naming `name`)
     where most points lie off every such plane: a mistyped distance, or another mirror's wall."""
-    from omnitof.calibration import CalibrationError
     from scipy.optimize import minimize_scalar
 
-    from omnitof.sensor.mirrors import viewing_rays
+    from omnitof.calibration import CalibrationError
 
-    labels = np.where(calibration.labels == mirror, mirror, -1)
-    rays = viewing_rays(calibration.camera, [_PlaneMirror(p) for p in calibration.planes], labels)
     with np.errstate(invalid="ignore"):
-        ok = (labels >= 0) & np.isfinite(measured) & (amplitude >= MIN_AMPLITUDE)
+        ok = (rays.labels == mirror) & np.isfinite(measured) & (amplitude >= MIN_AMPLITUDE)
     o, v = rays.origins[ok], rays.directions[ok]
     points = o + (measured[ok] - np.linalg.norm(o, axis=1))[:, None] * v
     if len(points) < MIN_TURN_PIXELS:
