@@ -112,3 +112,104 @@ def test_a_log_whose_odometry_leaps_100_km_is_refused_before_slam(tmp_path, loop
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Traceback" not in err
     assert "map.resolution 0.001 m: the map of" in err and "1e+05 m ×" in err and "TB" in err
+
+
+# --- memory while a run goes on (MemoryWatch) ----------------------------------------------
+
+
+def _scripted(monkeypatch, available, resident):
+    """Make the watch read `available` and `resident` (bytes), one value per call, in turn."""
+    from omnitof.slam import limits
+
+    a, r = iter(available), iter(resident)
+    monkeypatch.setattr(limits, "available_memory", lambda: next(a))
+    monkeypatch.setattr(limits, "_resident_bytes", lambda: next(r))
+
+
+def test_the_watch_stops_where_less_is_left_than_the_last_steps_took(monkeypatch):
+    from omnitof.slam.limits import HEADROOM_STEPS, MIN_HEADROOM, MemoryWatch
+
+    mb = 10**6
+    # The process grows 60 MB a step while the machine's free memory shrinks by as much from 2 GB.
+    steps = 40
+    resident = [100 * mb + 60 * mb * i for i in range(steps + 1)]
+    available = [2048 * mb - 60 * mb * i for i in range(1, steps + 1)]
+    _scripted(monkeypatch, available, resident)
+    watch = MemoryWatch("the test run", "choose less")
+    # Independently: the first step whose free memory is below both the floor and the growth of
+    # the HEADROOM_STEPS steps before it (8 × 60 MB = 480 MB once 8 steps are seen).
+    expected = next(i for i in range(1, steps + 1)
+                    if available[i - 1] < max(MIN_HEADROOM, 60 * mb * min(i, HEADROOM_STEPS)))
+    for step in range(1, expected):
+        watch.check(step, steps)
+    with pytest.raises(ResourceError) as err:
+        watch.check(expected, steps)
+    message = str(err.value)
+    assert f"the test run stopped at step {expected} of {steps}" in message
+    assert "(choose less)" in message and "holding" in message
+    assert expected == 27  # 2048 − 60·27 = 428 MB < 480 MB; step 26 left 488 MB
+
+
+def test_a_run_without_readable_memory_is_not_stopped(monkeypatch):
+    from omnitof.slam.limits import MemoryWatch
+
+    _scripted(monkeypatch, [None] * 5, [None] * 6)
+    watch = MemoryWatch("x", "y")
+    for step in range(1, 6):
+        watch.check(step, 5)
+
+
+def test_slam_that_runs_out_of_memory_stops_with_one_line_and_writes_nothing(tmp_path, loop, monkeypatch, capsys):
+    from omnitof.cli import main
+    from omnitof.io.carmen import write_carmen
+    from omnitof.slam import limits
+
+    path = tmp_path / "loop.log"
+    write_carmen(path, loop.slice(0, 120))
+    # Plenty of memory until the watch has looked twice (it alone reads the resident memory).
+    resident, looked = limits._resident_bytes, {"n": 0}
+
+    def counted():
+        looked["n"] += 1
+        return resident()
+
+    def available():
+        return 20 * 10**9 if looked["n"] < 3 else 100 * 10**6
+
+    monkeypatch.setattr(limits, "_resident_bytes", counted)
+    monkeypatch.setattr(limits, "available_memory", available)
+    out = tmp_path / "out"
+    code = main(["slam", str(path), "--out", str(out), "--preset", "sim2d", "--particles", "5", "--quiet",
+                 "--scan-delay", "0"])
+    assert code == 2 and not out.exists()
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert "SLAM stopped at step 2 of" in err and "only 100 MB of memory is left" in err
+    assert "filter.particles 5" in err
+
+
+def test_the_3d_filter_that_runs_out_of_memory_stops_with_one_line(tmp_path, monkeypatch, capsys):
+    from omnitof.cli import main
+    from omnitof.slam import limits
+
+    bag = tmp_path / "room_bag"
+    assert main(["simulate", "--world", "room", "--out", str(bag), "--max-frames", "30", "--quiet"]) == 0
+    capsys.readouterr()
+    # Plenty of memory until the watch has looked twice (it alone reads the resident memory).
+    resident, looked = limits._resident_bytes, {"n": 0}
+
+    def counted():
+        looked["n"] += 1
+        return resident()
+
+    def available():
+        return 20 * 10**9 if looked["n"] < 3 else 50 * 10**6
+
+    monkeypatch.setattr(limits, "_resident_bytes", counted)
+    monkeypatch.setattr(limits, "available_memory", available)
+    out = tmp_path / "out"
+    code = main(["slam", str(bag), "--filter", "3d", "--particles", "3", "--out", str(out), "--quiet"])
+    assert code == 2 and not out.exists()
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert "the 3D filter stopped at step 2 of" in err and "filter3d.resolution" in err

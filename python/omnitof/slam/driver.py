@@ -20,7 +20,7 @@ import numpy as np
 from omnitof import _core
 from omnitof.errors import InputError, ResourceError
 from omnitof.slam.backend import PoseGraphBackend
-from omnitof.slam.limits import check_limits
+from omnitof.slam.limits import MemoryWatch, check_limits
 from omnitof.slam.config import SlamConfig
 from omnitof.slam.final_match import final_match, grid_along
 from omnitof.geometry import compose, relative
@@ -193,8 +193,10 @@ def _run(scans: ScanSequence, cfg: SlamConfig, progress: Callable[[int], None] |
     prev = scans.odometry[integrated[0]]
     done = 0
     corrected_scans = []
+    memory = MemoryWatch("SLAM", f"choose fewer than filter.particles {cfg.filter.particles} or a coarser "
+                                 f"map.resolution than {cfg.map.resolution:g} m")
     between = _Between(scans, cfg) if cfg.filter.match_between else None
-    for k in integrated:
+    for step, k in enumerate(integrated, start=1):
         if between is not None:
             between.match_up_to(pf, int(k))
         cur = scans.odometry[k]
@@ -204,6 +206,7 @@ def _run(scans: ScanSequence, cfg: SlamConfig, progress: Callable[[int], None] |
         prev = cur
         if backend is not None:
             backend.add_node(int(k), pf)
+        memory.check(step, len(integrated))
         if progress is not None:
             progress(int(k) + 1 - done)
             done = int(k) + 1

@@ -26,6 +26,7 @@ from omnitof import _core
 from omnitof.errors import InputError, ResourceError
 from omnitof.slam.config import SlamConfig
 from omnitof.slam.driver import DRIVER_FILTER_FIELDS, SlamResult, fill_trajectory
+from omnitof.slam.limits import MemoryWatch
 from omnitof.types import OccupancyMap, ScanSequence, Trajectory
 
 
@@ -113,13 +114,16 @@ def _run(scans: ScanSequence, frames: np.ndarray, clouds: Sequence[np.ndarray], 
     cpu_start = time.process_time()
     done = 0
     scored = 0
-    for k, cloud in zip(frames, clouds):
+    memory = MemoryWatch("the 3D filter", f"choose fewer than filter.particles {cfg.filter.particles} or a coarser "
+                                          f"filter3d.resolution than {cfg.filter3d.resolution:g} m")
+    for step, (k, cloud) in enumerate(zip(frames, clouds), start=1):
         c = np.asarray(cloud, dtype=np.float64).reshape(-1, 6)
         cur = scans.odometry[k]
         t0 = time.perf_counter()
         scored += pf.step(prev, cur, np.ascontiguousarray(c[:, :3]), np.ascontiguousarray(c[:, 3:]), int(k))[3]
         seconds.append(time.perf_counter() - t0)
         prev = cur
+        memory.check(step, len(frames))
         if progress is not None:
             progress(int(k) + 1 - done)
             done = int(k) + 1
