@@ -159,25 +159,28 @@ def test_a_run_without_readable_memory_is_not_stopped(monkeypatch):
         watch.check(step, 5)
 
 
-def test_slam_that_runs_out_of_memory_stops_with_one_line_and_writes_nothing(tmp_path, loop, monkeypatch, capsys):
-    from omnitof.cli import main
-    from omnitof.io.carmen import write_carmen
+def _short_after_two_looks(monkeypatch, left):
+    """Plenty of memory until the watch has looked twice (it alone reads the resident memory),
+    then `left` bytes."""
     from omnitof.slam import limits
 
-    path = tmp_path / "loop.log"
-    write_carmen(path, loop.slice(0, 120))
-    # Plenty of memory until the watch has looked twice (it alone reads the resident memory).
     resident, looked = limits._resident_bytes, {"n": 0}
 
     def counted():
         looked["n"] += 1
         return resident()
 
-    def available():
-        return 20 * 10**9 if looked["n"] < 3 else 100 * 10**6
-
     monkeypatch.setattr(limits, "_resident_bytes", counted)
-    monkeypatch.setattr(limits, "available_memory", available)
+    monkeypatch.setattr(limits, "available_memory", lambda: 20 * 10**9 if looked["n"] < 3 else left)
+
+
+def test_slam_that_runs_out_of_memory_stops_with_one_line_and_writes_nothing(tmp_path, loop, monkeypatch, capsys):
+    from omnitof.cli import main
+    from omnitof.io.carmen import write_carmen
+
+    path = tmp_path / "loop.log"
+    write_carmen(path, loop.slice(0, 120))
+    _short_after_two_looks(monkeypatch, 100 * 10**6)
     out = tmp_path / "out"
     code = main(["slam", str(path), "--out", str(out), "--preset", "sim2d", "--particles", "5", "--quiet",
                  "--scan-delay", "0"])
@@ -190,23 +193,11 @@ def test_slam_that_runs_out_of_memory_stops_with_one_line_and_writes_nothing(tmp
 
 def test_the_3d_filter_that_runs_out_of_memory_stops_with_one_line(tmp_path, monkeypatch, capsys):
     from omnitof.cli import main
-    from omnitof.slam import limits
 
     bag = tmp_path / "room_bag"
     assert main(["simulate", "--world", "room", "--out", str(bag), "--max-frames", "30", "--quiet"]) == 0
     capsys.readouterr()
-    # Plenty of memory until the watch has looked twice (it alone reads the resident memory).
-    resident, looked = limits._resident_bytes, {"n": 0}
-
-    def counted():
-        looked["n"] += 1
-        return resident()
-
-    def available():
-        return 20 * 10**9 if looked["n"] < 3 else 50 * 10**6
-
-    monkeypatch.setattr(limits, "_resident_bytes", counted)
-    monkeypatch.setattr(limits, "available_memory", available)
+    _short_after_two_looks(monkeypatch, 50 * 10**6)
     out = tmp_path / "out"
     code = main(["slam", str(bag), "--filter", "3d", "--particles", "3", "--out", str(out), "--quiet"])
     assert code == 2 and not out.exists()
