@@ -8,9 +8,16 @@ likelihood field, `OccupancyGrid.match_scan`, the preset's field and step settin
 prior), started at its true pose. The error of the pose it ends at, in the robot's frame (along
 its heading, across it) and in heading, is the matcher's bias where it is consistent and its
 scatter where it is not. With `--ideal-scans` the ranges are the exact distances to the floor
-plan (benchmarks/world_filters.py), so the sensor plays no part.
+plan (benchmarks/world_filters.py), so the sensor plays no part; `--ideal-where-tof` keeps
+those exact ranges only in the bins where the ToF scan has a reading (the rig's coverage, no
+range error); `--tof-errors` picks the camera errors of the rendered scans as world_filters does,
+and `--true-rig` extracts them with the true rig instead of the estimated calibration.
+`--complete-map` builds the grid from every n-th scan first (past and future) and then matches
+each scan in it: the map is then as complete ahead of the robot as behind it, which SLAM's
+map never is.
 
     python benchmarks/matcher_bias.py --world corridor1 --drive 0 --every 12 3 [--ideal-scans] \
+        [--ideal-where-tof] [--complete-map] [--true-rig] [--tof-errors none] \
         [--preset tof-scanmatch] [--cache results/world_scans]
 
 Prints one JSON line per (world, every), then a Markdown table.
@@ -19,6 +26,7 @@ Prints one JSON line per (world, every), then a Markdown table.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -34,12 +42,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from world_filters import extracted_scans, ideal_scans  # noqa: E402
 
 
-def matcher_errors(scans, cfg, every: int) -> np.ndarray:
+def matcher_errors(scans, cfg, every: int, complete_map: bool = False) -> np.ndarray:
     """(K, 3): along, across (m) and heading (rad) error of each matched scan."""
     m, lf, sm = cfg.map, cfg.likelihood_field, cfg.scan_matcher
     max_range = min(cfg.sensor_model.max_range, scans.max_range)
     grid = _core.OccupancyGrid(m.resolution, m.l_occ, m.l_free, m.l_min, m.l_max)
     truth = scans.ground_truth
+    if complete_map:
+        for i in range(0, len(scans), every):
+            grid.integrate(truth[i], scans.scan_angles(i), scans.scan_ranges(i), max_range,
+                           sensor_pose=scans.sensor_pose)
     errors = []
     for n, i in enumerate(range(0, len(scans), every)):
         ranges, angles = scans.scan_ranges(i), scans.scan_angles(i)
@@ -51,7 +63,8 @@ def matcher_errors(scans, cfg, every: int) -> np.ndarray:
             d = np.asarray(pose) - truth[i]
             c, s = np.cos(truth[i, 2]), np.sin(truth[i, 2])
             errors.append([c * d[0] + s * d[1], -s * d[0] + c * d[1], wrap_angle(d[2])])
-        grid.integrate(truth[i], angles, ranges, max_range, sensor_pose=scans.sensor_pose)
+        if not complete_map:
+            grid.integrate(truth[i], angles, ranges, max_range, sensor_pose=scans.sensor_pose)
     return np.asarray(errors)
 
 
@@ -63,20 +76,33 @@ def main(argv: list[str] | None = None) -> int:
                         help="integrate every n-th scan (12: about the filter's 0.5 m at the demo's speed)")
     parser.add_argument("--preset", default="tof-scanmatch")
     parser.add_argument("--ideal-scans", action="store_true")
+    parser.add_argument("--ideal-where-tof", action="store_true",
+                        help="exact ranges only in the bins where the ToF scan has a reading")
+    parser.add_argument("--complete-map", action="store_true",
+                        help="match every scan in the map of all of them (past and future)")
+    parser.add_argument("--tof-errors", default="default", help="as benchmarks/world_filters.py")
+    parser.add_argument("--true-rig", action="store_true", help="scans extracted with the true rig")
     parser.add_argument("--cache", type=Path, default=Path("results/world_scans"))
     args = parser.parse_args(argv)
 
     world = load_world(args.world)
-    scans = extracted_scans(args.world, args.drive, args.cache)
-    if args.ideal_scans:
-        scans = ideal_scans(world, scans)
+    scans = extracted_scans(args.world, args.drive, args.cache, args.tof_errors, true_rig=args.true_rig)
+    if args.ideal_scans or args.ideal_where_tof:
+        exact = ideal_scans(world, scans)
+        if args.ideal_where_tof:
+            exact = dataclasses.replace(exact, ranges=np.where(np.isfinite(scans.ranges), exact.ranges, np.inf)
+                                        .astype(np.float32))
+        scans = exact
+    kind = ("exact where ToF" if args.ideal_where_tof else "ideal" if args.ideal_scans else
+            f"ToF {args.tof_errors}{', true rig' if args.true_rig else ''}")
     cfg = load_config(preset=args.preset)
     rows = []
     for every in args.every:
-        e = matcher_errors(scans, cfg, every)
+        e = matcher_errors(scans, cfg, every, args.complete_map)
         along, across, heading = 1000 * e[:, 0], 1000 * e[:, 1], np.degrees(e[:, 2])
         row = {
-            "world": args.world, "drive": args.drive, "every": every, "ideal_scans": args.ideal_scans,
+            "world": args.world, "drive": args.drive, "every": every, "scans": kind,
+            "map": "complete" if args.complete_map else "past",
             "matches": len(e),
             "along_mean_mm": round(float(along.mean()), 1), "along_median_mm": round(float(np.median(along)), 1),
             "along_over_1cm": round(float(np.mean(np.abs(along) > 10)), 2),
@@ -88,10 +114,10 @@ def main(argv: list[str] | None = None) -> int:
         }
         rows.append(row)
         print(json.dumps(row), flush=True)
-    print("\n| world | drive | scans | every | along mean (median) mm | along > 1 cm / > 5 cm | across median (p90 abs) mm | heading median (p90 abs) ° |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("\n| world | drive | scans | map | every | along mean (median) mm | along > 1 cm / > 5 cm | across median (p90 abs) mm | heading median (p90 abs) ° |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['world']} | {r['drive']} | {'ideal' if r['ideal_scans'] else 'ToF'} | {r['every']} | "
+        print(f"| {r['world']} | {r['drive']} | {r['scans']} | {r['map']} | {r['every']} | "
               f"{r['along_mean_mm']:+.1f} ({r['along_median_mm']:+.1f}) | {r['along_over_1cm']:.2f} / {r['along_over_5cm']:.2f} | "
               f"{r['across_median_mm']:+.1f} ({r['across_p90_mm']:.1f}) | {r['heading_median_deg']:+.3f} ({r['heading_p90_deg']:.3f}) |")
     return 0
