@@ -32,7 +32,7 @@ use std::sync::Arc;
 use rayon::prelude::*;
 
 use crate::filter::{rng_for, ProposalKind, TrajectoryNode, Weighing};
-use crate::grid::LogOddsModel;
+use crate::grid::{GridError, LogOddsModel};
 use crate::motion::{compose, relative, OdometryMotion};
 use crate::scan_match::{climb, draw_around_mode, gauss_newton_with, motion_prior, MatcherParams, PosePrior};
 use crate::voxel::{pack, ray_voxels, sorted_difference, Block, IntegrateStats, SeenFilter, VoxelGrid, BLOCK_VOXELS, INDEX_LIMIT};
@@ -78,6 +78,14 @@ impl Hasher for KeyHasher {
 
 type Blocks = HashMap<u64, Arc<Block3>, BuildHasherDefault<KeyHasher>>;
 
+/// Room for `n` more blocks in a block table, or GridError::NoMemory (never an abort).
+fn reserve_blocks(blocks: &mut Blocks, n: usize) -> Result<(), GridError> {
+    blocks.try_reserve(n).map_err(|_| GridError::NoMemory {
+        what: "the 3D map's voxel blocks",
+        bytes: (n as u128).saturating_mul((std::mem::size_of::<Block3>() + 24) as u128),
+    })
+}
+
 /// A sparse log-odds voxel grid with copy-on-write blocks (see the module docs).
 #[derive(Clone)]
 pub struct SharedVoxels {
@@ -113,7 +121,15 @@ impl SharedVoxels {
     /// each end point averaged into its voxel's mean end point. Only every `free_stride`-th ray
     /// frees the voxels it passes through; every ray marks its end point (the likelihood field
     /// reads occupied voxels only, and neighbouring rays free nearly the same voxels).
-    pub fn integrate(&mut self, origins: &[[f64; 3]], endpoints: &[[f64; 3]], max_range: f64, free_stride: usize) -> IntegrateStats {
+    /// Fails (GridError::NoMemory), with the map as it was, where the blocks the frame adds
+    /// cannot be had: growing the block table is the one large allocation of a 3D run.
+    pub fn integrate(
+        &mut self,
+        origins: &[[f64; 3]],
+        endpoints: &[[f64; 3]],
+        max_range: f64,
+        free_stride: usize,
+    ) -> Result<IntegrateStats, GridError> {
         let mut stats = IntegrateStats::default();
         let (mut free, mut ignored) = (Vec::new(), Vec::new());
         let mut ends: Vec<(u64, [u8; 3])> = Vec::new();
@@ -151,10 +167,14 @@ impl SharedVoxels {
         let free = sorted_difference(&free, &hit);
         stats.free_voxels = free.len();
         stats.occupied_voxels = hit.len();
+        let mut new_blocks: Vec<u64> = free.iter().chain(&hit).map(|k| k >> 9).filter(|b| !self.blocks.contains_key(b)).collect();
+        new_blocks.sort_unstable();
+        new_blocks.dedup();
+        reserve_blocks(&mut self.blocks, new_blocks.len())?;
         self.apply(&free, self.model.l_free);
         self.apply(&hit, self.model.l_occ);
         self.average_ends(&ends);
-        stats
+        Ok(stats)
     }
 
     /// Add `delta` to the voxels of sorted keys, copying a shared block before its first write.
@@ -473,7 +493,16 @@ impl ParticleFilter3d {
     /// odometry pose `odom_cur`, the robot having come from `odom_prev` since the last one. The
     /// first call starts every particle's map at `odom_cur`. Origins and end points must be
     /// finite and within the grid's reach (the binding checks).
-    pub fn step(&mut self, odom_prev: [f64; 3], odom_cur: [f64; 3], origins: &[[f64; 3]], endpoints: &[[f64; 3]], scan: u64) -> StepInfo3d {
+    /// Fails (GridError::NoMemory) where a particle's map cannot grow; the filter is then spent,
+    /// as a run that ran out of memory is.
+    pub fn step(
+        &mut self,
+        odom_prev: [f64; 3],
+        odom_cur: [f64; 3],
+        origins: &[[f64; 3]],
+        endpoints: &[[f64; 3]],
+        scan: u64,
+    ) -> Result<StepInfo3d, GridError> {
         let step_index = self.steps;
         self.steps += 1;
         let n = self.params.n_particles;
@@ -481,16 +510,16 @@ impl ParticleFilter3d {
             // Resolution and model were checked by `new`.
             let mut map = SharedVoxels { resolution: self.params.resolution, model: self.params.log_odds, blocks: Blocks::default() };
             let (wo, we) = Self::world_rays(odom_cur, origins, endpoints);
-            map.integrate(&wo, &we, self.params.max_range, self.params.free_stride);
+            map.integrate(&wo, &we, self.params.max_range, self.params.free_stride)?;
             let root = Arc::new(TrajectoryNode { pose: odom_cur, scan, parent: None });
             let first = Particle3d { pose: odom_cur, log_weight: 0.0, map, trajectory: root };
             self.particles = vec![first; n];
-            return StepInfo3d { neff: n as f64, resampled: false, fallbacks: 0, scored: 0 };
+            return Ok(StepInfo3d { neff: n as f64, resampled: false, fallbacks: 0, scored: 0 });
         }
         let pts = self.scored_points(origins, endpoints);
         let p = &self.params;
         let seed = p.seed;
-        let fell: Vec<bool> = self.pool.install(|| {
+        let fell: Vec<Result<bool, GridError>> = self.pool.install(|| {
             self.particles
                 .par_iter_mut()
                 .enumerate()
@@ -515,12 +544,16 @@ impl ParticleFilter3d {
                     part.pose = pose;
                     part.trajectory = Arc::new(TrajectoryNode { pose, scan, parent: Some(part.trajectory.clone()) });
                     let (wo, we) = Self::world_rays(pose, origins, endpoints);
-                    part.map.integrate(&wo, &we, p.max_range, p.free_stride);
-                    fell_back
+                    part.map.integrate(&wo, &we, p.max_range, p.free_stride)?;
+                    Ok(fell_back)
                 })
                 .collect()
         });
-        let fallbacks = fell.iter().filter(|&&f| f).count();
+        // In particle order, so that the error reported does not depend on the thread count.
+        let mut fallbacks = 0;
+        for f in fell {
+            fallbacks += f? as usize;
+        }
         self.fallbacks += fallbacks as u64;
         let log_w: Vec<f64> = self.particles.iter().map(|q| q.log_weight).collect();
         let weighing = Weighing::new(&log_w, self.params.resample_threshold, seed, step_index);
@@ -540,7 +573,7 @@ impl ParticleFilter3d {
             }
         }
         self.best = weighing.best_after();
-        StepInfo3d { neff: weighing.n_eff, resampled: weighing.ancestors.is_some(), fallbacks, scored: pts.len() }
+        Ok(StepInfo3d { neff: weighing.n_eff, resampled: weighing.ancestors.is_some(), fallbacks, scored: pts.len() })
     }
 
     fn world_rays(pose: [f64; 3], origins: &[[f64; 3]], endpoints: &[[f64; 3]]) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
@@ -711,10 +744,23 @@ mod tests {
             let (o, e) = frame(pose, 2.0, (-180.0, 180.0));
             let (wo, we) = ParticleFilter3d::world_rays(pose, &o, &e);
             for _ in 0..3 {
-                map.integrate(&wo, &we, 7.0, 1);
+                map.integrate(&wo, &we, 7.0, 1).unwrap();
             }
         }
         map
+    }
+
+    #[test]
+    fn a_block_table_that_cannot_grow_is_an_error_not_an_abort() {
+        let mut blocks = Blocks::default();
+        assert!(reserve_blocks(&mut blocks, 1000).is_ok());
+        match reserve_blocks(&mut blocks, usize::MAX / 2) {
+            Err(GridError::NoMemory { what, bytes }) => {
+                assert_eq!(what, "the 3D map's voxel blocks");
+                assert!(bytes > 1u128 << 60);
+            }
+            other => panic!("expected NoMemory, got {other:?}"),
+        }
     }
 
     #[test]
@@ -765,14 +811,14 @@ mod tests {
         p.resample_threshold = 2.0; // resample at every step
         let mut pf = ParticleFilter3d::new(p).unwrap();
         let (o, e) = frame([0.0; 3], 2.0, (-180.0, 180.0));
-        pf.step([0.0; 3], [0.0; 3], &o, &e, 0);
+        pf.step([0.0; 3], [0.0; 3], &o, &e, 0).unwrap();
         let b0 = pf.particles[0].map.block_count();
         assert_eq!(pf.block_counts(), (b0, 20 * b0));
         let initial: HashSet<usize> = pf.particles[0].map.blocks().map(|b| Arc::as_ptr(b) as usize).collect();
         let before: HashMap<u64, Block> = pf.particles[0].map.blocks.iter().map(|(k, b)| (*k, b.log_odds)).collect();
         // A frame that looks along +x only touches a few blocks.
         let (o, e) = frame([0.1, 0.0, 0.0], 2.0, (-10.0, 10.0));
-        let info = pf.step([0.0; 3], [0.1, 0.0, 0.0], &o, &e, 1);
+        let info = pf.step([0.0; 3], [0.1, 0.0, 0.0], &o, &e, 1).unwrap();
         assert!(info.resampled);
         let (distinct, refs) = pf.block_counts();
         assert!(refs >= 20 * b0);
@@ -801,7 +847,7 @@ mod tests {
             let (o, e) = frame(*t, 4.0, (-180.0, 180.0));
             // Odometry that drifts: 10 % long in translation.
             let odom = [t[0] * 1.1, t[1] * 1.1, t[2]];
-            pf.step(prev, odom, &o, &e, k as u64);
+            pf.step(prev, odom, &o, &e, k as u64).unwrap();
             prev = odom;
         }
         let poses = pf.particles.iter().map(|q| q.pose.map(f64::to_bits)).collect();
@@ -825,12 +871,12 @@ mod tests {
         let mut pf = ParticleFilter3d::new(p).unwrap();
         let (o, e) = frame([0.0; 3], 2.0, (-180.0, 180.0));
         for k in 0..3 {
-            pf.step([0.0; 3], [0.0; 3], &o, &e, k);
+            pf.step([0.0; 3], [0.0; 3], &o, &e, k).unwrap();
         }
         // The robot moved 0.3 m and turned 0.1 rad; the odometry says 0.38 m and 0.16 rad.
         let truth = [0.3, 0.0, 0.1];
         let (o, e) = frame(truth, 2.0, (-180.0, 180.0));
-        let info = pf.step([0.0; 3], [0.38, 0.0, 0.16], &o, &e, 3);
+        let info = pf.step([0.0; 3], [0.38, 0.0, 0.16], &o, &e, 3).unwrap();
         assert_eq!(info.fallbacks, 0);
         for q in &pf.particles {
             assert!((q.pose[0] - truth[0]).abs() < 0.03 && q.pose[1].abs() < 0.03, "{:?}", q.pose);

@@ -147,7 +147,7 @@ impl PyParticleFilter3D {
             return Err(PyValueError::new_err(format!("{} origins for {} end points", o.len(), e.len())));
         }
         let inner = &mut self.inner;
-        let info = py.detach(|| inner.step(prev, cur, &o, &e, scan));
+        let info = py.detach(|| inner.step(prev, cur, &o, &e, scan)).map_err(crate::grid_error)?;
         Ok((info.neff, info.resampled, info.fallbacks, info.scored))
     }
 
