@@ -167,10 +167,19 @@ impl SharedVoxels {
         let free = sorted_difference(&free, &hit);
         stats.free_voxels = free.len();
         stats.occupied_voxels = hit.len();
-        let mut new_blocks: Vec<u64> = free.iter().chain(&hit).map(|k| k >> 9).filter(|b| !self.blocks.contains_key(b)).collect();
-        new_blocks.sort_unstable();
-        new_blocks.dedup();
-        reserve_blocks(&mut self.blocks, new_blocks.len())?;
+        // The blocks the frame touches (the keys are sorted, so a block's keys lie together).
+        let mut touched: Vec<u64> = Vec::new();
+        for keys in [&free, &hit] {
+            for &k in keys.iter() {
+                if touched.last() != Some(&(k >> 9)) {
+                    touched.push(k >> 9);
+                }
+            }
+        }
+        touched.sort_unstable();
+        touched.dedup();
+        let new_blocks = touched.iter().filter(|b| !self.blocks.contains_key(*b)).count();
+        reserve_blocks(&mut self.blocks, new_blocks)?;
         self.apply(&free, self.model.l_free);
         self.apply(&hit, self.model.l_occ);
         self.average_ends(&ends);
