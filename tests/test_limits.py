@@ -150,13 +150,23 @@ def test_the_watch_stops_where_less_is_left_than_the_last_steps_took(monkeypatch
     assert expected == 27  # 2048 − 60·27 = 428 MB < 480 MB; step 26 left 488 MB
 
 
-def test_a_run_without_readable_memory_is_not_stopped(monkeypatch):
+def test_what_cannot_be_read_is_not_held_against_a_run(monkeypatch):
     from omnitof.slam.limits import MemoryWatch
 
-    _scripted(monkeypatch, [None] * 5, [None] * 6)
+    gb = 10**9
+    # Nothing known of the machine: however fast the process grows, it is not stopped.
+    _scripted(monkeypatch, [None] * 5, [10 * gb * i for i in range(6)])
     watch = MemoryWatch("x", "y")
     for step in range(1, 6):
         watch.check(step, 5)
+    # The machine known but not the process: the floor still holds, and the message says
+    # nothing of what the process holds.
+    _scripted(monkeypatch, [10 * gb, 10**8], [None] * 3)
+    watch = MemoryWatch("x", "y")
+    watch.check(1, 2)
+    with pytest.raises(ResourceError) as err:
+        watch.check(2, 2)
+    assert "only 100 MB of memory is left, and it needs 250 MB" in str(err.value)
 
 
 def _short_after_two_looks(monkeypatch, left):
