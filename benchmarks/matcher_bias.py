@@ -14,10 +14,11 @@ range error); `--tof-errors` picks the camera errors of the rendered scans as wo
 and `--true-rig` extracts them with the true rig instead of the estimated calibration.
 `--complete-map` builds the grid from every n-th scan first (past and future) and then matches
 each scan in it: the map is then as complete ahead of the robot as behind it, which SLAM's
-map never is.
+map never is. `--lookahead estimated` adds only the next integrated scan, at the pose its own
+match in the past map gives: what a front end that decides each scan one step late would have.
 
     python benchmarks/matcher_bias.py --world corridor1 --drive 0 --every 12 3 [--ideal-scans] \
-        [--ideal-where-tof] [--complete-map] [--true-rig] [--tof-errors none] \
+        [--ideal-where-tof] [--complete-map | --lookahead estimated|true] [--true-rig] [--tof-errors none] \
         [--preset tof-scanmatch] [--cache results/world_scans]
 
 Prints one JSON line per (world, every), then a Markdown table.
@@ -42,8 +43,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from world_filters import extracted_scans, ideal_scans  # noqa: E402
 
 
-def matcher_errors(scans, cfg, every: int, complete_map: bool = False) -> np.ndarray:
-    """(K, 3): along, across (m) and heading (rad) error of each matched scan."""
+def matcher_errors(scans, cfg, every: int, complete_map: bool = False, lookahead: str | None = None) -> np.ndarray:
+    """(K, 3): along, across (m) and heading (rad) error of each matched scan. With `lookahead`
+    ("estimated" or "true"), the next integrated scan is added to the past map before the scan is
+    matched in it, at the pose its own match in the past map gives (started at its true pose) or
+    at its true pose: the map a fixed-lag front end, which decides a scan once the next is in,
+    would match against ("estimated-twice": the next scan matched again with this one's pose
+    in the map, and this one again after it)."""
     m, lf, sm = cfg.map, cfg.likelihood_field, cfg.scan_matcher
     max_range = min(cfg.sensor_model.max_range, scans.max_range)
     grid = _core.OccupancyGrid(m.resolution, m.l_occ, m.l_free, m.l_min, m.l_max)
@@ -52,19 +58,40 @@ def matcher_errors(scans, cfg, every: int, complete_map: bool = False) -> np.nda
         for i in range(0, len(scans), every):
             grid.integrate(truth[i], scans.scan_angles(i), scans.scan_ranges(i), max_range,
                            sensor_pose=scans.sensor_pose)
+
+    def match(g, i):
+        return g.match_scan(truth[i], scans.scan_angles(i), scans.scan_ranges(i), sensor_pose=scans.sensor_pose,
+                            sigma=lf.sigma, window=lf.window_cells, max_range=max_range, step_xy=sm.step_xy,
+                            step_theta=np.radians(sm.step_deg), refinements=sm.refinements,
+                            gauss_newton=sm.gauss_newton)[0]
+
+    def grid_of(posed):
+        g = _core.OccupancyGrid(m.resolution, m.l_occ, m.l_free, m.l_min, m.l_max)
+        for pose, i in posed:
+            g.integrate(np.asarray(pose, dtype=np.float64), scans.scan_angles(i), scans.scan_ranges(i), max_range,
+                        sensor_pose=scans.sensor_pose)
+        return g
+
     errors = []
+    past = []  # (pose, scan) of the scans in the past map, for the look-ahead's rebuilt grids
     for n, i in enumerate(range(0, len(scans), every)):
         ranges, angles = scans.scan_ranges(i), scans.scan_angles(i)
+        nxt = i + every
         if n >= 3:
-            pose, _ = grid.match_scan(truth[i], angles, ranges, sensor_pose=scans.sensor_pose, sigma=lf.sigma,
-                                      window=lf.window_cells, max_range=max_range, step_xy=sm.step_xy,
-                                      step_theta=np.radians(sm.step_deg), refinements=sm.refinements,
-                                      gauss_newton=sm.gauss_newton)
+            if lookahead and nxt < len(scans):
+                ahead = truth[nxt] if lookahead == "true" else match(grid, nxt)
+                pose = match(grid_of(past + [(ahead, nxt)]), i)
+                if lookahead == "estimated-twice":  # the next scan posed again with this one in the map
+                    ahead = match(grid_of(past + [(pose, i)]), nxt)
+                    pose = match(grid_of(past + [(ahead, nxt)]), i)
+            else:
+                pose = match(grid, i)
             d = np.asarray(pose) - truth[i]
             c, s = np.cos(truth[i, 2]), np.sin(truth[i, 2])
             errors.append([c * d[0] + s * d[1], -s * d[0] + c * d[1], wrap_angle(d[2])])
         if not complete_map:
             grid.integrate(truth[i], angles, ranges, max_range, sensor_pose=scans.sensor_pose)
+            past.append((truth[i], i))
     return np.asarray(errors)
 
 
@@ -80,10 +107,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="exact ranges only in the bins where the ToF scan has a reading")
     parser.add_argument("--complete-map", action="store_true",
                         help="match every scan in the map of all of them (past and future)")
+    parser.add_argument("--lookahead", choices=["estimated", "estimated-twice", "true"],
+                        help="add the next integrated scan to the past map first, at its own match's pose or its true one")
     parser.add_argument("--tof-errors", default="default", help="as benchmarks/world_filters.py")
     parser.add_argument("--true-rig", action="store_true", help="scans extracted with the true rig")
     parser.add_argument("--cache", type=Path, default=Path("results/world_scans"))
     args = parser.parse_args(argv)
+    if args.complete_map and args.lookahead:
+        parser.error("--complete-map already holds every scan: --lookahead adds nothing to it")
 
     world = load_world(args.world)
     scans = extracted_scans(args.world, args.drive, args.cache, args.tof_errors, true_rig=args.true_rig)
@@ -98,11 +129,11 @@ def main(argv: list[str] | None = None) -> int:
     cfg = load_config(preset=args.preset)
     rows = []
     for every in args.every:
-        e = matcher_errors(scans, cfg, every, args.complete_map)
+        e = matcher_errors(scans, cfg, every, args.complete_map, args.lookahead)
         along, across, heading = 1000 * e[:, 0], 1000 * e[:, 1], np.degrees(e[:, 2])
         row = {
             "world": args.world, "drive": args.drive, "every": every, "scans": kind,
-            "map": "complete" if args.complete_map else "past",
+            "map": "complete" if args.complete_map else f"past + next ({args.lookahead})" if args.lookahead else "past",
             "matches": len(e),
             "along_mean_mm": round(float(along.mean()), 1), "along_median_mm": round(float(np.median(along)), 1),
             "along_over_1cm": round(float(np.mean(np.abs(along) > 10)), 2),
