@@ -34,10 +34,10 @@ from pathlib import Path
 
 import numpy as np
 
-from omnitof import _core
 from omnitof.geometry import wrap_angle
 from omnitof.sim.worlds import load_world
 from omnitof.slam.config import load_config
+from omnitof.slam.final_match import grid_along
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from world_filters import extracted_scans, ideal_scans  # noqa: E402
@@ -52,12 +52,10 @@ def matcher_errors(scans, cfg, every: int, complete_map: bool = False, lookahead
     in the map, and this one again after it)."""
     m, lf, sm = cfg.map, cfg.likelihood_field, cfg.scan_matcher
     max_range = min(cfg.sensor_model.max_range, scans.max_range)
-    grid = _core.OccupancyGrid(m.resolution, m.l_occ, m.l_free, m.l_min, m.l_max)
     truth = scans.ground_truth
-    if complete_map:
-        for i in range(0, len(scans), every):
-            grid.integrate(truth[i], scans.scan_angles(i), scans.scan_ranges(i), max_range,
-                           sensor_pose=scans.sensor_pose)
+    every_nth = list(range(0, len(scans), every))
+    first = every_nth if complete_map else []  # the complete map holds every scan from the start
+    grid = grid_along(scans, first, truth[first].reshape(-1, 3), m)
 
     def match(g, i):
         return g.match_scan(truth[i], scans.scan_angles(i), scans.scan_ranges(i), sensor_pose=scans.sensor_pose,
@@ -65,33 +63,30 @@ def matcher_errors(scans, cfg, every: int, complete_map: bool = False, lookahead
                             step_theta=np.radians(sm.step_deg), refinements=sm.refinements,
                             gauss_newton=sm.gauss_newton)[0]
 
-    def grid_of(posed):
-        g = _core.OccupancyGrid(m.resolution, m.l_occ, m.l_free, m.l_min, m.l_max)
-        for pose, i in posed:
-            g.integrate(np.asarray(pose, dtype=np.float64), scans.scan_angles(i), scans.scan_ranges(i), max_range,
-                        sensor_pose=scans.sensor_pose)
-        return g
+    def past_and(pose, k):  # the past map (true poses) with scan k added at `pose`
+        return grid_along(scans, past + [k], np.vstack([truth[past].reshape(-1, 3), pose]), m)
 
     errors = []
-    past = []  # (pose, scan) of the scans in the past map, for the look-ahead's rebuilt grids
-    for n, i in enumerate(range(0, len(scans), every)):
-        ranges, angles = scans.scan_ranges(i), scans.scan_angles(i)
+    past: list[int] = []  # the scans in the past map, for the look-ahead's rebuilt grids
+    for n, i in enumerate(every_nth):
         nxt = i + every
         if n >= 3:
             if lookahead and nxt < len(scans):
                 ahead = truth[nxt] if lookahead == "true" else match(grid, nxt)
-                pose = match(grid_of(past + [(ahead, nxt)]), i)
+                pose = match(past_and(ahead, nxt), i)
                 if lookahead == "estimated-twice":  # the next scan posed again with this one in the map
-                    ahead = match(grid_of(past + [(pose, i)]), nxt)
-                    pose = match(grid_of(past + [(ahead, nxt)]), i)
+                    ahead = match(past_and(pose, i), nxt)
+                    pose = match(past_and(ahead, nxt), i)
             else:
                 pose = match(grid, i)
             d = np.asarray(pose) - truth[i]
             c, s = np.cos(truth[i, 2]), np.sin(truth[i, 2])
             errors.append([c * d[0] + s * d[1], -s * d[0] + c * d[1], wrap_angle(d[2])])
         if not complete_map:
-            grid.integrate(truth[i], angles, ranges, max_range, sensor_pose=scans.sensor_pose)
-            past.append((truth[i], i))
+            # grid_along's write, one scan at a time: rebuilding the past map at each scan is quadratic.
+            grid.integrate(truth[i], scans.scan_angles(i), scans.scan_ranges(i), min(m.max_range, scans.max_range),
+                           m.clear_no_echo, scans.sensor_pose)
+            past.append(i)
     return np.asarray(errors)
 
 
