@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from omnitof.eval.trajectory import absolute_trajectory_error
 from omnitof.geometry import relative, wrap_angle
 from omnitof.slam import run_slam
 from omnitof.slam.config import load_config
@@ -61,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
         idx = result.integrated
         e = step_errors(result.trajectory.poses[idx], scans.ground_truth[idx])
         along, heading = 1000 * e[:, 0], np.degrees(e[:, 2])
-        position = np.hypot(*(result.trajectory.poses[:, :2] - scans.ground_truth[:, :2]).T)
+        ate = absolute_trajectory_error(result.trajectory.poses, scans.ground_truth)
         print(json.dumps({
             "world": args.world, "drive": args.drive, "seed": seed, "preset": args.preset, "set": args.set,
             "steps": len(e),
@@ -71,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
             "heading_sum_deg": round(float(heading.sum()), 2),
             "heading_abs_sum_deg": round(float(np.abs(heading).sum()), 2),
             "heading_max_deg": round(float(np.abs(heading).max()), 2),
-            "mean_error_m": round(float(position.mean()), 3), "final_error_m": round(float(position[-1]), 3),
+            "mean_error_m": round(ate.mean, 3), "final_error_m": round(ate.final, 3),
         }), flush=True)
     return 0
 
