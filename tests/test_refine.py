@@ -196,3 +196,37 @@ def test_refine_and_report_commands(tmp_path, rig):
         assert heading in text
     assert (report / "residuals.png").stat().st_size > 1000
     assert (report / "fig6_side_view.png").stat().st_size > 1000
+
+
+def test_a_discs_predicted_centroid_is_the_centroid_of_its_image(rig):
+    """`polygon_centroids` of a projected disc outline against the centroid of the disc's image
+    found independently: a fine grid of image points, each back-projected onto the card."""
+    from omnitof.calibration.refine import DISC_VERTICES, polygon_centroids
+
+    camera = rig.camera
+    square = np.array([[[0.0, 0.0], [2.0, 0.0], [2.0, 1.0], [0.0, 1.0]]])
+    assert np.allclose(polygon_centroids(square), [[1.0, 0.5]])
+    assert np.allclose(polygon_centroids(square[:, ::-1]), [[1.0, 0.5]])  # either orientation
+    radius = 0.0025
+    tilt = math.radians(50.0)
+    normal = np.array([math.sin(tilt), 0.0, -math.cos(tilt)])  # the card faces the camera
+    centre = np.array([0.05, 0.03, 0.12])
+    e1 = np.cross(normal, [0.0, 1.0, 0.0]); e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    angle = np.linspace(0.0, 2.0 * math.pi, DISC_VERTICES, endpoint=False)
+    outline = centre + radius * (np.cos(angle)[:, None] * e1 + np.sin(angle)[:, None] * e2)
+    predicted = polygon_centroids(camera.project(outline)[None])[0]
+    # The image of the disc: pixels of a 0.02 px grid whose rays meet the card inside the disc.
+    middle = camera.project(centre[None])[0]
+    step = 0.02
+    g = np.arange(-6.0, 6.0, step)
+    gu, gv = np.meshgrid(middle[0] + g, middle[1] + g)
+    pixels = np.stack([gu.ravel(), gv.ravel()], axis=1)
+    rays = camera.rays(pixels)
+    hits = rays * ((centre @ normal) / (rays @ normal))[:, None]
+    inside = np.linalg.norm(hits - centre, axis=1) <= radius
+    measured = pixels[inside].mean(axis=0)
+    projected_centre = camera.project(centre[None])[0]
+    assert np.hypot(*(predicted - measured)) < 0.005
+    # ... and the projected centre is not that centroid (the reason for the model).
+    assert np.hypot(*(projected_centre - measured)) > 0.01  # 0.016 px here

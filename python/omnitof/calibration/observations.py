@@ -144,7 +144,8 @@ def dot_view(
     region = erode_labels(labels, 2.0) == index
     mirrored_mask = _polygon_mask(camera.shape, mirrored_px) & white & region & ~direct_mask
     tof = [s for s in (_samples(image, direct_mask, -1, rng), _samples(image, mirrored_mask, index, rng)) if s]
-    return PosedView(image.name, "dots", np.vstack([points, points]), pixels, via, pose, tof), ""
+    return PosedView(image.name, "dots", np.vstack([points, points]), pixels, via, pose, tof,
+                     radius=target.radius), ""
 
 
 def plane_view(

@@ -61,6 +61,8 @@ MIN_BOARDS = 3
 HUBER_SIGMAS = 3.0
 # Rounds of (fit, re-estimate each kind's noise level).
 ROUNDS = 2
+# Vertices of the polygon that stands for a disc's outline in `disc_centroids`.
+DISC_VERTICES = 24
 
 
 @dataclass
@@ -82,7 +84,8 @@ class PosedView:
 
     points (K, 3): model points in the target frame; pixels (K, 2): where they were seen;
     via (K,) int: −1 seen directly, else the mirror index; pose (4×4): camera_T_target start;
-    tof: ToF samples on the card.
+    tof: ToF samples on the card. radius (metres): the points are the centres of printed discs
+    of this radius, seen as their image's centroid (`disc_centroids`); 0: points (corners).
     """
 
     name: str
@@ -92,6 +95,7 @@ class PosedView:
     via: np.ndarray
     pose: np.ndarray
     tof: list[ToFSamples] = field(default_factory=list)
+    radius: float = 0.0
 
 
 @dataclass
@@ -201,6 +205,24 @@ def rays(cam: np.ndarray, k3: float, pixels: np.ndarray) -> np.ndarray:
     return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
+def polygon_centroids(vertices: np.ndarray) -> np.ndarray:
+    """Area centroids (N, 2) of N polygons (N, V, 2) (shoelace formula).
+
+    A printed dot's image is not centred on its centre's image: perspective and the lens
+    distortion stretch the far side. The detector measures the image's darkness-weighted
+    centroid, so the model predicts that (the outline's polygon at DISC_VERTICES vertices), not
+    the projected centre: on simulated dot targets this takes the model error of the dots from
+    0.046–0.057 px RMS to 0.032–0.035 px (the rest is the detector's own).
+    """
+    x, y = vertices[..., 0], vertices[..., 1]
+    x1, y1 = np.roll(x, -1, axis=-1), np.roll(y, -1, axis=-1)
+    cross = x * y1 - x1 * y
+    area = cross.sum(axis=-1) / 2.0
+    cx = ((x + x1) * cross).sum(axis=-1) / (6.0 * area)
+    cy = ((y + y1) * cross).sum(axis=-1) / (6.0 * area)
+    return np.stack([cx, cy], axis=-1)
+
+
 def rodrigues(w: np.ndarray) -> np.ndarray:
     """Rotation matrices (V, 3, 3) of rotation vectors (V, 3)."""
     theta = np.linalg.norm(w, axis=1)
@@ -257,6 +279,15 @@ class _Model:
         self.pt_kind = np.concatenate(
             [np.full(len(view.points), 0 if view.kind == "board" else 1) for view in problem.views]
         ) if problem.views else np.zeros(0, int)
+        self.pt_radius = np.concatenate(
+            [np.full(len(view.points), float(view.radius)) for view in problem.views]
+        ) if problem.views else np.zeros(0)
+        # Discs: their outlines in the target frame (the card is the frame's z = 0 plane).
+        self.discs = np.flatnonzero(self.pt_radius > 0.0)
+        angle = np.linspace(0.0, 2.0 * math.pi, DISC_VERTICES, endpoint=False)
+        ring = np.stack([np.cos(angle), np.sin(angle), np.zeros_like(angle)], axis=1)
+        self.disc_outline = (self.pt_model[self.discs, None, :]
+                             + self.pt_radius[self.discs, None, None] * ring[None, :, :])
         # ToF samples: source (view index, or n_views + plane index), pixel, range, weight, mirror.
         src, tpix, rng, wts, mir = [], [], [], [], []
         for i, view in enumerate(problem.views):
@@ -318,7 +349,10 @@ class _Model:
             dd = d[self.pt_via[mirrored]]
             Xm = X[mirrored]
             X[mirrored] = Xm - 2.0 * (np.sum(n * Xm, axis=1) - dd)[:, None] * n
-        point_res = project(cam, self.k3, X) - self.pt_pixel
+        predicted_px = project(cam, self.k3, X)
+        if len(self.discs):
+            predicted_px[self.discs] = self._disc_centroids(cam, normals, d, R, t)
+        point_res = predicted_px - self.pt_pixel
         # Path lengths: the distance along the pixel's ray to the card's plane (reflected).
         posed = self.tof_src < self.n_views
         plane_n = np.empty((self.n_tof, 3))
@@ -341,6 +375,20 @@ class _Model:
         r = self._rays(cam)
         predicted = plane_c / np.sum(plane_n * r, axis=1)
         return point_res, predicted - self.tof_range
+
+    def _disc_centroids(self, cam, normals, d, R, t) -> np.ndarray:
+        """Where the discs' images have their centroids (D, 2): the outlines moved to their
+        views' poses, reflected for mirrored views, projected, and `polygon_centroids`."""
+        owner = self.pt_owner[self.discs]
+        X = np.einsum("nij,nkj->nki", R[owner], self.disc_outline) + t[owner][:, None, :]
+        via = self.pt_via[self.discs]
+        mirrored = via >= 0
+        if mirrored.any():
+            n, dd = normals[via[mirrored]], d[via[mirrored]]
+            Xm = X[mirrored]
+            X[mirrored] = Xm - 2.0 * (np.einsum("nkj,nj->nk", Xm, n) - dd[:, None])[:, :, None] * n[:, None, :]
+        outline_px = project(cam, self.k3, X.reshape(-1, 3)).reshape(len(owner), DISC_VERTICES, 2)
+        return polygon_centroids(outline_px)
 
     def _rays(self, cam: np.ndarray) -> np.ndarray:
         # Only the camera's columns change the rays: the pose and mirror columns of the

@@ -35,9 +35,9 @@ from omnitof.calibration.mirror_planes import calibrate_mirrors
 from omnitof.calibration.targets import render_checkerboard_images, render_dot_images
 from omnitof.sensor.mirrors import assign_pixels
 
-# 30 boards pin the principal point to ~0.2 px at 176×144 (15: ~0.4 px), which is what limits
-# the mirror normals once the intrinsics are estimated (benchmarks/calibration.py: the worst
-# normal 0.22° with 30 boards against 0.33° with 15, seed 0).
+# 30 boards pin the principal point to 0.04–0.19 px at 176×144 (closed form, seeds 0–9), which
+# is what limits the mirror normals once the intrinsics are estimated. 60 boards did not remove
+# the worst seeds' error (benchmarks/calibration_refine.py; BENCHMARKS.md, "Calibration").
 DEFAULT_BOARDS = 30
 DEFAULT_PLACEMENTS = 8
 # Two-mirror boards per pair of neighbouring mirrors (refinement only).

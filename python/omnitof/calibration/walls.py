@@ -139,7 +139,7 @@ def render_wall_recordings(
     wall placed by the rig's design, turned about its centre and the camera's axis by the next of
     `turns_deg` in turn, as a wall set up by hand is). Returns (the recording, camera_T_wall) per
     position; the recording's distance is the wall's shortest from the optical centre."""
-    from omnitof.calibration.targets import PlainBoard, Room, render_target_frames
+    from omnitof.calibration.targets import WALL_SUB_RAYS, PlainBoard, Room, render_target_frames
     from omnitof.sensor.mirrors import assign_pixels
 
     axes = view_axes(camera, mirrors, assign_pixels(camera, mirrors))
@@ -155,7 +155,8 @@ def render_wall_recordings(
             pose[:3, :3] = _turn(turn) @ pose[:3, :3]
             wall = PlainBoard(width=12.0, height=6.0, reflectance=albedo)
             rngs = [np.random.default_rng([seed, 0x3A11, i, k, f]) for f in range(frames)]
-            shots = render_target_frames(camera, wall, pose, mirrors, rngs=rngs, sensor=sensor, room=room)
+            shots = render_target_frames(camera, wall, pose, mirrors, rngs=rngs, sensor=sensor, room=room,
+                                         sub_rays=WALL_SUB_RAYS)
             recording = WallRecording(
                 f"wall {dist:.2f} m, {mirror.name}, albedo {albedo}", k,
                 -float(pose[:3, 2] @ pose[:3, 3]),  # the shortest distance from the optical centre
