@@ -7,9 +7,10 @@ Images come from disk (`calibration.images.load_images`): PNG/PGM/TIFF amplitude
 
 ToF amplitude falls off as 1/r², so images are scaled to 8 bits by a high percentile (not the
 maximum, which a few hot pixels set) before OpenCV's detectors see them. Corners are found with
-cv2.findChessboardCorners or, failing that, cv2.findChessboardCornersSB, and refined to sub-pixel
-by `saddle_points` (a quadratic's saddle point on the locally normalised image; cornerSubPix alone
-was 4× less accurate on simulated boards, see there); cv2.calibrateCamera fits K and (k1, k2, p1, p2[, k3]).
+cv2.findChessboardCorners (brought within ~0.1 px by cv2.cornerSubPix) or, failing that,
+cv2.findChessboardCornersSB, and refined by `saddle_points` (a quadratic's saddle point on the
+locally normalised image; cornerSubPix alone was 4× less accurate on simulated boards, see
+there); cv2.calibrateCamera fits K and (k1, k2, p1, p2[, k3]).
 """
 
 from __future__ import annotations

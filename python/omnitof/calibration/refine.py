@@ -61,7 +61,7 @@ MIN_BOARDS = 3
 HUBER_SIGMAS = 3.0
 # Rounds of (fit, re-estimate each kind's noise level).
 ROUNDS = 2
-# Vertices of the polygon that stands for a disc's outline in `disc_centroids`.
+# Vertices of the polygon that stands for a disc's outline (`polygon_centroids`).
 DISC_VERTICES = 24
 
 
@@ -85,7 +85,7 @@ class PosedView:
     points (K, 3): model points in the target frame; pixels (K, 2): where they were seen;
     via (K,) int: −1 seen directly, else the mirror index; pose (4×4): camera_T_target start;
     tof: ToF samples on the card. radius (metres): the points are the centres of printed discs
-    of this radius, seen as their image's centroid (`disc_centroids`); 0: points (corners).
+    of this radius, seen as their image's centroid (`polygon_centroids`); 0: points (corners).
     """
 
     name: str
@@ -203,6 +203,12 @@ def rays(cam: np.ndarray, k3: float, pixels: np.ndarray) -> np.ndarray:
         y = y - (a * fy - b * fx) / det
     out = np.stack([x, y, np.ones_like(x)], axis=1)
     return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def _reflect(points: np.ndarray, normal: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Points (..., 3) reflected in the planes normal·x = d (eq. 6's D), broadcast over the
+    leading axes."""
+    return points - 2.0 * (np.sum(points * normal, axis=-1) - d)[..., None] * normal
 
 
 def polygon_centroids(vertices: np.ndarray) -> np.ndarray:
@@ -347,8 +353,7 @@ class _Model:
         if mirrored.any():
             n = normals[self.pt_via[mirrored]]
             dd = d[self.pt_via[mirrored]]
-            Xm = X[mirrored]
-            X[mirrored] = Xm - 2.0 * (np.sum(n * Xm, axis=1) - dd)[:, None] * n
+            X[mirrored] = _reflect(X[mirrored], n, dd)
         predicted_px = project(cam, self.k3, X)
         if len(self.discs):
             predicted_px[self.discs] = self._disc_centroids(cam, normals, d, R, t)
@@ -385,8 +390,7 @@ class _Model:
         mirrored = via >= 0
         if mirrored.any():
             n, dd = normals[via[mirrored]], d[via[mirrored]]
-            Xm = X[mirrored]
-            X[mirrored] = Xm - 2.0 * (np.einsum("nkj,nj->nk", Xm, n) - dd[:, None])[:, :, None] * n[:, None, :]
+            X[mirrored] = _reflect(X[mirrored], n[:, None, :], dd[:, None])
         outline_px = project(cam, self.k3, X.reshape(-1, 3)).reshape(len(owner), DISC_VERTICES, 2)
         return polygon_centroids(outline_px)
 
