@@ -19,7 +19,7 @@ use rayon::prelude::*;
 
 use crate::grid::{try_vec, GridError, LogOddsModel, TiledGrid};
 use crate::motion::{compose, relative, OdometryMotion};
-use crate::scan_match::{check_odometry, endpoints, gauss_newton, propose, LikelihoodField, MatcherParams};
+use crate::scan_match::{check_odometry, endpoints, gauss_newton, propose, FieldView, LikelihoodField, MatcherParams};
 use crate::sensor_model::{integrate_scan, BeamModel, ScanGeometry};
 
 /// Where a particle's new pose is drawn from.
@@ -343,18 +343,23 @@ impl ParticleFilter {
     /// the share of its end points that found an obstacle of the map. None before the first scan.
     pub fn match_in_best(&self, start: [f64; 3], ranges: &[f32], angles: Option<&[f64]>) -> Option<([f64; 3], f64)> {
         let best = self.best()?;
+        Some(self.match_in(&FieldView::new(&self.params.field, &best.map), start, ranges, angles))
+    }
+
+    /// `match_in_best` through a view of the best particle's map, which a chain of matches shares.
+    fn match_in(&self, view: &FieldView, start: [f64; 3], ranges: &[f32], angles: Option<&[f64]>) -> ([f64; 3], f64) {
         let p = &self.params;
         let geom = ScanGeometry { angles: angles.unwrap_or(&self.angles), sensor: self.sensor };
         let pts = endpoints(&geom, ranges, p.beam_stride, p.field.max_range);
         if pts.is_empty() {
-            return Some((start, 0.0));
+            return (start, 0.0);
         }
         // The start is already good (the previous scan's pose plus the odometry since, a few
         // centimetres of motion, well inside the likelihood field's window): Gauss-Newton alone
         // converges from there. A hill climb first cost four times as much for the same poses
         // (Intel: 4.2 of the back end's 11 s).
-        let (pose, _, matched) = gauss_newton(&p.field, &best.map, &geom, &pts, p.matcher.effective_beams, None, start, BETWEEN_GAUSS_NEWTON);
-        Some((pose, matched as f64 / pts.len() as f64))
+        let (pose, _, matched) = gauss_newton(view, &geom, &pts, p.matcher.effective_beams, None, start, BETWEEN_GAUSS_NEWTON);
+        (pose, matched as f64 / pts.len() as f64)
     }
 
     /// Pose the scans taken between two integrated ones, in order, each by one local match
@@ -366,15 +371,17 @@ impl ParticleFilter {
     /// match stood; None before the first scan. Sequential by nature: each match starts from
     /// the one before.
     pub fn match_chain(&self, odometry: &[[f64; 3]], ranges: &[f32], angles: Option<&[f64]>, beams: usize, min_matched: f64) -> Option<(Vec<[f64; 3]>, Vec<bool>)> {
-        let anchor = self.best()?.pose;
+        let best = self.best()?;
+        let view = FieldView::new(&self.params.field, &best.map);
+        let anchor = best.pose;
         let mut pose = anchor;
         let mut out = Vec::with_capacity(odometry.len().saturating_sub(1));
         let mut matched = Vec::with_capacity(out.capacity());
         for (i, pair) in odometry.windows(2).enumerate() {
             let start = compose(pose, relative(pair[0], pair[1]));
             let scan_angles = angles.map(|a| &a[i * beams..(i + 1) * beams]);
-            let found = self.match_in_best(start, &ranges[i * beams..(i + 1) * beams], scan_angles);
-            let good = found.filter(|f| f.1 >= min_matched);
+            let found = self.match_in(&view, start, &ranges[i * beams..(i + 1) * beams], scan_angles);
+            let good = Some(found).filter(|f| f.1 >= min_matched);
             pose = good.map_or(start, |f| f.0);
             out.push(relative(anchor, pose));
             matched.push(good.is_some());

@@ -585,7 +585,7 @@ impl PyOccupancyGrid {
             min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, search: None, search_below: 0.0,
         };
         let pts = scan_match::endpoints(&geom, ranges, 1, max_range);
-        let (pose, _, _) = scan_match::local_match(&lf, &m, &self.grid, &geom, &pts, start, None);
+        let (pose, _, _) = scan_match::local_match(&scan_match::FieldView::new(&lf, &self.grid), &m, &geom, &pts, start, None);
         Ok((pose, lf.score(&self.grid, geom.sensor_pose(pose), &pts).0))
     }
 

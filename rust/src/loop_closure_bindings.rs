@@ -232,5 +232,6 @@ fn field_match(sub: &Submap, geom: &ScanGeometry, ranges: &[f32], start: [f64; 3
     if pts.is_empty() {
         return start;
     }
-    scan_match::local_match(&lf, &m, sub.grid(), geom, &pts, start, None).0
+    let view = scan_match::FieldView::new(&lf, sub.grid());
+    scan_match::local_match(&view, &m, geom, &pts, start, None).0
 }

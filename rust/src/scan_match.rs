@@ -144,45 +144,57 @@ impl LikelihoodField {
     }
 
     /// (squared distance, offset (dx, dy) from the point to) the nearest occupied cell's mean end
-    /// point within the window; infinite distance if there is none.
+    /// point among `candidates` of the point's cell; infinite distance if there is none.
     #[inline]
     fn nearest_cell(&self, grid: &TiledGrid, x: f64, y: f64) -> (f64, [f64; 2]) {
         let res = grid.resolution;
         let (ix, iy) = (floor_i32(x / res), floor_i32(y / res));
-        if self.window >= TILE / 2 {
-            return self.nearest_cell_in(|cx, cy| grid.occupied_hit(cx, cy, self.occupied_threshold), ix, iy, x, y);
-        }
-        let near = grid.neighbourhood(ix, iy, self.window);
-        self.nearest_cell_in(|cx, cy| near.occupied_hit(cx, cy, self.occupied_threshold), ix, iy, x, y)
-    }
-
-    /// `nearest_cell` through `occupied_hit`, the grid's or a neighbourhood's.
-    #[inline(always)]
-    fn nearest_cell_in(&self, occupied_hit: impl Fn(i32, i32) -> Option<[f64; 2]>, ix: i32, iy: i32, x: f64, y: f64) -> (f64, [f64; 2]) {
         let mut best = f64::INFINITY;
         let mut offset = [0.0; 2];
+        self.candidates(grid, ix, iy, |h| {
+            let (dx, dy) = (h[0] - x, h[1] - y);
+            if dx * dx + dy * dy < best {
+                best = dx * dx + dy * dy;
+                offset = [dx, dy];
+            }
+        });
+        (best, offset)
+    }
+
+    /// The mean end points of the occupied cells that the search for a point in cell (ix, iy)
+    /// considers, in a fixed order: ring by ring out to `window` cells, stopping one ring after
+    /// the first ring that holds any (a diagonal neighbour there can still be nearer). They
+    /// depend on the cell alone, which is what lets `FieldView` remember them.
+    #[inline]
+    fn candidates(&self, grid: &TiledGrid, ix: i32, iy: i32, visit: impl FnMut([f64; 2])) {
+        if self.window >= TILE / 2 {
+            return self.candidates_in(|cx, cy| grid.occupied_hit(cx, cy, self.occupied_threshold), ix, iy, visit);
+        }
+        let near = grid.neighbourhood(ix, iy, self.window);
+        self.candidates_in(|cx, cy| near.occupied_hit(cx, cy, self.occupied_threshold), ix, iy, visit)
+    }
+
+    /// `candidates` through `occupied_hit`, the grid's or a neighbourhood's.
+    #[inline(always)]
+    fn candidates_in(&self, occupied_hit: impl Fn(i32, i32) -> Option<[f64; 2]>, ix: i32, iy: i32, mut visit: impl FnMut([f64; 2])) {
         let mut found_at = None;
         for r in 0..=self.window {
             if let Some(f) = found_at {
-                // One more ring after the first hit: a diagonal neighbour can still be nearer.
                 if r > f + 1 {
                     break;
                 }
             }
+            let mut any = false;
             for_ring(ix, iy, r, |cx, cy| {
                 if let Some(h) = occupied_hit(cx, cy) {
-                    let (dx, dy) = (h[0] - x, h[1] - y);
-                    if dx * dx + dy * dy < best {
-                        best = dx * dx + dy * dy;
-                        offset = [dx, dy];
-                    }
+                    any = true;
+                    visit(h);
                 }
             });
-            if best.is_finite() && found_at.is_none() {
+            if any && found_at.is_none() {
                 found_at = Some(r);
             }
         }
-        (best, offset)
     }
 
     /// The search radius (m) with `fit_walls`: end points farther than this from every
@@ -318,25 +330,166 @@ impl LikelihoodField {
     }
 
     /// (mean log-likelihood over the points, points with an obstacle inside the window) for
-    /// end points `pts` (sensor frame) seen from sensor pose `sp`.
+    /// end points `pts` (sensor frame) seen from sensor pose `sp`. One-off scores; a match that
+    /// scores many poses in one map reads it through a `FieldView`.
     pub fn score(&self, grid: &TiledGrid, sp: [f64; 3], pts: &[[f64; 2]]) -> (f64, usize) {
+        self.score_with(|x, y| self.nearest(grid, x, y).0, grid.resolution, sp, pts)
+    }
+
+    /// `score` with the squared distance to the nearest obstacle given by `nearest_d2`.
+    #[inline]
+    fn score_with(&self, nearest_d2: impl Fn(f64, f64) -> f64, resolution: f64, sp: [f64; 3], pts: &[[f64; 2]]) -> (f64, usize) {
         if pts.is_empty() {
             return (0.0, 0);
         }
         let (s, c) = sp[2].sin_cos();
-        let radius = self.radius(grid.resolution);
+        let radius = self.radius(resolution);
         let mut total = 0.0;
         let mut matched = 0;
         for p in pts {
             let x = sp[0] + c * p[0] - s * p[1];
             let y = sp[1] + s * p[0] + c * p[1];
-            let d2 = self.nearest(grid, x, y).0;
+            let d2 = nearest_d2(x, y);
             if d2.is_finite() {
                 matched += 1;
             }
             total += self.point_log_likelihood(d2, radius * radius);
         }
         (total / pts.len() as f64, matched)
+    }
+}
+
+/// The likelihood field read in one map while that map stays unchanged: one scan match, or a
+/// chain of them in the same map. The borrow of the grid guarantees that nothing changes it
+/// while the view lives, so the view may remember what it has looked up.
+///
+/// What it remembers: per grid cell, the occupied cells that `nearest_cell`'s ring search visits
+/// from any point of that cell (which cells, and in which order, depend on the cell alone; only
+/// the distances depend on the point). A match evaluates the same end points at dozens of poses
+/// a fraction of a cell apart (the hill climb's last steps, the proposal's 27 poses, Gauss-Newton),
+/// so most searches start in a cell already searched; the view then measures the distances to
+/// that cell's few remembered candidates instead of walking up to 49 cells of the map. Same
+/// candidates, same order, same strict comparison: every result is bit-identical to
+/// `LikelihoodField::nearest`. With `fit_walls` (whose search depends on the point, not the cell)
+/// the view reads the field directly.
+pub struct FieldView<'a> {
+    pub field: &'a LikelihoodField,
+    pub grid: &'a TiledGrid,
+    cache: std::cell::RefCell<CandidateCache>,
+}
+
+/// A direct-mapped table from grid cells to their candidate lists, stored one after the other in
+/// `points`. Written here rather than taken from a hash map crate: a general hash map costs
+/// about as much per lookup as the search it would save. A slot belongs to the view whose `generation` it carries, so a table
+/// is handed from one view to the next on the same thread without clearing it (a filter step
+/// makes one view per particle).
+struct CandidateCache {
+    slots: Vec<CacheSlot>,
+    points: Vec<[f64; 2]>,
+    generation: u32,
+    /// CACHE_POINTS, lowered by a test to reach the restart.
+    max_points: usize,
+}
+
+#[derive(Clone, Copy, Default)]
+struct CacheSlot {
+    cell: (i32, i32),
+    start: u32,
+    len: u32,
+    generation: u32,
+}
+
+/// 8192 slots (160 KiB), 128 × 64 cells by position: a match in a real log touches one to two
+/// thousand cells (Freiburg 079: with 2048 slots half again as many searches). Slots by position
+/// rather than by a hash keep the neighbouring end points of a scan in neighbouring slots.
+const CACHE_BITS: u32 = 13;
+/// When the stored candidates reach this many, the table starts afresh (evicted lists stay in
+/// `points` until then).
+const CACHE_POINTS: usize = 1 << 16;
+
+thread_local! {
+    /// The table of the last view dropped on this thread, for the next one.
+    static SPARE_CACHE: std::cell::Cell<Option<CandidateCache>> = const { std::cell::Cell::new(None) };
+}
+
+impl CandidateCache {
+    /// A table with no valid slot: the spare one of this thread, or a new one.
+    fn fresh() -> Self {
+        let mut cache = SPARE_CACHE.with(|spare| spare.take()).unwrap_or_else(|| CandidateCache {
+            slots: vec![CacheSlot::default(); 1 << CACHE_BITS],
+            points: Vec::new(),
+            generation: 0,
+            max_points: CACHE_POINTS,
+        });
+        cache.max_points = CACHE_POINTS;
+        cache.restart();
+        cache
+    }
+
+    fn restart(&mut self) {
+        self.points.clear();
+        self.generation = self.generation.wrapping_add(1);
+        if self.generation == 0 {
+            // After 2³² views the marks could repeat: clear them.
+            self.slots.fill(CacheSlot::default());
+            self.generation = 1;
+        }
+    }
+}
+
+impl Drop for FieldView<'_> {
+    fn drop(&mut self) {
+        let cache = std::mem::replace(
+            self.cache.get_mut(),
+            CandidateCache { slots: Vec::new(), points: Vec::new(), generation: 0, max_points: CACHE_POINTS },
+        );
+        SPARE_CACHE.with(|spare| spare.set(Some(cache)));
+    }
+}
+
+impl<'a> FieldView<'a> {
+    pub fn new(field: &'a LikelihoodField, grid: &'a TiledGrid) -> Self {
+        FieldView { field, grid, cache: std::cell::RefCell::new(CandidateCache::fresh()) }
+    }
+
+    /// As `LikelihoodField::nearest`, through the remembered candidates.
+    #[inline]
+    pub fn nearest(&self, x: f64, y: f64) -> (f64, [f64; 2], Option<[f64; 2]>) {
+        let lf = self.field;
+        if lf.fit_walls {
+            return lf.nearest_wall(self.grid, x, y);
+        }
+        let res = self.grid.resolution;
+        let (ix, iy) = (floor_i32(x / res), floor_i32(y / res));
+        let k = (((iy as u32 & 63) << 7) | (ix as u32 & 127)) as usize; // CACHE_BITS = 7 + 6
+        let mut cache = self.cache.borrow_mut();
+        let mut slot = cache.slots[k];
+        if slot.generation != cache.generation || slot.cell != (ix, iy) {
+            if cache.points.len() >= cache.max_points {
+                cache.restart();
+            }
+            let start = cache.points.len();
+            let points = &mut cache.points;
+            lf.candidates(self.grid, ix, iy, |h| points.push(h));
+            let len = (cache.points.len() - start) as u32;
+            slot = CacheSlot { cell: (ix, iy), start: start as u32, len, generation: cache.generation };
+            cache.slots[k] = slot;
+        }
+        let mut best = f64::INFINITY;
+        let mut offset = [0.0; 2];
+        for h in &cache.points[slot.start as usize..(slot.start + slot.len) as usize] {
+            let (dx, dy) = (h[0] - x, h[1] - y);
+            if dx * dx + dy * dy < best {
+                best = dx * dx + dy * dy;
+                offset = [dx, dy];
+            }
+        }
+        (best, offset, None)
+    }
+
+    /// As `LikelihoodField::score`.
+    pub fn score(&self, sp: [f64; 3], pts: &[[f64; 2]]) -> (f64, usize) {
+        self.field.score_with(|x, y| self.nearest(x, y).0, self.grid.resolution, sp, pts)
     }
 }
 
@@ -436,15 +589,14 @@ impl PosePrior {
 /// The objective of the scan match: gain · (mean log-likelihood of the end points) plus the log
 /// prior (none: the likelihood alone).
 pub fn objective(
-    lf: &LikelihoodField,
-    grid: &TiledGrid,
+    view: &FieldView,
     geom: &ScanGeometry,
     pts: &[[f64; 2]],
     gain: f64,
     prior: Option<&PosePrior>,
     pose: [f64; 3],
 ) -> f64 {
-    gain * lf.score(grid, geom.sensor_pose(pose), pts).0 + prior.map_or(0.0, |p| p.log_prob(pose))
+    gain * view.score(geom.sensor_pose(pose), pts).0 + prior.map_or(0.0, |p| p.log_prob(pose))
 }
 
 /// One sweep over the end points at `pose`: (sum over the points of
@@ -453,10 +605,11 @@ pub fn objective(
 /// `LikelihoodField::score` counts them). Each end point pulls towards the mean end point of its nearest
 /// occupied cell, weighted as iteratively reweighted least squares of the log-likelihood
 /// (points with no obstacle in the window drop out).
-fn linearise(lf: &LikelihoodField, grid: &TiledGrid, geom: &ScanGeometry, pts: &[[f64; 2]], pose: [f64; 3]) -> (f64, [f64; 3], [[f64; 3]; 3], usize) {
+fn linearise(view: &FieldView, geom: &ScanGeometry, pts: &[[f64; 2]], pose: [f64; 3]) -> (f64, [f64; 3], [[f64; 3]; 3], usize) {
+    let lf = view.field;
     let norm = lf.z_hit / (lf.sigma * (2.0 * std::f64::consts::PI).sqrt());
     let floor = lf.z_rand / lf.max_range;
-    let radius2 = lf.radius(grid.resolution).powi(2);
+    let radius2 = lf.radius(view.grid.resolution).powi(2);
     let sp = geom.sensor_pose(pose);
     let (s, c) = sp[2].sin_cos();
     let mut h = [[0.0; 3]; 3];
@@ -466,7 +619,7 @@ fn linearise(lf: &LikelihoodField, grid: &TiledGrid, geom: &ScanGeometry, pts: &
     for p in pts {
         let qx = sp[0] + c * p[0] - s * p[1];
         let qy = sp[1] + s * p[0] + c * p[1];
-        let (d2, off, normal) = lf.nearest(grid, qx, qy);
+        let (d2, off, normal) = view.nearest(qx, qy);
         if !d2.is_finite() {
             total += floor.ln();
             continue;
@@ -503,8 +656,7 @@ fn linearise(lf: &LikelihoodField, grid: &TiledGrid, geom: &ScanGeometry, pts: &
 /// objective, its end points with an obstacle in the window), the count saving callers a sweep.
 #[allow(clippy::too_many_arguments)]
 pub fn gauss_newton(
-    lf: &LikelihoodField,
-    grid: &TiledGrid,
+    view: &FieldView,
     geom: &ScanGeometry,
     pts: &[[f64; 2]],
     gain: f64,
@@ -512,7 +664,7 @@ pub fn gauss_newton(
     start: [f64; 3],
     iterations: u32,
 ) -> ([f64; 3], f64, usize) {
-    gauss_newton_with(|pose| linearise(lf, grid, geom, pts, pose), pts.len(), gain, prior, start, iterations)
+    gauss_newton_with(|pose| linearise(view, geom, pts, pose), pts.len(), gain, prior, start, iterations)
 }
 
 /// The Gauss-Newton loop of `gauss_newton` on any linearisation: `linearise(pose)` gives (sum of
@@ -600,7 +752,7 @@ pub fn match_each(
             if pts.is_empty() {
                 return (start, 0.0);
             }
-            let (pose, _, matched) = gauss_newton(lf, grid, &geom, &pts, 1.0, None, start, iterations);
+            let (pose, _, matched) = gauss_newton(&FieldView::new(lf, grid), &geom, &pts, 1.0, None, start, iterations);
             (pose, matched as f64 / pts.len() as f64)
         })
         .collect()
@@ -640,17 +792,16 @@ pub fn motion_prior(motion: &OdometryMotion, prev: [f64; 3], cur: [f64; 3], pred
 /// `prior`, if any): (mode, objective there, end points with an obstacle within the window).
 #[allow(clippy::too_many_arguments)]
 pub fn local_match(
-    lf: &LikelihoodField,
+    view: &FieldView,
     m: &MatcherParams,
-    grid: &TiledGrid,
     geom: &ScanGeometry,
     pts: &[[f64; 2]],
     start: [f64; 3],
     prior: Option<&PosePrior>,
 ) -> ([f64; 3], f64, usize) {
-    let goal = |pose: [f64; 3]| objective(lf, grid, geom, pts, m.effective_beams, prior, pose);
+    let goal = |pose: [f64; 3]| objective(view, geom, pts, m.effective_beams, prior, pose);
     let (mode, _) = climb(goal, start, m);
-    let (mode, value, matched) = gauss_newton(lf, grid, geom, pts, m.effective_beams, prior, mode, m.gauss_newton);
+    let (mode, value, matched) = gauss_newton(view, geom, pts, m.effective_beams, prior, mode, m.gauss_newton);
     (mode, value, matched)
 }
 
@@ -683,16 +834,17 @@ pub fn check_odometry(
     let enough = |matched: usize| matched as f64 >= m.search_below * n;
     // Cheap first (this runs before the particles, on one core): a prediction that already puts
     // the scan on the map needs no search.
-    if enough(lf.score(grid, geom.sensor_pose(predicted), pts).1) {
+    let view = FieldView::new(lf, grid);
+    if enough(view.score(geom.sensor_pose(predicted), pts).1) {
         return Ok(None);
     }
-    let (_, local_value, local_matched) = local_match(lf, m, grid, geom, pts, predicted, None);
+    let (_, local_value, local_matched) = local_match(&view, m, geom, pts, predicted, None);
     if enough(local_matched) {
         return Ok(None);
     }
     let floor = lf.z_rand / lf.max_range;
     let start = correlative_search(grid, lf.occupied_threshold, floor, geom, pts, predicted, window)?;
-    let (found, value, matched) = local_match(lf, m, grid, geom, pts, start, None);
+    let (found, value, matched) = local_match(&view, m, geom, pts, start, None);
     // The jump must put the scan on the map as well as a good prediction does (`enough`), not
     // merely better than the local match: where people walk beside the robot or doors stand open
     // (the Freiburg hospital log), no pose explains the scan, and a pose that explains a little
@@ -728,16 +880,17 @@ pub fn propose<R: rand::Rng>(
     // that where the scan cannot tell (along a bare corridor) the odometry decides; without it,
     // to the mode of the likelihood alone, as GMapping does (better where odometry is poor).
     let prior = motion_prior(motion, odom_prev, odom_cur, predicted);
-    let target = |pose: [f64; 3]| objective(lf, grid, geom, pts, m.effective_beams, Some(&prior), pose);
+    let view = FieldView::new(lf, grid);
+    let target = |pose: [f64; 3]| objective(&view, geom, pts, m.effective_beams, Some(&prior), pose);
     let climb_prior = m.odometry_prior.then_some(&prior);
     let enough = |matched: usize| matched as f64 >= m.min_matched * pts.len() as f64;
     // A start that the climb cannot bring back onto the map is no hypothesis: climb again from
     // the prediction.
     let from_sample = m
         .climb_from_sample
-        .then(|| local_match(lf, m, grid, geom, pts, motion.sample(prev_pose, odom_prev, odom_cur, rng), climb_prior))
+        .then(|| local_match(&view, m, geom, pts, motion.sample(prev_pose, odom_prev, odom_cur, rng), climb_prior))
         .filter(|found| enough(found.2));
-    let (mode, _, matched) = from_sample.unwrap_or_else(|| local_match(lf, m, grid, geom, pts, predicted, climb_prior));
+    let (mode, _, matched) = from_sample.unwrap_or_else(|| local_match(&view, m, geom, pts, predicted, climb_prior));
     if pts.is_empty() || !enough(matched) {
         return Proposal { pose: predicted, log_normaliser: 0.0, matched: false };
     }
@@ -900,7 +1053,8 @@ mod tests {
         let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, 3, 0.0, false);
         let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 0, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, search: None, search_below: 0.0 };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
-        let (pose, _) = climb(|p| objective(&lf, &g, &geom, &pts, 1.0, None, p), [2.08, 1.43, 0.03], &m);
+        let view = FieldView::new(&lf, &g);
+        let (pose, _) = climb(|p| objective(&view, &geom, &pts, 1.0, None, p), [2.08, 1.43, 0.03], &m);
         assert!((pose[0] - 2.0).abs() < 0.02 && (pose[1] - 1.5).abs() < 0.02, "{pose:?}");
         assert!(pose[2].abs() < 0.01, "{pose:?}");
     }
@@ -911,7 +1065,7 @@ mod tests {
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
         let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, 3, 0.0, false);
         let pts = endpoints(&geom, &ranges, 1, 20.0);
-        let (pose, _, _) = gauss_newton(&lf, &g, &geom, &pts, 1.0, None, [2.06, 1.46, 0.02], 20);
+        let (pose, _, _) = gauss_newton(&FieldView::new(&lf, &g), &geom, &pts, 1.0, None, [2.06, 1.46, 0.02], 20);
         assert!((pose[0] - 2.0).abs() < 0.02 && (pose[1] - 1.5).abs() < 0.02, "{pose:?}");
         assert!(pose[2].abs() < 0.01, "{pose:?}");
     }
@@ -923,13 +1077,45 @@ mod tests {
         let lf = LikelihoodField::new(0.02, 0.9, 0.1, 20.0, 3, 0.0, true);
         let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 10, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, search: None, search_below: 0.0 };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
-        let (mode, _) = climb(|p| objective(&lf, &g, &geom, &pts, 1.0, None, p), [2.04, 1.46, 0.02], &m);
-        let (pose, _, _) = gauss_newton(&lf, &g, &geom, &pts, 1.0, None, mode, m.gauss_newton);
+        let view = FieldView::new(&lf, &g);
+        let (mode, _) = climb(|p| objective(&view, &geom, &pts, 1.0, None, p), [2.04, 1.46, 0.02], &m);
+        let (pose, _, _) = gauss_newton(&view, &geom, &pts, 1.0, None, mode, m.gauss_newton);
         assert!((pose[0] - 2.0).abs() < 0.01 && (pose[1] - 1.5).abs() < 0.01, "{pose:?}");
         assert!(pose[2].abs() < 0.003, "{pose:?}");
         // Every end point of the true pose lies on a fitted wall: continuous score, no step.
         let (_, matched) = lf.score(&g, geom.sensor_pose([2.0, 1.5, 0.0]), &pts);
         assert_eq!(matched, pts.len());
+    }
+
+    #[test]
+    fn the_view_finds_what_the_field_finds() {
+        // Every answer of the remembering view equals the field's own search, bit for bit: points
+        // scattered over and around the room, each looked up twice (the second time from the
+        // view's table), points 128 cells apart (the same slot of the table), and a table so
+        // small that it starts afresh many times; windows below and above half a tile.
+        use rand::SeedableRng;
+        let (g, _, _) = room();
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
+        let mut pts: Vec<[f64; 2]> = (0..4000).map(|_| [rng.random_range(-0.5..6.5), rng.random_range(-0.5..4.5)]).collect();
+        let shifted: Vec<[f64; 2]> = pts.iter().take(500).map(|p| [p[0] + 128.0 * 0.05, p[1]]).collect();
+        pts.extend(shifted);
+        for &(window, max_points) in &[(3, CACHE_POINTS), (3, 200), (9, CACHE_POINTS), (9, 500)] {
+            let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, window, 0.0, false);
+            let view = FieldView::new(&lf, &g);
+            view.cache.borrow_mut().max_points = max_points;
+            let mut found = 0;
+            for round in 0..2 {
+                for p in &pts {
+                    let want = lf.nearest(&g, p[0], p[1]);
+                    let got = view.nearest(p[0], p[1]);
+                    assert_eq!(got.0.to_bits(), want.0.to_bits(), "window {window}, round {round}, {p:?}");
+                    assert_eq!([got.1[0].to_bits(), got.1[1].to_bits()], [want.1[0].to_bits(), want.1[1].to_bits()]);
+                    found += want.0.is_finite() as usize;
+                }
+            }
+            // The test means something: most points near the walls find one, some find none.
+            assert!(found > pts.len() / 4 && found < 2 * pts.len(), "window {window}: {found}");
+        }
     }
 
     #[test]

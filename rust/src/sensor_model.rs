@@ -186,14 +186,16 @@ pub fn integrate_scan(
         });
     }
     grid.ensure_covers(x0 - res, y0 - res, x1 + res, y1 + res)?;
+    let mut cells = Vec::new();
     for (i, len, hit) in beams {
         let (s, c) = (sp[2] + geom.angles[i]).sin_cos();
+        cells.clear();
         traverse([sp[0], sp[1]], [c, s], len, res, |ix, iy, _, t1| {
             let end = t1 >= len;
-            let delta = if end && hit { model.l_occ } else { model.l_free };
-            grid.add(ix, iy, delta, model);
+            cells.push((ix, iy, if end && hit { model.l_occ } else { model.l_free }));
             true
         });
+        grid.add_cells(&cells, model);
         if hit {
             grid.add_hit(sp[0] + len * c, sp[1] + len * s);
         }
