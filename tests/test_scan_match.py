@@ -34,6 +34,20 @@ def test_matcher_recovers_a_displaced_pose(corridor_loop, k):
     assert mean_ll > 0.0  # most end points sit on walls (density above 1/m)
 
 
+def test_matcher_takes_a_far_start_without_panicking_and_refuses_a_non_finite_one():
+    # A start a billion kilometres out finds no obstacle (its score is the floor of the field's
+    # log-likelihood, ln(z_rand / max_range) per beam) and stays put; a NaN start is a ValueError.
+    angles = np.linspace(-np.pi, np.pi, 90, endpoint=False)
+    ranges = np.full(90, 2.0, np.float32)
+    grid = _core.OccupancyGrid(0.05, 0.9, -0.4, -2.0, 3.5)
+    grid.integrate(np.zeros(3), angles, ranges, 10.0)
+    pose, mean_ll = grid.match_scan(np.array([1e12, 0.0, 0.0]), angles, ranges, max_range=10.0)
+    assert pose[0] == 1e12
+    assert mean_ll == pytest.approx(np.log(0.1 / 10.0))
+    with pytest.raises(ValueError, match="finite"):
+        grid.match_scan(np.array([np.nan, 0.0, 0.0]), angles, ranges, max_range=10.0)
+
+
 def test_likelihood_field_observation_model_closes_the_loop(corridor_loop):
     # The odometry proposal weighed with the likelihood field instead of the beam model. The
     # field's log-likelihood spans a wider range than the beam model's, so it is tempered harder.

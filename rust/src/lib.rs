@@ -577,6 +577,9 @@ impl PyOccupancyGrid {
         gauss_newton: u32,
     ) -> PyResult<([f64; 3], f64)> {
         let start = pose3(start.as_slice()?, "start")?;
+        if !start.iter().all(|v| v.is_finite()) {
+            return Err(PyValueError::new_err("start must be a finite pose"));
+        }
         let (angles, ranges) = (angles.as_slice()?, ranges.as_slice()?);
         let geom = scan_geometry(angles, ranges, sensor_pose)?;
         let lf = LikelihoodField::new(sigma, 0.9, 0.1, max_range, window, occupied_threshold, false);

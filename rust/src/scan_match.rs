@@ -15,7 +15,7 @@ use rand::RngExt;
 use rand_distr::StandardNormal;
 
 use crate::correlative::{correlative_search, SearchWindow};
-use crate::grid::{GridError, TiledGrid, TILE};
+use crate::grid::{GridError, TiledGrid, MAX_CELL_INDEX, TILE};
 use crate::motion::{compose, decompose, relative, wrap, OdometryMotion};
 use crate::sensor_model::ScanGeometry;
 
@@ -167,6 +167,11 @@ impl LikelihoodField {
     /// depend on the cell alone, which is what lets `FieldView` remember them.
     #[inline]
     fn candidates(&self, grid: &TiledGrid, ix: i32, iy: i32, visit: impl FnMut([f64; 2])) {
+        // A cell beyond the grid's reach (a pose very far out: its index saturated) has no
+        // obstacle near it, and its neighbourhood's tile arithmetic would overflow.
+        if !(ix.unsigned_abs() < MAX_CELL_INDEX as u32 && iy.unsigned_abs() < MAX_CELL_INDEX as u32) {
+            return;
+        }
         if self.window >= TILE / 2 {
             return self.candidates_in(|cx, cy| grid.occupied_hit(cx, cy, self.occupied_threshold), ix, iy, visit);
         }
@@ -368,8 +373,9 @@ impl LikelihoodField {
 /// the distances depend on the point). A match evaluates the same end points at dozens of poses
 /// a fraction of a cell apart (the hill climb's last steps, the proposal's 27 poses, Gauss-Newton),
 /// so most searches start in a cell already searched; the view then measures the distances to
-/// that cell's few remembered candidates instead of walking up to 49 cells of the map. Same
-/// candidates, same order, same strict comparison: every result is bit-identical to
+/// that cell's few remembered candidates instead of walking the cells of its search window (49
+/// with the default window of 3) again. Same candidates, same order, same strict comparison:
+/// every result is bit-identical to
 /// `LikelihoodField::nearest`. With `fit_walls` (whose search depends on the point, not the cell)
 /// the view reads the field directly.
 pub struct FieldView<'a> {
@@ -380,9 +386,10 @@ pub struct FieldView<'a> {
 
 /// A direct-mapped table from grid cells to their candidate lists, stored one after the other in
 /// `points`. Written here rather than taken from a hash map crate: a general hash map costs
-/// about as much per lookup as the search it would save. A slot belongs to the view whose `generation` it carries, so a table
-/// is handed from one view to the next on the same thread without clearing it (a filter step
-/// makes one view per particle).
+/// about as much per lookup as the search it would save. A slot is valid only while it carries
+/// the table's current `generation`, which advances with each new view and each restart, so a
+/// table is handed from one view to the next on the same thread without clearing it (a filter
+/// step makes one view per particle).
 struct CandidateCache {
     slots: Vec<CacheSlot>,
     points: Vec<[f64; 2]>,
@@ -402,7 +409,9 @@ struct CacheSlot {
 /// 8192 slots (160 KiB), 128 × 64 cells by position: a match in a real log touches one to two
 /// thousand cells (Freiburg 079: with 2048 slots half again as many searches). Slots by position
 /// rather than by a hash keep the neighbouring end points of a scan in neighbouring slots.
-const CACHE_BITS: u32 = 13;
+const CACHE_X_BITS: u32 = 7;
+const CACHE_Y_BITS: u32 = 6;
+const CACHE_BITS: u32 = CACHE_X_BITS + CACHE_Y_BITS;
 /// When the stored candidates reach this many, the table starts afresh (evicted lists stay in
 /// `points` until then).
 const CACHE_POINTS: usize = 1 << 16;
@@ -443,7 +452,8 @@ impl Drop for FieldView<'_> {
             self.cache.get_mut(),
             CandidateCache { slots: Vec::new(), points: Vec::new(), generation: 0, max_points: CACHE_POINTS },
         );
-        SPARE_CACHE.with(|spare| spare.set(Some(cache)));
+        // During thread teardown the slot may be gone already; the table is then just dropped.
+        let _ = SPARE_CACHE.try_with(|spare| spare.set(Some(cache)));
     }
 }
 
@@ -461,7 +471,8 @@ impl<'a> FieldView<'a> {
         }
         let res = self.grid.resolution;
         let (ix, iy) = (floor_i32(x / res), floor_i32(y / res));
-        let k = (((iy as u32 & 63) << 7) | (ix as u32 & 127)) as usize; // CACHE_BITS = 7 + 6
+        let k = (((iy as u32 & ((1 << CACHE_Y_BITS) - 1)) << CACHE_X_BITS)
+            | (ix as u32 & ((1 << CACHE_X_BITS) - 1))) as usize;
         let mut cache = self.cache.borrow_mut();
         let mut slot = cache.slots[k];
         if slot.generation != cache.generation || slot.cell != (ix, iy) {
@@ -1115,6 +1126,19 @@ mod tests {
             }
             // The test means something: most points near the walls find one, some find none.
             assert!(found > pts.len() / 4 && found < 2 * pts.len(), "window {window}: {found}");
+        }
+    }
+
+    #[test]
+    fn points_beyond_the_grids_reach_find_no_obstacle() {
+        // Indices of points this far out saturate; the neighbourhood's tile arithmetic must not
+        // see them (it would index out of bounds). No obstacle is near them.
+        let (g, _, _) = room();
+        let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, 3, 0.0, false);
+        let view = FieldView::new(&lf, &g);
+        for &(x, y) in &[(1e12, 1.0), (-1e12, 1.0), (1.0, 1e15), (1.0, -1e300), (6e7, 0.0)] {
+            assert!(lf.nearest(&g, x, y).0.is_infinite(), "({x}, {y})");
+            assert!(view.nearest(x, y).0.is_infinite(), "({x}, {y})");
         }
     }
 

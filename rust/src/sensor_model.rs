@@ -186,16 +186,23 @@ pub fn integrate_scan(
         });
     }
     grid.ensure_covers(x0 - res, y0 - res, x1 + res, y1 + res)?;
-    let mut cells = Vec::new();
+    // A beam's cells are gathered and written in runs per tile; a very long beam is flushed in
+    // chunks so the buffer stays small. Cells are written in the order walked either way.
+    const FLUSH_CELLS: usize = 4096;
+    let mut cells = Vec::with_capacity(FLUSH_CELLS);
     for (i, len, hit) in beams {
         let (s, c) = (sp[2] + geom.angles[i]).sin_cos();
-        cells.clear();
         traverse([sp[0], sp[1]], [c, s], len, res, |ix, iy, _, t1| {
             let end = t1 >= len;
             cells.push((ix, iy, if end && hit { model.l_occ } else { model.l_free }));
+            if cells.len() == FLUSH_CELLS {
+                grid.add_cells(&cells, model);
+                cells.clear();
+            }
             true
         });
         grid.add_cells(&cells, model);
+        cells.clear();
         if hit {
             grid.add_hit(sp[0] + len * c, sp[1] + len * s);
         }
