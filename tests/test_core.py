@@ -243,3 +243,42 @@ def test_particle_filter_reports_a_map_it_cannot_allocate_as_memory_error():
     pf.step(np.zeros(3), np.zeros(3), near, 0)
     with pytest.raises(MemoryError, match="window of tiles"):
         pf.step(np.zeros(3), np.array([5.0e4, 5.0e4, 0.0]), near, 1)
+
+
+def test_the_cores_functions_refuse_what_no_sensor_robot_or_filter_gives():
+    # Each of these returned junk, hung (10**9 refinements) or aborted the process (10**12
+    # motion samples) before; each is now one exception naming what is wrong.
+    z = np.zeros(3)
+    with pytest.raises(MemoryError, match="motion samples"):
+        _core.sample_motion_odometry(z, z, np.array([1.0, 0.0, 0.0]), ALPHAS, 10**12, 0)
+    with pytest.raises(ValueError, match="finite"):
+        _core.sample_motion_odometry(np.array([np.nan, 0.0, 0.0]), z, z, ALPHAS, 3, 0)
+    with pytest.raises(ValueError, match="non-negative"):
+        _core.sample_motion_odometry(z, z, z, [-0.1, 0.0, 0.0, 0.0], 3, 0)
+    for w, what in ((np.array([np.nan, 1.0]), "finite"), (np.array([-0.5, 1.5]), "non-negative"),
+                    (np.zeros(3), "normalised"), (np.array([2.0, 2.0]), "normalised"), (np.zeros(0), "no weights")):
+        with pytest.raises(ValueError, match=what):
+            _core.low_variance_resample(w, 0)
+        with pytest.raises(ValueError, match=what):
+            _core.neff(w)
+
+    angles = np.linspace(-np.pi, np.pi, 90, endpoint=False)
+    ranges = np.full(90, 2.0, np.float32)
+    grid = _core.OccupancyGrid(0.05, 0.9, -0.4, -2.0, 3.5)
+    grid.integrate(z, angles, ranges, 10.0)
+    for bad, what in (({"window": 0}, "window"), ({"window": 10**6}, "window"), ({"sigma": np.inf}, "sigma"),
+                      ({"max_range": np.nan}, "max_range"), ({"refinements": 10**9}, "refinements"),
+                      ({"step_xy": 0.0}, "step_xy"), ({"sensor_pose": np.array([np.nan, 0, 0])}, "sensor_pose")):
+        with pytest.raises(ValueError, match=what):
+            grid.match_scan(z, angles, ranges, **{"max_range": 10.0, **bad})
+    with pytest.raises(ValueError, match="window"):
+        grid.match_each(z[None, :], ranges[None, :], angles, window=10**6, max_range=10.0)
+
+    from omnitof.slam.config import SlamConfig
+    from omnitof.slam.driver import core_sections
+
+    sensor = dict(angles=angles, sensor_pose=z, scan_max_range=20.0)
+    for bad, what in (({"angles": np.full(90, np.nan)}, "angles"), ({"scan_max_range": -1.0}, "scan_max_range"),
+                      ({"sensor_pose": np.array([0.0, np.inf, 0.0])}, "sensor_pose")):
+        with pytest.raises(ValueError, match=what):
+            _core.ParticleFilter(**core_sections(SlamConfig()), **{**sensor, **bad})

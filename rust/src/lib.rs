@@ -81,7 +81,30 @@ fn scan_geometry<'a>(
         Some(s) => pose3(s.as_slice()?, "sensor_pose")?,
         None => [0.0; 3],
     };
+    if !sensor.iter().all(|v| v.is_finite()) {
+        return Err(PyValueError::new_err("sensor_pose must be finite"));
+    }
     Ok(ScanGeometry { angles, sensor })
+}
+
+/// Largest likelihood-field window (cells) the grid's matchers take: the configuration allows
+/// 20 (`likelihood_field.window_cells`); the search walks (2w + 1)² cells per end point.
+const MAX_FIELD_WINDOW: i32 = 64;
+/// Largest number of hill-climbing refinements and Gauss-Newton iterations the grid's matchers
+/// take (the configuration allows 20 and 100): each refinement halves the steps, so more than
+/// this only spends time below any grid's precision.
+const MAX_MATCH_ITERATIONS: u32 = 1000;
+
+/// The likelihood field's settings as the grid's matchers take them, or a ValueError naming
+/// what is wrong (NaN and infinite values included).
+fn field_settings(sigma: f64, max_range: f64, window: i32) -> PyResult<()> {
+    if !(sigma.is_finite() && sigma > 0.0 && max_range.is_finite() && max_range > 0.0) {
+        return Err(PyValueError::new_err("sigma and max_range must be positive and finite"));
+    }
+    if !(1..=MAX_FIELD_WINDOW).contains(&window) {
+        return Err(PyValueError::new_err(format!("window must lie in 1..={MAX_FIELD_WINDOW} cells, got {window}")));
+    }
+    Ok(())
 }
 
 /// A scan's own beam bearings: one finite angle per range.
@@ -332,9 +355,19 @@ impl PyParticleFilter {
         sensor_pose: PyReadonlyArray1<f64>,
         scan_max_range: f64,
     ) -> PyResult<Self> {
+        if !(scan_max_range.is_finite() && scan_max_range > 0.0) {
+            return Err(PyValueError::new_err("scan_max_range must be positive and finite"));
+        }
         let params = filter_params(filter, motion, sensor_model, likelihood_field, scan_matcher, map, scan_max_range)?;
         let sensor = pose3(sensor_pose.as_slice()?, "sensor_pose")?;
-        let inner = ParticleFilter::new(params, angles.as_slice()?.to_vec(), sensor).map_err(PyValueError::new_err)?;
+        if !sensor.iter().all(|v| v.is_finite()) {
+            return Err(PyValueError::new_err("sensor_pose must be finite"));
+        }
+        let angles = angles.as_slice()?;
+        if !angles.iter().all(|a| a.is_finite()) {
+            return Err(PyValueError::new_err("angles must be finite"));
+        }
+        let inner = ParticleFilter::new(params, angles.to_vec(), sensor).map_err(PyValueError::new_err)?;
         Ok(PyParticleFilter { inner })
     }
 
@@ -580,6 +613,13 @@ impl PyOccupancyGrid {
         if !start.iter().all(|v| v.is_finite()) {
             return Err(PyValueError::new_err("start must be a finite pose"));
         }
+        field_settings(sigma, max_range, window)?;
+        if !(step_xy.is_finite() && step_xy > 0.0 && step_theta.is_finite() && step_theta > 0.0) {
+            return Err(PyValueError::new_err("step_xy and step_theta must be positive and finite"));
+        }
+        if refinements > MAX_MATCH_ITERATIONS || gauss_newton > MAX_MATCH_ITERATIONS {
+            return Err(PyValueError::new_err(format!("refinements and gauss_newton must not exceed {MAX_MATCH_ITERATIONS}")));
+        }
         let (angles, ranges) = (angles.as_slice()?, ranges.as_slice()?);
         let geom = scan_geometry(angles, ranges, sensor_pose)?;
         let lf = LikelihoodField::new(sigma, 0.9, 0.1, max_range, window, occupied_threshold, false);
@@ -639,13 +679,19 @@ impl PyOccupancyGrid {
         if (0..ranges.len()).any(|i| ranges[i].is_finite() && !bearing(i).is_finite()) {
             return Err(PyValueError::new_err("angles must be finite for every beam with a range"));
         }
-        if !(sigma > 0.0 && max_range > 0.0 && window >= 1) {
-            return Err(PyValueError::new_err("sigma and max_range must be positive, window at least 1"));
+        field_settings(sigma, max_range, window)?;
+        if beam_stride < 1 || gauss_newton > MAX_MATCH_ITERATIONS {
+            return Err(PyValueError::new_err(format!(
+                "beam_stride must be at least 1 and gauss_newton at most {MAX_MATCH_ITERATIONS}"
+            )));
         }
         let sensor = match sensor_pose {
             Some(s) => pose3(s.as_slice()?, "sensor_pose")?,
             None => [0.0; 3],
         };
+        if !sensor.iter().all(|v| v.is_finite()) {
+            return Err(PyValueError::new_err("sensor_pose must be finite"));
+        }
         let pool = optional_pool(threads)?;
         let lf = LikelihoodField::new(sigma, z_hit, z_rand, max_range, window, occupied_threshold, fit_walls);
         let grid = &self.grid;
@@ -800,10 +846,21 @@ fn sample_motion_odometry<'py>(
     seed: u64,
 ) -> PyResult<Bound<'py, PyArray2<f64>>> {
     let (pose, prev, cur) = (pose3(pose.as_slice()?, "pose")?, pose3(odom_prev.as_slice()?, "odom_prev")?, pose3(odom_cur.as_slice()?, "odom_cur")?);
+    if !pose.iter().chain(&prev).chain(&cur).all(|v| v.is_finite()) {
+        return Err(PyValueError::new_err("pose, odom_prev and odom_cur must be finite"));
+    }
+    if !alphas.iter().all(|a| a.is_finite() && *a >= 0.0) {
+        return Err(PyValueError::new_err("alphas must be finite and non-negative"));
+    }
+    // Written straight into the array's buffer: a count no memory holds is a MemoryError, not
+    // an abort.
+    let mut flat: Vec<f64> = grid::try_vec(n.saturating_mul(3), "the motion samples").map_err(grid_error)?;
     let model = OdometryMotion { alpha: alphas };
     let mut rng = filter::rng_for(seed, 0, 0);
-    let out: Vec<[f64; 3]> = (0..n).map(|_| model.sample(pose, prev, cur, &mut rng)).collect();
-    Ok(rows3(py, &out))
+    for _ in 0..n {
+        flat.extend(model.sample(pose, prev, cur, &mut rng));
+    }
+    Ok(Array2::from_shape_vec((n, 3), flat).expect("n rows of 3").into_pyarray(py))
 }
 
 /// The beam model's density (or max-reading mass) of each reading in `z` given `z_star`.
@@ -829,16 +886,32 @@ fn beam_likelihood<'py>(
 /// Effective sample size (paper eq. 10) of normalised weights.
 #[pyfunction]
 fn neff(weights: PyReadonlyArray1<f64>) -> PyResult<f64> {
-    Ok(filter::neff(weights.as_slice()?))
+    let w = weights.as_slice()?;
+    normalised_weights(w)?;
+    Ok(filter::neff(w))
+}
+
+/// Weights that resampling and Neff can take: some, each finite and non-negative, summing to 1
+/// (to rounding).
+fn normalised_weights(w: &[f64]) -> PyResult<()> {
+    if w.is_empty() {
+        return Err(PyValueError::new_err("no weights"));
+    }
+    if !w.iter().all(|x| x.is_finite() && *x >= 0.0) {
+        return Err(PyValueError::new_err("weights must be finite and non-negative"));
+    }
+    let sum: f64 = w.iter().sum();
+    if !((sum - 1.0).abs() <= 1e-6) {
+        return Err(PyValueError::new_err(format!("weights must be normalised (they sum to {sum})")));
+    }
+    Ok(())
 }
 
 /// Indices drawn by low-variance resampling from normalised weights.
 #[pyfunction]
 fn low_variance_resample<'py>(py: Python<'py>, weights: PyReadonlyArray1<f64>, seed: u64) -> PyResult<Bound<'py, PyArray1<u64>>> {
     let w = weights.as_slice()?;
-    if w.is_empty() {
-        return Err(PyValueError::new_err("no weights"));
-    }
+    normalised_weights(w)?;
     let idx = filter::low_variance_resample(w, &mut filter::rng_for(seed, 0, 1));
     Ok(PyArray1::from_vec(py, idx.into_iter().map(|i| i as u64).collect()))
 }
