@@ -10,13 +10,14 @@ a few seeds' numbers in the last digits.)
 
     python benchmarks/world_filters.py --worlds corridor1 office --drives 0 1 --seeds 0 1 2 \
         [--preset tof-scanmatch] [--particles 30] [--set backend.min_score=0.65 ...] \
-        [--tof-errors default|all|none|LIST] [--ideal-scans] [--cache results/world_scans]
+        [--tof-errors default|all|none|LIST] [--ideal-scans [seen]] [--cache results/world_scans]
 
 The camera's systematic errors (issue 15) are those of the demo, `default` unless told; the
 cache is kept per setting. `--ideal-scans` replaces every range by the exact distance to the
 floor plan at the slice height from the true pose (same bearings, same 7 m limit, every bearing
 seen): what the filter makes of a perfect omnidirectional scanner, to tell the sensor's share of
-an error from the filter's.
+an error from the filter's; `--ideal-scans seen` keeps the ToF scans' gaps (exact ranges only
+where they have a reading), to tell the ranges' errors from the readings' number.
 
 Prints one JSON line per run, then a Markdown table.
 """
@@ -68,12 +69,17 @@ def extracted_scans(name: str, drive: int, cache: Path, tof_errors: str = "defau
     return scans
 
 
-def ideal_scans(world, scans):
+def ideal_scans(world, scans, only_seen: bool = False):
     """`scans` with every range replaced by the exact distance to the floor plan at the slice
-    height from the true pose (+inf beyond the scans' max_range)."""
+    height from the true pose (+inf beyond the scans' max_range). `only_seen`: only the bearings
+    where the ToF scan has a reading (its gaps kept), so that the ranges' errors are told from
+    the readings' number."""
     plan = World2D(world.segments_at(ScanSettings().height))
     gt = scans.ground_truth
     ranges = plan.raycast(gt[:, :2], scans.angles[None, :] + gt[:, 2:3], scans.max_range)
+    if only_seen:
+        seen = np.isfinite(scans.ranges) & (scans.ranges < scans.max_range)
+        ranges = np.where(seen, ranges, np.inf)
     return dataclasses.replace(scans, ranges=ranges.astype(np.float32))
 
 
@@ -96,8 +102,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", nargs="*", default=[], metavar="SECTION.FIELD=VALUE")
     parser.add_argument("--tof-errors", default="default",
                         help="the camera's systematic errors, as `omnitof demo --tof-errors` (default: the demo's)")
-    parser.add_argument("--ideal-scans", action="store_true",
-                        help="exact ranges from the floor plan at the true poses instead of the ToF scans")
+    parser.add_argument("--ideal-scans", nargs="?", const="all", choices=["all", "seen"], default=None,
+                        help="exact ranges from the floor plan at the true poses instead of the ToF scans "
+                             "(seen: only where the ToF scan has a reading)")
     parser.add_argument("--cache", type=Path, default=Path("results/world_scans"))
     args = parser.parse_args(argv)
 
@@ -107,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         for drive in args.drives:
             scans = extracted_scans(name, drive, args.cache, args.tof_errors)
             if args.ideal_scans:
-                scans = ideal_scans(world, scans)
+                scans = ideal_scans(world, scans, only_seen=args.ideal_scans == "seen")
             for seed in args.seeds:
                 ov = overrides(args.set)
                 ov.setdefault("filter", {}).update({"particles": args.particles, "seed": seed})
