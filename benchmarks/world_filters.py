@@ -10,7 +10,8 @@ a few seeds' numbers in the last digits.)
 
     python benchmarks/world_filters.py --worlds corridor1 office --drives 0 1 --seeds 0 1 2 \
         [--preset tof-scanmatch] [--particles 30] [--set backend.min_score=0.65 ...] \
-        [--tof-errors default|all|none|LIST] [--ideal-scans [seen]] [--cache results/world_scans]
+        [--tof-errors default|all|none|LIST] [--ideal-scans [seen]] [--odometry-scale F]
+        [--cache results/world_scans]
 
 The camera's systematic errors (issue 15) are those of the demo, `default` unless told; the
 cache is kept per setting. `--ideal-scans` replaces every range by the exact distance to the
@@ -18,6 +19,8 @@ floor plan at the slice height from the true pose (same bearings, same 7 m limit
 seen): what the filter makes of a perfect omnidirectional scanner, to tell the sensor's share of
 an error from the filter's; `--ideal-scans seen` keeps the ToF scans' gaps (exact ranges only
 where they have a reading), to tell the ranges' errors from the readings' number.
+`--odometry-scale F` multiplies every odometry step's translation by F (the simulated wheels
+report 1 % too far: F = 1/1.01 takes that out, an oracle no real run has).
 
 Prints one JSON line per run, then a Markdown table.
 """
@@ -36,6 +39,7 @@ import numpy as np
 import yaml
 
 from omnitof.demo import DemoSettings, _calibrate, evaluate_run
+from omnitof.geometry import compose, relative
 from omnitof.scan import ScanExtractor, ScanSettings
 from omnitof.scan.tof_input import tof_scans
 from omnitof.sensor.tof import SensorNoise
@@ -83,6 +87,16 @@ def ideal_scans(world, scans, only_seen: bool = False):
     return dataclasses.replace(scans, ranges=ranges.astype(np.float32))
 
 
+def scaled_odometry(scans, factor: float):
+    """`scans` with each odometry step's translation (in the robot frame) times `factor`."""
+    steps = relative(scans.odometry[:-1], scans.odometry[1:])
+    steps[:, :2] *= factor
+    poses = [scans.odometry[0]]
+    for step in steps:
+        poses.append(compose(poses[-1], step))
+    return dataclasses.replace(scans, odometry=np.array(poses))
+
+
 def overrides(items: list[str]) -> dict:
     out: dict = {}
     for item in items:
@@ -105,6 +119,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ideal-scans", nargs="?", const="all", choices=["all", "seen"], default=None,
                         help="exact ranges from the floor plan at the true poses instead of the ToF scans "
                              "(seen: only where the ToF scan has a reading)")
+    parser.add_argument("--odometry-scale", type=float, default=1.0,
+                        help="multiply each odometry step's translation by this (an oracle for the wheels' scale error)")
     parser.add_argument("--cache", type=Path, default=Path("results/world_scans"))
     args = parser.parse_args(argv)
 
@@ -115,6 +131,8 @@ def main(argv: list[str] | None = None) -> int:
             scans = extracted_scans(name, drive, args.cache, args.tof_errors)
             if args.ideal_scans:
                 scans = ideal_scans(world, scans, only_seen=args.ideal_scans == "seen")
+            if args.odometry_scale != 1.0:
+                scans = scaled_odometry(scans, args.odometry_scale)
             for seed in args.seeds:
                 ov = overrides(args.set)
                 ov.setdefault("filter", {}).update({"particles": args.particles, "seed": seed})
@@ -126,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
                 backend = result.stats.get("backend") or {}
                 row = {
                     "world": name, "drive": drive, "seed": seed, "preset": args.preset,
-                    "particles": args.particles, "set": args.set, "ideal_scans": args.ideal_scans,
+                    "particles": args.particles, "set": args.set, "ideal_scans": args.ideal_scans, "odometry_scale": args.odometry_scale,
                     "final_m": round(ev["trajectory"]["slam"]["final"], 3),
                     "mean_m": round(ev["trajectory"]["slam"]["mean"], 3),
                     "within_5cm_pct": round(100 * ev["floorplan"]["occupied_within_5cm"], 1),
