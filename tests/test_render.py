@@ -370,6 +370,8 @@ def test_bad_settings_and_poses_are_refused():
         r.phasors(np.zeros((2, 2)))
     with pytest.raises(RenderConfigError, match="finite"):
         r.phasors(np.array([np.nan, 0.0, 0.0]))
+    with pytest.raises(RenderConfigError, match="seed"):
+        r.render_many(np.array([[4.5, 3.0, 1.0]]), seed=-1)
 
 
 def test_poses_along_the_loop_for_the_benchmarks():

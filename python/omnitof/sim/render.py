@@ -251,6 +251,8 @@ class Renderer:
         n = len(poses2)
         if first_index < 0:
             raise RenderConfigError(f"first_index must be >= 0, got {first_index!r}")
+        if int(seed) < 0:
+            raise RenderConfigError(f"seed must be >= 0, got {seed!r}")
         gens = [np.random.default_rng([int(seed), int(first_index) + i]) for i in range(n)]
         if sample_poses is None or not self.sensor.errors.motion:
             return self._frames(self.phasors(poses2), poses2, gens, np.arange(n), np.zeros(n, dtype=bool))
