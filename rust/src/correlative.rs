@@ -26,6 +26,10 @@ pub struct SearchWindow {
     /// Spacing of the poses in x and y (m) and in heading (rad).
     pub step_xy: f64,
     pub step_theta: f64,
+    /// Widen the heading half-width of a step's search to at least this many standard deviations
+    /// of the motion model's heading error for that step (`OdometryMotion::heading_std`), up to
+    /// π; 0: the fixed `half_theta` alone. See `check_odometry`.
+    pub heading_sigmas: f64,
 }
 
 /// Log-likelihood of an end point per raster cell: ln(N(d; 0, σ) + floor) for the distance d
@@ -194,7 +198,7 @@ mod tests {
         let ranges = room_scan(geom.sensor_pose(real), &angles);
         let pts = crate::scan_match::endpoints(&geom, &ranges, 2, 20.0);
         let predicted = [2.4, 3.4, 0.3];
-        let w = SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians() };
+        let w = SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians(), heading_sigmas: 0.0 };
         let found = correlative_search(&g, 0.0, 0.1 / 20.0, &geom, &pts, predicted, &w).unwrap();
         assert!((found[0] - real[0]).abs() <= 0.06 && (found[1] - real[1]).abs() <= 0.06, "{found:?}");
         assert!(wrap(found[2] - real[2]).abs() <= 1.1f64.to_radians(), "{found:?}");
