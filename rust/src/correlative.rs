@@ -32,6 +32,22 @@ pub struct SearchWindow {
     pub heading_sigmas: f64,
 }
 
+/// The most poses one search may score. The configuration refuses a fixed window beyond it
+/// (omnitof.slam.config reads this constant); a window widened for one step
+/// (`SearchWindow::widened`) is narrowed in heading to stay within it.
+pub const MAX_SEARCH_POSES: f64 = 1e6;
+
+impl SearchWindow {
+    /// This window with its heading half-width widened to `half_theta` where that is wider, up
+    /// to π and to the heading that keeps the search within MAX_SEARCH_POSES poses.
+    pub fn widened(&self, half_theta: f64) -> SearchWindow {
+        let n_xy = 2.0 * (self.half_xy / self.step_xy).round() + 1.0;
+        let n_theta = ((MAX_SEARCH_POSES / (n_xy * n_xy) - 1.0) / 2.0).floor().max(0.0);
+        let cap = (n_theta * self.step_theta).min(std::f64::consts::PI);
+        SearchWindow { half_theta: self.half_theta.max(half_theta.min(cap)), ..*self }
+    }
+}
+
 /// Log-likelihood of an end point per raster cell: ln(N(d; 0, σ) + floor) for the distance d
 /// from the cell centre to the nearest occupied cell's mean end point within 3σ, and ln(floor)
 /// beyond. σ is the search's translation step, so that a pose between two grid poses still
@@ -181,6 +197,20 @@ mod tests {
             [2.0, 2.0, 2.5, 2.0],
         ];
         crate::test_support::cast_walls(&walls, at, angles)
+    }
+
+    #[test]
+    fn a_widened_window_stays_within_pi_and_the_pose_budget() {
+        let w = SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians(), heading_sigmas: 3.0 };
+        assert_eq!(w.widened(0.1).half_theta, w.half_theta); // never narrower than the fixed window
+        assert!((w.widened(1.0).half_theta - 1.0).abs() < 1e-12);
+        assert_eq!(w.widened(10.0).half_theta, std::f64::consts::PI); // 21² × 361 poses: within budget
+        // ±5 m at 0.1 m: 101² positions leave room for 2·48 + 1 headings within 10⁶ poses.
+        let wide = SearchWindow { half_xy: 5.0, ..w };
+        let capped = wide.widened(10.0).half_theta;
+        assert!((capped - 48f64.to_radians()).abs() < 1e-12, "{}", capped.to_degrees());
+        let n_th = 2.0 * (capped / wide.step_theta).round() + 1.0;
+        assert!(101.0 * 101.0 * n_th <= MAX_SEARCH_POSES);
     }
 
     #[test]

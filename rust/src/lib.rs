@@ -926,6 +926,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyParticleFilter>()?;
     m.add_class::<PyOccupancyGrid>()?;
     m.add_class::<PyVoxelGrid>()?;
+    m.add("MAX_SEARCH_POSES", crate::correlative::MAX_SEARCH_POSES)?;
     m.add_function(wrap_pyfunction!(sample_motion_odometry, m)?)?;
     m.add_function(wrap_pyfunction!(beam_likelihood, m)?)?;
     m.add_function(wrap_pyfunction!(neff, m)?)?;

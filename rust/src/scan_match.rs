@@ -860,8 +860,7 @@ pub fn check_odometry(
     // Wheels err in heading in proportion to how far they turned (a robot spinning in place
     // slips; the ACES log's wheels report 66° of a 104° turn): the heading window covers the
     // motion model's own spread for this step where that is wider than the fixed window.
-    let spread = window.heading_sigmas * motion.heading_std(odom_prev, odom_cur);
-    let window = SearchWindow { half_theta: window.half_theta.max(spread).min(std::f64::consts::PI), ..*window };
+    let window = window.widened(window.heading_sigmas * motion.heading_std(odom_prev, odom_cur));
     let start = correlative_search(grid, lf.occupied_threshold, floor, geom, pts, predicted, &window)?;
     let (found, value, matched) = local_match(&view, m, geom, pts, start, None);
     // The jump must put the scan on the map as well as a good prediction does (`enough`), not

@@ -21,6 +21,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from omnitof import _core
 from omnitof.errors import ConfigError
 
 
@@ -31,7 +32,9 @@ from omnitof.errors import ConfigError
 # they fit. How much memory a configuration needs for a given log is checked before a run
 # (omnitof.slam.limits).
 MAX_LOG_ODDS = 100.0  # a probability of 1 - 4e-44: certainty, far beyond any useful clamp
-MAX_SEARCH_POSES = 1e6  # the laser180-scanmatch preset searches 13 671 poses at ±15°, at most 159 201 at ±180°
+# The most poses the wide search may score per scan (the laser180-scanmatch preset: 13 671 at
+# ±15°); a step's heading window widened by search_heading_sigmas is kept within it by the core.
+MAX_SEARCH_POSES = _core.MAX_SEARCH_POSES
 
 
 class _Section(BaseModel):
@@ -155,23 +158,21 @@ class ScanMatcherConfig(_Section):
     search_heading_sigmas: float = Field(
         3.0, ge=0, le=100,
         description="widen the wide search's heading half-width to this many standard deviations of the "
-        "motion model's heading error for the step (motion.alpha1, alpha2), up to 180 deg, where that is "
-        "wider than search_deg: wheels err in heading in proportion to how far they turned (a robot "
-        "spinning in place slips); 0 = search_deg alone",
+        "motion model's heading error for the step (motion.alpha1, alpha2), where that is wider than "
+        "search_deg, up to 180 deg and to the heading that keeps the search within 10^6 poses: "
+        "wheels err in heading in proportion to how far they turned (a robot spinning in place slips); "
+        "0 = search_deg alone",
     )
 
     @model_validator(mode="after")
     def _search_is_finite_work(self) -> "ScanMatcherConfig":
         # Every pose of the wide search costs a raster read per end point, at every scan it runs.
         n_xy = 2 * round(self.search_xy / self.search_step_xy) + 1
-        # A step's heading window can grow to 180 degrees (search_heading_sigmas).
-        half_deg = 180.0 if self.search_heading_sigmas > 0 else self.search_deg
-        n_th = 2 * round(half_deg / self.search_step_deg) + 1
+        n_th = 2 * round(self.search_deg / self.search_step_deg) + 1
         if self.search_xy > 0 and n_xy * n_xy * n_th > MAX_SEARCH_POSES:
             raise ValueError(
                 f"the wide search would score {n_xy * n_xy * n_th:.3g} poses per scan (search_xy / "
-                f"search_step_xy, search_deg (or 180 with search_heading_sigmas) / search_step_deg), more than "
-                f"{MAX_SEARCH_POSES:.0e}: "
+                f"search_step_xy, search_deg / search_step_deg), more than {MAX_SEARCH_POSES:.0e}: "
                 "widen the steps or narrow the window"
             )
         return self
