@@ -824,9 +824,9 @@ pub fn local_match(
 /// from the best pose found. If that explains clearly more of the scan (a tenth of its end points
 /// more, a higher likelihood, and either `search_below` of them on the map or at most half as
 /// many off it as the local match leaves), return the odometry pose that would have predicted it:
-/// the increment the wheels should have reported. Why: an odometry glitch is common to every particle, so one
-/// search on the best map corrects the prediction of them all. Fails when the search's raster
-/// cannot be made (correlative.rs).
+/// the increment the wheels should have reported. Why: an odometry glitch is common to every
+/// particle, so one search on the best map corrects the prediction of them all. Fails when the
+/// search's raster cannot be made (correlative.rs).
 #[allow(clippy::too_many_arguments)]
 pub fn check_odometry(
     lf: &LikelihoodField,
