@@ -282,8 +282,3 @@ def test_the_cores_functions_refuse_what_no_sensor_robot_or_filter_gives():
                       ({"sensor_pose": np.array([0.0, np.inf, 0.0])}, "sensor_pose")):
         with pytest.raises(ValueError, match=what):
             _core.ParticleFilter(**core_sections(SlamConfig()), **{**sensor, **bad})
-    sections = core_sections(SlamConfig())
-    for value in (-1.0, np.nan):
-        bad = {**sections, "scan_matcher": {**sections["scan_matcher"], "search_xy": 1.0, "search_heading_sigmas": value}}
-        with pytest.raises(ValueError, match="search_heading_sigmas"):
-            _core.ParticleFilter(**bad, **sensor)

@@ -26,26 +26,6 @@ pub struct SearchWindow {
     /// Spacing of the poses in x and y (m) and in heading (rad).
     pub step_xy: f64,
     pub step_theta: f64,
-    /// Widen the heading half-width of a step's search to at least this many standard deviations
-    /// of the motion model's heading error for that step (`OdometryMotion::heading_std`), up to
-    /// π; 0: the fixed `half_theta` alone. See `check_odometry`.
-    pub heading_sigmas: f64,
-}
-
-/// The most poses one search may score. The configuration refuses a fixed window beyond it
-/// (omnitof.slam.config reads this constant); a window widened for one step
-/// (`SearchWindow::widened`) is narrowed in heading to stay within it.
-pub const MAX_SEARCH_POSES: f64 = 1e6;
-
-impl SearchWindow {
-    /// This window with its heading half-width widened to `half_theta` where that is wider, up
-    /// to π and to the heading that keeps the search within MAX_SEARCH_POSES poses.
-    pub fn widened(&self, half_theta: f64) -> SearchWindow {
-        let n_xy = 2.0 * (self.half_xy / self.step_xy).round() + 1.0;
-        let n_theta = ((MAX_SEARCH_POSES / (n_xy * n_xy) - 1.0) / 2.0).floor().max(0.0);
-        let cap = (n_theta * self.step_theta).min(std::f64::consts::PI);
-        SearchWindow { half_theta: self.half_theta.max(half_theta.min(cap)), ..*self }
-    }
 }
 
 /// Log-likelihood of an end point per raster cell: ln(N(d; 0, σ) + floor) for the distance d
@@ -200,20 +180,6 @@ mod tests {
     }
 
     #[test]
-    fn a_widened_window_stays_within_pi_and_the_pose_budget() {
-        let w = SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians(), heading_sigmas: 3.0 };
-        assert_eq!(w.widened(0.1).half_theta, w.half_theta); // never narrower than the fixed window
-        assert!((w.widened(1.0).half_theta - 1.0).abs() < 1e-12);
-        assert_eq!(w.widened(10.0).half_theta, std::f64::consts::PI); // 21² × 361 poses: within budget
-        // ±5 m at 0.1 m: 101² positions leave room for 2·48 + 1 headings within 10⁶ poses.
-        let wide = SearchWindow { half_xy: 5.0, ..w };
-        let capped = wide.widened(10.0).half_theta;
-        assert!((capped - 48f64.to_radians()).abs() < 1e-12, "{}", capped.to_degrees());
-        let n_th = 2.0 * (capped / wide.step_theta).round() + 1.0;
-        assert!(101.0 * 101.0 * n_th <= MAX_SEARCH_POSES);
-    }
-
-    #[test]
     fn finds_a_scan_displaced_far_beyond_the_hill_climbing_reach() {
         let angles: Vec<f64> = (0..360).map(|k| (k as f64 - 180.0).to_radians()).collect();
         let geom = ScanGeometry { angles: &angles, sensor: [0.1, 0.0, 0.0] };
@@ -228,7 +194,7 @@ mod tests {
         let ranges = room_scan(geom.sensor_pose(real), &angles);
         let pts = crate::scan_match::endpoints(&geom, &ranges, 2, 20.0);
         let predicted = [2.4, 3.4, 0.3];
-        let w = SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians(), heading_sigmas: 0.0 };
+        let w = SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians() };
         let found = correlative_search(&g, 0.0, 0.1 / 20.0, &geom, &pts, predicted, &w).unwrap();
         assert!((found[0] - real[0]).abs() <= 0.06 && (found[1] - real[1]).abs() <= 0.06, "{found:?}");
         assert!(wrap(found[2] - real[2]).abs() <= 1.1f64.to_radians(), "{found:?}");

@@ -270,7 +270,7 @@ impl ParticleFilter {
         let pts = endpoints(&geom, ranges, p.beam_stride, p.field.max_range);
         let corrected = match (p.proposal, self.particles.get(self.best)) {
             (ProposalKind::ScanMatch, Some(best)) => {
-                check_odometry(&p.field, &p.matcher, &p.motion, &best.map, &geom, &pts, best.pose, odom_prev, odom_cur)?
+                check_odometry(&p.field, &p.matcher, &best.map, &geom, &pts, best.pose, odom_prev, odom_cur)?
             }
             _ => None,
         };

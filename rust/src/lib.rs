@@ -237,7 +237,6 @@ config_section! {
         search_step_xy: f64,
         search_step_deg: f64,
         search_below: f64,
-        search_heading_sigmas: f64,
     }
 }
 
@@ -278,15 +277,11 @@ fn filter_params(
     if sm.search_xy > 0.0 && !(sm.search_step_xy > 0.0 && sm.search_step_deg > 0.0) {
         return Err(PyValueError::new_err("scan_matcher: the wide search needs positive steps"));
     }
-    if !(sm.search_heading_sigmas.is_finite() && sm.search_heading_sigmas >= 0.0) {
-        return Err(PyValueError::new_err("scan_matcher.search_heading_sigmas must be finite and >= 0"));
-    }
     let search = (sm.search_xy > 0.0).then_some(SearchWindow {
         half_xy: sm.search_xy,
         half_theta: sm.search_deg.to_radians(),
         step_xy: sm.search_step_xy,
         step_theta: sm.search_step_deg.to_radians(),
-        heading_sigmas: sm.search_heading_sigmas,
     });
     let threads = match f.threads {
         0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
@@ -926,7 +921,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyParticleFilter>()?;
     m.add_class::<PyOccupancyGrid>()?;
     m.add_class::<PyVoxelGrid>()?;
-    m.add("MAX_SEARCH_POSES", crate::correlative::MAX_SEARCH_POSES)?;
     m.add_function(wrap_pyfunction!(sample_motion_odometry, m)?)?;
     m.add_function(wrap_pyfunction!(beam_likelihood, m)?)?;
     m.add_function(wrap_pyfunction!(neff, m)?)?;

@@ -819,19 +819,16 @@ pub fn local_match(
 /// Check the odometry increment from `odom_prev` to `odom_cur` against the map of a particle at
 /// `pose` (the best one): if the scan, where the odometry puts it and matched locally from there,
 /// finds too few of its end points near the map's obstacles (fewer than `search_below`), search the wide
-/// window around that prediction (see correlative.rs; its heading half-width grows with the
-/// motion model's heading spread for the step, `SearchWindow::heading_sigmas`) and match locally
-/// from the best pose found. If that explains clearly more of the scan (a tenth of its end points
-/// more, a higher likelihood, and either `search_below` of them on the map or at most half as
-/// many off it as the local match leaves), return the odometry pose that would have predicted it:
-/// the increment the wheels should have reported. Why: an odometry glitch is common to every
-/// particle, so one search on the best map corrects the prediction of them all. Fails when the
-/// search's raster cannot be made (correlative.rs).
+/// window around that prediction (see correlative.rs) and match locally from the best pose
+/// found. If that explains clearly more of the scan (a tenth of its end points more, and a
+/// higher likelihood), return the odometry pose that would have predicted it: the increment
+/// the wheels should have reported. Why: an odometry glitch is common to every particle, so one
+/// search on the best map corrects the prediction of them all. Fails when the search's raster
+/// cannot be made (correlative.rs).
 #[allow(clippy::too_many_arguments)]
 pub fn check_odometry(
     lf: &LikelihoodField,
     m: &MatcherParams,
-    motion: &OdometryMotion,
     grid: &TiledGrid,
     geom: &ScanGeometry,
     pts: &[[f64; 2]],
@@ -857,23 +854,13 @@ pub fn check_odometry(
         return Ok(None);
     }
     let floor = lf.z_rand / lf.max_range;
-    // Wheels err in heading in proportion to how far they turned (a robot spinning in place
-    // slips; the ACES log's wheels report 66° of a 104° turn): the heading window covers the
-    // motion model's own spread for this step where that is wider than the fixed window.
-    let window = window.widened(window.heading_sigmas * motion.heading_std(odom_prev, odom_cur));
-    let start = correlative_search(grid, lf.occupied_threshold, floor, geom, pts, predicted, &window)?;
+    let start = correlative_search(grid, lf.occupied_threshold, floor, geom, pts, predicted, window)?;
     let (found, value, matched) = local_match(&view, m, geom, pts, start, None);
     // The jump must put the scan on the map as well as a good prediction does (`enough`), not
     // merely better than the local match: where people walk beside the robot or doors stand open
     // (the Freiburg hospital log), no pose explains the scan, and a pose that explains a little
     // more of it is as likely wrong, a metre and 20 degrees away.
-    // Or it must leave at most half as many end points off the map as the local match does: the
-    // ACES log's scans put only 75-80 % of their end points on the map even where the robot is
-    // known, and after its wheels lost 38 degrees of a spin the search's pose left 19 of 84 off,
-    // the local match 67.
-    let (off_found, off_local) = (n - matched as f64, n - local_matched as f64);
-    let clearly = enough(matched) || off_found <= 0.5 * off_local;
-    let better = clearly && matched as f64 >= local_matched as f64 + 0.1 * n && value > local_value;
+    let better = enough(matched) && matched as f64 >= local_matched as f64 + 0.1 * n && value > local_value;
     Ok(better.then(|| compose(odom_prev, relative(pose, found))))
 }
 
@@ -1030,7 +1017,7 @@ mod tests {
         MatcherParams {
             step_xy: 0.05, step_theta: 0.035, refinements: 3, gauss_newton: 10, sample_xy: 0.005, sample_theta: 0.002,
             min_matched: 0.5, effective_beams: 9.0, odometry_prior: false, climb_from_sample: false,
-            search: Some(SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians(), heading_sigmas: 0.0 }),
+            search: Some(SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians() }),
             search_below: 0.8,
         }
     }
@@ -1042,7 +1029,7 @@ mod tests {
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
         let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, 3, 0.0, false);
         let pts = endpoints(&geom, ranges, 1, 20.0);
-        check_odometry(&lf, &searching_matcher(), &OdometryMotion { alpha: [0.05, 0.01, 0.02, 0.01] }, &g, &geom, &pts, [2.0, 1.5, 0.0], [0.0; 3], [0.7, 0.3, 0.2]).unwrap()
+        check_odometry(&lf, &searching_matcher(), &g, &geom, &pts, [2.0, 1.5, 0.0], [0.0; 3], [0.7, 0.3, 0.2]).unwrap()
     }
 
     #[test]
@@ -1053,53 +1040,6 @@ mod tests {
         let (_, _, ranges) = room();
         let odom = check_after_glitch(&ranges).expect("the glitch is found");
         assert!(odom[0].abs() < 0.03 && odom[1].abs() < 0.03 && odom[2].abs() < 0.01, "{odom:?}");
-    }
-
-    #[test]
-    fn the_wide_search_widens_its_heading_window_with_the_turn() {
-        // The robot stood at (2, 1.5, -2.05 rad) and turned in place to heading 0, where `room`'s
-        // scan is taken; its wheels report 1 rad of the 2.05: 60 degrees short. The local match
-        // from there settles 90 degrees off (the box turned, 206 of 360 end points on the map)
-        // and the fixed ±15 degree window cannot reach the turn. With this motion model the
-        // step's heading σ is 0.447 rad, so three σ (77 degrees) cover the error.
-        let (g, angles, ranges) = room();
-        let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
-        let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, 3, 0.0, false);
-        let pts = endpoints(&geom, &ranges, 1, 20.0);
-        let motion = OdometryMotion { alpha: [0.2, 0.01, 0.02, 0.01] };
-        let check = |m: &MatcherParams| {
-            check_odometry(&lf, m, &motion, &g, &geom, &pts, [2.0, 1.5, -2.05], [0.0; 3], [0.0, 0.0, 1.0]).unwrap()
-        };
-        let mut m = searching_matcher();
-        let fixed = check(&m);
-        assert!(fixed.is_none_or(|odom| (odom[2] - 2.05).abs() > 0.05), "the fixed window found it: {fixed:?}");
-        m.search.as_mut().unwrap().heading_sigmas = 3.0;
-        let odom = check(&m).expect("the widened window finds the turn");
-        assert!(odom[0].abs() < 0.03 && odom[1].abs() < 0.03 && (odom[2] - 2.05).abs() < 0.01, "{odom:?}");
-    }
-
-    #[test]
-    fn the_wide_search_takes_a_pose_that_halves_what_the_local_match_leaves_off_the_map() {
-        // The turn of the test above, with a quarter of the beams ending on things the map does
-        // not hold (0.5 m away): the true pose explains only 75 % of the scan, less than
-        // `search_below`, but the local match, settled 90 degrees off, leaves more than twice as
-        // many end points off the map. (ACES: 19 of 84 off against 67 after a spin.)
-        let (g, angles, mut ranges) = room();
-        for (k, r) in ranges.iter_mut().enumerate() {
-            if k % 4 == 0 {
-                *r = 0.5;
-            }
-        }
-        let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
-        let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, 3, 0.0, false);
-        let pts = endpoints(&geom, &ranges, 1, 20.0);
-        let motion = OdometryMotion { alpha: [0.2, 0.01, 0.02, 0.01] };
-        let mut m = searching_matcher();
-        m.search.as_mut().unwrap().heading_sigmas = 3.0;
-        let odom = check_odometry(&lf, &m, &motion, &g, &geom, &pts, [2.0, 1.5, -2.05], [0.0; 3], [0.0, 0.0, 1.0])
-            .unwrap()
-            .expect("the turn is found");
-        assert!(odom[0].abs() < 0.03 && odom[1].abs() < 0.03 && (odom[2] - 2.05).abs() < 0.01, "{odom:?}");
     }
 
     #[test]

@@ -21,7 +21,6 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from omnitof import _core
 from omnitof.errors import ConfigError
 
 
@@ -32,9 +31,7 @@ from omnitof.errors import ConfigError
 # they fit. How much memory a configuration needs for a given log is checked before a run
 # (omnitof.slam.limits).
 MAX_LOG_ODDS = 100.0  # a probability of 1 - 4e-44: certainty, far beyond any useful clamp
-# The most poses the wide search may score per scan (the laser180-scanmatch preset: 13 671 at
-# ±15°); a step's heading window widened by search_heading_sigmas is kept within it by the core.
-MAX_SEARCH_POSES = _core.MAX_SEARCH_POSES
+MAX_SEARCH_POSES = 1e6  # 70 times the laser180-scanmatch preset's wide search (13 671 poses)
 
 
 class _Section(BaseModel):
@@ -154,14 +151,6 @@ class ScanMatcherConfig(_Section):
         description="run the wide search only when fewer than this share of end points lie near an obstacle "
         "after the local match from the odometry, and take its pose only where at least this share does "
         "(where no pose explains the scan, people beside the robot or open doors, a jump is as likely wrong)",
-    )
-    search_heading_sigmas: float = Field(
-        3.0, ge=0, le=100,
-        description="widen the wide search's heading half-width to this many standard deviations of the "
-        "motion model's heading error for the step (motion.alpha1, alpha2), where that is wider than "
-        "search_deg, up to 180 deg and to the heading that keeps the search within 10^6 poses: "
-        "wheels err in heading in proportion to how far they turned (a robot spinning in place slips); "
-        "0 = search_deg alone",
     )
 
     @model_validator(mode="after")
