@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from omnitof.errors import ConfigError, InputError
-from omnitof.geometry import compose
+from omnitof.geometry import compose, wrap_angle
 from omnitof.io.carmen import CarmenWarning, old_format_angles, read_carmen
 
 DEG = math.pi / 180.0
@@ -561,6 +561,78 @@ def test_a_repeated_line_is_dropped_and_a_shared_stamp_kept(tmp_path):
     np.testing.assert_array_equal(log.scans.timestamps, [10.0, 10.1, 10.1, 10.3, 10.2])
     np.testing.assert_allclose(log.scans.ranges[:, 0], [1.0, 1.1, 1.2, 1.3, 1.4])
     assert log.scans.time_order() == {"repeated_scans_dropped": 1, "equal_stamps": 1, "backward_steps": 1}
+
+
+def _moving(t):
+    """A robot driving at 0.5 m/s along x while turning at 0.6 rad/s (odometry linear in time,
+    so interpolating it between messages is exact)."""
+    return np.array([0.5 * t, 0.0, wrap_angle(0.6 * t - 0.3)])
+
+
+def held_log(n_scans=40, odom_times=None, scan_phase=0.07, moving=_moving):
+    """FLASER scans at 10 Hz that each carry the pose of the last ODOM message before them
+    (sample-and-hold), ODOM at 10 Hz shifted by `scan_phase`; and the scans' true poses."""
+    scan_times = 5.0 + 0.1 * np.arange(n_scans) + scan_phase
+    odom_times = 5.0 + 0.1 * np.arange(n_scans + 1) if odom_times is None else odom_times
+    events = sorted([(t, 0) for t in odom_times] + [(t, 1) for t in scan_times])  # ODOM first
+    lines, last = [], None
+    for t, kind in events:
+        if kind == 0:
+            last = moving(t)
+            lines.append(odom(*last, t))
+        elif last is not None:
+            lines.append(flaser([1.0, 2.0], t, laser_pose=tuple(last)))
+    return lines, np.array([moving(t) for t in scan_times if t >= odom_times[0]])
+
+
+def test_held_odometry_is_interpolated_to_each_scan(tmp_path):
+    # The ACES log's FLASER messages carry the last ODOM pose, 0.02-0.25 s old: a constant scan
+    # delay cannot undo that, interpolating the ODOM messages to the scan's stamp does.
+    lines, truth = held_log()
+    with pytest.warns(CarmenWarning, match=r"each FLASER message carries the last ODOM pose before it "
+                                           r"\(median 0.070 s, 95th percentile 0.070 s old\)"):
+        scans = read_carmen(write(tmp_path, lines)).scans
+    np.testing.assert_allclose(scans.odometry, truth, atol=1e-9)
+    assert scans.odometry_rule.startswith("interpolated from ODOM at each scan's timestamp")
+    # The last scan lies after the last ODOM message: it keeps its logged pose.
+    lines, truth = held_log(odom_times=5.0 + 0.1 * np.arange(40))
+    with pytest.warns(CarmenWarning, match="last ODOM pose"):
+        scans = read_carmen(write(tmp_path, lines)).scans
+    np.testing.assert_allclose(scans.odometry[:-1], truth[:-1], atol=1e-9)
+    np.testing.assert_allclose(scans.odometry[-1], _moving(5.0 + 0.1 * 39), atol=1e-9)
+
+
+def test_poses_at_the_scans_time_are_kept(tmp_path):
+    # Freiburg 079's FLASER poses are interpolated to the scan already; a pose that only repeats
+    # the ODOM before it while the robot stands still, or an ODOM stamped with its scan (as
+    # write_carmen writes), is not held odometry.
+    lines, truth = held_log()
+    current = [flaser([1.0, 2.0], t, laser_pose=tuple(pose))
+               for t, pose in zip(5.07 + 0.1 * np.arange(len(truth)), truth)]
+    odoms = [line for line in lines if line.startswith("ODOM")]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scans = read_carmen(write(tmp_path, sorted(odoms + current, key=lambda l: float(l.split()[-3])))).scans
+        np.testing.assert_array_equal(scans.odometry, truth)
+        assert scans.odometry_rule == "the FLASER messages' robot poses"
+        still, _ = held_log(moving=lambda t: np.array([1.0, 2.0, 0.5]))
+        assert read_carmen(write(tmp_path, still)).scans.odometry_rule == "the FLASER messages' robot poses"
+        fresh, _ = held_log(scan_phase=0.0)
+        assert read_carmen(write(tmp_path, fresh)).scans.odometry_rule == "the FLASER messages' robot poses"
+
+
+def test_held_odometry_with_odom_stamps_going_backwards_stays_as_logged(tmp_path):
+    # The Intel log's ODOM stamps step back: time then cannot place them, so nothing changes.
+    lines, _ = held_log()
+    i = [k for k, line in enumerate(lines) if line.startswith("ODOM")][20]
+    x, y, theta, t = (float(v) for v in np.array(lines[i].split())[[1, 2, 3, 7]])
+    lines[i] = odom(x, y, theta, t - 0.15)
+    logged = np.array([[float(v) for v in line.split()[7:10]] for line in lines if line.startswith("FLASER")])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scans = read_carmen(write(tmp_path, lines)).scans
+    np.testing.assert_array_equal(scans.odometry, logged)
+    assert "ODOM timestamps go backwards, so they were not interpolated" in scans.odometry_rule
 
 
 def test_missing_file(tmp_path):

@@ -181,3 +181,46 @@ def test_no_delay_without_turns(tmp_path, capsys):
     assert "scan delay 0 s: not estimated" in capsys.readouterr().out
     assert recorded["seconds"] == 0.0 and "only 0 scan pairs" in recorded["reason"]
     assert recorded["how"] == "--scan-delay: not estimated, so none applied"
+
+
+def test_the_delay_is_found_in_a_log_of_held_odometry(tmp_path):
+    # A CARMEN log whose FLASER messages carry the last ODOM pose (10 Hz, so up to 0.14 s old:
+    # the ACES log's habit) over a true scan delay of 0.13 s. The reader interpolates the ODOM
+    # messages to each scan's stamp, and the estimate then finds the delay; on the held poses
+    # themselves it cannot, as their age changes from scan to scan.
+    import dataclasses
+    import warnings
+
+    from omnitof.io.carmen import CarmenWarning, read_carmen
+
+    delay = 0.13
+    scan_times, fine = slalom(24.0, RATE_HZ)
+    angles = beam_angles(181, 180.0)
+    ranges = simulate_scans(room(), interpolate_poses(fine, scan_times.timestamps), angles, max_range=15.0,
+                            range_noise=0.005, seed=3)
+    stamps = scan_times.timestamps + delay
+    # ODOM at 10 Hz on its own clock: each pose's age at the scan after it varies.
+    odom_times = np.cumsum(np.random.default_rng(4).uniform(0.06, 0.14, 240))
+    odom_times = odom_times[odom_times < fine.timestamps[-1]]
+    odom_poses = interpolate_poses(fine, odom_times)
+    events = sorted([(t, 0, j) for j, t in enumerate(odom_times)] + [(t, 1, k) for k, t in enumerate(stamps)])
+    lines, held, last = [], [], None
+    for t, kind, i in events:
+        if kind == 0:
+            last = odom_poses[i]
+            lines.append("ODOM {:.6f} {:.6f} {:.6f} 0.3 0 0 {:.6f} h 0".format(*last, t))
+        elif last is not None and t <= odom_times[-1]:
+            pose = " ".join(f"{v:.6f}" for v in last)
+            r = " ".join(f"{v:.3f}" for v in np.where(np.isfinite(ranges[i]), ranges[i], 80.0))
+            lines.append(f"FLASER 181 {r} {pose} {pose} {t:.6f} h 0")
+            held.append(last)
+    path = tmp_path / "held.clf"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.warns(CarmenWarning, match="carries the last ODOM pose"):
+        scans = read_carmen(path).scans
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        found = estimate_scan_delay(scans, min_turn_deg=1.0)
+        as_logged = estimate_scan_delay(dataclasses.replace(scans, odometry=np.array(held)), min_turn_deg=1.0)
+    assert abs(found.delay - delay) < 0.02, found.delay
+    assert as_logged.heading_error.min() > 2 * found.heading_error.min()

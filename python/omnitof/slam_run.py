@@ -168,6 +168,8 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
         extra = {"input": {"path": label, "kind": data.kind, "bad_lines_skipped": data.bad_lines}}
     extra["input"]["max_range"] = {"metres": float(scans.max_range), "rule": scans.max_range_rule or "given"}
     extra["input"]["time_order"] = scans.time_order()
+    if scans.odometry_rule:
+        extra["input"]["odometry"] = scans.odometry_rule
     if relations is not None:
         from omnitof.eval.relations import check_relations_match
 

@@ -43,6 +43,8 @@ class ScanSequence:
             "PARAM robot_front_laser_max = 80.99"), for reports.
         repeated_scans_dropped: how many scans the reader dropped because each repeated the
             scan before it exactly (`drop_repeated_scans`), for reports.
+        odometry_rule: how the reader found each scan's odometry pose (as logged with the scan,
+            or interpolated from an odometry stream at its timestamp), for reports.
     """
 
     timestamps: np.ndarray
@@ -57,6 +59,7 @@ class ScanSequence:
     beam_counts: np.ndarray | None = None
     max_range_rule: str = ""
     repeated_scans_dropped: int = 0
+    odometry_rule: str = ""
 
     def __post_init__(self) -> None:
         self.timestamps = np.ascontiguousarray(self.timestamps, dtype=np.float64)
@@ -173,6 +176,7 @@ class ScanSequence:
             beam_counts=self.beam_counts[s].copy() if per_scan else None,
             max_range_rule=self.max_range_rule,
             repeated_scans_dropped=self.repeated_scans_dropped,
+            odometry_rule=self.odometry_rule,
         )
 
     def time_order(self) -> dict[str, int]:

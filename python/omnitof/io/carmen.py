@@ -40,7 +40,7 @@ from typing import BinaryIO, Iterator
 import numpy as np
 
 from omnitof.errors import ConfigError, InputError, OmnitofWarning
-from omnitof.geometry import relative, wrap_angle
+from omnitof.geometry import interpolate_poses, relative, wrap_angle
 from omnitof.types import (
     ScanSequence,
     Trajectory,
@@ -73,6 +73,14 @@ OFFSET_TOLERANCE_RAD = math.radians(0.5)
 
 # Scans whose first and last beams agree with the first scan's to this (rad) share its geometry.
 GEOMETRY_TOLERANCE = 1e-6
+
+# Held odometry (see _held_odometry): a laser message's pose counts as the last ODOM pose when it
+# equals it to the logs' print precision, judged over at least this many scans taken while the
+# odometry moved, this share of which must agree.
+HELD_POSE_TOLERANCE = 2e-6
+HELD_MIN_SCANS = 20
+HELD_MIN_SHARE = 0.95
+HELD_MIN_AGE = 1e-3  # seconds
 
 _KINDS = {  # laser side -> (old format, new format with poses, new format without poses)
     "front": ("FLASER", "ROBOTLASER1", "RAWLASER1"),
@@ -157,9 +165,13 @@ def read_carmen(
     `robot_frontlaser_angular_offset` (`rearlaser` for the rear laser), taken literally as
     (x, y, theta); missing ones are 0, except that a rear laser with no angular offset faces
     backwards at (-offset, -side_offset, pi), as in older CARMEN (its localize module). If both
-    exist and disagree, the messages win and a CarmenWarning says so. ScanSequence.odometry is
-    the robot pose of each scan (odom_x.. or robot_x..; interpolated from ODOM for RAWLASER:
-    linear in x and y, shortest arc in theta).
+    exist and disagree, the messages win and a CarmenWarning says so.
+
+    Odometry. ScanSequence.odometry is the robot pose of each scan: odom_x.. or robot_x.. as
+    logged, or interpolated from ODOM at the scan's timestamp (linear in x and y, shortest arc
+    in theta) for RAWLASER, and for a log whose laser messages hold the last ODOM pose instead
+    of the pose at the scan (`_held_odometry`; a CarmenWarning says so).
+    `ScanSequence.odometry_rule` says which.
 
     No echo. A range >= the maximum range or <= 0 becomes +inf. The maximum is the message's
     maximum_range in the new format (each scan its own); for FLASER/RLASER it is the PARAM
@@ -628,11 +640,16 @@ def _build_sequence(
         max_range, rule = _old_format_max_range(ctx, laser, params, raw)
         no_echo = max_range
     angles, beam_counts = evenly_spaced_beams(starts, steps, counts, tolerance=GEOMETRY_TOLERANCE)
+    odometry_rule = f"the {kind} messages' robot poses"
     if scans[0].robot_pose is not None:
         robot_poses = np.array([s.robot_pose for s in scans])
         laser_poses = np.array([s.laser_pose for s in scans])
         sensor_pose = _sensor_pose(ctx, kind, laser, scans, laser_poses, robot_poses, params)
+        held = _held_odometry(scans, robot_poses, odometry, odom_lines)
+        if held is not None:
+            robot_poses, odometry_rule = _unhold_odometry(ctx, kind, stamps, robot_poses, odometry, held)
     else:
+        odometry_rule = "interpolated from ODOM at each scan's timestamp"
         robot_poses = _interpolate_odometry(ctx, kind, scans, stamps, odometry, odom_lines)
         sensor_pose = _param_sensor_pose(ctx, laser, params)
         if sensor_pose is None:
@@ -648,6 +665,7 @@ def _build_sequence(
         source=str(ctx.path),
         beam_counts=beam_counts,
         max_range_rule=rule,
+        odometry_rule=odometry_rule,
     )
 
 
@@ -856,6 +874,72 @@ def _interpolate_odometry(
         ],
         axis=1,
     )
+
+
+def _held_odometry(
+    scans: list[_Scan], robot_poses: np.ndarray, odometry: Trajectory, odom_lines: np.ndarray
+) -> np.ndarray | None:
+    """For a log whose laser messages carry the pose of the last ODOM message before them
+    (sample-and-hold, as in the ACES and Intel logs) rather than the pose at the scan's time
+    (Freiburg 079's are interpolated to it): the index of that ODOM message per scan (-1 before
+    the first one). Else None.
+
+    Judged on the scans taken while the odometry moved (the last two ODOM poses before the scan
+    differ), where a pose interpolated to the scan's time would differ from both: at least
+    HELD_MIN_SCANS of them, HELD_MIN_SHARE of which equal the last ODOM pose to
+    HELD_POSE_TOLERANCE, with ODOM messages older than their scans by more than HELD_MIN_AGE
+    in at least 5 % of them.
+    """
+    if len(odometry) < 2:
+        return None
+    lines = np.array([s.line for s in scans])
+    last = np.searchsorted(odom_lines, lines) - 1  # the last ODOM line before each scan's line
+    poses = odometry.poses
+    judged = np.flatnonzero(last >= 1)
+    judged = judged[np.any(poses[last[judged]] != poses[last[judged] - 1], axis=1)]
+    if len(judged) < HELD_MIN_SCANS:
+        return None
+    difference = robot_poses[judged] - poses[last[judged]]
+    difference[:, 2] = wrap_angle(difference[:, 2])
+    equal = np.all(np.abs(difference) <= HELD_POSE_TOLERANCE, axis=1)
+    if np.mean(equal) < HELD_MIN_SHARE:
+        return None
+    # An ODOM message stamped with its scan (as write_carmen writes them) is not old.
+    ages = np.array([s.stamp for s in scans])[judged] - odometry.timestamps[last[judged]]
+    return last if np.percentile(ages, 95) > HELD_MIN_AGE else None
+
+
+def _unhold_odometry(
+    ctx: _Context, kind: str, stamps: np.ndarray, robot_poses: np.ndarray, odometry: Trajectory,
+    held: np.ndarray,
+) -> tuple[np.ndarray, str]:
+    """Held odometry (see _held_odometry) made into the pose at each scan's timestamp,
+    interpolated from the ODOM messages as for a ROS bag, and the rule that says so.
+
+    A held pose is as old as the time since its ODOM message: in the ACES log a median 0.12 s,
+    4° of heading when the robot turns at 0.6 rad/s, and varying from scan to scan, which no
+    constant scan delay (omnitof.slam.timing) can undo. Where ODOM timestamps go backwards (the
+    Intel log's) nothing can be interpolated and the poses stay as logged; scans outside the
+    ODOM messages' time span keep theirs too.
+    """
+    t = odometry.timestamps
+    ages = stamps[held >= 0] - t[held[held >= 0]]
+    age = f"median {np.median(ages):.3f} s, 95th percentile {np.percentile(ages, 95):.3f} s"
+    if np.any(np.diff(t) < 0):
+        return robot_poses, (
+            f"the {kind} messages' robot poses, each the last ODOM pose before it ({age} old): "
+            "ODOM timestamps go backwards, so they were not interpolated to the scans' timestamps"
+        )
+    poses = interpolate_poses(odometry, stamps)
+    outside = np.isnan(poses[:, 0])
+    poses[outside] = robot_poses[outside]
+    warnings.warn(
+        f"{ctx.path}: each {kind} message carries the last ODOM pose before it ({age} old), so "
+        "each scan's odometry is interpolated from the ODOM messages at the scan's timestamp",
+        CarmenWarning,
+        stacklevel=4,
+    )
+    return poses, f"interpolated from ODOM at each scan's timestamp: the {kind} messages carry the last ODOM pose ({age} old)"
 
 
 def _check_time_order(

@@ -228,6 +228,7 @@ def read_laserscan_bag(
         source=str(path),
         beam_counts=beam_counts,
         max_range_rule=rule,
+        odometry_rule=f"interpolated from {odom_name} at each scan's timestamp",
     )
     scans = drop_repeated_scans(scans)
     if scans.repeated_scans_dropped:
