@@ -17,13 +17,16 @@ flat walls at known distances, four frames averaged per position) applied by the
 whole simulated calibration the demo runs (`calibrate_from_simulation`: closed form, joint
 refinement, the correction) and extracts with it. "none" is no correction (the default).
 
+--max-incidence adds rows extracted with `ScanSettings.max_incidence_deg` (omnitof.scan.grazing:
+bins seen at a grazing angle dropped; 90 is off, the default).
+
 Speed: the renderer's phasors (tracer) and whole frames (noise and decoding too) per second on
 corridor1, all effects off and all on, medians of --runs runs measured alternately in one
 process.
 
 Usage:
     python benchmarks/tof_errors.py [--frames 24] [--runs 5] [--worlds room office ...]
-        [--settings default all] [--corrections none true estimated]
+        [--settings default all] [--corrections none true estimated] [--max-incidence 90 70]
 """
 
 from __future__ import annotations
@@ -104,10 +107,10 @@ def calibration_for(kind: str, renderer, cache: dict):
 
 
 def budget(names: list[str], count: int, only: list[str] | None = None,
-           corrections: tuple[str, ...] = ("none",)) -> None:
-    print("| world | effects | correction | bins (off / on) | median / p90 |error| (cm) / within 5 cm, filter off "
-          "| the same, filter on |")
-    print("|---|---|---|---|---|---|")
+           corrections: tuple[str, ...] = ("none",), incidences: tuple[float, ...] = (90.0,)) -> None:
+    print("| world | effects | correction | max incidence | bins (off / on) | median / p90 |error| (cm) / within 5 cm, "
+          "filter off | the same, filter on |")
+    print("|---|---|---|---|---|---|---|")
     cache: dict = {}
     for name in names:
         world = load_world(name)
@@ -117,12 +120,15 @@ def budget(names: list[str], count: int, only: list[str] | None = None,
             a = np.stack([f.amplitude for f in fr])
             for kind in corrections:
                 cal = calibration_for(kind, renderer, cache)
-                off = ScanExtractor.from_calibration(cal, pixel_filter={"enabled": False})
-                on = ScanExtractor.from_calibration(cal)
-                e_off = matte_errors(world, renderer, off, poses, off.extract_many(d, a))
-                e_on = matte_errors(world, renderer, on, poses, on.extract_many(d, a))
-                print(f"| {name} | {label} | {kind} | {len(e_off)} / {len(e_on)} | {stats(e_off)} | {stats(e_on)} |",
-                      flush=True)
+                for incidence in incidences:
+                    off = ScanExtractor.from_calibration(cal, pixel_filter={"enabled": False},
+                                                         max_incidence_deg=incidence)
+                    on = ScanExtractor.from_calibration(cal, max_incidence_deg=incidence)
+                    e_off = matte_errors(world, renderer, off, poses, off.extract_many(d, a))
+                    e_on = matte_errors(world, renderer, on, poses, on.extract_many(d, a))
+                    shown = "off" if incidence >= 90 else f"{incidence:g}°"
+                    print(f"| {name} | {label} | {kind} | {shown} | {len(e_off)} / {len(e_on)} | {stats(e_off)} | "
+                          f"{stats(e_on)} |", flush=True)
 
 
 def speed(runs: int, count: int = 60) -> None:
@@ -165,13 +171,15 @@ def main() -> None:
     parser.add_argument("--settings", nargs="*", help="only these rows (none, a switch, default, all)")
     parser.add_argument("--corrections", nargs="+", default=["none"], choices=["none", "true", "estimated"],
                         help="distance corrections to apply (module docstring)")
+    parser.add_argument("--max-incidence", nargs="+", type=float, default=[90.0],
+                        help="ScanSettings.max_incidence_deg values to extract with (90: off, the default)")
     args = parser.parse_args()
     print(f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.1f}")
     if not args.skip_speed:
         speed(args.runs)
     if not args.skip_budget:
-        budget(args.worlds, args.frames, args.settings, tuple(args.corrections))
+        budget(args.worlds, args.frames, args.settings, tuple(args.corrections), tuple(args.max_incidence))
     print(f"# done, load {os.getloadavg()[0]:.1f}")
 
 

@@ -11,7 +11,7 @@ a few seeds' numbers in the last digits.)
     python benchmarks/world_filters.py --worlds corridor1 office --drives 0 1 --seeds 0 1 2 \
         [--preset tof-scanmatch] [--particles 30] [--set backend.min_score=0.65 ...] \
         [--tof-errors default|all|none|LIST] [--ideal-scans [seen]] [--odometry-scale F]
-        [--cache results/world_scans]
+        [--max-incidence DEG] [--cache results/world_scans]
 
 The camera's systematic errors (issue 15) are those of the demo, `default` unless told; the
 cache is kept per setting. `--ideal-scans` replaces every range by the exact distance to the
@@ -20,7 +20,9 @@ seen): what the filter makes of a perfect omnidirectional scanner, to tell the s
 an error from the filter's; `--ideal-scans seen` keeps the ToF scans' gaps (exact ranges only
 where they have a reading), to tell the ranges' errors from the readings' number.
 `--odometry-scale F` multiplies every odometry step's translation by F (the simulated wheels
-report 1 % too far: F = 1/1.01 takes that out, an oracle no real run has).
+report 1 % too far: F = 1/1.01 takes that out, an oracle no real run has). `--max-incidence DEG`
+drops the bins seen at a grazing angle (`ScanSettings.max_incidence_deg`, omnitof.scan.grazing),
+as the extraction would have as its last step.
 
 Prints one JSON line per run, then a Markdown table.
 """
@@ -30,6 +32,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import pickle
 import sys
 import time
@@ -41,6 +44,7 @@ import yaml
 from omnitof.demo import DemoSettings, _calibrate, evaluate_run
 from omnitof.geometry import compose, relative
 from omnitof.scan import ScanExtractor, ScanSettings
+from omnitof.scan.grazing import drop_grazing
 from omnitof.scan.tof_input import tof_scans
 from omnitof.sensor.tof import SensorNoise
 from omnitof.sensor.tof_errors import ToFErrors
@@ -121,6 +125,10 @@ def main(argv: list[str] | None = None) -> int:
                              "(seen: only where the ToF scan has a reading)")
     parser.add_argument("--odometry-scale", type=float, default=1.0,
                         help="multiply each odometry step's translation by this (an oracle for the wheels' scale error)")
+    parser.add_argument("--max-incidence", type=float, default=90.0,
+                        help="drop the bins seen more than this far from their surface's normal (degrees; "
+                             "ScanSettings.max_incidence_deg, the extraction's last step, applied to the cached "
+                             "scans; 90: off)")
     parser.add_argument("--cache", type=Path, default=Path("results/world_scans"))
     args = parser.parse_args(argv)
 
@@ -133,6 +141,9 @@ def main(argv: list[str] | None = None) -> int:
                 scans = ideal_scans(world, scans, only_seen=args.ideal_scans == "seen")
             if args.odometry_scale != 1.0:
                 scans = scaled_odometry(scans, args.odometry_scale)
+            if args.max_incidence < 90.0:
+                ranges = drop_grazing(scans.ranges, math.radians(1.0), math.radians(args.max_incidence))
+                scans = dataclasses.replace(scans, ranges=ranges)
             for seed in args.seeds:
                 ov = overrides(args.set)
                 ov.setdefault("filter", {}).update({"particles": args.particles, "seed": seed})

@@ -11,6 +11,7 @@ import pytest
 from omnitof.sensor.design import default_rig
 from omnitof.errors import ConfigError, InputError
 from omnitof.sensor.mirrors import camera_mount, masks, viewing_rays
+from omnitof.scan.grazing import drop_grazing
 from omnitof.scan import ScanConfigError, ScanExtractor, ScanInputError, ScanSettings, scans_from_frames
 
 RIG = default_rig()
@@ -98,6 +99,30 @@ def test_bearing_convention_box_room(extractor, rays_robot):
     slack = truth * 2.0 * math.tan(math.radians(0.5)) + 1e-3
     assert np.all(np.abs(ranges[seen] - truth[seen]) <= slack[seen])
     assert math.isclose(ranges[0], 1.0, abs_tol=1e-3) and math.isclose(ranges[90], 2.0, abs_tol=1e-3)
+
+
+def test_grazing_bins_of_the_box_room_are_dropped(rays_robot):
+    """The box room again, with max_incidence_deg 20 (the rig sees no bearing 28–66° off the
+    axes, so its walls are never seen more obliquely): the bins that see their wall well beyond
+    20° from its normal lose their reading, those well within it keep theirs unchanged. The bins'
+    own estimate errs by up to 4° here (omnitof.scan.grazing; one-sided differences of medians)."""
+    o, u, path, labels = rays_robot
+    half = np.array([1.0, 2.0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = [np.where(u[..., k] != 0, (np.sign(u[..., k]) * half[k] - o[..., k]) / u[..., k], np.inf)
+             for k in (0, 1)]
+    distance = np.where(labels >= 0, path + np.minimum(t[0], t[1]), np.nan).astype(np.float32)
+    amplitude = np.full(distance.shape, 800.0, np.float32)
+    every = ScanExtractor.from_rig().extract(distance, amplitude)
+    some = ScanExtractor.from_rig(max_incidence_deg=20.0).extract(distance, amplitude)
+    b = ScanExtractor.from_rig().angles
+    front = np.abs(np.cos(b)) * 2.0 > np.abs(np.sin(b))  # the bin's ray meets the x = ±1 wall first
+    incidence = np.degrees(np.where(front, np.arccos(np.abs(np.cos(b))), np.arccos(np.abs(np.sin(b)))))
+    seen = np.isfinite(every)
+    assert np.isfinite(some[seen & (incidence <= 15.0)]).all()
+    assert np.isinf(some[seen & (incidence >= 25.0)]).all()
+    assert (seen & (incidence >= 25.0)).sum() >= 4 and (seen & (incidence <= 15.0)).sum() >= 60
+    assert np.array_equal(some, drop_grazing(every, math.radians(1.0), math.radians(20.0)))
 
 
 def test_amplitude_filter_and_nan_pixels(extractor, rays_robot):

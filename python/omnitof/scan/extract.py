@@ -35,6 +35,8 @@ Per frame, the paper's steps and what this module does for each:
    noise's low tail. Measured on the rendered `room` (matte bins, 24 poses): median 0.2 cm
    median error and 99 % within 5 cm; 25th percentile 0.7 cm and 97 %; minimum 2.5 cm and 81 %. A bin with fewer than `min_points` points, or whose value exceeds
    `max_range`, is "no reading": +inf (the ScanSequence convention; never 0, never NaN).
+8. Optionally (`max_incidence_deg` below 90), bins whose surface the neighbouring bins show at
+   a grazing angle are no reading either (`omnitof.scan.grazing`: where multipath reads long).
 
 Frames: robot frame x forward, y left, z up (see `omnitof.sensor.mirrors`); robot_T_camera maps camera
 points to robot points. Units: metres and radians.
@@ -52,6 +54,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from omnitof.sensor.camera import Camera
 from omnitof.errors import ConfigError, InputError
 from omnitof.sensor.mirrors import Mirror, MirrorPlane
+from omnitof.scan.grazing import drop_grazing
 from omnitof.scan.pixel_filter import PixelFilter, PixelFilterSettings
 from omnitof.sensor.rig import Rig
 from omnitof.types import ScanSequence
@@ -138,6 +141,15 @@ class ScanSettings(BaseModel):
         "percentile (0..100, linear interpolation), e.g. 'p25'",
     )
     min_points: int = Field(2, ge=1, description="bins with fewer points are no reading (a lone flying pixel)")
+    max_incidence_deg: float = Field(
+        90.0,
+        gt=0.0,
+        le=90.0,
+        description="bins whose surface is seen more than this far from its normal (degrees, estimated from the "
+        "neighbouring bins, omnitof.scan.grazing) are no reading: there multipath makes a ToF camera read long. "
+        "70 raises the simulated corridors' matte bins within 5 cm from 87 % to 97 % with multipath on, but "
+        "costs the filter the walls ahead, hence off (90) by default",
+    )
     pixel_filter: PixelFilterSettings = Field(
         default_factory=PixelFilterSettings,
         description="the flying-pixel and multipath filter (omnitof.scan.pixel_filter)",
@@ -475,7 +487,10 @@ class ScanExtractor:
         above = np.minimum(below + 1, starts[filled] + counts[filled] - 1)
         frac = position - below
         out[filled] = r_sorted[below] * (1.0 - frac) + r_sorted[above] * frac
-        return out.reshape(n, N_BINS)
+        out = out.reshape(n, N_BINS)
+        if self.settings.max_incidence_deg < 90.0:
+            out = drop_grazing(out, _DEG, math.radians(self.settings.max_incidence_deg))
+        return out
 
 
 def scans_from_frames(
