@@ -264,12 +264,31 @@ def test_sensor_pose_params_disagree_warns(tmp_path):
     np.testing.assert_allclose(log.scans.sensor_pose, [-0.04, 0.005, 0.0], atol=1e-12)
 
 
-def test_sensor_pose_inconsistent(tmp_path):
-    _, lines = _offset_scans(turn_at_second=1.0 * DEG)
-    path = write(tmp_path, lines)
-    with pytest.raises(InputError) as excinfo:
-        read_carmen(path)
-    rejects(excinfo, path, 2, "1 cm and 0.5°", "first scan (line 1)")
+def test_laser_poses_that_are_no_mount_are_left_out(tmp_path):
+    # A laser pose turned by 1° at the second scan is no fixed mount: the scans and the odometry
+    # are read, the mount comes from the PARAMs (else none), and a warning says where.
+    robots, lines = _offset_scans(turn_at_second=1.0 * DEG)
+    with pytest.warns(CarmenWarning, match=r"no fixed mount.*first scan \(line 1\).*at line 2.*mount is none"):
+        log = read_carmen(write(tmp_path, lines))
+    np.testing.assert_array_equal(log.scans.sensor_pose, [0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(log.scans.odometry, robots)
+    with pytest.warns(CarmenWarning, match=r"mount is the PARAMs' \(x -0.0400 m"):
+        log = read_carmen(write(tmp_path, ["PARAM robot_frontlaser_offset -0.04 nohost 0", *lines]))
+    np.testing.assert_allclose(log.scans.sensor_pose, [-0.04, 0.0, 0.0])
+
+
+def test_a_corrected_log_is_read_with_its_odometry(tmp_path):
+    # GMapping's .gfs.log: the laser pose fields hold the SLAM solution, which drifts away from
+    # the raw odometry beside it by metres over the log.
+    t = np.arange(200) * 0.1
+    odometry = np.column_stack([0.5 * t, 0.1 * np.sin(t), wrap_angle(0.2 * t)])
+    corrected = odometry + np.column_stack([0.02 * t, -0.01 * t, 0.004 * t])
+    lines = [flaser([1.0, 2.0, 3.0 + 0.001 * k], 10.0 + t[k], laser_pose=tuple(corrected[k]), odom=tuple(odometry[k]))
+             for k in range(len(t))]
+    with pytest.warns(CarmenWarning, match=r"no fixed mount.*at line 200 .*GMapping's \.gfs\.log"):
+        log = read_carmen(write(tmp_path, lines))
+    np.testing.assert_allclose(log.scans.odometry, odometry, atol=1e-12)
+    assert len(log.scans) == 200 and np.array_equal(log.scans.sensor_pose, np.zeros(3))
 
 
 # --------------------------------------------------------------------------------------------

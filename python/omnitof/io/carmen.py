@@ -67,7 +67,7 @@ TOP_VALUE_DOMINANCE = 10
 TOP_VALUE_BAND = 0.05
 
 # A laser bolted to the robot keeps its offset; CARMEN prints poses to 1e-6, so these tolerances
-# only catch real inconsistencies (a corrected laser pose next to raw odometry, say).
+# only catch laser poses that are no mount at all (a corrected log's, next to raw odometry).
 OFFSET_TOLERANCE_M = 0.01
 OFFSET_TOLERANCE_RAD = math.radians(0.5)
 
@@ -160,7 +160,9 @@ def read_carmen(
 
     Sensor pose (ScanSequence.sensor_pose, robot_T_sensor). From the per-message laser and robot
     poses of FLASER/ROBOTLASER when they differ: the laser pose in the robot's frame in the
-    first scan, which must hold to 1 cm and 0.5° over the log. Otherwise from the PARAMs
+    first scan, when it holds to 1 cm and 0.5° over the log. Otherwise (laser poses that are no
+    fixed mount, as in a corrected log: a CarmenWarning says so, and they are left out) from the
+    PARAMs
     `robot_frontlaser_offset` (forward), `robot_frontlaser_side_offset` (left) and
     `robot_frontlaser_angular_offset` (`rearlaser` for the rear laser), taken literally as
     (x, y, theta); missing ones are 0, except that a rear laser with no angular offset faces
@@ -202,8 +204,8 @@ def read_carmen(
         InputError: naming the file, and the line where there is one: a malformed line (unless
             skip_bad_lines), a missing or unreadable file, a file that is not a CARMEN log, no
             scans of the chosen laser, old- and new-format scans of the same laser, scan
-            timestamps going backwards by more than max_time_reversal, a laser offset that
-            changes over the log, RAWLASER scans outside the time span of the odometry.
+            timestamps going backwards by more than max_time_reversal, RAWLASER scans outside
+            the time span of the odometry.
         ConfigError: for a bad `laser`, `fov_deg` or `max_time_reversal`.
     """
     _check_options(laser, fov_deg, max_time_reversal)
@@ -802,22 +804,38 @@ def _sensor_pose(
     robot_poses: np.ndarray,
     params: dict[str, tuple[str, int]],
 ) -> np.ndarray:
-    """robot_T_sensor from the messages' poses if they differ, else from PARAMs (else zero)."""
+    """robot_T_sensor from the messages' poses if they differ by one fixed offset, else from
+    PARAMs (else zero).
+
+    Laser poses that are no fixed offset from the robot poses are another trajectory, not a
+    mount: a corrected log (GMapping's `.gfs.log`, the benchmark sites' `corrected` logs) puts
+    a SLAM solution there beside the raw odometry. The log is read all the same (its scans and
+    odometry are what SLAM needs), the laser poses are left out, and a CarmenWarning says so.
+    """
     from_params = _param_sensor_pose(ctx, laser, params)
+    fallback = np.zeros(3) if from_params is None else from_params
     if np.array_equal(laser_poses, robot_poses):
         # Loggers that know no offset copy the robot pose; that says nothing about the mount.
-        return np.zeros(3) if from_params is None else from_params
+        return fallback
     offsets = relative(robot_poses, laser_poses)
     first = offsets[0]
     bad = np.flatnonzero(~_same_offset(offsets, first))
     if bad.size:
         i = int(bad[0])
-        raise ctx.error(
-            f"the {kind} laser pose is {_fmt_pose(offsets[i])} in the robot's frame here but "
-            f"{_fmt_pose(first)} in the first scan (line {scans[0].line}); a laser fixed on the "
-            "robot must keep its offset to within 1 cm and 0.5°",
-            scans[i].line,
+        change = relative(first[None, :], offsets)
+        worst = int(np.argmax(np.hypot(change[:, 0], change[:, 1]) + np.abs(change[:, 2])))
+        source = "the PARAMs'" if from_params is not None else "none, as no PARAM gives one"
+        warnings.warn(
+            f"{ctx.path}: the {kind} laser poses are no fixed mount on the robot poses: "
+            f"{_fmt_pose(first)} in the robot's frame in the first scan (line {scans[0].line}), "
+            f"{_fmt_pose(offsets[i])} at line {scans[i].line}, {_fmt_pose(offsets[worst])} at line "
+            f"{scans[worst].line} (a corrected log, such as GMapping's .gfs.log, holds a SLAM "
+            f"solution there); they are left out, the robot poses are the odometry, and the "
+            f"laser's mount is {source} {_fmt_pose(fallback)}",
+            CarmenWarning,
+            stacklevel=4,
         )
+        return fallback
     if from_params is not None and not _same_offset(from_params[None, :], first)[0]:
         warnings.warn(
             f"{ctx.path}: the PARAMs put the {laser} laser at {_fmt_pose(from_params)} on the "

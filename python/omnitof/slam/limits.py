@@ -130,9 +130,11 @@ def _scan_tiles(scans: ScanSequence, cfg: SlamConfig) -> float:
         bearing = sensor[k, 2] + scans.scan_angles(i)[used[: scans.beam_mask[i].sum()]]
         t = np.minimum(steps[None, :], lengths[k, used][:, None])
         # Tile indices relative to the sensor's tile, within ±4097 of it: one integer each.
-        x = np.floor((sensor[k, 0] + t * np.cos(bearing)[:, None]) / tile) - np.floor(sensor[k, 0] / tile)
-        y = np.floor((sensor[k, 1] + t * np.sin(bearing)[:, None]) / tile) - np.floor(sensor[k, 1] / tile)
-        counts.append(len(np.unique((x * 16384 + y).astype(np.int64))))
+        # (Odometry near the float limit overflows here; its map is refused as too big anyway.)
+        with np.errstate(over="ignore", invalid="ignore"):
+            x = np.floor((sensor[k, 0] + t * np.cos(bearing)[:, None]) / tile) - np.floor(sensor[k, 0] / tile)
+            y = np.floor((sensor[k, 1] + t * np.sin(bearing)[:, None]) / tile) - np.floor(sensor[k, 1] / tile)
+            counts.append(len(np.unique((x * 16384 + y).astype(np.int64))))
     return float(np.median(counts)) if counts else 0.0
 
 
@@ -141,8 +143,9 @@ def estimate_memory(scans: ScanSequence, cfg: SlamConfig) -> MemoryEstimate:
     x0, y0, x1, y1 = map_extent(scans, cfg)
     res = cfg.map.resolution
     width, height = max(x1 - x0, 0.0), max(y1 - y0, 0.0)
-    cols, rows = math.floor(width / res) + 1, math.floor(height / res) + 1  # floats: no overflow
-    window = math.ceil(cols / TILE_CELLS) * math.ceil(rows / TILE_CELLS) * POINTER_BYTES
+    # Floats throughout: odometry a few 1e307 m apart spans an infinite map, refused as too big.
+    cols, rows = float(np.floor(width / res)) + 1, float(np.floor(height / res)) + 1
+    window = float(np.ceil(cols / TILE_CELLS)) * float(np.ceil(rows / TILE_CELLS)) * POINTER_BYTES
     copies = _scan_tiles(scans, cfg) * _core.ParticleFilter.tile_bytes()
     return MemoryEstimate(
         extent=(width, height),
