@@ -605,8 +605,9 @@ def held_log(n_scans=40, odom_times=None, scan_phase=0.07, moving=_moving):
 
 
 def test_held_odometry_is_interpolated_to_each_scan(tmp_path):
-    # The ACES log's FLASER messages carry the last ODOM pose, 0.02-0.25 s old: a constant scan
-    # delay cannot undo that, interpolating the ODOM messages to the scan's stamp does.
+    # The ACES log's FLASER messages carry the last ODOM pose, a median 0.11 s old (95th
+    # percentile 0.20 s): a constant scan delay cannot undo that, interpolating the ODOM
+    # messages to the scan's stamp does.
     lines, truth = held_log()
     with pytest.warns(CarmenWarning, match=r"each FLASER message carries the last ODOM pose before it "
                                            r"\(median 0.070 s, 95th percentile 0.070 s old\)"):
@@ -619,6 +620,16 @@ def test_held_odometry_is_interpolated_to_each_scan(tmp_path):
         scans = read_carmen(write(tmp_path, lines)).scans
     np.testing.assert_allclose(scans.odometry[:-1], truth[:-1], atol=1e-9)
     np.testing.assert_allclose(scans.odometry[-1], _moving(5.0 + 0.1 * 39), atol=1e-9)
+    assert scans.odometry_rule.endswith("; scans outside the ODOM messages' time span keep their logged poses: 1")
+
+
+def test_held_odometry_is_found_where_each_odom_line_is_doubled(tmp_path):
+    # Some loggers write each ODOM message twice; the copy must not read as a robot standing still.
+    lines, truth = held_log()
+    doubled = [copy for line in lines for copy in ([line, line] if line.startswith("ODOM") else [line])]
+    with pytest.warns(CarmenWarning, match="last ODOM pose"):
+        scans = read_carmen(write(tmp_path, doubled)).scans
+    np.testing.assert_allclose(scans.odometry, truth, atol=1e-9)
 
 
 def test_poses_at_the_scans_time_are_kept(tmp_path):
@@ -641,17 +652,29 @@ def test_poses_at_the_scans_time_are_kept(tmp_path):
 
 
 def test_held_odometry_with_odom_stamps_going_backwards_stays_as_logged(tmp_path):
-    # The Intel log's ODOM stamps step back: time then cannot place them, so nothing changes.
-    lines, _ = held_log()
-    i = [k for k, line in enumerate(lines) if line.startswith("ODOM")][20]
-    x, y, theta, t = (float(v) for v in np.array(lines[i].split())[[1, 2, 3, 7]])
-    lines[i] = odom(x, y, theta, t - 0.15)
-    logged = np.array([[float(v) for v in line.split()[7:10]] for line in lines if line.startswith("FLASER")])
+    # The Intel log's ODOM stamps step back: time then cannot place them, so nothing changes,
+    # and poses held a median 0.07 s (well beyond HELD_STALE_WARNING) are warned of.
+    def stepping_back(lines):
+        i = [k for k, line in enumerate(lines) if line.startswith("ODOM")][20]
+        x, y, theta, t = (float(v) for v in np.array(lines[i].split())[[1, 2, 3, 7]])
+        return lines[:i] + [odom(x, y, theta, t - 0.15)] + lines[i + 1:]
+
+    def logged(lines):
+        return np.array([[float(v) for v in line.split()[7:10]] for line in lines if line.startswith("FLASER")])
+
+    lines = stepping_back(held_log()[0])
+    with pytest.warns(CarmenWarning, match=r"median 0.070 s.*cannot be interpolated .* used as logged"):
+        scans = read_carmen(write(tmp_path, lines)).scans
+    np.testing.assert_array_equal(scans.odometry, logged(lines))
+    assert "ODOM timestamps go backwards, so they were not interpolated" in scans.odometry_rule
+    # Held for 2 ms at the median (the Intel log's: 0.3 ms): too fresh to warn of.
+    mixed = 5.0 + 0.1 * np.arange(41) + np.where(np.arange(41) % 4 == 0, 0.0, 0.068)
+    lines = stepping_back(held_log(odom_times=mixed)[0])
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         scans = read_carmen(write(tmp_path, lines)).scans
-    np.testing.assert_array_equal(scans.odometry, logged)
-    assert "ODOM timestamps go backwards, so they were not interpolated" in scans.odometry_rule
+    np.testing.assert_array_equal(scans.odometry, logged(lines))
+    assert "95th percentile 0.070 s" in scans.odometry_rule and "median 0.002 s" in scans.odometry_rule
 
 
 def test_missing_file(tmp_path):

@@ -76,11 +76,14 @@ GEOMETRY_TOLERANCE = 1e-6
 
 # Held odometry (see _held_odometry): a laser message's pose counts as the last ODOM pose when it
 # equals it to the logs' print precision, judged over at least this many scans taken while the
-# odometry moved, this share of which must agree.
+# odometry moved, this share of which must agree; and the ODOM message must be older than its
+# scan by HELD_MIN_AGE in more than HELD_OLD_SHARE of them (not stamped with it).
 HELD_POSE_TOLERANCE = 2e-6
 HELD_MIN_SCANS = 20
 HELD_MIN_SHARE = 0.95
 HELD_MIN_AGE = 1e-3  # seconds
+HELD_OLD_SHARE = 0.05
+HELD_STALE_WARNING = 0.01  # seconds: held poses this old that cannot be interpolated are warned of
 
 _KINDS = {  # laser side -> (old format, new format with poses, new format without poses)
     "front": ("FLASER", "ROBOTLASER1", "RAWLASER1"),
@@ -172,8 +175,10 @@ def read_carmen(
     Odometry. ScanSequence.odometry is the robot pose of each scan: odom_x.. or robot_x.. as
     logged, or interpolated from ODOM at the scan's timestamp (linear in x and y, shortest arc
     in theta) for RAWLASER, and for a log whose laser messages hold the last ODOM pose instead
-    of the pose at the scan (`_held_odometry`; a CarmenWarning says so).
-    `ScanSequence.odometry_rule` says which.
+    of the pose at the scan (`_held_odometry`; a CarmenWarning says so). Where such a log's
+    ODOM timestamps go backwards (Intel's), the held poses are kept as logged, with a
+    CarmenWarning if they are a median 10 ms old or more. `ScanSequence.odometry_rule` says
+    which.
 
     No echo. A range >= the maximum range or <= 0 becomes +inf. The maximum is the message's
     maximum_range in the new format (each scan its own); for FLASER/RLASER it is the PARAM
@@ -902,29 +907,36 @@ def _held_odometry(
     (Freiburg 079's are interpolated to it): the index of that ODOM message per scan (-1 before
     the first one). Else None.
 
-    Judged on the scans taken while the odometry moved (the last two ODOM poses before the scan
-    differ), where a pose interpolated to the scan's time would differ from both: at least
-    HELD_MIN_SCANS of them, HELD_MIN_SHARE of which equal the last ODOM pose to
-    HELD_POSE_TOLERANCE, with ODOM messages older than their scans by more than HELD_MIN_AGE
-    in at least 5 % of them.
+    Judged on the scans taken while the odometry moved (the ODOM message after the scan's last
+    one has another pose), where a pose interpolated to the scan's time would differ from the
+    last ODOM pose: at least HELD_MIN_SCANS of them, HELD_MIN_SHARE of which equal it to
+    HELD_POSE_TOLERANCE, with ODOM messages older than their scans by more than HELD_MIN_AGE in
+    more than HELD_OLD_SHARE of them. ODOM messages that repeat the one before exactly (stamp
+    and pose, as some loggers write each twice) count once, or they would hide the motion.
     """
     if len(odometry) < 2:
         return None
+    t, poses = odometry.timestamps, odometry.poses
+    kept = np.flatnonzero(
+        np.r_[True, (np.diff(t) != 0) | np.any(np.diff(poses, axis=0) != 0, axis=1)]
+    )
     lines = np.array([s.line for s in scans])
-    last = np.searchsorted(odom_lines, lines) - 1  # the last ODOM line before each scan's line
-    poses = odometry.poses
-    judged = np.flatnonzero(last >= 1)
-    judged = judged[np.any(poses[last[judged]] != poses[last[judged] - 1], axis=1)]
+    last = np.searchsorted(odom_lines[kept], lines) - 1  # the last ODOM line before each scan's line
+    judged = np.flatnonzero((last >= 0) & (last + 1 < len(kept)))
+    moved = np.any(poses[kept[last[judged] + 1]] != poses[kept[last[judged]]], axis=1)
+    judged = judged[moved]
     if len(judged) < HELD_MIN_SCANS:
         return None
-    difference = robot_poses[judged] - poses[last[judged]]
+    held = np.where(last >= 0, kept[np.maximum(last, 0)], -1)
+    difference = robot_poses[judged] - poses[held[judged]]
     difference[:, 2] = wrap_angle(difference[:, 2])
     equal = np.all(np.abs(difference) <= HELD_POSE_TOLERANCE, axis=1)
     if np.mean(equal) < HELD_MIN_SHARE:
         return None
     # An ODOM message stamped with its scan (as write_carmen writes them) is not old.
-    ages = np.array([s.stamp for s in scans])[judged] - odometry.timestamps[last[judged]]
-    return last if np.percentile(ages, 95) > HELD_MIN_AGE else None
+    ages = np.array([s.stamp for s in scans])[judged] - t[held[judged]]
+    old_enough = np.percentile(ages, 100.0 * (1.0 - HELD_OLD_SHARE)) > HELD_MIN_AGE
+    return held if old_enough else None
 
 
 def _unhold_odometry(
@@ -934,16 +946,25 @@ def _unhold_odometry(
     """Held odometry (see _held_odometry) made into the pose at each scan's timestamp,
     interpolated from the ODOM messages as for a ROS bag, and the rule that says so.
 
-    A held pose is as old as the time since its ODOM message: in the ACES log a median 0.12 s,
-    4° of heading when the robot turns at 0.6 rad/s, and varying from scan to scan, which no
-    constant scan delay (omnitof.slam.timing) can undo. Where ODOM timestamps go backwards (the
-    Intel log's) nothing can be interpolated and the poses stay as logged; scans outside the
-    ODOM messages' time span keep theirs too.
+    A held pose is as old as the time since its ODOM message: in the ACES log a median 0.11 s
+    (95th percentile 0.20 s), 4° of heading when the robot turns at 0.6 rad/s, and varying from
+    scan to scan, which no constant scan delay (omnitof.slam.timing) can undo. Where ODOM
+    timestamps go backwards nothing can be interpolated and the poses stay as logged, with a
+    warning if they are a median HELD_STALE_WARNING old or more (the Intel log's are 0.3 ms old:
+    no warning); scans outside the ODOM messages' time span keep theirs too.
     """
     t = odometry.timestamps
     ages = stamps[held >= 0] - t[held[held >= 0]]
     age = f"median {np.median(ages):.3f} s, 95th percentile {np.percentile(ages, 95):.3f} s"
     if np.any(np.diff(t) < 0):
+        if np.median(ages) >= HELD_STALE_WARNING:
+            warnings.warn(
+                f"{ctx.path}: each {kind} message carries the last ODOM pose before it ({age} "
+                "old), but the ODOM timestamps go backwards, so the poses cannot be interpolated "
+                "to the scans' timestamps and are used as logged; expect a lag in turns",
+                CarmenWarning,
+                stacklevel=4,
+            )
         return robot_poses, (
             f"the {kind} messages' robot poses, each the last ODOM pose before it ({age} old): "
             "ODOM timestamps go backwards, so they were not interpolated to the scans' timestamps"
@@ -951,13 +972,16 @@ def _unhold_odometry(
     poses = interpolate_poses(odometry, stamps)
     outside = np.isnan(poses[:, 0])
     poses[outside] = robot_poses[outside]
+    rule = f"interpolated from ODOM at each scan's timestamp: the {kind} messages carry the last ODOM pose ({age} old)"
+    if outside.any():
+        rule += f"; scans outside the ODOM messages' time span keep their logged poses: {int(outside.sum())}"
     warnings.warn(
         f"{ctx.path}: each {kind} message carries the last ODOM pose before it ({age} old), so "
         "each scan's odometry is interpolated from the ODOM messages at the scan's timestamp",
         CarmenWarning,
         stacklevel=4,
     )
-    return poses, f"interpolated from ODOM at each scan's timestamp: the {kind} messages carry the last ODOM pose ({age} old)"
+    return poses, rule
 
 
 def _check_time_order(
