@@ -277,6 +277,22 @@ def test_laser_poses_that_are_no_mount_are_left_out(tmp_path):
     np.testing.assert_allclose(log.scans.sensor_pose, [-0.04, 0.0, 0.0])
 
 
+def test_a_glitch_in_the_laser_poses_keeps_the_mount(tmp_path):
+    # One scan of twenty whose laser pose is off by 30 cm (a logger's glitch) does not make the
+    # mount a corrected log's trajectory: the median offset is the mount, and a warning names
+    # the line.
+    mount = np.array([0.12, -0.03, 0.05])
+    t = np.arange(20) * 0.1
+    robots = np.column_stack([0.5 * t, 0.2 * t, wrap_angle(3.0 + 0.3 * t)])
+    lasers = compose(robots, mount)
+    lasers[7] = compose(robots[7], mount + (0.3, 0.0, 0.0))
+    lines = [flaser([1.0, 2.0], 10.0 + t[k], laser_pose=tuple(lasers[k]), odom=tuple(robots[k])) for k in range(20)]
+    with pytest.warns(CarmenWarning, match=r"1 of 20 FLASER laser poses depart .*\(x 0.1200 m.*first at line 8 at \(x 0.4200 m"):
+        log = read_carmen(write(tmp_path, lines))
+    np.testing.assert_allclose(log.scans.sensor_pose, mount, atol=1e-6)
+    np.testing.assert_array_equal(log.scans.odometry, robots)
+
+
 def test_a_corrected_log_is_read_with_its_odometry(tmp_path):
     # GMapping's .gfs.log: the laser pose fields hold the SLAM solution, which drifts away from
     # the raw odometry beside it by metres over the log.

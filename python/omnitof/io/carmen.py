@@ -70,6 +70,8 @@ TOP_VALUE_BAND = 0.05
 # only catch laser poses that are no mount at all (a corrected log's, next to raw odometry).
 OFFSET_TOLERANCE_M = 0.01
 OFFSET_TOLERANCE_RAD = math.radians(0.5)
+# Laser poses count as a mount when this share of the scans agree with their median offset.
+MOUNT_MIN_SHARE = 0.9
 
 # Scans whose first and last beams agree with the first scan's to this (rad) share its geometry.
 GEOMETRY_TOLERANCE = 1e-6
@@ -163,7 +165,8 @@ def read_carmen(
 
     Sensor pose (ScanSequence.sensor_pose, robot_T_sensor). From the per-message laser and robot
     poses of FLASER/ROBOTLASER when they differ: the laser pose in the robot's frame in the
-    first scan, when it holds to 1 cm and 0.5° over the log. Otherwise (laser poses that are no
+    first scan, when it holds to 1 cm and 0.5° over the log (the median offset, with a
+    CarmenWarning, when it holds for 90 % of the scans). Otherwise (laser poses that are no
     fixed mount, as in a corrected log: a CarmenWarning says so, and they are left out) from the
     PARAMs
     `robot_frontlaser_offset` (forward), `robot_frontlaser_side_offset` (left) and
@@ -812,10 +815,13 @@ def _sensor_pose(
     """robot_T_sensor from the messages' poses if they differ by one fixed offset, else from
     PARAMs (else zero).
 
-    Laser poses that are no fixed offset from the robot poses are another trajectory, not a
-    mount: a corrected log (GMapping's `.gfs.log`, the benchmark sites' `corrected` logs) puts
-    a SLAM solution there beside the raw odometry. The log is read all the same (its scans and
-    odometry are what SLAM needs), the laser poses are left out, and a CarmenWarning says so.
+    A few laser poses off the mount (a glitch in the logger; at most 1 - MOUNT_MIN_SHARE of the
+    scans) do not hide it: the mount is then the median offset, and a CarmenWarning names the
+    first line that departs. Laser poses that are no fixed offset from the robot poses are
+    another trajectory, not a mount: a corrected log (GMapping's `.gfs.log`, the benchmark
+    sites' `corrected` logs) puts a SLAM solution there beside the raw odometry. The log is read
+    all the same (its scans and odometry are what SLAM needs), the laser poses are left out, and
+    a CarmenWarning says so.
     """
     from_params = _param_sensor_pose(ctx, laser, params)
     fallback = np.zeros(3) if from_params is None else from_params
@@ -824,23 +830,35 @@ def _sensor_pose(
         return fallback
     offsets = relative(robot_poses, laser_poses)
     first = offsets[0]
-    bad = np.flatnonzero(~_same_offset(offsets, first))
-    if bad.size:
-        i = int(bad[0])
-        change = relative(first[None, :], offsets)
-        worst = int(np.argmax(np.hypot(change[:, 0], change[:, 1]) + np.abs(change[:, 2])))
-        source = "the PARAMs'" if from_params is not None else "none, as no PARAM gives one"
-        warnings.warn(
-            f"{ctx.path}: the {kind} laser poses are no fixed mount on the robot poses: "
-            f"{_fmt_pose(first)} in the robot's frame in the first scan (line {scans[0].line}), "
-            f"{_fmt_pose(offsets[i])} at line {scans[i].line}, {_fmt_pose(offsets[worst])} at line "
-            f"{scans[worst].line} (a corrected log, such as GMapping's .gfs.log, holds a SLAM "
-            f"solution there); they are left out, the robot poses are the odometry, and the "
-            f"laser's mount is {source} {_fmt_pose(fallback)}",
-            CarmenWarning,
-            stacklevel=4,
-        )
-        return fallback
+    if not np.all(_same_offset(offsets, first)):
+        median = _median_offset(offsets)
+        departs = np.flatnonzero(~_same_offset(offsets, median))
+        if departs.size <= (1.0 - MOUNT_MIN_SHARE) * len(offsets):
+            i = int(departs[0])
+            warnings.warn(
+                f"{ctx.path}: {departs.size} of {len(offsets)} {kind} laser poses depart from "
+                f"the laser's mount on the robot, {_fmt_pose(median)} (the median), first at "
+                f"line {scans[i].line} at {_fmt_pose(offsets[i])}; the mount is the median",
+                CarmenWarning,
+                stacklevel=4,
+            )
+            first = median
+        else:
+            change = relative(first[None, :], offsets)
+            worst = int(np.argmax(np.hypot(change[:, 0], change[:, 1]) + np.abs(change[:, 2])))
+            i = int(np.flatnonzero(~_same_offset(offsets, offsets[0]))[0])
+            source = "the PARAMs'" if from_params is not None else "none, as no PARAM gives one"
+            warnings.warn(
+                f"{ctx.path}: the {kind} laser poses are no fixed mount on the robot poses: "
+                f"{_fmt_pose(first)} in the robot's frame in the first scan (line {scans[0].line}), "
+                f"{_fmt_pose(offsets[i])} at line {scans[i].line}, {_fmt_pose(offsets[worst])} at line "
+                f"{scans[worst].line} (a corrected log, such as GMapping's .gfs.log, holds a SLAM "
+                f"solution there); they are left out, the robot poses are the odometry, and the "
+                f"laser's mount is {source} {_fmt_pose(fallback)}",
+                CarmenWarning,
+                stacklevel=4,
+            )
+            return fallback
     if from_params is not None and not _same_offset(from_params[None, :], first)[0]:
         warnings.warn(
             f"{ctx.path}: the PARAMs put the {laser} laser at {_fmt_pose(from_params)} on the "
@@ -849,6 +867,12 @@ def _sensor_pose(
             stacklevel=4,
         )
     return first
+
+
+def _median_offset(offsets: np.ndarray) -> np.ndarray:
+    """The per-axis median of (x, y, theta) offsets; theta's about the first, so wrap is no jump."""
+    turn = np.median(wrap_angle(offsets[:, 2] - offsets[0, 2]))
+    return np.array([np.median(offsets[:, 0]), np.median(offsets[:, 1]), wrap_angle(offsets[0, 2] + turn)])
 
 
 def _same_offset(offsets: np.ndarray, reference: np.ndarray) -> np.ndarray:
