@@ -95,12 +95,17 @@ def test_non_finite_odometry_is_refused(loop):
         check_limits(bad, load_config(preset="sim2d"))
 
 
-def test_odometry_whose_extent_overflows_is_refused_as_too_big(loop):
-    # Finite poses 3.4e308 m apart: the extent is infinite, and so is the memory the map needs.
+def test_odometry_whose_extent_overflows_is_refused_as_too_big(loop, monkeypatch):
+    # Finite poses 3.4e308 m apart: the extent is infinite, and so is the memory the map needs,
+    # whether the machine's memory is known or not.
     bad = loop.slice(0, 10)
     bad.odometry[4, 0], bad.odometry[5, 0] = 1.7e308, -1.7e308
-    with pytest.raises(ResourceError, match=r"map\.resolution .* spans inf m"):
+    with pytest.raises(ResourceError, match=r"map\.resolution .* spans inf m.*has 1 TB available"):
+        check_limits(bad, load_config(preset="sim2d"), available=1e12)
+    monkeypatch.setattr("omnitof.slam.limits.available_memory", lambda: None)
+    with pytest.raises(ResourceError, match=r"map\.resolution .* spans inf m.*no machine has that much"):
         check_limits(bad, load_config(preset="sim2d"))
+    assert check_limits(loop, load_config(preset="sim2d")).total < 1e9  # unknown memory, finite need
 
 
 def test_a_log_whose_odometry_leaps_100_km_is_refused_before_slam(tmp_path, loop, capsys):

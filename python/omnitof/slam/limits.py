@@ -253,10 +253,14 @@ def check_memory(scans: ScanSequence, cfg: SlamConfig, *, available: float | Non
     estimate = estimate_memory(scans, cfg)
     if available is None:
         available = available_memory()
-    if available is None or estimate.total <= available:
+    # An estimate that overflows is too big for any machine, known memory or not.
+    if math.isfinite(estimate.total) and (available is None or estimate.total <= available):
         return estimate
     (width, height), (cols, rows) = estimate.extent, estimate.cells
-    have = f"the machine has {_size(available)} available"
+    if available is None:
+        have = "no machine has that much"
+    else:
+        have = f"the machine has {_size(available)} available"
     if estimate.map_bytes >= estimate.particles_bytes:
         raise ResourceError(
             f"map.resolution {cfg.map.resolution:g} m: the map of {scans.source or 'these scans'} "
