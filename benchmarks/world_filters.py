@@ -142,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.odometry_scale != 1.0:
                 scans = scaled_odometry(scans, args.odometry_scale)
             if args.max_incidence < 90.0:
-                ranges = drop_grazing(scans.ranges, math.radians(1.0), math.radians(args.max_incidence))
+                ranges = drop_grazing(scans.ranges, 2 * math.pi / scans.ranges.shape[1], math.radians(args.max_incidence))
                 scans = dataclasses.replace(scans, ranges=ranges)
             for seed in args.seeds:
                 ov = overrides(args.set)

@@ -61,3 +61,18 @@ def test_grazing_bins_are_dropped_and_the_rest_kept():
     assert np.array_equal(drop_grazing(r, STEP, math.pi / 2), r)  # off
     many = np.stack([r, np.roll(r, 90)])
     assert np.array_equal(drop_grazing(many, STEP, math.radians(70.0))[1], np.roll(out, 90))
+
+
+def test_a_pole_in_front_of_a_wall_is_kept():
+    # A pole one bin wide at 1.5 m before a wall 3 m away, and a one-bin gap in the wall that
+    # sees 6 m through it: each bin stands alone, too narrow to judge, and keeps its reading;
+    # its neighbours see the wall head-on and keep theirs.
+    r = wall(3.0, 0.0).astype(np.float32)
+    r[5], r[355] = 1.5, 6.0
+    out = drop_grazing(r, STEP, math.radians(60.0))
+    assert out[5] == np.float32(1.5) and out[355] == np.float32(6.0)
+    assert np.array_equal(out[[4, 6, 354, 356]], r[[4, 6, 354, 356]])
+    # Along a grazing wall each bin jumps far from its neighbours too, but nearer on one side and
+    # further on the other: it is dropped.
+    steep = wall(1.0, math.radians(90.0)).astype(np.float32)
+    assert not np.isfinite(drop_grazing(steep, STEP, math.radians(60.0))[5])

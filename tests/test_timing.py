@@ -150,6 +150,7 @@ def test_the_delay_is_estimated_by_default(tmp_path, capsys):
     assert abs(recorded["seconds"] - 0.13) < 0.02 and recorded["estimated_from_pairs"] >= 20
     assert recorded["how"] == "default --scan-delay auto: estimated from the log"
     assert summary["input"]["max_range"] == {"metres": 15.0, "rule": "ROBOTLASER1 maximum_range field"}
+    assert summary["input"]["odometry"] == "the ROBOTLASER1 messages' robot poses"
 
 
 def test_a_given_delay_overrides_the_default(tmp_path, capsys):
@@ -191,6 +192,9 @@ def test_the_delay_is_found_in_a_log_of_held_odometry(tmp_path):
     import dataclasses
     import warnings
 
+    import yaml
+
+    from omnitof.cli import main
     from omnitof.io.carmen import CarmenWarning, read_carmen
 
     delay = 0.13
@@ -224,3 +228,9 @@ def test_the_delay_is_found_in_a_log_of_held_odometry(tmp_path):
         as_logged = estimate_scan_delay(dataclasses.replace(scans, odometry=np.array(held)), min_turn_deg=1.0)
     assert abs(found.delay - delay) < 0.02, found.delay
     assert as_logged.heading_error.min() > 2 * found.heading_error.min()
+    # The run's summary says how the odometry was found.
+    out = tmp_path / "run"
+    with pytest.warns(CarmenWarning, match="carries the last ODOM pose"):
+        assert main(["slam", str(path), "--out", str(out), "--preset", "sim2d", "--particles", "2", "--quiet"]) == 0
+    rule = yaml.safe_load((out / "summary.yaml").read_text())["input"]["odometry"]
+    assert rule.startswith("interpolated from ODOM at each scan's timestamp: the FLASER messages carry the last ODOM pose")

@@ -13,7 +13,10 @@ How: for a flat surface, the range r along the bearing θ grows as dr/dθ = r·t
 angle between the ray and the surface's normal. Each bin's α is estimated from the one-sided
 differences to its two neighbouring bins, taking the smaller slope: at a depth edge the bin
 belongs to one surface, whose continuation gives the small slope, while the jump to the other
-surface gives a huge one. A bin with no reading beside it keeps its reading (nothing to judge).
+surface gives a huge one. A bin with no reading beside it keeps its reading (nothing to judge), and so does a bin that
+stands alone, both neighbours jumping the same way by more than LONE_BIN_JUMP of its range: a
+pole in front of a wall, or a gap in it. Its surface is too narrow to judge, and a grazing wall
+cannot look so: along it the range grows on one side and shrinks on the other.
 The per-bin noise of a median range (about 1 cm) makes tan(α) uncertain by about 0.2 at 3 m,
 small against tan(70°) = 2.7.
 """
@@ -21,6 +24,8 @@ small against tan(70°) = 2.7.
 from __future__ import annotations
 
 import numpy as np
+
+LONE_BIN_JUMP = 0.2  # share of the bin's range by which both neighbours jump for a lone bin
 
 
 def incidence_angles(ranges: np.ndarray, step: float) -> np.ndarray:
@@ -32,18 +37,21 @@ def incidence_angles(ranges: np.ndarray, step: float) -> np.ndarray:
         step: the bins' angular spacing (radians).
 
     Returns:
-        (..., B) float64 in [0, π/2); NaN where the bin has no reading or neither neighbour has.
+        (..., B) float64 in [0, π/2); NaN where the bin has no reading, neither neighbour has,
+        or the bin stands alone (see the module notes).
     """
     r = np.asarray(ranges, dtype=np.float64)
     with np.errstate(invalid="ignore"):
-        before = np.abs(r - np.roll(r, 1, axis=-1))  # inf or NaN where a side has no reading
-        after = np.abs(np.roll(r, -1, axis=-1) - r)
+        rise_before = r - np.roll(r, 1, axis=-1)  # inf or NaN where a side has no reading
+        rise_after = np.roll(r, -1, axis=-1) - r
+    before, after = np.abs(rise_before), np.abs(rise_after)
     before[~np.isfinite(before)] = np.inf
     after[~np.isfinite(after)] = np.inf
     slope = np.minimum(before, after)
     with np.errstate(divide="ignore", invalid="ignore"):
         angle = np.arctan(slope / (step * r))
-    angle[~np.isfinite(r) | ~np.isfinite(slope)] = np.nan
+        lone = (rise_before * rise_after < 0) & (slope > LONE_BIN_JUMP * r)
+    angle[~np.isfinite(r) | ~np.isfinite(slope) | lone] = np.nan
     return angle
 
 
