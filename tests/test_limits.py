@@ -105,6 +105,10 @@ def test_odometry_whose_extent_overflows_is_refused_as_too_big(loop, monkeypatch
     monkeypatch.setattr("omnitof.slam.limits.available_memory", lambda: None)
     with pytest.raises(ResourceError, match=r"map\.resolution .* spans inf m.*no machine has that much"):
         check_limits(bad, load_config(preset="sim2d"))
+    huge = loop.slice(0, 10)
+    huge.odometry[4, 0], huge.odometry[5, 0] = 1e150, -1e150  # finite, and far beyond any machine
+    with pytest.raises(ResourceError, match=r"map\.resolution .* spans 2e\+150 m.*no machine has that much"):
+        check_limits(huge, load_config(preset="sim2d"))
     assert check_limits(loop, load_config(preset="sim2d")).total < 1e9  # unknown memory, finite need
 
 

@@ -24,7 +24,8 @@ particles (sim2d preset) it comes to 69 MB where the filter's peak grew by 125 M
 that were not resampled keep copies of older tiles too; copies made by resampling share
 theirs). Rule: a run whose estimate exceeds the memory available is refused, available
 meaning MemAvailable of /proc/meminfo, or less where a cgroup limits the process; where
-neither can be read (not Linux), nothing is checked.
+neither can be read (not Linux), only an estimate beyond NO_MACHINE_BYTES (or one that
+overflows) is refused.
 """
 
 from __future__ import annotations
@@ -48,6 +49,9 @@ POINTER_BYTES = 8  # one slot of a particle's window of tiles
 MAP_CELL_BYTES = 30  # measured, see the module notes
 SAMPLED_SCANS = 32
 _CHUNK = 2048  # scans per chunk when the extent is computed (bounds the temporary arrays)
+# Where the memory available is unknown, estimates above this are refused: 1 PiB, more than any
+# single machine has.
+NO_MACHINE_BYTES = float(2**50)
 
 
 @dataclass(frozen=True)
@@ -67,6 +71,7 @@ class MemoryEstimate:
     @property
     def total(self) -> float:
         return self.particles_bytes + self.map_bytes
+
 
 
 def _reach(scans: ScanSequence, cfg: SlamConfig) -> float:
@@ -253,15 +258,17 @@ def check_memory(scans: ScanSequence, cfg: SlamConfig, *, available: float | Non
     estimate = estimate_memory(scans, cfg)
     if available is None:
         available = available_memory()
-    # An estimate that overflows is too big for any machine, known memory or not.
-    if math.isfinite(estimate.total) and (available is None or estimate.total <= available):
+    # An estimate that overflows, or exceeds any machine's memory, is refused even where the
+    # memory available is unknown.
+    limit = NO_MACHINE_BYTES if available is None else available
+    if math.isfinite(estimate.total) and estimate.total <= limit:
         return estimate
     (width, height), (cols, rows) = estimate.extent, estimate.cells
     if available is None:
         have = "no machine has that much"
     else:
         have = f"the machine has {_size(available)} available"
-    if estimate.map_bytes >= estimate.particles_bytes:
+    if not (estimate.particles_bytes > estimate.map_bytes):  # the map's, also where either is NaN
         raise ResourceError(
             f"map.resolution {cfg.map.resolution:g} m: the map of {scans.source or 'these scans'} "
             f"spans {width:.4g} m × {height:.4g} m, {cols:.3g} × {rows:.3g} cells, and the run "
