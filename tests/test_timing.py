@@ -228,6 +228,7 @@ def test_the_delay_is_found_in_a_log_of_held_odometry(tmp_path):
         as_logged = estimate_scan_delay(dataclasses.replace(scans, odometry=np.array(held)), min_turn_deg=1.0)
     assert abs(found.delay - delay) < 0.02, found.delay
     assert as_logged.heading_error.min() > 2 * found.heading_error.min()
+    assert abs(as_logged.delay - delay) > 0.02, as_logged.delay  # the held poses hide the delay
     # The run's summary says how the odometry was found.
     out = tmp_path / "run"
     with pytest.warns(CarmenWarning, match="carries the last ODOM pose"):

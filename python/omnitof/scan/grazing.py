@@ -32,12 +32,12 @@ def incidence_angles(ranges: np.ndarray, step: float) -> np.ndarray:
     """Each bin's estimated incidence angle (radians; see the module notes).
 
     Args:
-        ranges: (..., B) ranges of B bins spread evenly over the full circle, +inf where no
-            reading (the last axis wraps around: bin B−1 neighbours bin 0).
+        ranges: (..., B) positive ranges of B bins spread evenly over the full circle, +inf
+            where no reading (the last axis wraps around: bin B−1 neighbours bin 0).
         step: the bins' angular spacing (radians).
 
     Returns:
-        (..., B) float64 in [0, π/2); NaN where the bin has no reading, neither neighbour has,
+        (..., B) float64 in [0, π/2]; NaN where the bin has no reading, neither neighbour has,
         or the bin stands alone (see the module notes).
     """
     r = np.asarray(ranges, dtype=np.float64)
