@@ -359,6 +359,22 @@ def test_robotlaser_with_remissions(tmp_path):
     np.testing.assert_allclose(scans.sensor_pose, [0.2, 0.0, 0.0], atol=1e-12)
 
 
+@pytest.mark.parametrize("start, res", [(1e308, DEG), (-math.pi / 2, 1e300), (7.0, DEG)])
+def test_beam_angles_beyond_a_turn_are_refused(tmp_path, start, res):
+    lines = [robotlaser([1.0, 2.0], [], 1.0, (0, 0, 0), (0, 0, 0)),
+             robotlaser([1.0, 2.0], [], 1.1, (0, 0, 0), (0, 0, 0), start=start, res=res)]
+    with pytest.raises(InputError, match=r"start_angle .* put the beams at .* within ±2π") as excinfo:
+        read_carmen(write(tmp_path, lines))
+    assert excinfo.value.line == 2
+
+
+def test_ranges_too_small_for_float32_are_no_reading(tmp_path):
+    # 1e-50 m is above 0 but rounds to 0 in float32, the ScanSequence's dtype: no echo, not 0.
+    lines = [flaser([1.0, 1e-50, -0.0, 2.0], 1.0), flaser([1.0, 2.0, 3.0, 1e-30], 1.1)]
+    ranges = read_carmen(write(tmp_path, lines)).scans.ranges
+    np.testing.assert_array_equal(ranges, np.array([[1.0, np.inf, np.inf, 2.0], [1.0, 2.0, 3.0, 1e-30]], np.float32))
+
+
 def test_robotlaser_remission_count_differs(tmp_path):
     line = robotlaser([1.0, 2.0, 3.0], [5.0], 1.0, (0, 0, 0), (0, 0, 0))
     assert read_carmen(write(tmp_path, [line])).scans.remissions is None

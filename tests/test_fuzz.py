@@ -178,6 +178,16 @@ def seeds(tmp_path_factory, corridor_loop) -> dict[str, Path]:
     _write_tof_bag(folder / "tof")
     paths["tof"] = folder / "tof"
     paths["carmen_old"] = folder / "old.log"
+    # Held odometry (each FLASER carries the last ODOM pose, 0.07 s old) over 30 scans: the
+    # reader's interpolation of ODOM to the scans' stamps runs on it.
+    held = []
+    for k in range(31):
+        t = 5.0 + 0.1 * k
+        pose = f"{0.5 * t:.6f} 0.000000 {0.6 * t - 3.0:.6f}"
+        held.append(f"ODOM {pose} 0.5 0.6 0 {t:.6f} host {t:.6f}")
+        held.append(f"FLASER 4 1.0 2.0 3.0 4.0 {pose} {pose} {t + 0.07:.6f} host {t + 0.07:.6f}")
+    paths["carmen_held"] = folder / "held.log"
+    paths["carmen_held"].write_text("\n".join(held) + "\n")
     paths["world"] = Path(__file__).resolve().parents[1] / "python" / "omnitof" / "worlds" / "room.yaml"
     return paths
 
@@ -210,7 +220,7 @@ def mutated_copy(seed: Path, draw: Callable, name: str | None = None) -> Path:
 def test_carmen_logs(seeds, data):
     from omnitof.io.carmen import read_carmen
 
-    seed = seeds[data.draw(st.sampled_from(["carmen", "carmen_old"]))]
+    seed = seeds[data.draw(st.sampled_from(["carmen", "carmen_old", "carmen_held"]))]
     path = mutated_copy(seed, data.draw)
     log = read_or_refuse(read_carmen, path, skip_bad_lines=data.draw(st.booleans()))
     if log is not None:

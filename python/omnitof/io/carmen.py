@@ -73,6 +73,9 @@ OFFSET_TOLERANCE_RAD = math.radians(0.5)
 # Laser poses count as a mount when this share of the scans agree with their median offset.
 MOUNT_MIN_SHARE = 0.9
 
+# New-format beam angles beyond this (rad) are no laser's (start and last beam; ±2π admits both
+# the [-π, π) and the [0, 2π) conventions).
+_MAX_BEAM_ANGLE = 2.0 * math.pi + 1e-9
 # Scans whose first and last beams agree with the first scan's to this (rad) share its geometry.
 GEOMETRY_TOLERANCE = 1e-6
 
@@ -554,6 +557,12 @@ def _parse_new_laser(tokens: list[str], with_pose: bool) -> _Scan:
     start, resolution, max_range = config[1], config[3], config[4]
     if not max_range > 0.0:
         raise _Malformed(f"maximum_range is {tokens[5]!r}; it must be positive")
+    last = start + max(n - 1, 0) * resolution
+    if not (abs(start) <= _MAX_BEAM_ANGLE and abs(last) <= _MAX_BEAM_ANGLE):
+        raise _Malformed(
+            f"start_angle {tokens[2]!r} and angular_resolution {tokens[4]!r} put the beams at "
+            f"{start:.6g} .. {last:.6g} rad; a laser's beams lie within ±2π"
+        )
     scan = _Scan(
         line=0,
         stamp=_timestamp(tokens, layout),
@@ -778,10 +787,11 @@ def _repeated_top_value(readings: np.ndarray) -> tuple[float, int] | None:
 
 def _no_echo_to_inf(ranges: np.ndarray, max_range: float | np.ndarray) -> np.ndarray:
     """float32 ranges with +inf where the laser saw nothing (>= max range, or <= 0). A reading
-    beyond float32 (3.4e38 m) becomes +inf too: no sensor measures that far."""
-    with np.errstate(over="ignore"):
+    beyond float32 (3.4e38 m) becomes +inf too: no sensor measures that far; one too small for
+    float32 (below 1e-45 m, which rounds to 0) is no reading either."""
+    with np.errstate(over="ignore", under="ignore"):
         out = ranges.astype(np.float32)
-    out[(ranges >= max_range) | (ranges <= 0.0)] = np.inf
+    out[(ranges >= max_range) | (out <= 0.0)] = np.inf
     return out
 
 
