@@ -77,8 +77,15 @@ def test_a_wall_just_inside_max_range_is_not_cut_short(rays_robot):
     assert seen.sum() > 150
     assert np.mean(cut[seen]) - 6.9 < -0.007
     assert abs(np.mean(kept[seen]) - 6.9) < 0.004
-    far, amplitude = _cylinder_frame(rays_robot, 7.2)
-    assert np.all(np.isinf(ScanExtractor.from_rig().extract(far, amplitude)))
+    far, far_amplitude = _cylinder_frame(rays_robot, 7.2)
+    assert np.all(np.isinf(ScanExtractor.from_rig().extract(far, far_amplitude)))
+    # A statistic above the median takes no points beyond max_range (they would push it beyond).
+    high = ScanExtractor.from_rig(statistic="max", pixel_filter={"enabled": False}).extract(noisy, amplitude)
+    uncut = ScanExtractor.from_rig(statistic="max", range_margin=0.0, pixel_filter={"enabled": False})
+    np.testing.assert_array_equal(high, uncut.extract(noisy, amplitude))
+    assert np.isfinite(high).sum() > 150
+    with pytest.raises(ScanConfigError, match=r"max_range \+ range_margin is 110 m; it must stay below 104.86 m"):
+        ScanExtractor.from_rig(max_range=100.0, range_margin=10.0)
 
 
 def test_slice_height_selects_points_analytically(rays_robot):

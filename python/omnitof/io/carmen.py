@@ -93,6 +93,7 @@ HELD_STALE_WARNING = 0.01  # seconds: held poses this old that cannot be interpo
 # ODOM stamps that go backwards in more than this share of their steps (Intel's: 2.2 %) are a
 # clock too unsteady to interpolate by.
 HELD_MAX_BACKWARD_SHARE = 0.01
+HELD_MAX_BACKWARD_STEPS = 3  # fewer backward steps than this are stray lines, whatever the share
 
 _KINDS = {  # laser side -> (old format, new format with poses, new format without poses)
     "front": ("FLASER", "ROBOTLASER1", "RAWLASER1"),
@@ -791,7 +792,9 @@ def _no_echo_to_inf(ranges: np.ndarray, max_range: float | np.ndarray) -> np.nda
     float32 (below 1e-45 m, which rounds to 0) is no reading either."""
     with np.errstate(over="ignore", under="ignore"):
         out = ranges.astype(np.float32)
-    out[(ranges >= max_range) | (out <= 0.0)] = np.inf
+        top = np.asarray(max_range, dtype=np.float64).astype(np.float32)
+    # Both sides in float32: a reading just below the maximum that rounds to it is no echo too.
+    out[(out >= top) | (out <= 0.0)] = np.inf
     return out
 
 
@@ -993,19 +996,24 @@ def _unhold_odometry(
 
     A held pose is as old as the time since its ODOM message: in the ACES log a median 0.11 s
     (95th percentile 0.20 s), 4° of heading when the robot turns at 0.6 rad/s, and varying from
-    scan to scan, which no constant scan delay (omnitof.slam.timing) can undo. Scans before the
-    first or after the last ODOM message, or between two whose stamps step backwards, keep
-    their logged pose. Where the ODOM stamps step backwards in more than
-    HELD_MAX_BACKWARD_SHARE of their steps (Intel's: 2.2 %), the clock is too unsteady to
-    interpolate by and every pose stays as logged, with a warning if they are a median
-    HELD_STALE_WARNING old or more (Intel's are a median 0.26 ms old, 95th percentile 0.14 s:
-    no warning).
+    scan to scan, which no constant scan delay (omnitof.slam.timing) can undo. ODOM lines
+    written twice count once; one whose stamp leaves its neighbours' order is left out. Scans
+    before the first or after the last ODOM message, or whose ODOM messages around them step
+    backwards or share a stamp, keep their logged pose. Where the ODOM stamps step backwards
+    more than HELD_MAX_BACKWARD_STEPS times and in more than HELD_MAX_BACKWARD_SHARE of their
+    steps (Intel's: 602 times, 2.2 %), the clock is too unsteady to interpolate by and every pose
+    stays as logged, with a warning if they are a median HELD_STALE_WARNING old or more
+    (Intel's are a median 0.26 ms old, 95th percentile 0.14 s: no warning).
     """
     t, poses = odometry.timestamps, odometry.poses
     has = held >= 0
     ages = stamps[has] - t[held[has]]
     age = f"median {np.median(ages):.3f} s, 95th percentile {np.percentile(ages, 95):.3f} s"
-    if np.mean(np.diff(t) < 0) > HELD_MAX_BACKWARD_SHARE:
+    # ODOM lines written twice (same stamp and pose) count once.
+    repeat = np.r_[False, (np.diff(t) == 0) & np.all(np.diff(poses, axis=0) == 0, axis=1)]
+    t, poses, odom_lines = t[~repeat], poses[~repeat], odom_lines[~repeat]
+    backward = int(np.sum(np.diff(t) < 0))
+    if backward > max(HELD_MAX_BACKWARD_STEPS, HELD_MAX_BACKWARD_SHARE * (len(t) - 1)):
         if np.median(ages) >= HELD_STALE_WARNING:
             warnings.warn(
                 f"{ctx.path}: each {kind} message carries the last ODOM pose before it ({age} "
@@ -1018,8 +1026,8 @@ def _unhold_odometry(
             f"the {kind} messages' robot poses, each the last ODOM pose before it ({age} old): "
             "ODOM timestamps go backwards, so they were not interpolated to the scans' timestamps"
         )
-    # An ODOM message whose stamp leaves the order of its neighbours' (a line written twice, out
-    # of place) is left out, so that it cannot stretch the spans around it.
+    # An ODOM message whose stamp leaves the order of its neighbours' (a line out of place) is
+    # left out, so that it cannot stretch the spans around it.
     stray = np.zeros(len(t), dtype=bool)
     stray[1:-1] = (t[:-2] <= t[2:]) & ((t[1:-1] < t[:-2]) | (t[1:-1] > t[2:]))
     t, poses, odom_lines = t[~stray], poses[~stray], odom_lines[~stray]
@@ -1034,11 +1042,11 @@ def _unhold_odometry(
     lo, hi = np.maximum(before - 1, 0), np.minimum(after + 1, n - 1)
     inside &= (t[lo] <= t[before]) & (t[before] <= t[after]) & (t[after] <= t[hi])
     tau = np.minimum(np.maximum(stamps, t[lo]), t[hi])
-    clamped = int(np.sum(inside & (tau != stamps)))
     first = np.where(tau < t[before], lo, np.where(tau <= t[after], before, after))
     second = np.where(tau < t[before], before, np.where(tau <= t[after], after, hi))
     span = t[second] - t[first]
-    inside &= span > 0.0
+    inside &= (span > 0.0) & np.isfinite(span)
+    clamped = int(np.sum(inside & (tau != stamps)))
     with np.errstate(invalid="ignore", divide="ignore"):
         w = np.clip((tau - t[first]) / np.where(inside, span, 1.0), 0.0, 1.0)[:, None]
     p0, p1 = poses[first], poses[second]
@@ -1052,6 +1060,8 @@ def _unhold_odometry(
         rule += f"; scans stamped beyond the ODOM messages around them, clamped to theirs: {clamped}"
     if not inside.all():
         rule += f"; scans with no ODOM span around them, kept as logged: {int(np.sum(~inside))}"
+    if stray.any():
+        rule += f"; ODOM lines stamped out of order, left out: {int(stray.sum())}"
     warnings.warn(
         f"{ctx.path}: each {kind} message carries the last ODOM pose before it ({age} old), so "
         "each scan's odometry is interpolated from the ODOM messages at the scan's timestamp",

@@ -52,7 +52,7 @@ from collections.abc import Iterable, Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from omnitof.sensor.camera import Camera
 from omnitof.errors import ConfigError, InputError
@@ -68,6 +68,7 @@ _DEG = math.pi / 180.0
 # the low bits of one int64 sort key; 2^20 quanta = 104 m, more than any ToF range.
 _RANGE_QUANTUM = 1e-4
 _RANGE_BITS = 20
+_RANGE_LIMIT = (1 << _RANGE_BITS) * _RANGE_QUANTUM
 
 
 class ScanConfigError(ConfigError, ValueError):
@@ -140,9 +141,10 @@ class ScanSettings(BaseModel):
         ge=0.0,
         le=100.0,
         description="points up to this far (m) beyond max_range still feed their bin's statistic, so that a "
-        "wall just inside max_range keeps all its points (cut at max_range, its median came out short by "
+        "wall just inside max_range keeps its far points (cut at max_range, its median came out short by "
         "5-30 cm: a sixth of the office's bad bins); the bin is no reading if the statistic exceeds max_range. "
-        "About three times the noise at 7 m",
+        "About five times a pixel's noise at 7 m (10 cm). Used with statistics at or below the median only "
+        "(a higher one would be pushed beyond max_range); max_range + range_margin must stay below 104.86 m",
     )
     min_range: float = Field(
         0.3, ge=0.0, description="points nearer than this horizontally (m) are dropped (the robot's own body)"
@@ -172,6 +174,15 @@ class ScanSettings(BaseModel):
     def _known_statistic(cls, value: str) -> str:
         _quantile(value)  # raises for an unknown statistic
         return value
+
+    @model_validator(mode="after")
+    def _sortable_ranges(self) -> "ScanSettings":
+        if self.max_range + self.range_margin >= _RANGE_LIMIT:
+            raise ValueError(
+                f"max_range + range_margin is {self.max_range + self.range_margin:g} m; it must stay below "
+                f"{_RANGE_LIMIT:.2f} m, the ranges the extraction sorts (0.1 mm steps in {_RANGE_BITS} bits)"
+            )
+        return self
 
     def quantile(self) -> float:
         """The statistic as a quantile in [0, 1] (min 0, median 0.5, max 1)."""
@@ -432,7 +443,11 @@ class ScanExtractor:
         self._filter = PixelFilter(s_cfg.pixel_filter, self.labels, index) if s_cfg.pixel_filter.enabled else None
 
     def _point_horizon(self) -> float:
-        """The horizontal range (m) up to which points feed the bins: max_range + range_margin."""
+        """The horizontal range (m) up to which points feed the bins: max_range + range_margin
+        for a statistic at or below the median; max_range for a higher one, which the far
+        points would push beyond max_range, leaving a wall just inside it no reading."""
+        if self.settings.quantile() > 0.5:
+            return self.settings.max_range
         return self.settings.max_range + self.settings.range_margin
 
     def _check(self, distance: Any, amplitude: Any, *, single: bool) -> tuple[np.ndarray, np.ndarray]:
