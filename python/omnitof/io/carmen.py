@@ -40,7 +40,7 @@ from typing import BinaryIO, Iterator
 import numpy as np
 
 from omnitof.errors import ConfigError, InputError, OmnitofWarning
-from omnitof.geometry import relative, wrap_angle
+from omnitof.geometry import interpolate_poses, relative, wrap_angle
 from omnitof.types import (
     ScanSequence,
     Trajectory,
@@ -90,10 +90,6 @@ HELD_MIN_SHARE = 0.95
 HELD_MIN_AGE = 1e-3  # seconds
 HELD_OLD_SHARE = 0.05
 HELD_STALE_WARNING = 0.01  # seconds: held poses this old that cannot be interpolated are warned of
-# ODOM stamps that go backwards in more than this share of their steps (Intel's: 2.2 %) are a
-# clock too unsteady to interpolate by.
-HELD_MAX_BACKWARD_SHARE = 0.01
-HELD_MAX_BACKWARD_STEPS = 3  # fewer backward steps than this are stray lines, whatever the share
 
 _KINDS = {  # laser side -> (old format, new format with poses, new format without poses)
     "front": ("FLASER", "ROBOTLASER1", "RAWLASER1"),
@@ -187,7 +183,7 @@ def read_carmen(
     logged, or interpolated from ODOM at the scan's timestamp (linear in x and y, shortest arc
     in theta) for RAWLASER, and for a log whose laser messages hold the last ODOM pose instead
     of the pose at the scan (`_held_odometry`; a CarmenWarning says so). Where such a log's
-    ODOM timestamps go backwards in more than 1 % of their steps (Intel's), the held poses are
+    ODOM timestamps go backwards beyond single lines out of place (Intel's), the held poses are
     kept as logged, with a CarmenWarning if they are a median 10 ms old or more.
     `ScanSequence.odometry_rule` says which.
 
@@ -669,10 +665,11 @@ def _build_sequence(
         robot_poses = np.array([s.robot_pose for s in scans])
         laser_poses = np.array([s.laser_pose for s in scans])
         sensor_pose = _sensor_pose(ctx, kind, laser, scans, laser_poses, robot_poses, params)
-        held = _held_odometry(scans, robot_poses, odometry, odom_lines)
+        distinct, distinct_lines = _without_repeats(odometry, odom_lines)
+        held = _held_odometry(scans, robot_poses, distinct, distinct_lines)
         if held is not None:
             robot_poses, odometry_rule = _unhold_odometry(
-                ctx, kind, stamps, np.array([s.line for s in scans]), robot_poses, odometry, odom_lines, held
+                ctx, kind, stamps, np.array([s.line for s in scans]), robot_poses, distinct, distinct_lines, held
             )
     else:
         odometry_rule = "interpolated from ODOM at each scan's timestamp"
@@ -944,45 +941,47 @@ def _interpolate_odometry(
     )
 
 
+def _without_repeats(odometry: Trajectory, odom_lines: np.ndarray) -> tuple[Trajectory, np.ndarray]:
+    """The ODOM messages and their lines without exact repeats of the message before (same
+    stamp and pose: some loggers write each line twice), which would hide the motion."""
+    t, poses = odometry.timestamps, odometry.poses
+    keep = np.r_[True, (np.diff(t) != 0) | np.any(np.diff(poses, axis=0) != 0, axis=1)][: len(t)]
+    return Trajectory(t[keep], poses[keep]), odom_lines[keep]
+
+
 def _held_odometry(
     scans: list[_Scan], robot_poses: np.ndarray, odometry: Trajectory, odom_lines: np.ndarray
 ) -> np.ndarray | None:
     """For a log whose laser messages carry the pose of the last ODOM message before them
     (sample-and-hold, as in the ACES and Intel logs) rather than the pose at the scan's time
     (Freiburg 079's are interpolated to it): the index of that ODOM message per scan (-1 before
-    the first one). Else None.
+    the first one). Else None. `odometry`: the ODOM messages without repeats (_without_repeats).
 
     Judged on the scans taken while the odometry moved (the ODOM message after the scan's last
     one has another pose), where a pose interpolated to the scan's time would differ from the
     last ODOM pose: at least HELD_MIN_SCANS of them, HELD_MIN_SHARE of which equal it to
     HELD_POSE_TOLERANCE, taken in at least HELD_MIN_INTERVALS intervals between ODOM messages,
     with ODOM messages older than their scans by more than HELD_MIN_AGE in more than
-    HELD_OLD_SHARE of them. ODOM messages that repeat the one before exactly (stamp
-    and pose, as some loggers write each twice) count once, or they would hide the motion.
+    HELD_OLD_SHARE of them.
     """
     if len(odometry) < 2:
         return None
     t, poses = odometry.timestamps, odometry.poses
-    kept = np.flatnonzero(
-        np.r_[True, (np.diff(t) != 0) | np.any(np.diff(poses, axis=0) != 0, axis=1)]
-    )
     lines = np.array([s.line for s in scans])
-    last = np.searchsorted(odom_lines[kept], lines) - 1  # the last ODOM line before each scan's line
-    judged = np.flatnonzero((last >= 0) & (last + 1 < len(kept)))
-    moved = np.any(poses[kept[last[judged] + 1]] != poses[kept[last[judged]]], axis=1)
-    judged = judged[moved]
+    last = np.searchsorted(odom_lines, lines) - 1  # the last ODOM line before each scan's line
+    judged = np.flatnonzero((last >= 0) & (last + 1 < len(t)))
+    judged = judged[np.any(poses[last[judged] + 1] != poses[last[judged]], axis=1)]
     if len(judged) < HELD_MIN_SCANS or len(np.unique(last[judged])) < HELD_MIN_INTERVALS:
         return None
-    held = np.where(last >= 0, kept[np.maximum(last, 0)], -1)
-    difference = robot_poses[judged] - poses[held[judged]]
+    difference = robot_poses[judged] - poses[last[judged]]
     difference[:, 2] = wrap_angle(difference[:, 2])
     equal = np.all(np.abs(difference) <= HELD_POSE_TOLERANCE, axis=1)
     if np.mean(equal) < HELD_MIN_SHARE:
         return None
     # An ODOM message stamped with its scan (as write_carmen writes them) is not old.
-    ages = np.array([s.stamp for s in scans])[judged] - t[held[judged]]
+    ages = np.array([s.stamp for s in scans])[judged] - t[last[judged]]
     old_enough = np.percentile(ages, 100.0 * (1.0 - HELD_OLD_SHARE)) > HELD_MIN_AGE
-    return held if old_enough else None
+    return last if old_enough else None
 
 
 def _unhold_odometry(
@@ -990,30 +989,31 @@ def _unhold_odometry(
     odometry: Trajectory, odom_lines: np.ndarray, held: np.ndarray,
 ) -> tuple[np.ndarray, str]:
     """Held odometry (see _held_odometry) made into the pose at each scan's timestamp, and the
-    rule that says so: linear in x, y (shorter arc in theta) between ODOM messages, at the
-    scan's stamp clamped to those of the ODOM messages one beyond the two around the scan in
-    the file (a scan stamp that jitters far out of its place cannot move the scan further).
+    rule that says so: interpolated from the ODOM messages (`interpolate_poses`, as for a ROS
+    bag) at the scan's stamp, clamped to the stamps of the ODOM messages one beyond the two
+    around the scan in the file. Loggers write messages in the order they arrive, which may
+    differ from their stamps' (in ACES, 157 scans are stamped up to 0.11 s before the ODOM
+    message written before them); a scan stamp that jitters further cannot move its scan
+    further.
 
     A held pose is as old as the time since its ODOM message: in the ACES log a median 0.11 s
     (95th percentile 0.20 s), 4° of heading when the robot turns at 0.6 rad/s, and varying from
-    scan to scan, which no constant scan delay (omnitof.slam.timing) can undo. ODOM lines
-    written twice count once; one whose stamp leaves its neighbours' order is left out. Scans
-    before the first or after the last ODOM message, or whose ODOM messages around them step
-    backwards or share a stamp, keep their logged pose. Where the ODOM stamps step backwards
-    more than HELD_MAX_BACKWARD_STEPS times and in more than HELD_MAX_BACKWARD_SHARE of their
-    steps (Intel's: 602 times, 2.2 %), the clock is too unsteady to interpolate by and every pose
-    stays as logged, with a warning if they are a median HELD_STALE_WARNING old or more
-    (Intel's are a median 0.26 ms old, 95th percentile 0.14 s: no warning).
+    scan to scan, which no constant scan delay (omnitof.slam.timing) can undo. An ODOM message
+    whose stamp leaves its neighbours' order (a line out of place) is left out. Where the stamps
+    still go backwards after that (Intel's: 602 backward steps, 371 of them such single lines),
+    the clock is too unsteady to interpolate by and every pose stays as logged, with a warning if
+    they are a median HELD_STALE_WARNING old or more (Intel's are a median 0.26 ms old, 95th
+    percentile 0.14 s: no warning). Scans before the first or after the last ODOM message keep
+    their logged pose.
     """
     t, poses = odometry.timestamps, odometry.poses
     has = held >= 0
     ages = stamps[has] - t[held[has]]
     age = f"median {np.median(ages):.3f} s, 95th percentile {np.percentile(ages, 95):.3f} s"
-    # ODOM lines written twice (same stamp and pose) count once.
-    repeat = np.r_[False, (np.diff(t) == 0) & np.all(np.diff(poses, axis=0) == 0, axis=1)]
-    t, poses, odom_lines = t[~repeat], poses[~repeat], odom_lines[~repeat]
-    backward = int(np.sum(np.diff(t) < 0))
-    if backward > max(HELD_MAX_BACKWARD_STEPS, HELD_MAX_BACKWARD_SHARE * (len(t) - 1)):
+    stray = np.zeros(len(t), dtype=bool)
+    stray[1:-1] = (t[:-2] <= t[2:]) & ((t[1:-1] < t[:-2]) | (t[1:-1] > t[2:]))
+    t, poses, odom_lines = t[~stray], poses[~stray], odom_lines[~stray]
+    if np.any(np.diff(t) < 0):
         if np.median(ages) >= HELD_STALE_WARNING:
             warnings.warn(
                 f"{ctx.path}: each {kind} message carries the last ODOM pose before it ({age} "
@@ -1026,36 +1026,15 @@ def _unhold_odometry(
             f"the {kind} messages' robot poses, each the last ODOM pose before it ({age} old): "
             "ODOM timestamps go backwards, so they were not interpolated to the scans' timestamps"
         )
-    # An ODOM message whose stamp leaves the order of its neighbours' (a line out of place) is
-    # left out, so that it cannot stretch the spans around it.
-    stray = np.zeros(len(t), dtype=bool)
-    stray[1:-1] = (t[:-2] <= t[2:]) & ((t[1:-1] < t[:-2]) | (t[1:-1] > t[2:]))
-    t, poses, odom_lines = t[~stray], poses[~stray], odom_lines[~stray]
-    # Each scan between the ODOM messages around it in the file, `before` and `after`, with one
-    # more message of slack each way: loggers write messages in the order they arrive, which
-    # may differ from their stamps' (in ACES, 157 scans are stamped up to 0.11 s before the
-    # ODOM message written before them).
     n = len(t)
     after = np.searchsorted(odom_lines, scan_lines)  # the first ODOM line after each scan's line
-    inside = (after >= 1) & (after < n)
-    before, after = np.where(inside, after - 1, 0), np.where(inside, after, 0)
-    lo, hi = np.maximum(before - 1, 0), np.minimum(after + 1, n - 1)
-    inside &= (t[lo] <= t[before]) & (t[before] <= t[after]) & (t[after] <= t[hi])
-    tau = np.minimum(np.maximum(stamps, t[lo]), t[hi])
-    first = np.where(tau < t[before], lo, np.where(tau <= t[after], before, after))
-    second = np.where(tau < t[before], before, np.where(tau <= t[after], after, hi))
-    span = t[second] - t[first]
-    inside &= (span > 0.0) & np.isfinite(span)
-    clamped = int(np.sum(inside & (tau != stamps)))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        w = np.clip((tau - t[first]) / np.where(inside, span, 1.0), 0.0, 1.0)[:, None]
-    p0, p1 = poses[first], poses[second]
-    interpolated = np.column_stack([
-        (1.0 - w) * p0[:, :2] + w * p1[:, :2],
-        wrap_angle(p0[:, 2] + w[:, 0] * wrap_angle(p1[:, 2] - p0[:, 2])),
-    ])
+    lo, hi = np.clip(after - 2, 0, n - 1), np.clip(after + 1, 0, n - 1)
+    tau = np.clip(stamps, t[lo], t[hi])
+    interpolated = interpolate_poses(Trajectory(t, poses), tau)
+    inside = (after >= 1) & (after < n) & np.all(np.isfinite(interpolated), axis=1)
     out = np.where(inside[:, None], interpolated, robot_poses)
     rule = f"interpolated from ODOM at each scan's timestamp: the {kind} messages carry the last ODOM pose ({age} old)"
+    clamped = int(np.sum(inside & (tau != stamps)))
     if clamped:
         rule += f"; scans stamped beyond the ODOM messages around them, clamped to theirs: {clamped}"
     if not inside.all():
