@@ -12,6 +12,7 @@ from omnitof.errors import ConfigError
 from omnitof.geometry import compose, wrap_angle
 from omnitof.sim import laser2d
 from omnitof.sim.laser2d import (
+    Walker,
     World2D,
     beam_angles,
     corridor_loop_world,
@@ -20,6 +21,7 @@ from omnitof.sim.laser2d import (
     plan_path,
     simulate_odometry,
     simulate_scans,
+    walkers_beside,
 )
 from omnitof.types import ScanSequence
 
@@ -341,6 +343,59 @@ def test_scans_start_at_the_sensor_pose():
                             sensor_pose=sensor, range_noise=0.0, seed=0)
     # The sensor's +x is the world's +y: the wall at y = C + H; its +y is the world's -x.
     np.testing.assert_allclose(ranges[0], [H, H + 0.5], atol=1e-6)
+
+
+def marched_distance(origin, bearing, centre, radius, step=1e-4, reach=10.0):
+    """Where a ray first enters a disc, found by walking along it in small steps: independent
+    of the closed-form root that `simulate_scans` takes."""
+    t = np.arange(0.0, reach, step)
+    points = origin + t[:, None] * np.array([math.cos(bearing), math.sin(bearing)])
+    inside = np.hypot(*(points - centre).T) <= radius
+    return t[np.argmax(inside)] if inside.any() else math.inf
+
+
+def test_people_occlude_the_walls_where_a_ray_walk_meets_them():
+    robot = np.array([[C[0], C[1], 0.0], [C[0], C[1], 0.7]])
+    angles = np.linspace(-0.4, 0.4, 41)
+    people = np.array([[[C[0] + 1.2, C[1] + 0.1], [np.nan, np.nan]],
+                       [[C[0] + 0.8, C[1] + 1.0], [C[0] - 1.0, C[1] - 1.0]]])
+    ranges = simulate_scans(square_room(), robot, angles, people=people, person_radius=0.25,
+                            range_noise=0.0, seed=0).astype(np.float64)
+    walls = simulate_scans(square_room(), robot, angles, range_noise=0.0, seed=0).astype(np.float64)
+    hits = 0
+    for i, pose in enumerate(robot):
+        for b, angle in enumerate(angles):
+            nearest = min([marched_distance(pose[:2], pose[2] + angle, c, 0.25)
+                           for c in people[i] if np.all(np.isfinite(c))], default=math.inf)
+            expected = min(nearest, walls[i, b])
+            hits += nearest < walls[i, b]
+            assert ranges[i, b] == pytest.approx(expected, abs=2e-4), (i, b)
+    assert hits > 10  # the people stand in the way of some beams, not all
+
+
+def test_walkers_keep_their_place_beside_the_robot_within_their_time():
+    poses = np.array([[1.0, 2.0, 0.0], [1.5, 2.0, math.pi / 2], [2.0, 2.5, math.pi]])
+    t = np.array([0.0, 1.0, 2.0])
+    centres = walkers_beside(poses, t, [Walker(ahead=1.0, left=0.5, start=0.5, stop=2.0)])
+    assert np.all(np.isnan(centres[0]))
+    np.testing.assert_allclose(centres[1, 0], [1.5 - 0.5, 2.0 + 1.0])  # facing +y: ahead is +y, left is -x
+    np.testing.assert_allclose(centres[2, 0], [2.0 - 1.0, 2.5 - 0.5])  # facing -x: left is -y
+
+
+def test_loop_walkers_only_shorten_the_scans_of_their_time():
+    walkers = (Walker(ahead=1.5, left=0.0, start=10.0, stop=20.0),)
+    plain, walked = make_loop_dataset(seed=3), make_loop_dataset(seed=3, walkers=walkers)
+    during = (plain.timestamps >= 10.0) & (plain.timestamps <= 20.0)
+    np.testing.assert_array_equal(walked.ranges[~during], plain.ranges[~during])
+    np.testing.assert_array_equal(walked.odometry, plain.odometry)
+    a, b = plain.ranges[during].astype(np.float64), walked.ranges[during].astype(np.float64)
+    changed = a != b
+    # A person 1.5 m straight ahead is seen in every scan, at 1.25 m for the middle beam, and
+    # never makes a beam longer (the same noise draw is added to a shorter true distance).
+    assert changed.any(axis=1).all()
+    assert np.all(b[changed] < a[changed])
+    middle = walked.n_beams // 2
+    assert np.median(b[:, middle]) == pytest.approx(1.25, abs=0.01)
 
 
 # --------------------------------------------------------------------------------- dataset

@@ -1,5 +1,6 @@
 """A small 2D laser world: walls as line segments, a corridor loop, a robot path, wheel odometry
-with drift, and a planar laser. It feeds the end-to-end SLAM tests and the demo.
+with drift, a planar laser, and people who walk with the robot. It feeds the end-to-end SLAM
+tests and the demo.
 
 Frames and units: everything lives in the world frame, x and y on the floor in metres, headings
 theta in radians counter-clockwise from +x. A robot pose is world_T_robot = (x, y, theta); the
@@ -551,6 +552,7 @@ DEFAULT_ALPHAS = (0.002, 0.0001, 0.005, 0.0005)
 DEFAULT_WHEEL_RADIUS_ERROR = 0.01
 DEFAULT_WHEEL_BASE_ERROR = 0.015
 DEFAULT_HEADING_DRIFT = math.radians(0.05)  # radians per metre driven
+PERSON_RADIUS = 0.25  # a person seen by a laser at hip height, metres
 
 
 def odometry_increments(poses: np.ndarray) -> np.ndarray:
@@ -671,6 +673,8 @@ def simulate_scans(
     max_range: float = 8.0,
     range_noise: float = 0.01,
     dropout: float = 0.0,
+    people: np.ndarray | None = None,
+    person_radius: float = PERSON_RADIUS,
     seed: Seed,
 ) -> np.ndarray:
     """Laser ranges (N, B) float32 in metres from robot poses (N, 3).
@@ -679,7 +683,9 @@ def simulate_scans(
     angles[i, b]: (N, B) angles give each scan its own beams, as an interlaced laser has). The
     true distance gets zero-mean Gaussian noise of std range_noise (metres); a noisy reading at or
     beyond max_range, a beam that hits nothing, and (with probability dropout, independently per
-    beam) a lost echo all read +inf.
+    beam) a lost echo all read +inf. `people` (N, K, 2), world-frame centres of K people at each
+    scan (NaN where one is absent), stand in the way as discs of `person_radius` metres: what
+    moves in the scene and is no wall (see `walkers_beside`).
     """
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 2 or poses.shape[1] != 3:
@@ -694,12 +700,61 @@ def simulate_scans(
     # Cast a little beyond max_range so that noise can carry a wall just outside it inside.
     reach = max_range + 6.0 * range_noise
     true = world.raycast(world_T_sensor[:, :2], bearings, max_range=reach)
+    if people is not None:
+        people = np.asarray(people, dtype=np.float64)
+        if people.ndim != 3 or people.shape[0] != len(poses) or people.shape[2] != 2:
+            raise ValueError(f"people must have shape ({len(poses)}, K, 2), got {people.shape}")
+        if not (math.isfinite(person_radius) and person_radius > 0.0):
+            raise ConfigError(f"person_radius must be a positive number of metres, got {person_radius}")
+        true = np.minimum(true, _cast_to_discs(world_T_sensor[:, :2], bearings, people, person_radius))
+        true[true > reach] = np.inf
     rng = np.random.default_rng(seed)
     ranges = true + range_noise * rng.standard_normal(true.shape)
     ranges[ranges >= max_range] = np.inf
     if dropout > 0.0:
         ranges[rng.random(true.shape) < dropout] = np.inf
     return ranges.astype(np.float32)
+
+
+def _cast_to_discs(origins: np.ndarray, bearings: np.ndarray, centres: np.ndarray, radius: float) -> np.ndarray:
+    """Nearest hit (N, B) of rays from origins (N, 2) at world bearings (N, B) with discs of
+    `radius` around centres (N, K, 2) (NaN: no disc). The ray p + t·d meets the circle where
+    |w − t·d| = r with w = c − p: t = w·d − √((w·d)² − |w|² + r²), the nearer root. A ray that
+    starts inside a disc sees nothing of it (the laser would stand in a person)."""
+    w = centres[:, None, :, :] - origins[:, None, None, :]  # (N, 1, K, 2)
+    dx, dy = np.cos(bearings)[..., None], np.sin(bearings)[..., None]  # (N, B, 1)
+    along = w[..., 0] * dx + w[..., 1] * dy  # (N, B, K)
+    outside = (w[..., 0] ** 2 + w[..., 1] ** 2) - radius * radius  # (N, 1, K)
+    with np.errstate(invalid="ignore"):
+        t = along - np.sqrt(along * along - outside)
+    hit = (outside > 0.0) & (t > 0.0)  # NaN (no disc, or a miss) fails both
+    return np.min(t, axis=-1, initial=np.inf, where=hit)
+
+
+def walkers_beside(poses: np.ndarray, timestamps: np.ndarray, walkers: Sequence["Walker"]) -> np.ndarray:
+    """Centres (N, K, 2) of K people who walk with the robot along its true path `poses` (N, 3)
+    at `timestamps` (N,), each as a `Walker` says; NaN outside each one's time window. People
+    beside a robot, keeping its pace, are what the Freiburg hospital log holds and what a scan
+    matcher may lay on the mapped walls."""
+    poses = np.asarray(poses, dtype=np.float64)
+    t = np.asarray(timestamps, dtype=np.float64)
+    out = np.full((len(poses), len(walkers), 2), np.nan)
+    for k, walker in enumerate(walkers):
+        inside = (t >= walker.start) & (t <= walker.stop)
+        offset = np.array([walker.ahead, walker.left, 0.0])
+        out[inside, k] = compose(poses[inside], offset)[:, :2]
+    return out
+
+
+@dataclass(frozen=True)
+class Walker:
+    """A person who walks with the robot from time `start` to `stop` (seconds), `ahead` metres
+    in front of it and `left` metres to its left (the robot frame; negative: behind, right)."""
+
+    ahead: float
+    left: float
+    start: float
+    stop: float
 
 
 # --------------------------------------------------------------------------------------------
@@ -723,8 +778,11 @@ def make_loop_dataset(
     wheel_radius_error: float = DEFAULT_WHEEL_RADIUS_ERROR,
     wheel_base_error: float = DEFAULT_WHEEL_BASE_ERROR,
     heading_drift: float = DEFAULT_HEADING_DRIFT,
+    walkers: Sequence[Walker] = (),
 ) -> ScanSequence:
     """The corridor loop driven once plus `overlap` metres, with laser scans and drifting odometry.
+    `walkers`: people who walk with the robot for a while (`Walker`), seen by the laser and
+    absent from the world's walls (the ground truth of a map).
 
     World: `corridor_loop_world()` (16 m x 10 m block, 2 m corridors). Path: `loop_path`.
     Odometry: `simulate_odometry`; scans: `simulate_scans`. One seed drives both through two
@@ -739,9 +797,10 @@ def make_loop_dataset(
                                  wheel_radius_error=wheel_radius_error,
                                  wheel_base_error=wheel_base_error, heading_drift=heading_drift)
     angles = beam_angles(n_beams, fov_deg)
+    people = walkers_beside(path.poses, path.timestamps, walkers) if walkers else None
     ranges = simulate_scans(world, path.poses, angles, sensor_pose=sensor_pose,
                             max_range=max_range, range_noise=range_noise, dropout=dropout,
-                            seed=scan_seed)
+                            people=people, seed=scan_seed)
     return ScanSequence(
         timestamps=path.timestamps,
         ranges=ranges,
