@@ -382,6 +382,13 @@ def test_walkers_keep_their_place_beside_the_robot_within_their_time():
     np.testing.assert_allclose(centres[2, 0], [2.0 - 1.0, 2.5 - 0.5])  # facing -x: left is -y
 
 
+@pytest.mark.parametrize("bad", [dict(ahead=math.nan), dict(left=math.inf), dict(start=5.0, stop=4.0)])
+def test_a_walker_out_of_bounds_is_refused_by_name(bad):
+    fields = dict(ahead=1.0, left=0.5, start=0.0, stop=10.0) | bad
+    with pytest.raises(ConfigError, match="Walker"):
+        Walker(**fields)
+
+
 def test_loop_walkers_only_shorten_the_scans_of_their_time():
     walkers = (Walker(ahead=1.5, left=0.0, start=10.0, stop=20.0),)
     plain, walked = make_loop_dataset(seed=3), make_loop_dataset(seed=3, walkers=walkers)

@@ -756,6 +756,13 @@ class Walker:
     start: float
     stop: float
 
+    def __post_init__(self) -> None:
+        for name in ("ahead", "left", "start", "stop"):
+            if not math.isfinite(getattr(self, name)):
+                raise ConfigError(f"Walker.{name} must be a finite number, got {getattr(self, name)!r}")
+        if self.stop < self.start:
+            raise ConfigError(f"Walker.stop ({self.stop} s) comes before Walker.start ({self.start} s)")
+
 
 # --------------------------------------------------------------------------------------------
 # The dataset
