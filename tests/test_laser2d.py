@@ -373,6 +373,13 @@ def test_people_occlude_the_walls_where_a_ray_walk_meets_them():
     assert hits > 10  # the people stand in the way of some beams, not all
 
 
+def test_people_cast_in_chunks_is_cast_at_once(monkeypatch):
+    walkers = (Walker(ahead=1.5, left=0.0, start=0.0, stop=8.0), Walker(ahead=1.0, left=0.6, start=3.0, stop=6.0))
+    whole = make_loop_dataset(seed=1, walkers=walkers).ranges[:100]
+    monkeypatch.setattr(laser2d, "_PAIR_BUDGET", 50)  # a few scans per chunk
+    np.testing.assert_array_equal(make_loop_dataset(seed=1, walkers=walkers).ranges[:100], whole)
+
+
 def test_walkers_keep_their_place_beside_the_robot_within_their_time():
     poses = np.array([[1.0, 2.0, 0.0], [1.5, 2.0, math.pi / 2], [2.0, 2.5, math.pi]])
     t = np.array([0.0, 1.0, 2.0])

@@ -706,7 +706,11 @@ def simulate_scans(
             raise ValueError(f"people must have shape ({len(poses)}, K, 2), got {people.shape}")
         if not (math.isfinite(person_radius) and person_radius > 0.0):
             raise ConfigError(f"person_radius must be a positive number of metres, got {person_radius}")
-        true = np.minimum(true, _cast_to_discs(world_T_sensor[:, :2], bearings, people, person_radius))
+        rows = max(1, _PAIR_BUDGET // max(1, bearings.shape[1] * people.shape[1]))
+        for start in range(0, len(poses), rows):  # bounded (rays × people) arrays, as raycast's
+            chunk = slice(start, start + rows)
+            discs = _cast_to_discs(world_T_sensor[chunk, :2], bearings[chunk], people[chunk], person_radius)
+            true[chunk] = np.minimum(true[chunk], discs)
         true[true > reach] = np.inf
     rng = np.random.default_rng(seed)
     ranges = true + range_noise * rng.standard_normal(true.shape)
