@@ -396,6 +396,17 @@ def test_a_walker_out_of_bounds_is_refused_by_name(bad):
         Walker(**fields)
 
 
+def test_a_wider_loop_keeps_the_robot_in_its_corridors():
+    data = make_loop_dataset(seed=0, block_width=40.0, block_height=20.0, corridor_width=3.5,
+                             max_range=15.0, rate_hz=2.0)
+    world = corridor_loop_world(40.0, 20.0, 3.5)
+    # The path runs along the corridors' centre lines; boxes stand at most 0.4 m into them.
+    assert world.distance_to_walls(data.ground_truth[:, :2]).min() >= 1.75 - 0.4 - 1e-9
+    assert data.ground_truth[:, 0].max() == pytest.approx(40.0 + 1.75, abs=0.05)
+    assert np.nanmax(np.where(np.isfinite(data.ranges), data.ranges, np.nan)) < 15.0
+    np.testing.assert_allclose(np.diff(data.timestamps), 0.5)
+
+
 def test_loop_walkers_only_shorten_the_scans_of_their_time():
     walkers = (Walker(ahead=1.5, left=0.0, start=10.0, stop=20.0),)
     plain, walked = make_loop_dataset(seed=3), make_loop_dataset(seed=3, walkers=walkers)

@@ -790,19 +790,23 @@ def make_loop_dataset(
     wheel_base_error: float = DEFAULT_WHEEL_BASE_ERROR,
     heading_drift: float = DEFAULT_HEADING_DRIFT,
     walkers: Sequence[Walker] = (),
+    block_width: float = _DEFAULT_BLOCK[0],
+    block_height: float = _DEFAULT_BLOCK[1],
+    corridor_width: float = _DEFAULT_CORRIDOR,
 ) -> ScanSequence:
     """The corridor loop driven once plus `overlap` metres, with laser scans and drifting odometry.
     `walkers`: people who walk with the robot for a while (`Walker`), seen by the laser and
     absent from the world's walls (the ground truth of a map).
 
-    World: `corridor_loop_world()` (16 m x 10 m block, 2 m corridors). Path: `loop_path`.
+    World: `corridor_loop_world(block_width, block_height, corridor_width)` (by default a 16 m x
+    10 m block with 2 m corridors). Path: `loop_path` of the same sizes.
     Odometry: `simulate_odometry`; scans: `simulate_scans`. One seed drives both through two
     independent child streams (SeedSequence.spawn), so changing the odometry settings leaves the
     scans bit-for-bit unchanged and vice versa. max_range defaults to 8 m, about the unambiguous
     range of the 20 MHz ToF cameras the project models (c / 2f = 7.5 m).
     """
-    world = corridor_loop_world()
-    path = loop_path(overlap=overlap, speed=speed, rate_hz=rate_hz)
+    world = corridor_loop_world(block_width, block_height, corridor_width)
+    path = loop_path(block_width, block_height, corridor_width, overlap=overlap, speed=speed, rate_hz=rate_hz)
     odo_seed, scan_seed = np.random.SeedSequence(seed).spawn(2)
     odometry = simulate_odometry(path.poses, seed=odo_seed, alphas=alphas,
                                  wheel_radius_error=wheel_radius_error,
