@@ -219,6 +219,17 @@ class FilterConfig(_Section):
         "the map (scan_matcher.min_matched) its pose stands (omnitof.slam.final_match). 0: off",
     )
     angular_update_deg: float = Field(25.0, ge=0, description="... or turned this much (deg)")
+    moving_lookback: float = Field(
+        0.0, ge=0, le=100,
+        description="drop the readings of things that move before the filter sees them: a reading whose end "
+        "point lies where the scan this many metres of odometry path before it saw through (by more than "
+        "moving_margin, in a run of at least 3 neighbouring beams) reads as no echo (omnitof.slam.moving); "
+        "people walking beside the robot otherwise drag the map along the corridor. 0: off",
+    )
+    moving_margin: float = Field(
+        0.3, gt=0, le=10,
+        description="how much farther (m) the earlier scan must have seen for a reading to count as moving",
+    )
     seed: int = Field(0, ge=0, lt=2**63, description="seed of every random draw; same seed, same map")
     threads: int = Field(
         0, ge=0, le=1024, description="worker threads; 0 uses every core (results do not depend on it)"
@@ -338,6 +349,15 @@ class SlamConfig(_Section):
     map: MapConfig = MapConfig()
     backend: BackendConfig = BackendConfig()
     filter3d: Filter3DConfig = Filter3DConfig()
+
+    @model_validator(mode="after")
+    def _dropped_readings_stay_dropped(self) -> "SlamConfig":
+        # Dropped readings read as no echo, which map.clear_no_echo would turn into free space
+        # through the person out to map.max_range, wiping the walls behind them.
+        if self.filter.moving_lookback > 0 and self.map.clear_no_echo:
+            raise ValueError("filter.moving_lookback needs map.clear_no_echo off: the readings it drops read as "
+                             "no echo, which would clear the walls behind the people")
+        return self
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.model_dump(), sort_keys=False)

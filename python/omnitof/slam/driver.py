@@ -23,6 +23,7 @@ from omnitof.slam.backend import PoseGraphBackend
 from omnitof.slam.limits import MemoryWatch, check_limits
 from omnitof.slam.config import SlamConfig
 from omnitof.slam.final_match import final_match, grid_along
+from omnitof.slam.moving import drop_moving
 from omnitof.geometry import compose, relative
 from omnitof.types import OccupancyMap, ScanSequence, Trajectory
 
@@ -77,7 +78,9 @@ def fill_trajectory(odometry: np.ndarray, integrated: np.ndarray, corrected: np.
 
 # The filter section's fields this driver uses itself (which scans to integrate, the poses of the
 # others); the core's filters (2D and 3D) refuse them as unknown.
-DRIVER_FILTER_FIELDS = frozenset({"linear_update", "angular_update_deg", "match_between", "final_match_passes"})
+DRIVER_FILTER_FIELDS = frozenset({
+    "linear_update", "angular_update_deg", "match_between", "final_match_passes", "moving_lookback", "moving_margin",
+})
 
 
 def core_sections(cfg: SlamConfig) -> dict:
@@ -182,6 +185,9 @@ def run_slam(
 
 def _run(scans: ScanSequence, cfg: SlamConfig, progress: Callable[[int], None] | None) -> SlamResult:
     start = time.perf_counter()
+    moving = None
+    if cfg.filter.moving_lookback > 0:
+        scans, moving = drop_moving(scans, cfg.filter.moving_lookback, cfg.filter.moving_margin)
     integrated = select_scans(
         scans.odometry, cfg.filter.linear_update, math.radians(cfg.filter.angular_update_deg)
     )
@@ -253,6 +259,9 @@ def _run(scans: ScanSequence, cfg: SlamConfig, progress: Callable[[int], None] |
         "map_tiles_referenced": int(tile_refs),
         "map_bytes": int(unique_tiles * _core.ParticleFilter.tile_bytes()),
     }
+    if moving is not None:
+        stats["moving_readings_dropped"] = moving.total
+        stats["moving_scans_kept_whole"] = moving.scans_kept_whole
     if between is not None:
         stats["between_scans_matched"] = between.matched
         stats["between_scans_by_odometry"] = between.by_odometry
