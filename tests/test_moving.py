@@ -69,3 +69,13 @@ def test_the_filter_reports_what_it_dropped_and_refuses_clearing_through_people(
     assert result.stats["moving_readings_dropped"] > 0
     with pytest.raises(ConfigError, match="clear_no_echo"):
         load_config(preset="laser180-scanmatch", overrides={"filter": {"moving_lookback": 2.0}, "map": {"clear_no_echo": True}})
+
+
+def test_scans_with_their_own_beam_geometry_give_the_same_readings():
+    walked = make_loop_dataset(seed=0, walkers=BESIDE).slice(0, 500)
+    own = ScanSequence(walked.timestamps, walked.ranges, np.tile(walked.angles, (len(walked), 1)), walked.odometry,
+                       max_range=walked.max_range)
+    shared, _ = moving_mask(walked, lookback=2.0, margin=0.3)
+    per_scan, _ = moving_mask(own, lookback=2.0, margin=0.3)
+    assert shared.any()
+    np.testing.assert_array_equal(per_scan, shared)

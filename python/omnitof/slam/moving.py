@@ -74,6 +74,8 @@ def moving_mask(scans: ScanSequence, lookback: float, margin: float, max_share: 
         j = int(ref[k])
         r_k, a_k = scans.scan_ranges(k).astype(np.float64), scans.scan_angles(k)
         r_j, a_j = scans.scan_ranges(j).astype(np.float64), scans.scan_angles(j)
+        bearing_known = np.isfinite(a_j)  # scan_angles gives a scan's own beams; guard all the same
+        r_j, a_j = r_j[bearing_known], a_j[bearing_known]
         reading = np.isfinite(r_k) & (r_k > 0)
         if not reading.any() or len(a_j) < 2:
             continue
