@@ -5,14 +5,17 @@ bearing reached clearly farther) hit something that was not there before: a pers
 often, walking beside the robot or across its way. The filter takes every reading for a wall,
 lays people walking with the robot onto the map, and drifts along the corridor with them (on
 the simulated wide loop with people beside the robot, 0.42 m mean error against 0.13 m without
-them; BENCHMARKS.md, "People walking beside the robot"). The earlier scan is the one a
-`lookback` of odometry path behind (about a metre): near enough that the odometry between the
-two is good to a centimetre or two, far enough that a person keeping pace with the robot did not
-hide the spot from it. Each reading of scan k is moved into that scan's sensor frame by the
-odometry, and its range there compared with that scan's readings at the two beams around its
-bearing: where both reached farther by `margin`, the reading is dropped (it reads as no echo).
-Where more than `max_share` of a scan would be dropped, none is: the odometry between the two
-scans is then more likely wrong (a wheel glitch) than the scene so full of people.
+them; BENCHMARKS.md, "Readings of things that move"). The earlier scan is the one a
+`lookback` of odometry path behind (2 m in the measurements): near enough that the odometry
+between the two is good to a few centimetres, far enough that a person keeping pace with the
+robot did not hide the spot from it (at 1 m, it mostly did). Each reading of scan k is moved
+into that scan's sensor frame by the odometry, and its range there compared with that scan's
+readings at the two beams around its bearing: where both reached farther by `margin`, within
+the sensor's range, the reading is dropped (it reads as no echo), if it lies in a run of at
+least `min_run` such neighbouring readings. Where more than `max_share` of a scan would be
+dropped, none is: the odometry between the two scans is then more likely wrong (a wheel glitch)
+than the scene so full of people. The moving objects' readings are then neither matched nor
+mapped; the walls they hid stay unseen for those scans.
 
 Written here: no library of the field offers free-space differencing of planar scans (people
 trackers, e.g. ROS's leg_detector, classify scan segments by shape instead).
