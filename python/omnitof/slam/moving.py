@@ -84,6 +84,7 @@ def moving_mask(scans: ScanSequence, lookback: float, margin: float, max_share: 
             continue
         j_T_k = relative(world_T_sensor[j], world_T_sensor[k])
         c, s = np.cos(j_T_k[2] + a_k), np.sin(j_T_k[2] + a_k)
+        r_k = np.where(reading, r_k, 0.0)  # no echo stays out (and inf·0 makes no NaN)
         x, y = j_T_k[0] + r_k * c, j_T_k[1] + r_k * s
         seen_at, bearing = np.hypot(x, y), np.arctan2(y, x)
         order = np.argsort(a_j)
