@@ -11,7 +11,7 @@ from omnitof.geometry import compose
 from omnitof.sim.laser2d import Walker, make_loop_dataset
 from omnitof.slam.config import load_config
 from omnitof.slam.driver import run_slam
-from omnitof.slam.moving import drop_moving, moving_mask
+from omnitof.slam.moving import _runs_of_at_least, drop_moving, moving_mask
 from omnitof.types import ScanSequence
 
 BESIDE = (Walker(ahead=1.2, left=0.55, start=5.0, stop=40.0), Walker(ahead=2.0, left=0.5, start=5.0, stop=40.0))
@@ -66,7 +66,10 @@ def test_the_filter_reports_what_it_dropped_and_refuses_clearing_through_people(
     walked = make_loop_dataset(seed=0, walkers=BESIDE).slice(0, 400)
     cfg = load_config(preset="laser180-scanmatch", overrides={"filter": {"moving_lookback": 2.0}, "backend": {"enabled": False}})
     result = run_slam(walked, cfg)
-    assert result.stats["moving_readings_dropped"] > 0
+    _, expected = drop_moving(walked, lookback=2.0, margin=0.3)
+    assert expected.total > 0
+    assert result.stats["moving_readings_dropped"] == expected.total
+    assert result.stats["moving_scans_kept_whole"] == expected.scans_kept_whole
     with pytest.raises(ConfigError, match="clear_no_echo"):
         load_config(preset="laser180-scanmatch", overrides={"filter": {"moving_lookback": 2.0}, "map": {"clear_no_echo": True}})
 
@@ -79,3 +82,10 @@ def test_scans_with_their_own_beam_geometry_give_the_same_readings():
     per_scan, _ = moving_mask(own, lookback=2.0, margin=0.3)
     assert shared.any()
     np.testing.assert_array_equal(per_scan, shared)
+
+
+def test_only_runs_of_neighbouring_readings_count():
+    flags = np.array([1, 0, 1, 1, 0, 1, 1, 1, 0, 1, 1, 1, 1], dtype=bool)
+    expected = np.array([0, 0, 0, 0, 0, 1, 1, 1, 0, 1, 1, 1, 1], dtype=bool)
+    np.testing.assert_array_equal(_runs_of_at_least(flags, 3), expected)
+    np.testing.assert_array_equal(_runs_of_at_least(np.zeros(5, dtype=bool), 3), np.zeros(5, dtype=bool))

@@ -47,13 +47,14 @@ class MovingReadings:
 
 def _runs_of_at_least(flags: np.ndarray, length: int) -> np.ndarray:
     """`flags` (B,) with every run of consecutive trues shorter than `length` cleared."""
-    padded = np.concatenate([[False], flags, [False]]).astype(np.int8)
-    edges = np.flatnonzero(np.diff(padded))
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], flags.astype(np.int8), [0]])))
     starts, stops = edges[::2], edges[1::2]
-    out = np.zeros_like(flags)
-    for a, b in zip(starts[stops - starts >= length], stops[stops - starts >= length]):
-        out[a:b] = True
-    return out
+    long_enough = stops - starts >= length
+    # +1 where a kept run starts, -1 where it stops: the running sum is 1 inside kept runs.
+    marks = np.zeros(len(flags) + 1, dtype=np.int32)
+    marks[starts[long_enough]] += 1
+    marks[stops[long_enough]] -= 1
+    return np.cumsum(marks[:-1]) > 0
 
 
 def moving_mask(scans: ScanSequence, lookback: float, margin: float, max_share: float = 0.3,
