@@ -23,10 +23,9 @@
 //! ρ_P/π·∫L_Q cos dω with the pdf cos/π), with the path camera → P → Q → LED. Random numbers
 //! come from a SplitMix64 hash of (seed, pose, pixel, ray), so frames do not depend on threads.
 
-use crate::render::{add, cross, dot, norm, reflect_point, rotate, scale, sub, Kind, Mailbox, Mirror, Scene, T_MIN};
+use rayon::prelude::*;
 
-/// Mirrors whose side of a point is computed once per point (more are handled, just slower).
-const MAX_MIRRORS: usize = 8;
+use crate::render::{add, cross, dot, norm, reflect_point, rotate, scale, sub, Kind, Mailbox, Mirror, Scene, SubRay, T_MIN};
 
 /// The LEDs (camera frame, metres), the exponent p of their emission profile cosᵖ(ε), and
 /// the cosine of the largest emission angle (the LEDs' optics and the housing let nothing out
@@ -125,10 +124,10 @@ pub struct PoseLight {
 impl PoseLight {
     /// The LEDs and their mirror images for the camera at world_T_camera (3×4). Everything that
     /// does not depend on the lit point is computed here, once per pose.
-    pub fn new(light: &Illumination, mirrors: &[Mirror], m: &[[f64; 4]; 3]) -> PoseLight {
+    pub fn new(light: &Illumination, camera_mirrors: &[Mirror], m: &[[f64; 4]; 3]) -> PoseLight {
         let t = [m[0][3], m[1][3], m[2][3]];
         let axis = rotate(m, [0.0, 0.0, 1.0]);
-        let mirrors: Vec<WorldMirror> = mirrors
+        let world: Vec<WorldMirror> = camera_mirrors
             .iter()
             .map(|mi| {
                 let normal = rotate(m, mi.normal);
@@ -145,9 +144,11 @@ impl PoseLight {
         for &l in &light.leds {
             let led = add(rotate(m, l), t);
             sources.push(Source { position: led, mirror: None, cone: vec![], depth: 0.0 });
-            for (k, mi) in mirrors.iter().enumerate() {
-                // Only an LED in front of a mirror's reflective side has an image in it.
-                if dot(mi.normal, led) < mi.d {
+            for (k, (mi, camera_mirror)) in world.iter().zip(camera_mirrors).enumerate() {
+                // Only an LED in front of a mirror's reflective side has an image in it; decided
+                // in the camera frame, so that every pose has the same sources in the same order
+                // (`candidate_masks` numbers them once for all poses).
+                if dot(camera_mirror.normal, l) < camera_mirror.d {
                     let image = reflect_point(led, mi.normal, mi.d);
                     let n = mi.polygon.len();
                     let centroid = scale(mi.polygon.iter().fold([0.0; 3], |a, &p| add(a, p)), 1.0 / n as f64);
@@ -162,7 +163,7 @@ impl PoseLight {
                 }
             }
         }
-        PoseLight { sources, mirrors, axis, weight: 1.0 / light.leds.len() as f64, exponent: light.profile_exponent, min_cos: light.min_cos }
+        PoseLight { sources, mirrors: world, axis, weight: 1.0 / light.leds.len() as f64, exponent: light.profile_exponent, min_cos: light.min_cos }
     }
 
     /// Whether the emission direction v (v·axis = `along`) lies clearly beyond the largest
@@ -188,23 +189,38 @@ impl PoseLight {
 
     /// Calls `f(gain, length)` for every light path from an LED to the point `x` whose unit
     /// normal `n` faces the side the light must come from (module docs). With `occlusion`,
-    /// paths the scene blocks are left out (the mirrors are not part of the scene).
-    pub fn paths(&self, scene: &Scene, x: [f64; 3], n: [f64; 3], occlusion: bool, mail: &mut Mailbox, mut f: impl FnMut(f64, f64)) {
-        // x's signed distance to each mirror's plane (< 0: on its reflective side), computed
-        // once for all the LEDs' images in that mirror.
-        let mut side = [0.0f64; MAX_MIRRORS];
-        let sided = self.mirrors.len() <= MAX_MIRRORS;
-        if sided {
-            for (s, mi) in side.iter_mut().zip(&self.mirrors) {
-                *s = dot(mi.normal, x) - mi.d;
-            }
-        }
-        for s in &self.sources {
-            // An image lights only points on its mirror's reflective side.
-            if let (Some(k), true) = (s.mirror, sided) {
-                if side[k] >= 0.0 {
-                    continue;
-                }
+    /// paths the scene blocks are left out (the mirrors are not part of the scene). Sources
+    /// whose bit (in the order of `sources`) is clear in `candidates` are skipped untested:
+    /// `candidate_masks` clears only those that light no point of the camera ray that x lies
+    /// on, so the result is the same as with every bit set (`ALL_SOURCES`).
+    #[allow(clippy::too_many_arguments)]
+    pub fn paths(
+        &self,
+        scene: &Scene,
+        x: [f64; 3],
+        n: [f64; 3],
+        candidates: u64,
+        occlusion: bool,
+        mail: &mut Mailbox,
+        mut f: impl FnMut(f64, f64),
+    ) {
+        // The candidate sources in their order: the set bits, then any beyond the mask's 64.
+        let masked = self.sources.len().min(MASK_BITS);
+        let mut bits = if masked == MASK_BITS { candidates } else { candidates & ((1u64 << masked) - 1) };
+        let chosen = std::iter::from_fn(move || {
+            (bits != 0).then(|| {
+                let i = bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                &self.sources[i]
+            })
+        })
+        .chain(&self.sources[masked..]);
+        for s in chosen {
+            // x's signed distance to an image's mirror plane (< 0: on its reflective side): an
+            // image lights only points on that side.
+            let da = s.mirror.map_or(-1.0, |k| dot(self.mirrors[k].normal, x) - self.mirrors[k].d);
+            if da >= 0.0 {
+                continue;
             }
             // rel: from the source (an LED or its image) to x, a straight (unfolded) path.
             let rel = sub(x, s.position);
@@ -231,8 +247,7 @@ impl PoseLight {
                 }
                 Some(k) => {
                     let mi = &self.mirrors[k];
-                    let da = if sided { side[k] } else { dot(mi.normal, x) - mi.d };
-                    if da >= 0.0 || s.cone.iter().any(|&c| dot(c, rel) < 0.0) {
+                    if s.cone.iter().any(|&c| dot(c, rel) < 0.0) {
                         continue;
                     }
                     // The LED emits towards the mirror point, along rel mirrored in the plane.
@@ -274,7 +289,105 @@ impl PoseLight {
         if m.albedo <= 0.0 || (m.kind == Kind::Grid && !m.on_bar(q, hit.normal)) {
             return;
         }
-        self.paths(scene, q, hit.normal, true, mail, |gain, length| f(m.albedo * gain, hit.t + length));
+        self.paths(scene, q, hit.normal, ALL_SOURCES, true, mail, |gain, length| f(m.albedo * gain, hit.t + length));
+    }
+}
+
+/// A candidate mask with every source set: nothing is skipped.
+pub const ALL_SOURCES: u64 = u64::MAX;
+/// Sources beyond the first this many have no bit and are always tested.
+const MASK_BITS: usize = 64;
+
+/// Per camera sub-ray (camera frame, as `Rig::rays`), the light sources of `PoseLight::new(light,
+/// mirrors, ·)` that can light some point of that ray: bit i set for source i (in `sources`'
+/// order, which does not depend on the pose). The sources are rigid with the camera, so this
+/// holds at every pose; `paths` then skips the other sources at the sub-ray's first surface
+/// (about two thirds of them with 4 LEDs and 4 mirrors: the images in the mirrors the ray does
+/// not look through, and the LEDs' direct light, whose 40° cone holds none of the mirrors'
+/// view). A superset by construction: a source is cleared only where its tests in `paths` that
+/// do not depend on the surface fail along the whole ray, with a margin far above rounding.
+pub fn candidate_masks(light: &Illumination, mirrors: &[Mirror], rays: &[SubRay]) -> Vec<u64> {
+    const IDENTITY: [[f64; 4]; 3] = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]];
+    let camera = PoseLight::new(light, mirrors, &IDENTITY);
+    rays.par_iter()
+        .map(|ray| {
+            if ray.g2 <= 0.0 {
+                return 0;
+            }
+            camera.sources.iter().enumerate().fold(ALL_SOURCES, |mask, (i, s)| {
+                if i < MASK_BITS && !camera.may_light(s, ray.origin, ray.dir) { mask & !(1 << i) } else { mask }
+            })
+        })
+        .collect()
+}
+
+impl PoseLight {
+    /// Whether source `s` may light some point o + t·d, t >= 0 (camera frame, d unit): the
+    /// interval of t where every linear test holds (an image: x on the mirror's reflective side
+    /// and inside the cone through its outline) or the emission cone meets the ray (the direct
+    /// LED), each widened by a margin.
+    fn may_light(&self, s: &Source, o: [f64; 3], d: [f64; 3]) -> bool {
+        match s.mirror {
+            Some(k) => {
+                let mi = &self.mirrors[k];
+                let (mut lo, mut hi) = (0.0f64, f64::INFINITY);
+                // Each test reads g0 + g1·t >= 0.
+                let mut keep = |g0: f64, g1: f64| {
+                    if g1.abs() < 1e-300 {
+                        if g0 < 0.0 {
+                            hi = -1.0;
+                        }
+                        return;
+                    }
+                    let root = -g0 / g1;
+                    let margin = 1e-6 * (1.0 + root.abs());
+                    if g1 > 0.0 { lo = lo.max(root - margin) } else { hi = hi.min(root + margin) }
+                };
+                // On the reflective side: n·x − d < 0.
+                keep(-(dot(mi.normal, o) - mi.d), -dot(mi.normal, d));
+                for &c in &s.cone {
+                    keep(dot(c, sub(o, s.position)), dot(c, d));
+                }
+                lo <= hi
+            }
+            None => {
+                if self.min_cos <= 0.0 {
+                    return true;
+                }
+                // along(t) = p + q·t >= 0 and f(t) = along² − c²·|x − L|² >= 0 for some t >= 0,
+                // with c² a millionth smaller than min_cos² (the margin).
+                let r0 = sub(o, s.position);
+                let (p, q) = (dot(r0, self.axis), dot(d, self.axis));
+                let c2 = self.min_cos * self.min_cos * (1.0 - 1e-6);
+                let (a, b, c) = (q * q - c2, 2.0 * (p * q - c2 * dot(r0, d)), p * p - c2 * dot(r0, r0));
+                let f = |t: f64| (a * t + b) * t + c;
+                // The t >= 0 where along >= 0: [lo, hi].
+                let (lo, hi) = if q > 0.0 {
+                    ((-p / q).max(0.0), f64::INFINITY)
+                } else if q < 0.0 {
+                    (0.0, -p / q)
+                } else {
+                    (0.0, if p >= 0.0 { f64::INFINITY } else { -1.0 })
+                };
+                if lo > hi {
+                    return false;
+                }
+                if hi.is_infinite() && (a > 0.0 || (a == 0.0 && b > 0.0)) {
+                    return true;
+                }
+                let mut best = f(lo);
+                if hi.is_finite() {
+                    best = best.max(f(hi));
+                }
+                if a < 0.0 {
+                    let vertex = -b / (2.0 * a);
+                    if vertex > lo && vertex < hi {
+                        best = best.max(f(vertex));
+                    }
+                }
+                best >= 0.0
+            }
+        }
     }
 }
 
@@ -338,7 +451,7 @@ mod tests {
         let light = PoseLight::new(&Illumination::coaxial(), &[], &m);
         let mut got = vec![];
         let x = [2.0, 1.0, 1.0];
-        light.paths(&scene, x, [-1.0, 0.0, 0.0], true, &mut Mailbox::for_scene(&scene), |g, l| got.push((g, l)));
+        light.paths(&scene, x, [-1.0, 0.0, 0.0], ALL_SOURCES, true, &mut Mailbox::for_scene(&scene), |g, l| got.push((g, l)));
         let r2: f64 = 5.0;
         assert_eq!(got.len(), 1);
         assert!((got[0].1 - r2.sqrt()).abs() < 1e-12);

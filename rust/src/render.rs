@@ -39,8 +39,8 @@
 
 use rayon::prelude::*;
 
-use crate::light::{uniforms, Illumination, PoseLight};
-use crate::raycast::traverse;
+use crate::light::{candidate_masks, uniforms, Illumination, PoseLight, ALL_SOURCES};
+use crate::raycast::{floor_i32, traverse};
 
 /// Speed of light in vacuum, m/s (exact by definition of the metre).
 pub const SPEED_OF_LIGHT: f64 = 299_792_458.0;
@@ -364,7 +364,7 @@ impl Scene {
         };
         if h < 1e-12 {
             // Straight up or down: the ray never leaves the cell it starts in.
-            let (ix, iy) = ((o[0] / grid.cell).floor() as i32, (o[1] / grid.cell).floor() as i32);
+            let (ix, iy) = (floor_i32(o[0] / grid.cell), floor_i32(o[1] / grid.cell));
             if let Some(items) = grid.cell_items(ix, iy) {
                 test_items(items, &mut best, &mut best_t);
             }
@@ -789,6 +789,8 @@ pub const MAX_SECONDARY: usize = 16;
 pub struct Lighting<'a> {
     /// The LEDs, for the direct light.
     pub light: &'a PoseLight,
+    /// The LEDs' sources that may light this sub-ray's points (`light::candidate_masks`).
+    pub candidates: u64,
     /// One source at the centre of the LEDs with their profile, for the interreflection: its
     /// light is smooth and weak, and one occlusion test per path keeps it cheap.
     pub bounce_light: &'a PoseLight,
@@ -912,7 +914,7 @@ pub fn trace_lit(
                     // of the summed gain at the gain-weighted mean length (relative error
                     // < 0.03²/2): one sine and cosine per point instead of one per LED.
                     let (mut gains, mut lengths) = (0.0, 0.0);
-                    l.light.paths(scene, point, hit.normal, false, &mut work.mail, |gain, length| {
+                    l.light.paths(scene, point, hit.normal, l.candidates, false, &mut work.mail, |gain, length| {
                         gains += gain;
                         lengths += gain * length;
                     });
@@ -958,11 +960,31 @@ pub fn trace_lit(
     }
 }
 
+/// Per sub-ray of the rig, the LEDs' light sources that may light it (`light::candidate_masks`);
+/// None without LEDs. Fixed for a rig and its light: computed once and handed to
+/// `render_with`.
+pub fn light_masks(rig: &Rig, params: &RenderParams) -> Option<Vec<u64>> {
+    params.illumination.as_ref().map(|light| candidate_masks(light, &rig.mirrors, &rig.rays))
+}
+
 /// Render the frames of `poses` into `out`: (frame, row, col, [re, im, Σ|p|, ambient]) as f32,
 /// each value the mean over the pixel's sub-rays. Runs on the current rayon pool, one image
 /// row per task; the result does not depend on the number of threads.
 pub fn render(scene: &Scene, rig: &Rig, params: &RenderParams, poses: &[[f64; 3]], out: &mut [f32]) {
+    render_with(scene, rig, params, light_masks(rig, params).as_deref(), poses, out)
+}
+
+/// `render` with the rig's `light_masks` computed beforehand (None: every source is tested).
+pub fn render_with(
+    scene: &Scene,
+    rig: &Rig,
+    params: &RenderParams,
+    masks: Option<&[u64]>,
+    poses: &[[f64; 3]],
+    out: &mut [f32],
+) {
     let (h, w, s) = (rig.height, rig.width, rig.sub_rays);
+    assert!(masks.is_none_or(|m| m.len() == rig.rays.len()), "one light mask per sub-ray");
     assert_eq!(out.len(), poses.len() * h * w * 4, "output buffer size");
     let transforms: Vec<[[f64; 4]; 3]> = poses.iter().map(|&p| rig.world_t_camera(p)).collect();
     let lit = params.illumination.is_some() || params.multipath_rays > 0;
@@ -1000,6 +1022,7 @@ pub fn render(scene: &Scene, rig: &Rig, params: &RenderParams, poses: &[[f64; 3]
                 }
                 let lighting = Lighting {
                     light: &lights[frame],
+                    candidates: masks.map_or(ALL_SOURCES, |m| m[first + col * s + j]),
                     bounce_light: &bounce_lights[frame],
                     secondary: &secondary[..count],
                     secondary_weight: weight,
@@ -1372,6 +1395,38 @@ mod tests {
         assert_eq!(one, run(3, &p));
         // Another seed draws other secondary rays.
         assert_ne!(one, run(2, &RenderParams { seed: 5, ..p.clone() }));
+    }
+
+    #[test]
+    fn light_masks_skip_only_sources_that_light_nothing() {
+        // The same image with the rig's candidate masks as with every source tested, and the
+        // masks do leave sources out (else the test would prove nothing).
+        let rig = test_rig(16, 12, 4);
+        let walls = [wall([-3.0, -3.0], [3.0, -3.0]), wall([3.0, -3.0], [3.0, 3.0]), wall([3.0, 3.0], [-3.0, 2.0]), wall([-3.0, 2.0], [-3.0, -3.0])];
+        let scene = matte_room(&walls, &[], 0.5);
+        for (exponent, min_cos) in [(1.0, 0.766), (0.0, -1.0), (3.6, 0.2)] {
+            let leds = vec![[0.035, 0.0, 0.0], [0.0, 0.035, 0.0], [-0.035, 0.0, 0.0], [0.0, -0.035, 0.0]];
+            let p = RenderParams {
+                illumination: Some(Illumination { leds, profile_exponent: exponent, min_cos }),
+                multipath_rays: 2,
+                ..params()
+            };
+            let masks = light_masks(&rig, &p).unwrap();
+            let poses = [[0.0, 0.0, 0.0], [0.4, -0.3, 2.0]];
+            let image = |masks: Option<&[u64]>| {
+                let mut out = vec![0f32; poses.len() * 16 * 12 * 4];
+                render_with(&scene, &rig, &p, masks, &poses, &mut out);
+                out
+            };
+            let with = image(Some(&masks));
+            // The LEDs light most pixels (Σ|p| > 0), so the light paths are exercised.
+            let lit = with.chunks_exact(4).filter(|px| px[2] > 0.0).count();
+            assert!(lit * 2 > poses.len() * 16 * 12, "{lit} lit pixels");
+            assert_eq!(with, image(None), "exponent {exponent}, min_cos {min_cos}");
+            let sources = 4 * (1 + rig.mirrors.len());
+            let tested: u32 = masks.iter().map(|m| (m & ((1u64 << sources) - 1)).count_ones()).sum();
+            assert!((tested as usize) < masks.len() * sources / 2, "{tested} of {}", masks.len() * sources);
+        }
     }
 }
 

@@ -10,7 +10,7 @@ use pyo3::prelude::*;
 
 use crate::light::Illumination;
 use crate::tof_frames::{self, check_layout, Decoded, Images, Layout, SensorModel};
-use crate::render::{render, Block, Kind, Material, Mirror, Rig, RenderParams, Scene, Wall, MAX_SECONDARY};
+use crate::render::{light_masks, render_with, Block, Kind, Material, Mirror, Rig, RenderParams, Scene, Wall, MAX_SECONDARY};
 
 fn rows<'a>(a: &'a PyReadonlyArray2<'_, f64>, cols: usize, what: &str) -> PyResult<Vec<&'a [f64]>> {
     let shape = a.shape();
@@ -85,6 +85,8 @@ struct PyRenderer {
     scene: Scene,
     rig: Rig,
     params: RenderParams,
+    /// The LEDs' candidate sources per sub-ray (render::light_masks), once for the renderer.
+    masks: Option<Vec<u64>>,
     pool: Option<rayon::ThreadPool>,
 }
 
@@ -187,7 +189,11 @@ impl PyRenderer {
         }
         let params = RenderParams { f_mod, amplitude_at_1m, max_bounces, min_gain, illumination, multipath_rays, bounce, seed };
         let pool = crate::optional_pool(threads)?;
-        Ok(PyRenderer { scene, rig, params, pool })
+        let masks = match &pool {
+            Some(pool) => pool.install(|| light_masks(&rig, &params)),
+            None => light_masks(&rig, &params),
+        };
+        Ok(PyRenderer { scene, rig, params, masks, pool })
     }
 
     /// (N, H, W, 4) float32: per pose (x, y, θ) and pixel, the mean over its sub-rays of the
@@ -200,10 +206,10 @@ impl PyRenderer {
         let (h, w) = (self.rig.height, self.rig.width);
         let mut out = vec![0f32; poses.len() * h * w * 4];
         py.detach(|| {
-            let (scene, rig, params) = (&self.scene, &self.rig, &self.params);
+            let (scene, rig, params, masks) = (&self.scene, &self.rig, &self.params, self.masks.as_deref());
             match &self.pool {
-                Some(pool) => pool.install(|| render(scene, rig, params, &poses, &mut out)),
-                None => render(scene, rig, params, &poses, &mut out),
+                Some(pool) => pool.install(|| render_with(scene, rig, params, masks, &poses, &mut out)),
+                None => render_with(scene, rig, params, masks, &poses, &mut out),
             }
         });
         Ok(Array4::from_shape_vec((poses.len(), h, w, 4), out).unwrap().into_pyarray(py))

@@ -17,6 +17,7 @@ use rand_distr::StandardNormal;
 use crate::correlative::{correlative_search, SearchWindow};
 use crate::grid::{GridError, TiledGrid, MAX_CELL_INDEX, TILE};
 use crate::motion::{compose, decompose, relative, wrap, OdometryMotion};
+use crate::raycast::floor_i32;
 use crate::sensor_model::ScanGeometry;
 
 /// Likelihood field: each beam end point is scored by its distance d to the nearest occupied
@@ -104,18 +105,6 @@ pub fn endpoints(geom: &ScanGeometry, ranges: &[f32], stride: usize, max_range: 
             })
         })
         .collect()
-}
-
-/// ⌊v⌋ as i32 (saturating; NaN gives 0, as `as` does). Why not `v.floor() as i32`: without
-/// SSE4.1 in the baseline target, `floor` is a libm call, 2 % of the filter's time.
-#[inline(always)]
-fn floor_i32(v: f64) -> i32 {
-    let t = v as i32;
-    if (t as f64) > v {
-        t.saturating_sub(1)
-    } else {
-        t
-    }
 }
 
 /// Calls `visit` on every cell of the square ring `r` cells out from (ix, iy) (the cell itself
