@@ -415,11 +415,21 @@ pub(crate) fn mix(mut z: u64) -> u64 {
 /// Two uniforms in [0, 1) for (seed, pose, pixel, ray): the same for any thread count, and
 /// for a pose whatever batch it is rendered in.
 pub fn uniforms(seed: u64, pose: [f64; 3], pixel: u64, ray: u64) -> [f64; 2] {
+    uniforms_of_pose(pose_hash(seed, pose), pixel, ray)
+}
+
+/// The part of `uniforms`' hash that depends on the seed and the pose only (once per frame).
+pub fn pose_hash(seed: u64, pose: [f64; 3]) -> u64 {
     let mut h = mix(seed);
     for v in pose {
         h = mix(h ^ v.to_bits());
     }
-    h = mix(mix(h ^ pixel) ^ ray);
+    h
+}
+
+/// `uniforms(seed, pose, pixel, ray)` from `pose_hash(seed, pose)`.
+pub fn uniforms_of_pose(pose_hash: u64, pixel: u64, ray: u64) -> [f64; 2] {
+    let h = mix(mix(pose_hash ^ pixel) ^ ray);
     let g = mix(h);
     let unit = |x: u64| (x >> 11) as f64 * (1.0 / (1u64 << 53) as f64);
     [unit(h), unit(g)]

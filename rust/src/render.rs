@@ -39,7 +39,7 @@
 
 use rayon::prelude::*;
 
-use crate::light::{candidate_masks, uniforms, Illumination, PoseLight, ALL_SOURCES};
+use crate::light::{candidate_masks, pose_hash, uniforms_of_pose, Illumination, PoseLight, ALL_SOURCES};
 use crate::raycast::{floor_i32, traverse};
 
 /// Speed of light in vacuum, m/s (exact by definition of the metre).
@@ -1003,6 +1003,7 @@ pub fn render_with(
         let frame = row_index / h;
         let m = &transforms[frame];
         let first = (row_index % h) * w * s;
+        let hash = pose_hash(params.seed, poses[frame]);
         let mut secondary = [[0.0f64; 2]; MAX_SECONDARY];
         for (col, px) in row.chunks_exact_mut(4).enumerate() {
             let mut acc = Return::default();
@@ -1016,7 +1017,7 @@ pub fn render_with(
                 let mut count = 0;
                 let mut ray = j;
                 while ray < total && count < MAX_SECONDARY {
-                    secondary[count] = uniforms(params.seed, poses[frame], pixel, ray as u64);
+                    secondary[count] = uniforms_of_pose(hash, pixel, ray as u64);
                     count += 1;
                     ray += s;
                 }
