@@ -114,6 +114,7 @@ struct Source {
 #[derive(Clone, Debug)]
 pub struct PoseLight {
     sources: Vec<Source>,
+    direct_bits: u64,
     mirrors: Vec<WorldMirror>,
     axis: [f64; 3],
     weight: f64,
@@ -163,7 +164,8 @@ impl PoseLight {
                 }
             }
         }
-        PoseLight { sources, mirrors: world, axis, weight: 1.0 / light.leds.len() as f64, exponent: light.profile_exponent, min_cos: light.min_cos }
+        let direct_bits = sources.iter().take(MASK_BITS).enumerate().filter(|(_, s)| s.mirror.is_none()).fold(0u64, |m, (i, _)| m | 1 << i);
+        PoseLight { sources, direct_bits, mirrors: world, axis, weight: 1.0 / light.leds.len() as f64, exponent: light.profile_exponent, min_cos: light.min_cos }
     }
 
     /// Whether the emission direction v (v·axis = `along`) lies clearly beyond the largest
@@ -298,35 +300,66 @@ pub const ALL_SOURCES: u64 = u64::MAX;
 /// Sources beyond the first this many have no bit and are always tested.
 const MASK_BITS: usize = 64;
 
-/// Per camera sub-ray (camera frame, as `Rig::rays`), the light sources of `PoseLight::new(light,
-/// mirrors, ·)` that can light some point of that ray: bit i set for source i (in `sources`'
-/// order, which does not depend on the pose). The sources are rigid with the camera, so this
-/// holds at every pose; `paths` then skips the other sources at the sub-ray's first surface
-/// (about two thirds of them with 4 LEDs and 4 mirrors: the images in the mirrors the ray does
-/// not look through, and the LEDs' direct light, whose 40° cone holds none of the mirrors'
-/// view). A superset by construction: a source is cleared only where its tests in `paths` that
-/// do not depend on the surface fail along the whole ray, with a margin far above rounding.
-pub fn candidate_masks(light: &Illumination, mirrors: &[Mirror], rays: &[SubRay]) -> Vec<u64> {
+/// What a camera sub-ray needs of the light sources (`candidate_masks`): the sources that can
+/// light some point of it (bit i for source i in `PoseLight`'s order, which does not depend on
+/// the pose), and how far along it (metres from where it leaves the optics) the LEDs' direct
+/// light can reach at most.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SubRayLight {
+    pub candidates: u64,
+    pub direct_reach: f64,
+}
+
+impl SubRayLight {
+    /// Every source, everywhere: nothing is skipped.
+    pub const ALL: SubRayLight = SubRayLight { candidates: ALL_SOURCES, direct_reach: f64::INFINITY };
+}
+
+/// Per camera sub-ray (camera frame, as `Rig::rays`), which light sources of `PoseLight::new(light,
+/// mirrors, ·)` can light its points, and up to where (`SubRayLight`). The sources are rigid
+/// with the camera, so this holds at every pose; `paths` then skips the others at the sub-ray's
+/// first surface: the images in the mirrors the ray does not look through, and the LEDs' direct
+/// light beyond the few centimetres where the ray, leaving its mirror, is still inside their
+/// 40° cone. A superset by construction: a source is left out only where its tests in `paths`
+/// that do not depend on the surface fail, with a margin far above rounding.
+pub fn candidate_masks(light: &Illumination, mirrors: &[Mirror], rays: &[SubRay]) -> Vec<SubRayLight> {
     const IDENTITY: [[f64; 4]; 3] = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]];
     let camera = PoseLight::new(light, mirrors, &IDENTITY);
     rays.par_iter()
         .map(|ray| {
+            let mut out = SubRayLight { candidates: ALL_SOURCES, direct_reach: 0.0 };
             if ray.g2 <= 0.0 {
-                return 0;
+                out.candidates = 0;
+                return out;
             }
-            camera.sources.iter().enumerate().fold(ALL_SOURCES, |mask, (i, s)| {
-                if i < MASK_BITS && !camera.may_light(s, ray.origin, ray.dir) { mask & !(1 << i) } else { mask }
-            })
+            for (i, s) in camera.sources.iter().enumerate() {
+                match camera.reach(s, ray.origin, ray.dir) {
+                    None if i < MASK_BITS => out.candidates &= !(1 << i),
+                    Some(t) if s.mirror.is_none() => out.direct_reach = out.direct_reach.max(t),
+                    _ => {}
+                }
+                if i >= MASK_BITS && s.mirror.is_none() {
+                    out.direct_reach = f64::INFINITY; // no bit: always tested, so never cut short
+                }
+            }
+            out
         })
         .collect()
 }
 
 impl PoseLight {
-    /// Whether source `s` may light some point o + t·d, t >= 0 (camera frame, d unit): the
-    /// interval of t where every linear test holds (an image: x on the mirror's reflective side
-    /// and inside the cone through its outline) or the emission cone meets the ray (the direct
-    /// LED), each widened by a margin.
-    fn may_light(&self, s: &Source, o: [f64; 3], d: [f64; 3]) -> bool {
+    /// The bits of the LEDs' direct sources (not their images) among the first 64 sources.
+    pub fn direct_bits(&self) -> u64 {
+        self.direct_bits
+    }
+
+    /// The largest t >= 0 (infinity included) up to which source `s` may light the points
+    /// o + t·d (camera frame, d unit); None if it lights none. An image: the interval of t where
+    /// every linear test holds (x on the mirror's reflective side, inside the cone through its
+    /// outline). The direct LED: where the ray lies within the emission cone. Each widened by a
+    /// margin, so that every t where `paths` could find the source lighting is covered.
+    fn reach(&self, s: &Source, o: [f64; 3], d: [f64; 3]) -> Option<f64> {
+        let widen = |t: f64| t + 1e-6 * (1.0 + t.abs());
         match s.mirror {
             Some(k) => {
                 let mi = &self.mirrors[k];
@@ -348,14 +381,14 @@ impl PoseLight {
                 for &c in &s.cone {
                     keep(dot(c, sub(o, s.position)), dot(c, d));
                 }
-                lo <= hi
+                (lo <= hi).then_some(hi)
             }
             None => {
                 if self.min_cos <= 0.0 {
-                    return true;
+                    return Some(f64::INFINITY);
                 }
-                // along(t) = p + q·t >= 0 and f(t) = along² − c²·|x − L|² >= 0 for some t >= 0,
-                // with c² a millionth smaller than min_cos² (the margin).
+                // along(t) = p + q·t >= 0 and f(t) = along² − c²·|x − L|² >= 0, with c² a
+                // millionth smaller than min_cos² (the margin): the largest such t >= 0.
                 let r0 = sub(o, s.position);
                 let (p, q) = (dot(r0, self.axis), dot(d, self.axis));
                 let c2 = self.min_cos * self.min_cos * (1.0 - 1e-6);
@@ -369,23 +402,33 @@ impl PoseLight {
                 } else {
                     (0.0, if p >= 0.0 { f64::INFINITY } else { -1.0 })
                 };
-                if lo > hi {
-                    return false;
+                if !(lo <= hi) {
+                    return None;
                 }
-                if hi.is_infinite() && (a > 0.0 || (a == 0.0 && b > 0.0)) {
-                    return true;
-                }
-                let mut best = f(lo);
-                if hi.is_finite() {
-                    best = best.max(f(hi));
-                }
-                if a < 0.0 {
-                    let vertex = -b / (2.0 * a);
-                    if vertex > lo && vertex < hi {
-                        best = best.max(f(vertex));
+                if hi.is_infinite() {
+                    if a > 0.0 || (a == 0.0 && (b > 0.0 || (b == 0.0 && c >= 0.0))) {
+                        return Some(f64::INFINITY);
                     }
+                } else if f(hi) >= 0.0 {
+                    return Some(widen(hi));
                 }
-                best >= 0.0
+                // f < 0 at the far end: the last t where f >= 0 is a root of f, if any in [lo, hi).
+                let last = if a == 0.0 {
+                    (b < 0.0).then(|| -c / b)
+                } else {
+                    let disc = b * b - 4.0 * a * c;
+                    if disc < 0.0 {
+                        None // f has the sign of a everywhere; negative here
+                    } else {
+                        // Roots without cancellation (Numerical Recipes' form).
+                        let h = -0.5 * (b + b.signum() * disc.sqrt());
+                        let (r1, r2) = if h == 0.0 { (0.0, 0.0) } else { (h / a, c / h) };
+                        let (r1, r2) = (r1.min(r2), r1.max(r2));
+                        // Concave: f >= 0 on [r1, r2]; convex: on t <= r1 (and t >= r2, beyond hi).
+                        Some(if a < 0.0 { r2 } else { r1 })
+                    }
+                };
+                last.filter(|&t| widen(t) >= lo).map(|t| widen(t.min(hi)))
             }
         }
     }

@@ -39,7 +39,7 @@
 
 use rayon::prelude::*;
 
-use crate::light::{candidate_masks, pose_hash, uniforms_of_pose, Illumination, PoseLight, ALL_SOURCES};
+use crate::light::{candidate_masks, pose_hash, uniforms_of_pose, Illumination, PoseLight, SubRayLight};
 use crate::raycast::{floor_i32, traverse};
 
 /// Speed of light in vacuum, m/s (exact by definition of the metre).
@@ -789,8 +789,8 @@ pub const MAX_SECONDARY: usize = 16;
 pub struct Lighting<'a> {
     /// The LEDs, for the direct light.
     pub light: &'a PoseLight,
-    /// The LEDs' sources that may light this sub-ray's points (`light::candidate_masks`).
-    pub candidates: u64,
+    /// The LEDs' sources that may light this sub-ray's points, and how far (`light::candidate_masks`).
+    pub reach: SubRayLight,
     /// One source at the centre of the LEDs with their profile, for the interreflection: its
     /// light is smooth and weak, and one occlusion test per path keeps it cheap.
     pub bounce_light: &'a PoseLight,
@@ -914,7 +914,12 @@ pub fn trace_lit(
                     // of the summed gain at the gain-weighted mean length (relative error
                     // < 0.03²/2): one sine and cosine per point instead of one per LED.
                     let (mut gains, mut lengths) = (0.0, 0.0);
-                    l.light.paths(scene, point, hit.normal, l.candidates, false, &mut work.mail, |gain, length| {
+                    let candidates = if hit.t > l.reach.direct_reach {
+                        l.reach.candidates & !l.light.direct_bits()
+                    } else {
+                        l.reach.candidates
+                    };
+                    l.light.paths(scene, point, hit.normal, candidates, false, &mut work.mail, |gain, length| {
                         gains += gain;
                         lengths += gain * length;
                     });
@@ -963,7 +968,7 @@ pub fn trace_lit(
 /// Per sub-ray of the rig, the LEDs' light sources that may light it (`light::candidate_masks`);
 /// None without LEDs. Fixed for a rig and its light: computed once and handed to
 /// `render_with`.
-pub fn light_masks(rig: &Rig, params: &RenderParams) -> Option<Vec<u64>> {
+pub fn light_masks(rig: &Rig, params: &RenderParams) -> Option<Vec<SubRayLight>> {
     params.illumination.as_ref().map(|light| candidate_masks(light, &rig.mirrors, &rig.rays))
 }
 
@@ -979,7 +984,7 @@ pub fn render_with(
     scene: &Scene,
     rig: &Rig,
     params: &RenderParams,
-    masks: Option<&[u64]>,
+    masks: Option<&[SubRayLight]>,
     poses: &[[f64; 3]],
     out: &mut [f32],
 ) {
@@ -1023,7 +1028,7 @@ pub fn render_with(
                 }
                 let lighting = Lighting {
                     light: &lights[frame],
-                    candidates: masks.map_or(ALL_SOURCES, |m| m[first + col * s + j]),
+                    reach: masks.map_or(SubRayLight::ALL, |m| m[first + col * s + j]),
                     bounce_light: &bounce_lights[frame],
                     secondary: &secondary[..count],
                     secondary_weight: weight,
@@ -1399,6 +1404,47 @@ mod tests {
     }
 
     #[test]
+    fn light_masks_cover_every_point_a_source_lights() {
+        // Along each sub-ray (camera frame), points at many t, each facing the light: every
+        // source that `paths` finds lighting a point has its bit, and the LEDs' direct light
+        // reaches no point beyond `direct_reach`.
+        let rig = test_rig(10, 10, 4);
+        let scene = matte_room(&[wall([5.0, -5.0], [5.0, 5.0])], &[], 1.0);
+        let mut mail = Mailbox::for_scene(&scene);
+        let identity = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]];
+        let leds = vec![[0.035, 0.0, 0.0], [0.0, 0.035, 0.0], [-0.035, 0.0, 0.0], [0.0, -0.035, 0.0]];
+        let (mut lit, mut direct_lit) = (0, 0);
+        for min_cos in [0.766, 0.3, 0.95] {
+            let light = Illumination { leds: leds.clone(), profile_exponent: 1.0, min_cos };
+            let masks = crate::light::candidate_masks(&light, &rig.mirrors, &rig.rays);
+            let camera = PoseLight::new(&light, &rig.mirrors, &identity);
+            let direct = camera.direct_bits();
+            for (ray, mask) in rig.rays.iter().zip(&masks).filter(|(r, _)| r.g2 > 0.0) {
+                for k in 0..400 {
+                    let t = 1e-4 * 1.04f64.powi(k); // 0.1 mm to about 70 m
+                    let x = add(ray.origin, scale(ray.dir, t));
+                    for bit in 0..20 {
+                        // A normal facing the source's side: the point is lit if anything lights it.
+                        let mut found = false;
+                        for n in [scale(ray.dir, -1.0), [0.0, 0.0, -1.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0]] {
+                            camera.paths(&scene, x, n, 1u64 << bit, false, &mut mail, |_, _| found = true);
+                        }
+                        if found {
+                            lit += 1;
+                            assert!(mask.candidates & (1 << bit) != 0, "source {bit} lights t = {t} but is masked out");
+                            if direct & (1 << bit) != 0 {
+                                direct_lit += 1;
+                                assert!(t <= mask.direct_reach, "direct light at t = {t} beyond {}", mask.direct_reach);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(lit > 10_000 && direct_lit > 100, "{lit} lit, {direct_lit} by the LEDs directly");
+    }
+
+    #[test]
     fn light_masks_skip_only_sources_that_light_nothing() {
         // The same image with the rig's candidate masks as with every source tested, and the
         // masks do leave sources out (else the test would prove nothing).
@@ -1414,7 +1460,7 @@ mod tests {
             };
             let masks = light_masks(&rig, &p).unwrap();
             let poses = [[0.0, 0.0, 0.0], [0.4, -0.3, 2.0]];
-            let image = |masks: Option<&[u64]>| {
+            let image = |masks: Option<&[SubRayLight]>| {
                 let mut out = vec![0f32; poses.len() * 16 * 12 * 4];
                 render_with(&scene, &rig, &p, masks, &poses, &mut out);
                 out
@@ -1425,7 +1471,7 @@ mod tests {
             assert!(lit * 2 > poses.len() * 16 * 12, "{lit} lit pixels");
             assert_eq!(with, image(None), "exponent {exponent}, min_cos {min_cos}");
             let sources = 4 * (1 + rig.mirrors.len());
-            let tested: u32 = masks.iter().map(|m| (m & ((1u64 << sources) - 1)).count_ones()).sum();
+            let tested: u32 = masks.iter().map(|m| (m.candidates & ((1u64 << sources) - 1)).count_ones()).sum();
             assert!((tested as usize) < masks.len() * sources / 2, "{tested} of {}", masks.len() * sources);
         }
     }

@@ -86,7 +86,7 @@ struct PyRenderer {
     rig: Rig,
     params: RenderParams,
     /// The LEDs' candidate sources per sub-ray (render::light_masks), once for the renderer.
-    masks: Option<Vec<u64>>,
+    masks: Option<Vec<crate::light::SubRayLight>>,
     pool: Option<rayon::ThreadPool>,
 }
 
