@@ -192,9 +192,10 @@ impl PoseLight {
     /// Calls `f(gain, length)` for every light path from an LED to the point `x` whose unit
     /// normal `n` faces the side the light must come from (module docs). With `occlusion`,
     /// paths the scene blocks are left out (the mirrors are not part of the scene). Sources
-    /// whose bit (in the order of `sources`) is clear in `candidates` are skipped untested:
-    /// `candidate_masks` clears only those that light no point of the camera ray that x lies
-    /// on, so the result is the same as with every bit set (`ALL_SOURCES`).
+    /// whose bit (in the order of `sources`) is clear in `candidates` are skipped untested;
+    /// `candidate_masks` clears only those that light no point of the camera ray that x lies on
+    /// (and the renderer the direct LEDs' bits beyond their reach), so the result is the same
+    /// as with every bit set (`ALL_SOURCES`).
     #[allow(clippy::too_many_arguments)]
     pub fn paths(
         &self,
@@ -337,9 +338,6 @@ pub fn candidate_masks(light: &Illumination, mirrors: &[Mirror], rays: &[SubRay]
                     None if i < MASK_BITS => out.candidates &= !(1 << i),
                     Some(t) if s.mirror.is_none() => out.direct_reach = out.direct_reach.max(t),
                     _ => {}
-                }
-                if i >= MASK_BITS && s.mirror.is_none() {
-                    out.direct_reach = f64::INFINITY; // no bit: always tested, so never cut short
                 }
             }
             out

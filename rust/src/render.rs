@@ -31,7 +31,8 @@
 //! horizontal projection with `raycast::traverse` (Amanatides & Woo) and stops at the first cell
 //! that ends beyond the nearest hit found so far. A primitive that lies in several cells is
 //! tested once per ray (`Mailbox`). Floor and ceiling are planes tested before the walk; they
-//! bound its length.
+//! bound its length. With the LEDs on, each sub-ray's first surface tests only the light sources
+//! that can light some point of that sub-ray (`light_masks`, worked out once per rig).
 //!
 //! Determinism: nothing here is random (sub-ray jitter is chosen by the caller, the grid's bars
 //! are a fixed pattern in space), and each pixel sums its sub-rays in a fixed order, so the
