@@ -179,6 +179,38 @@ def test_graduated_verdicts_on_the_reduced_graph_are_the_whole_graphs(monkeypatc
     assert reduced[-2:] == [False, False]  # the two injected ones
 
 
+def test_readmission_takes_back_a_dropped_closure_that_agrees_and_keeps_the_better_of_two(monkeypatch, corridor_loop):
+    backend = _captured_backend(monkeypatch, corridor_loop, loop_config(True))
+    est = np.asarray(backend.estimate)
+    kept = [bool(c.accepted) for c in backend.closures]
+    assert sum(kept) >= 2
+    true_i = max((i for i, k in enumerate(kept) if k), key=lambda i: backend.closures[i].node)
+    c = backend.closures[true_i]
+    # A closure of the same node against the same anchor, 1 m and 5° away from the truth: it
+    # and the true one exclude each other.
+    false = Closure(node=c.node, anchor=c.anchor, submap=c.submap,
+                    measured=compose(relative(est[c.anchor], est[c.node]), np.array([1.0, 0.0, np.radians(5.0)])),
+                    score=c.score - 0.1, covariance=np.diag([0.03**2, 0.03**2, np.radians(0.5) ** 2]), search="local")
+    backend.closures.append(false)
+    i_false = len(backend.closures) - 1
+    # Graduated non-convexity's wrong choice: the false one kept, the true one dropped.
+    wrong = kept + [True]
+    wrong[true_i] = False
+    assert backend._disagreeing([k or i == true_i for i, k in enumerate(wrong)])  # the two cannot both stay
+    fixed = backend._readmit(wrong)
+    assert fixed[true_i] and not fixed[i_false]
+    assert all(fixed[i] for i, k in enumerate(kept) if k)  # nothing else kept is dropped
+    # A true closure dropped alone is taken back; a false one dropped alone is not.
+    alone = kept + [False]
+    alone[true_i] = False
+    again = backend._readmit(alone)
+    assert again[true_i] and not again[i_false]
+    # Where the false one scores higher, it is not exchanged for the true one.
+    backend.closures[i_false].score = c.score + 0.1
+    kept_false = backend._readmit(wrong)
+    assert kept_false[i_false] and not kept_false[true_i]
+
+
 def test_chained_matches_in_the_core_are_the_single_matches_in_turn(corridor_loop):
     # ParticleFilter.match_scans poses a run of scans in one call; independent check: the same
     # chain of single matches (match_scan), each started from the pose before it.
