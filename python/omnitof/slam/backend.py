@@ -467,7 +467,10 @@ class PoseGraphBackend:
         choose."""
         kept = list(kept)
         score = [c.score for c in self.closures]
-        todo = sorted((i for i, k in enumerate(kept) if not k), key=lambda i: -score[i])
+        def by_score(indices) -> list[int]:  # best first; ties in the order found
+            return sorted(indices, key=lambda i: (-score[i], i))
+
+        todo = by_score(i for i, k in enumerate(kept) if not k)
         # At most four tries per closure: exchanges put closures back on the list.
         for _ in range(4 * len(kept)):
             if not todo:
@@ -487,7 +490,7 @@ class PoseGraphBackend:
                     trial[k] = False
                 if self._disagreeing(trial):
                     continue
-                todo = sorted(set(todo) | set(lower), key=lambda k: -score[k])
+                todo = by_score(set(todo) | set(lower))
             kept = trial
             self.readmitted += 1
         return kept
