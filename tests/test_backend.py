@@ -200,6 +200,7 @@ def test_readmission_takes_back_a_dropped_closure_that_agrees_and_keeps_the_bett
     fixed = backend._readmit(wrong)
     assert fixed[true_i] and not fixed[i_false]
     assert all(fixed[i] for i, k in enumerate(kept) if k)  # nothing else kept is dropped
+    assert not backend._disagreeing(fixed)  # what it keeps agrees with itself
     # A true closure dropped alone is taken back; a false one dropped alone is not.
     alone = kept + [False]
     alone[true_i] = False
