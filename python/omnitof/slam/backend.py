@@ -504,17 +504,11 @@ class PoseGraphBackend:
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(LM_ITERATIONS)
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-        pose = {k: _pose(result.atPose2(index[k])) for k in keys}
-        return [i for i, (c, keep) in enumerate(zip(self.closures, use))
-                if keep and not self._closure_agrees(c, pose[c.anchor], pose[c.node])]
-
-    def _closure_agrees(self, c: Closure, anchor: np.ndarray, node: np.ndarray) -> bool:
-        """Whether poses `anchor` and `node` agree with closure c (`_agreement`'s test)."""
-        if c.information is None:
-            c.information = np.linalg.inv(self._closure_covariance(c))
-        error = relative(anchor, node) - c.measured
-        error[2] = wrap_angle(error[2])
-        return bool(error @ c.information @ error <= CHI2_3DOF_99)
+        poses = np.asarray(self.estimate).copy()  # only the reduced graph's nodes are read
+        poses[keys] = [_pose(result.atPose2(index[k])) for k in keys]
+        used = [i for i, keep in enumerate(use) if keep]
+        agree = self._agreement([self.closures[i] for i in used], poses)
+        return [i for i, ok in zip(used, agree) if not ok]
 
     def _graph(self, *, robust: bool, use: list[bool]) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
         """The prior on the first node, the front-end edges, then the closures in `use`."""
@@ -542,16 +536,16 @@ class PoseGraphBackend:
             self._edge_factors[j] = cached
         return cached[1]
 
-    def _agreement(self, closures: list[Closure]) -> np.ndarray:
-        """For each closure, whether the current estimate agrees with it: its squared
-        Mahalanobis distance within the CHI2_PROBABILITY quantile of chi-square with 3 degrees
-        of freedom."""
+    def _agreement(self, closures: list[Closure], poses: np.ndarray | None = None) -> np.ndarray:
+        """For each closure, whether the node poses (default: the current estimate) agree with
+        it: its squared Mahalanobis distance within the CHI2_PROBABILITY quantile of chi-square
+        with 3 degrees of freedom."""
         if not closures:
             return np.zeros(0, dtype=bool)
         for c in closures:
             if c.information is None:
                 c.information = np.linalg.inv(self._closure_covariance(c))
-        estimate = np.asarray(self.estimate)
+        estimate = np.asarray(self.estimate) if poses is None else poses
         predicted = relative(estimate[[c.anchor for c in closures]], estimate[[c.node for c in closures]])
         error = predicted - np.array([c.measured for c in closures])
         error[:, 2] = wrap_angle(error[:, 2])
