@@ -418,6 +418,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="the bag folder (or, for calibration, the image folder) to write")
     p.add_argument("--placements", type=_positive_int, default=8, help="calibration: dot-target placements per mirror")
     p.add_argument("--boards", type=_positive_int, default=30, help="calibration: checkerboard images")
+    p.add_argument("--random-boards", action="store_true",
+                   help="calibration: checkerboards at random poses (default: poses planned for the intrinsics)")
     p.add_argument("--pair-boards", type=_positive_int, default=2,
                    help="calibration: plain boards seen through each two neighbouring mirrors (for `calibrate refine`)")
     p.add_argument("--walls", action="store_true",

@@ -1,5 +1,6 @@
 """`omnitof calibrate ...`: intrinsics, mirrors, masks, checks and simulated target images.
 
+    omnitof calibrate plan-boards --out DIR [--calibration cal.yaml] [--boards N]
     omnitof calibrate render-targets --out DIR [--world W] [--seed S] [--placements N] [--walls]
     omnitof calibrate intrinsics DIR/intrinsics --out cal.yaml
     omnitof calibrate mirrors DIR/mirrors --calibration cal.yaml
@@ -79,12 +80,25 @@ def add_calibrate_parser(sub) -> None:
                    "for the Fig. 6 check (default: the simulated scene)")
     c.set_defaults(func=cmd_report)
 
+    c = csub.add_parser("plan-boards", help="where to hold the checkerboard: poses planned for the intrinsics, "
+                        "as YAML and a figure of where each board should appear in the image")
+    c.add_argument("--out", type=Path, required=True, help="folder for boards.yaml and boards.png")
+    c.add_argument("--calibration", type=Path,
+                   help="take the nominal camera from this calibration YAML (default: the rig design's)")
+    c.add_argument("--boards", type=_positive_int, default=30, help="boards to plan")
+    c.add_argument("--board", default="8x6", help="squares across x down (default 8x6)")
+    c.add_argument("--square", type=_number(above=0), default=0.035, help="square side in metres (default 0.035)")
+    c.add_argument("--seed", type=_seed, default=0, help="fixes the candidate poses drawn")
+    c.set_defaults(func=cmd_plan_boards)
+
     c = csub.add_parser("render-targets", help="simulate checkerboard and dot-target images")
     c.add_argument("--out", type=Path, required=True, help="folder to write into")
     c.add_argument("--world", help="bundled world name or YAML: its ceiling, floor and light")
     c.add_argument("--seed", type=_seed, default=0)
     c.add_argument("--placements", type=_positive_int, default=8, help="dot-target placements per mirror")
     c.add_argument("--boards", type=_positive_int, default=15, help="checkerboard images")
+    c.add_argument("--random-boards", action="store_true",
+                   help="checkerboards at random poses (default: poses planned for the intrinsics)")
     c.add_argument("--pair-boards", type=_positive_int, default=2,
                    help="plain boards seen through each two neighbouring mirrors (for `calibrate refine`)")
     c.add_argument("--walls", action="store_true",
@@ -274,13 +288,77 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_plan_boards(args: argparse.Namespace) -> int:
+    import math
+
+    import yaml
+
+    from omnitof.calibration import load_calibration
+    from omnitof.calibration.planning import board_information, predicted_covariance
+    from omnitof.calibration.targets import Checkerboard, checkerboard_poses, planned_checkerboard_poses
+    from omnitof.io.atomic import atomic_write
+    from omnitof.sensor.design import default_rig
+    from omnitof.viz.calibration import plot_board_plan
+
+    cols, rows = _board(args.board)
+    board = Checkerboard(cols=cols, rows=rows, square=args.square)
+    camera = load_calibration(args.calibration).camera if args.calibration else default_rig().camera
+    poses = planned_checkerboard_poses(camera, board, args.boards, args.seed)
+    x0, x1, y0, y1 = board.extent()
+    outline = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+    entries, outlines, firsts = [], [], []
+    for k, pose in enumerate(poses):
+        pixels = camera.project(outline @ pose[:3, :3].T + pose[:3, 3])
+        first = camera.project(pose[:3, 3][None, :])[0]
+        middle = pose[:3, :3] @ np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0]) + pose[:3, 3]
+        tilt = math.degrees(math.acos(min(1.0, abs(float(pose[:3, 2] @ middle)) / float(np.linalg.norm(middle)))))
+        outlines.append(pixels)
+        firsts.append(first)
+        entries.append({
+            "name": f"board_{k:02d}",
+            "distance_m": round(float(np.linalg.norm(middle)), 3),
+            "tilt_deg": round(tilt, 1),
+            "outline_px": np.round(pixels, 1).tolist(),
+            "first_corner_px": np.round(first, 1).tolist(),
+            "camera_T_board": np.round(pose, 6).tolist(),
+        })
+    # Corner error assumed for the figures printed: the saddle detector's scatter on rendered
+    # boards is 0.0165 px; a real camera's is the user's to measure (the RMS of `calibrate intrinsics`).
+    sigma_px = 0.05
+    spread = {}
+    for name, chosen in (("planned", poses), ("random", checkerboard_poses(camera, board, args.boards, args.seed))):
+        cov = predicted_covariance([board_information(camera, board.object_points(), p) for p in chosen], sigma_px)
+        spread[name] = (math.sqrt(cov[2, 2]), math.sqrt(cov[3, 3]), 100.0 * math.sqrt(cov[0, 0]) / camera.fx)
+    args.out.mkdir(parents=True, exist_ok=True)
+    document = {
+        "camera": {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy,
+                   "cx": camera.cx, "cy": camera.cy, "dist": list(camera.dist)},
+        "board": {"cols": cols, "rows": rows, "square_m": args.square},
+        "frames": "camera_T_board: the board's frame (first inner corner at the origin, x along a row of "
+                  "corners, z out of the board) in the camera frame (z along the optical axis), metres",
+        "predicted_std_at_0.05px_corner_error": {
+            name: {"cx_px": round(v[0], 4), "cy_px": round(v[1], 4), "fx_pct": round(v[2], 4)}
+            for name, v in spread.items()},
+        "boards": entries,
+    }
+    with atomic_write(args.out / "boards.yaml", "w") as handle:
+        yaml.safe_dump(document, handle, sort_keys=False)
+    plot_board_plan(args.out / "boards.png", camera.width, camera.height, outlines, np.array(firsts))
+    p, r = spread["planned"], spread["random"]
+    print(f"planned {len(poses)} board poses ({cols}x{rows} squares of {args.square} m): "
+          f"{args.out / 'boards.yaml'}, {args.out / 'boards.png'}")
+    print(f"  predicted σ at 0.05 px corner error: cx {p[0]:.3f}, cy {p[1]:.3f} px, fx {p[2]:.3f} % "
+          f"(random poses: {r[0]:.3f}, {r[1]:.3f} px, {r[2]:.3f} %)")
+    return 0
+
+
 def cmd_render_targets(args: argparse.Namespace) -> int:
     from omnitof.calibration.targets import render_calibration_images
 
     started = time.perf_counter()
     summary = render_calibration_images(
         args.out, world=args.world, seed=args.seed, placements=args.placements, boards=args.boards,
-        pair_boards=args.pair_boards,
+        pair_boards=args.pair_boards, planned_boards=not args.random_boards,
     )
     print(f"wrote {summary['boards']} checkerboard images to {args.out / 'intrinsics'}, "
           f"{summary['dot_images']} dot-target images ({args.placements} per mirror: "

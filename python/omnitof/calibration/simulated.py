@@ -35,9 +35,9 @@ from omnitof.calibration.mirror_planes import calibrate_mirrors
 from omnitof.calibration.targets import render_checkerboard_images, render_dot_images
 from omnitof.sensor.mirrors import assign_pixels
 
-# 30 boards pin the principal point to 0.04–0.19 px at 176×144 (closed form, seeds 0–9), which
-# is what limits the mirror normals once the intrinsics are estimated. 60 boards did not remove
-# the worst seeds' error (benchmarks/calibration_refine.py; BENCHMARKS.md, "Calibration").
+# 30 boards at planned poses pin the principal point to 0.02–0.08 px at 176×144 (closed form,
+# seeds 0–14; random poses: 0.03–0.16 px, and 60 random boards did not remove the worst seeds'
+# error). benchmarks/calibration_planning.py; BENCHMARKS.md, "Calibration".
 DEFAULT_BOARDS = 30
 DEFAULT_PLACEMENTS = 8
 # Two-mirror boards per pair of neighbouring mirrors (refinement only).
@@ -58,6 +58,7 @@ def calibrate_from_simulation(
     pair_boards: int = DEFAULT_PAIR_BOARDS,
     distance_correction: bool = True,
     corrected_path_lengths: bool = False,
+    planned_boards: bool = True,
 ) -> tuple[Calibration, dict[str, Any]]:
     """(estimated Calibration, report) for the rig of a `sim.render.Renderer`.
 
@@ -66,11 +67,12 @@ def calibrate_from_simulation(
     plane distance (mm), with what the robust steps rejected, and the distance correction's fit.
     distance_correction: fit one when the sensor has systematic distance errors (module
     docstring). corrected_path_lengths: with a correction, refine again with the path lengths
-    of the corrected distances.
+    of the corrected distances. planned_boards: the checkerboards at planned poses
+    (`targets.planned_checkerboard_poses`), else at random ones.
     """
     camera, mirrors = renderer.camera, list(renderer.mirrors)
     truth = truth or Calibration.from_rig(renderer.rig, edge_margin_px)
-    board_images, _ = render_checkerboard_images(camera, boards, seed, sensor=renderer.sensor)
+    board_images, _ = render_checkerboard_images(camera, boards, seed, sensor=renderer.sensor, planned=planned_boards)
     intrinsics = calibrate_intrinsics(board_images)
     dot_images, _ = render_dot_images(camera, mirrors, placements, seed, sensor=renderer.sensor)
     design_labels = assign_pixels(camera, mirrors)
@@ -83,7 +85,8 @@ def calibrate_from_simulation(
         intrinsics.camera, result.planes, [m.name for m in mirrors], np.asarray(renderer.robot_T_camera),
         labels, edge_margin_px=edge_margin_px,
         quality={**intrinsics.quality(), "mirrors": result.report()},
-        provenance={"source": f"simulated targets, seed {seed}: {boards} boards, {placements} placements per mirror"},
+        provenance={"source": f"simulated targets, seed {seed}: {boards} {'planned' if planned_boards else 'random'} "
+                              f"boards, {placements} placements per mirror"},
     )
     closed_form = None
     distance_errors = set(getattr(getattr(renderer.sensor, "errors", None), "switched_on", ())) & set(DISTANCE_ERRORS)

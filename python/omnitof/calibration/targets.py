@@ -59,6 +59,9 @@ BOARD_TILT_DEG = 50.0
 # Distance range (metres) of the checkerboard's middle from the lens: boards that fill much of
 # the image pin the principal point (15 boards: 0.3 px error against 0.6 px at 0.35–0.75 m).
 BOARD_DEPTH = (0.25, 0.5)
+# Planned boards are chosen from this many random feasible poses per board
+# (`planned_checkerboard_poses`).
+PLAN_CANDIDATES = 20
 # Sub-rays per pixel (8×8 stratified): a real pixel integrates the light over its whole area,
 # and the printed edges' grey values must come from that box filter, not from the sampling
 # pattern. Checkerboard corners found by `intrinsics.saddle_points` on noise-free boards lie
@@ -683,6 +686,20 @@ def _dot_pose_ok(camera, mirrors, index, target, pose, dots, outline, labels, cl
 # --- image sets ----------------------------------------------------------------------------
 
 
+def planned_checkerboard_poses(
+    camera: Camera, board: Checkerboard, n: int, seed: int, *, candidates_per_board: int = PLAN_CANDIDATES
+) -> list[np.ndarray]:
+    """n checkerboard poses chosen from n·candidates_per_board feasible ones
+    (`checkerboard_poses`) for the smallest predicted uncertainty of the calibrated projection
+    (`calibration.planning`). The camera's intrinsics enter only the prediction: nominal ones
+    (a data sheet's) plan as well as the true ones."""
+    from omnitof.calibration.planning import board_information, plan_boards, projection_weight
+
+    pool = checkerboard_poses(camera, board, n * candidates_per_board, seed)
+    informations = [board_information(camera, board.object_points(), pose) for pose in pool]
+    return [pool[i] for i in plan_boards(informations, n, projection_weight(camera))]
+
+
 def render_checkerboard_images(
     camera: Camera,
     n: int,
@@ -691,10 +708,15 @@ def render_checkerboard_images(
     board: Checkerboard = Checkerboard(),
     sensor: SensorNoise | None = None,
     room: Room = Room(),
+    planned: bool = True,
 ) -> tuple[list, list[np.ndarray]]:
     """(images, poses): n noisy amplitude/distance images (AmplitudeImage, named board_00, ...)
-    of a checkerboard seen by the camera without mirrors, and the boards' true poses."""
-    poses = checkerboard_poses(camera, board, n, seed)
+    of a checkerboard seen by the camera without mirrors, and the boards' true poses.
+    planned: the poses of `planned_checkerboard_poses`; else n random ones."""
+    if planned:
+        poses = planned_checkerboard_poses(camera, board, n, seed)
+    else:
+        poses = checkerboard_poses(camera, board, n, seed)
     images = []
     for i, pose in enumerate(poses):
         frame, _ = render_target(camera, board, pose, (), rng=np.random.default_rng([seed, i]),
@@ -781,6 +803,7 @@ def render_calibration_images(
     board: Checkerboard = Checkerboard(),
     sensor: SensorNoise | None = None,
     pair_boards: int = 2,
+    planned_boards: bool = True,
 ) -> dict[str, Any]:
     """Render a calibration data set into out_dir and return a summary.
 
@@ -804,7 +827,8 @@ def render_calibration_images(
     out = Path(out_dir)
     (out / "intrinsics").mkdir(parents=True, exist_ok=True)
     (out / "mirrors").mkdir(parents=True, exist_ok=True)
-    boards_images, _ = render_checkerboard_images(camera, boards, seed, board=board, sensor=sensor, room=room)
+    boards_images, _ = render_checkerboard_images(camera, boards, seed, board=board, sensor=sensor, room=room,
+                                                  planned=planned_boards)
     dot_images, _ = render_dot_images(camera, mirrors, placements, seed, target=target, sensor=sensor, room=room)
     pair_images: list = []
     if pair_boards > 0:

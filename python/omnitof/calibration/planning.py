@@ -1,0 +1,96 @@
+"""Where to hold the checkerboards: board poses chosen for what they tell about the intrinsics.
+
+Random board poses leave the principal point to chance: with 30 boards of 7×5 corners at
+176×144 its predicted standard deviation is 0.06–0.075 px, and the image's outer parts, where
+the mirrors are, get few corners, so the distortion there is poorly pinned (BENCHMARKS.md,
+"Board poses planned for the intrinsics"). Following the idea of
+Peng & Sturm's calibration wizard (ICCV 2019), a set of boards is chosen from many feasible
+candidates so that the predicted uncertainty of the calibrated projection, averaged over the
+image, is smallest.
+
+Model (written here: OpenCV gives the Jacobians, no library does the selection). Each board's
+corners have independent image errors of σ px. `cv2.projectPoints` gives the Jacobian of the
+corners' pixels with respect to the board's pose (6) and the intrinsics θ (fx, fy, cx, cy, k1,
+k2, p1, p2; k3 is held at 0 as `calibrate_intrinsics` does). The board's pose is unknown, so
+its information about θ is the Schur complement
+
+    I_b = A − B C⁻¹ Bᵀ,  A = J_θᵀJ_θ, B = J_θᵀJ_pose, C = J_poseᵀJ_pose,
+
+and n boards give Σ = σ²(Σ_b I_b)⁻¹. A pixel's projection moves with θ by G (2×8, the
+Jacobian of projecting a fixed ray), so its variance is trace(G Σ Gᵀ); averaged over a grid of
+pixels that is trace(Σ W) with W = mean GᵀG. Boards are added one at a time, each the
+candidate that lowers trace(Σ W) most (greedy; a weak ridge makes the first steps defined).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from omnitof.sensor.camera import Camera
+
+# Intrinsic parameters planned for, in projectPoints' Jacobian order after rvec, tvec:
+# fx, fy, cx, cy, k1, k2, p1, p2.
+N_INTRINSICS = 8
+_INTRINSIC_COLUMNS = slice(6, 6 + N_INTRINSICS)
+# The grid of pixels over which the projection's uncertainty is averaged.
+GRID = (12, 10)
+
+
+def _opencv_model(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    K = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
+    return K, np.asarray(camera.dist, dtype=np.float64)
+
+
+def board_information(camera: Camera, object_points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """The 8×8 information (per unit corner variance) that one board at `pose` (camera_T_board,
+    4×4) gives about the intrinsics, its own pose marginalised out (module docstring)."""
+    K, dist = _opencv_model(camera)
+    rvec, _ = cv2.Rodrigues(np.asarray(pose[:3, :3], dtype=np.float64))
+    points = np.asarray(object_points, dtype=np.float64).reshape(-1, 3)
+    _, jacobian = cv2.projectPoints(points, rvec, np.asarray(pose[:3, 3], dtype=np.float64), K, dist)
+    j_pose, j_theta = jacobian[:, :6], jacobian[:, _INTRINSIC_COLUMNS]
+    a, b, c = j_theta.T @ j_theta, j_theta.T @ j_pose, j_pose.T @ j_pose
+    return a - b @ np.linalg.solve(c, b.T)
+
+
+def projection_weight(camera: Camera, grid: tuple[int, int] = GRID) -> np.ndarray:
+    """W = mean over a grid of pixels of GᵀG, G the Jacobian of a fixed ray's pixel with
+    respect to the intrinsics: trace(Σ W) is the mean variance of a projected pixel."""
+    u, v = np.meshgrid(np.linspace(0, camera.width - 1, grid[0]), np.linspace(0, camera.height - 1, grid[1]))
+    rays = camera.rays(np.column_stack([u.ravel(), v.ravel()])).astype(np.float64)
+    K, dist = _opencv_model(camera)
+    _, jacobian = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, dist)
+    g = jacobian[:, _INTRINSIC_COLUMNS]
+    return g.T @ g / len(rays)
+
+
+def plan_boards(informations: Sequence[np.ndarray], n: int, weight: np.ndarray) -> list[int]:
+    """Indices of n of the candidates' informations, chosen greedily to make trace(M⁻¹ W)
+    small, M the sum of the chosen informations (module docstring)."""
+    stack = np.asarray(informations, dtype=np.float64)
+    if n > len(stack):
+        raise ValueError(f"cannot choose {n} from {len(stack)} candidates")
+    size = stack.shape[1]
+    ridge = 1e-6 * float(np.mean(np.trace(stack, axis1=1, axis2=2))) / size
+    total = ridge * np.eye(size)
+    free = np.ones(len(stack), dtype=bool)
+    chosen: list[int] = []
+    for _ in range(n):
+        # trace((M + I_b)⁻¹ W) for every candidate b at once.
+        cost = np.trace(np.linalg.solve(total + stack, np.broadcast_to(weight, stack.shape)), axis1=1, axis2=2)
+        cost[~free] = np.inf
+        best = int(np.argmin(cost))
+        chosen.append(best)
+        free[best] = False
+        total = total + stack[best]
+    return chosen
+
+
+def predicted_covariance(informations: Sequence[np.ndarray], sigma_px: float) -> np.ndarray:
+    """Σ of the intrinsics (fx, fy, cx, cy, k1, k2, p1, p2) from boards with these
+    informations and corner errors of sigma_px per coordinate."""
+    return sigma_px**2 * np.linalg.inv(np.sum(np.asarray(informations, dtype=np.float64), axis=0))
+
