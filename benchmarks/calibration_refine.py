@@ -11,6 +11,7 @@
    measured (or corrected) − true path length of the true rig, pixels on the wall.
 
 Usage: python benchmarks/calibration_refine.py [--seeds 0 1 2 3 4] [--skip-refine] [--skip-distance]
+       [--random-boards] [--sensor-errors]
 """
 
 from __future__ import annotations
@@ -42,17 +43,27 @@ def errors(cal: Calibration, rig) -> dict:
             "normal": max(angles), "d": max(dds), "angles": angles, "dds": dds}
 
 
-def refinement_table(seeds) -> None:
+def refinement_table(seeds, *, planned_boards: bool = True, sensor_errors: bool = False) -> None:
     rig = default_rig()
-    print("## Joint refinement vs the closed-form chain (30 boards, 8 placements per mirror, "
-          "2 two-mirror boards per pair)")
+    renderer = renderer_of(rig)
+    if sensor_errors:
+        from omnitof.sensor.tof import SensorNoise
+        from omnitof.sensor.tof_errors import ToFErrors
+
+        renderer.sensor = SensorNoise(errors=ToFErrors.simulation_default())
+    boards = "planned" if planned_boards else "random"
+    errors_note = ", the simulator's default systematic distance errors (no path lengths)" if sensor_errors else ""
+    print(f"## Joint refinement vs the closed-form chain (30 {boards} boards, 8 placements per mirror, "
+          f"2 two-mirror boards per pair{errors_note})")
     print("| seed | closed form: fx % / pp px / worst normal ° / worst d mm | refined: fx % / fy % / "
           "pp px (cx, cy) / worst normal ° / worst d mm | reported σ: cx, cy px / normals ° / d mm | refine s |")
     print("|---|---|---|---|---|")
     for seed in seeds:
-        closed, _ = calibrate_from_simulation(renderer_of(rig), seed=seed, refine=False)
+        closed, _ = calibrate_from_simulation(renderer, seed=seed, refine=False, planned_boards=planned_boards,
+                                              distance_correction=False)
         started = time.perf_counter()
-        refined, report = calibrate_from_simulation(renderer_of(rig), seed=seed, refine=True)
+        refined, report = calibrate_from_simulation(renderer, seed=seed, refine=True, planned_boards=planned_boards,
+                                                    distance_correction=False)
         seconds = time.perf_counter() - started
         a, b = errors(closed, rig), errors(refined, rig)
         std = report["std"]
@@ -116,9 +127,12 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     parser.add_argument("--skip-refine", action="store_true")
     parser.add_argument("--skip-distance", action="store_true")
+    parser.add_argument("--random-boards", action="store_true", help="checkerboards at random poses, not planned")
+    parser.add_argument("--sensor-errors", action="store_true",
+                        help="the simulator's default systematic distance errors on (the demo's setting)")
     args = parser.parse_args()
     if not args.skip_refine:
-        refinement_table(args.seeds)
+        refinement_table(args.seeds, planned_boards=not args.random_boards, sensor_errors=args.sensor_errors)
     if not args.skip_distance:
         distance_table()
 

@@ -230,3 +230,44 @@ def test_a_discs_predicted_centroid_is_the_centroid_of_its_image(rig):
     assert np.hypot(*(predicted - measured)) < 0.005
     # ... and the projected centre is not that centroid (the reason for the model).
     assert np.hypot(*(projected_centre - measured)) > 0.01  # 0.016 px here
+
+
+def test_a_misdetected_board_is_left_out_and_named(rig, monkeypatch):
+    """One board's corners misassigned (its last two rows of corners found one row early, as a
+    detection that slipped would): the refinement names it, leaves it out, and comes out as the
+    fit without it does, σ included. The clean problem loses no view."""
+    clean, _ = _synthetic_problem(rig, 0, boards=8, dots_per_mirror=2)
+    start = _perturbed(clean, np.random.default_rng(7))
+    reference = refine(start)
+    assert reference.rejected == []
+    views = list(start.views)
+    bad = views[2]
+    per_row = Checkerboard().pattern_size[0]
+    moved = bad.pixels.copy()
+    moved[-2 * per_row:] = bad.pixels[-3 * per_row:-per_row]
+    views[2] = replace(bad, pixels=moved)
+    result = refine(replace(start, views=views))
+    assert len(result.rejected) == 1 and result.rejected[0].startswith(f"{bad.name} (view RMS ")
+    assert bad.name not in result.per_view
+    without = refine(replace(start, views=[v for i, v in enumerate(start.views) if i != 2]))
+    for name in ("fx", "fy", "cx", "cy"):
+        assert getattr(result.camera, name) == pytest.approx(getattr(without.camera, name), abs=1e-6)
+        assert result.std["camera"][name] == pytest.approx(without.std["camera"][name], rel=1e-6)
+    # Kept in (no robust step), the board pulls the principal point and inflates its σ.
+    import omnitof.calibration.refine as refine_module
+
+    monkeypatch.setattr(refine_module, "REJECTION_ROUNDS", 0)
+    kept = refine(replace(start, views=views))
+    assert kept.rejected == [] and kept.std["camera"]["cx"] > 1.3 * result.std["camera"]["cx"]
+
+
+def test_an_outlying_board_stays_where_leaving_it_out_would_leave_too_few(rig):
+    # Three boards are the least the refinement takes (check_problem): a slipped one stays.
+    problem, _ = _synthetic_problem(rig, 1, boards=3, dots_per_mirror=2)
+    views = list(problem.views)
+    per_row = Checkerboard().pattern_size[0]
+    moved = views[1].pixels.copy()
+    moved[-2 * per_row:] = views[1].pixels[-3 * per_row:-per_row]
+    views[1] = replace(views[1], pixels=moved)
+    result = refine(replace(problem, views=views))
+    assert result.rejected == [] and views[1].name in result.per_view

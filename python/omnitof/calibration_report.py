@@ -133,6 +133,9 @@ def write_report(cal: Calibration, out: str | Path, *, distance: np.ndarray | No
         written["residuals"] = out / "residuals.png"
         if refinement.get("skipped"):
             lines += ["", "Images the refinement could not use:", ""] + [f"- {t}" for t in refinement["skipped"]]
+        if refinement.get("rejected"):
+            lines += ["", "Images left out as outliers (reprojection error far beyond the others'):", ""] + [
+                f"- {t}" for t in refinement["rejected"]]
     else:
         lines.append("This calibration was not refined jointly (run `omnitof calibrate refine`): no residuals "
                      "or standard deviations.")

@@ -282,9 +282,12 @@ def refine_calibration(
     refined = calibration.with_rig(rig)
     refined.labels = labels
     refined.quality["refinement"] = {**result.quality(), "skipped": notes}
+    left_out = {text.split(" (")[0] for text in result.rejected}
+    used = [v for v in problem.views if v.name not in left_out]
     refined.provenance["refinement"] = (
-        f"joint refinement (calibration.refine): {sum(v.kind == 'board' for v in problem.views)} boards, "
-        f"{sum(v.kind == 'dots' for v in problem.views)} dot targets, {len(problem.plane_views)} two-mirror boards"
+        f"joint refinement (calibration.refine): {sum(v.kind == 'board' for v in used)} boards, "
+        f"{sum(v.kind == 'dots' for v in used)} dot targets, {len(problem.plane_views)} two-mirror boards"
         + ("" if path_lengths else "; no ToF path lengths (distances with a systematic error)")
+        + (f"; left out as outliers: {', '.join(result.rejected)}" if result.rejected else "")
     )
     return refined, result
