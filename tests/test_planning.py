@@ -149,3 +149,12 @@ def test_plan_boards_command_names_a_bad_board(tmp_path, capsys):
     assert main(["calibrate", "plan-boards", "--out", str(tmp_path), "--board", "8by6"]) == 2
     assert "--board" in capsys.readouterr().err
     assert not (tmp_path / "boards.yaml").exists()
+
+
+def test_plan_boards_command_refuses_a_board_too_large_for_the_view(tmp_path, capsys):
+    from omnitof.cli import main
+
+    assert main(["calibrate", "plan-boards", "--out", str(tmp_path), "--square", "0.2", "--boards", "5"]) == 2
+    err = capsys.readouterr().err
+    assert "8x6 checkerboard of 0.2 m squares" in err and "smaller board" in err
+    assert not (tmp_path / "boards.yaml").exists()

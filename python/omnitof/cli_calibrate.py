@@ -291,13 +291,11 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_plan_boards(args: argparse.Namespace) -> int:
-    import math
-
     import yaml
 
     from omnitof.calibration import load_calibration
-    from omnitof.calibration.planning import board_information, predicted_covariance
-    from omnitof.calibration.targets import Checkerboard, checkerboard_poses, planned_checkerboard_poses
+    from omnitof.calibration.planning import board_plan
+    from omnitof.calibration.targets import Checkerboard
     from omnitof.io.atomic import atomic_write
     from omnitof.sensor.design import default_rig
     from omnitof.viz.calibration import plot_board_plan
@@ -305,52 +303,20 @@ def cmd_plan_boards(args: argparse.Namespace) -> int:
     cols, rows = _board(args.board)
     board = Checkerboard(cols=cols, rows=rows, square=args.square)
     camera = load_calibration(args.calibration).camera if args.calibration else default_rig().camera
-    poses = planned_checkerboard_poses(camera, board, args.boards, args.seed)
-    x0, x1, y0, y1 = board.extent()
-    outline = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
-    entries, outlines, firsts = [], [], []
-    for k, pose in enumerate(poses):
-        pixels = camera.project(outline @ pose[:3, :3].T + pose[:3, 3])
-        first = camera.project(pose[:3, 3][None, :])[0]
-        middle = pose[:3, :3] @ np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0]) + pose[:3, 3]
-        tilt = math.degrees(math.acos(min(1.0, abs(float(pose[:3, 2] @ middle)) / float(np.linalg.norm(middle)))))
-        outlines.append(pixels)
-        firsts.append(first)
-        entries.append({
-            "name": f"board_{k:02d}",
-            "distance_m": round(float(np.linalg.norm(middle)), 3),
-            "tilt_deg": round(tilt, 1),
-            "outline_px": np.round(pixels, 1).tolist(),
-            "first_corner_px": np.round(first, 1).tolist(),
-            "camera_T_board": np.round(pose, 6).tolist(),
-        })
-    # Corner error assumed for the figures printed: the saddle detector's scatter on rendered
-    # boards is 0.0165 px; a real camera's is the user's to measure (the RMS of `calibrate intrinsics`).
-    sigma_px = 0.05
-    spread = {}
-    for name, chosen in (("planned", poses), ("random", checkerboard_poses(camera, board, args.boards, args.seed))):
-        cov = predicted_covariance([board_information(camera, board.object_points(), p) for p in chosen], sigma_px)
-        spread[name] = (math.sqrt(cov[2, 2]), math.sqrt(cov[3, 3]), 100.0 * math.sqrt(cov[0, 0]) / camera.fx)
+    # The saddle detector's scatter on rendered boards is 0.0165 px; a real camera's is the
+    # user's to measure (the RMS of `calibrate intrinsics`): 0.05 px is a round figure between.
+    plan = board_plan(camera, board, args.boards, args.seed, sigma_px=0.05)
     args.out.mkdir(parents=True, exist_ok=True)
-    document = {
-        "camera": {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy,
-                   "cx": camera.cx, "cy": camera.cy, "dist": list(camera.dist)},
-        "board": {"cols": cols, "rows": rows, "square_m": args.square},
-        "frames": "camera_T_board: the board's frame (first inner corner at the origin, x along a row of "
-                  "corners, z out of the board) in the camera frame (z along the optical axis), metres",
-        "predicted_std_at_0.05px_corner_error": {
-            name: {"cx_px": round(v[0], 4), "cy_px": round(v[1], 4), "fx_pct": round(v[2], 4)}
-            for name, v in spread.items()},
-        "boards": entries,
-    }
     with atomic_write(args.out / "boards.yaml", "w") as handle:
-        yaml.safe_dump(document, handle, sort_keys=False)
-    plot_board_plan(args.out / "boards.png", camera.width, camera.height, outlines, np.array(firsts))
-    p, r = spread["planned"], spread["random"]
-    print(f"planned {len(poses)} board poses ({cols}x{rows} squares of {args.square} m): "
+        yaml.safe_dump(plan, handle, sort_keys=False)
+    boards = plan["boards"]
+    plot_board_plan(args.out / "boards.png", camera.width, camera.height,
+                    [np.array(b["outline_px"]) for b in boards], np.array([b["first_corner_px"] for b in boards]))
+    p, r = (plan["predicted_std_at_0.05px_corner_error"][k] for k in ("planned", "random"))
+    print(f"planned {len(boards)} board poses ({cols}x{rows} squares of {args.square} m): "
           f"{args.out / 'boards.yaml'}, {args.out / 'boards.png'}")
-    print(f"  predicted σ at 0.05 px corner error: cx {p[0]:.3f}, cy {p[1]:.3f} px, fx {p[2]:.3f} % "
-          f"(random poses: {r[0]:.3f}, {r[1]:.3f} px, {r[2]:.3f} %)")
+    print(f"  predicted σ at 0.05 px corner error: cx {p['cx_px']:.3f}, cy {p['cy_px']:.3f} px, fx {p['fx_pct']:.3f} % "
+          f"(random poses: {r['cx_px']:.3f}, {r['cy_px']:.3f} px, {r['fx_pct']:.3f} %)")
     return 0
 
 

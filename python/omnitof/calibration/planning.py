@@ -24,7 +24,9 @@ candidate that lowers trace(Σ W) most (greedy; a weak ridge makes the first ste
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -94,3 +96,58 @@ def predicted_covariance(informations: Sequence[np.ndarray], sigma_px: float) ->
     informations and corner errors of sigma_px per coordinate."""
     return sigma_px**2 * np.linalg.inv(np.sum(np.asarray(informations, dtype=np.float64), axis=0))
 
+
+
+def board_plan(camera: Camera, board: Any, n: int, seed: int, *, sigma_px: float = 0.05) -> dict[str, Any]:
+    """A plan of n checkerboard views for a user to follow (`omnitof calibrate plan-boards`):
+    the camera, the board, per board its pose camera_T_board, the board middle's distance and
+    tilt, the pixel outline of the printed area and of the first inner corner, and the
+    predicted σ of cx, cy and fx for the plan and for as many random poses at corner errors of
+    sigma_px.
+
+    Raises:
+        CalibrationError: the board does not fit whole in the camera's view at the planned
+            distances (BOARD_DEPTH).
+    """
+    from omnitof.calibration import CalibrationError
+    from omnitof.calibration.targets import BOARD_DEPTH, checkerboard_poses, planned_checkerboard_poses
+
+    cols, rows = board.pattern_size[0] + 1, board.pattern_size[1] + 1
+    try:
+        poses = planned_checkerboard_poses(camera, board, n, seed)
+        random_poses = checkerboard_poses(camera, board, n, seed)
+    except ValueError as err:
+        raise CalibrationError(
+            f"a {cols}x{rows} checkerboard of {board.square} m squares is not seen whole by the camera "
+            f"at {BOARD_DEPTH[0]}-{BOARD_DEPTH[1]} m often enough ({err}); plan with a smaller board"
+        ) from None
+    x0, x1, y0, y1 = board.extent()
+    outline = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+    middle_in_board = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
+    entries = []
+    for k, pose in enumerate(poses):
+        rotation, origin = pose[:3, :3], pose[:3, 3]
+        middle = rotation @ middle_in_board + origin
+        cos_tilt = abs(float(rotation[:, 2] @ middle)) / float(np.linalg.norm(middle))
+        entries.append({
+            "name": f"board_{k:02d}",
+            "distance_m": round(float(np.linalg.norm(middle)), 3),
+            "tilt_deg": round(math.degrees(math.acos(min(1.0, cos_tilt))), 1),
+            "outline_px": np.round(camera.project(outline @ rotation.T + origin), 1).tolist(),
+            "first_corner_px": np.round(camera.project(origin[None, :])[0], 1).tolist(),
+            "camera_T_board": np.round(pose, 6).tolist(),
+        })
+    spread = {}
+    for name, chosen in (("planned", poses), ("random", random_poses)):
+        cov = predicted_covariance([board_information(camera, board.object_points(), p) for p in chosen], sigma_px)
+        spread[name] = {"cx_px": round(math.sqrt(cov[2, 2]), 4), "cy_px": round(math.sqrt(cov[3, 3]), 4),
+                        "fx_pct": round(100.0 * math.sqrt(cov[0, 0]) / camera.fx, 4)}
+    return {
+        "camera": {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy,
+                   "cx": camera.cx, "cy": camera.cy, "dist": list(camera.dist)},
+        "board": {"cols": cols, "rows": rows, "square_m": board.square},
+        "frames": "camera_T_board: the board's frame (first inner corner at the origin, x along a row of "
+                  "corners, z out of the board) in the camera frame (z along the optical axis), metres",
+        f"predicted_std_at_{sigma_px:g}px_corner_error": spread,
+        "boards": entries,
+    }
