@@ -11,7 +11,7 @@
    measured (or corrected) − true path length of the true rig, pixels on the wall.
 
 Usage: python benchmarks/calibration_refine.py [--seeds 0 1 2 3 4] [--skip-refine] [--skip-distance]
-       [--random-boards] [--sensor-errors]
+       [--random-boards] [--sensor-errors] [--placements 8]
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ def errors(cal: Calibration, rig) -> dict:
             "normal": max(angles), "d": max(dds), "angles": angles, "dds": dds}
 
 
-def refinement_table(seeds, *, planned_boards: bool = True, sensor_errors: bool = False) -> None:
+def refinement_table(seeds, *, planned_boards: bool = True, sensor_errors: bool = False, placements: int = 8) -> None:
     rig = default_rig()
     renderer = renderer_of(rig)
     if sensor_errors:
@@ -53,17 +53,17 @@ def refinement_table(seeds, *, planned_boards: bool = True, sensor_errors: bool 
         renderer.sensor = SensorNoise(errors=ToFErrors.simulation_default())
     boards = "planned" if planned_boards else "random"
     errors_note = ", the simulator's default systematic distance errors (no path lengths)" if sensor_errors else ""
-    print(f"## Joint refinement vs the closed-form chain (30 {boards} boards, 8 placements per mirror, "
+    print(f"## Joint refinement vs the closed-form chain (30 {boards} boards, {placements} placements per mirror, "
           f"2 two-mirror boards per pair{errors_note})")
     print("| seed | closed form: fx % / pp px / worst normal ° / worst d mm | refined: fx % / fy % / "
           "pp px (cx, cy) / worst normal ° / worst d mm | reported σ: cx, cy px / normals ° / d mm | refine s |")
     print("|---|---|---|---|---|")
     for seed in seeds:
         closed, _ = calibrate_from_simulation(renderer, seed=seed, refine=False, planned_boards=planned_boards,
-                                              distance_correction=False)
+                                              distance_correction=False, placements=placements)
         started = time.perf_counter()
         refined, report = calibrate_from_simulation(renderer, seed=seed, refine=True, planned_boards=planned_boards,
-                                                    distance_correction=False)
+                                                    distance_correction=False, placements=placements)
         seconds = time.perf_counter() - started
         a, b = errors(closed, rig), errors(refined, rig)
         std = report["std"]
@@ -130,9 +130,11 @@ def main() -> None:
     parser.add_argument("--random-boards", action="store_true", help="checkerboards at random poses, not planned")
     parser.add_argument("--sensor-errors", action="store_true",
                         help="the simulator's default systematic distance errors on (the demo's setting)")
+    parser.add_argument("--placements", type=int, default=8, help="dot-target placements per mirror")
     args = parser.parse_args()
     if not args.skip_refine:
-        refinement_table(args.seeds, planned_boards=not args.random_boards, sensor_errors=args.sensor_errors)
+        refinement_table(args.seeds, planned_boards=not args.random_boards, sensor_errors=args.sensor_errors,
+                         placements=args.placements)
     if not args.skip_distance:
         distance_table()
 
