@@ -416,7 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "target images with the true calibration (as `omnitof calibrate render-targets`)")
     p.add_argument("--world", default="corridor1", help="a bundled world (room, office, corridor1, corridor2) or a world YAML file")
     p.add_argument("--out", type=Path, required=True, help="the bag folder (or, for calibration, the image folder) to write")
-    p.add_argument("--placements", type=_positive_int, default=8, help="calibration: dot-target placements per mirror")
+    p.add_argument("--placements", type=_positive_int, default=14, help="calibration: dot-target placements per mirror")
     p.add_argument("--boards", type=_positive_int, default=30, help="calibration: checkerboard images")
     p.add_argument("--random-boards", action="store_true",
                    help="calibration: checkerboards at random poses (default: poses planned for the intrinsics)")
