@@ -135,7 +135,7 @@ def write_report(cal: Calibration, out: str | Path, *, distance: np.ndarray | No
             lines += ["", "Images the refinement could not use:", ""] + [f"- {t}" for t in refinement["skipped"]]
         if refinement.get("rejected"):
             lines += ["", "Images left out as outliers (reprojection error far beyond the others'):", ""] + [
-                f"- {t}" for t in refinement["rejected"]]
+                f"- {name} (view RMS {rms:.3f} px)" for name, rms in refinement["rejected"].items()]
     else:
         lines.append("This calibration was not refined jointly (run `omnitof calibrate refine`): no residuals "
                      "or standard deviations.")

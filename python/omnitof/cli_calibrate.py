@@ -262,8 +262,8 @@ def cmd_refine(args: argparse.Namespace) -> int:
           f"path lengths {result.sigma['path_mm']:.2f} mm")
     for note in refined.quality["refinement"]["skipped"]:
         print(f"  not used: {note}")
-    for text in result.rejected:
-        print(f"  left out as an outlier: {text}")
+    for name, rms in result.rejected.items():
+        print(f"  left out as an outlier: {name} (view RMS {rms:.3f} px)")
     print(f"wrote {out}")
     return 0
 

@@ -282,8 +282,7 @@ def refine_calibration(
     refined = calibration.with_rig(rig)
     refined.labels = labels
     refined.quality["refinement"] = {**result.quality(), "skipped": notes}
-    left_out = {text.split(" (")[0] for text in result.rejected}
-    used = [v for v in problem.views if v.name not in left_out]
+    used = [v for v in problem.views if v.name not in result.rejected]
     refined.provenance["refinement"] = (
         f"joint refinement (calibration.refine): {sum(v.kind == 'board' for v in used)} boards, "
         f"{sum(v.kind == 'dots' for v in used)} dot targets, {len(problem.plane_views)} two-mirror boards"

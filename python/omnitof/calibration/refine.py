@@ -45,6 +45,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 
 from omnitof.calibration import CalibrationError
+from omnitof.calibration.intrinsics import MIN_OUTLIER_PX
 from omnitof.sensor.camera import Camera
 from omnitof.sensor.mirrors import MirrorPlane
 
@@ -149,8 +150,8 @@ class Refinement:
     iterations: int
     cost: float
     tangents: list[np.ndarray]
-    # Views left out as outliers (`refine`), each "name (view RMS x px)".
-    rejected: list[str] = field(default_factory=list)
+    # Views left out as outliers (`refine`): name → its RMS reprojection error (px).
+    rejected: dict[str, float] = field(default_factory=dict)
 
     def quality(self) -> dict[str, Any]:
         """What a calibration file keeps of it (`quality.refinement`)."""
@@ -160,7 +161,7 @@ class Refinement:
             "per_view": self.per_view,
             "per_mirror": self.per_mirror,
             "iterations": self.iterations,
-            "rejected": self.rejected,
+            "rejected": {name: round(rms, 4) for name, rms in self.rejected.items()},
         }
 
 
@@ -500,7 +501,7 @@ def refine(problem: Problem, *, max_nfev: int = 50) -> Refinement:
     """
     check_problem(problem)
     result = _fit(problem, max_nfev)
-    rejected: list[str] = []
+    rejected: dict[str, float] = {}
     for _ in range(REJECTION_ROUNDS):
         outliers = _outlying_views(problem, result.per_view)
         if not outliers:
@@ -510,7 +511,7 @@ def refine(problem: Problem, *, max_nfev: int = 50) -> Refinement:
             check_problem(reduced)
         except CalibrationError:
             break
-        rejected += [f"{name} (view RMS {rms:.3f} px)" for name, rms in outliers.items()]
+        rejected.update(outliers)
         problem = reduced
         result = _fit(problem, max_nfev)
     result.rejected = rejected
@@ -519,8 +520,6 @@ def refine(problem: Problem, *, max_nfev: int = 50) -> Refinement:
 
 def _outlying_views(problem: Problem, per_view: dict[str, dict[str, float]]) -> dict[str, float]:
     """{name: RMS px} of the views whose reprojection error is far beyond their kind's."""
-    from omnitof.calibration.intrinsics import MIN_OUTLIER_PX
-
     out: dict[str, float] = {}
     for kind in ("board", "dots"):
         names = [v.name for v in problem.views if v.kind == kind]
