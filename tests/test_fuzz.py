@@ -112,8 +112,20 @@ def read_or_refuse(read: Callable, *args, **kwargs):
         return None
 
 
+_SCRATCH: list[Path] = []  # this module's scratch root, under pytest's own temporary folder
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _scratch_root(tmp_path_factory):
+    """Every example's files live under one folder that pytest removes with its old runs, so an
+    example that fails before its cleanup leaves nothing in the system's temporary folder."""
+    _SCRATCH.append(tmp_path_factory.mktemp("fuzz"))
+    yield
+    shutil.rmtree(_SCRATCH.pop(), ignore_errors=True)
+
+
 def scratch() -> Path:
-    return Path(tempfile.mkdtemp(prefix="omnitof-fuzz-"))
+    return Path(tempfile.mkdtemp(prefix="example-", dir=_SCRATCH[-1]))
 
 
 def check_scans(scans: ScanSequence) -> None:
