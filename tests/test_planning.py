@@ -119,6 +119,60 @@ def test_the_plan_lowers_the_predicted_projection_uncertainty_at_every_step(came
         plan_boards(infos, 61, weight)
 
 
+def test_a_plan_after_boards_taken_fills_in_what_they_leave_uncertain(camera):
+    board = Checkerboard()
+    points = board.object_points().reshape(-1, 3)
+
+    def centre_u(pose):
+        return camera.project((points @ pose[:3, :3].T + pose[:3, 3]).mean(axis=0)[None])[0, 0]
+
+    # Six boards taken, all in the image's left part.
+    taken = [p for p in checkerboard_poses(camera, board, 200, seed=5) if centre_u(p) < 0.4 * camera.width][:6]
+    assert len(taken) == 6
+    prior = sum(board_information(camera, points, p) for p in taken)
+    pool = checkerboard_poses(camera, board, 120, seed=6)
+    infos = [board_information(camera, points, p) for p in pool]
+    weight = projection_weight(camera)
+
+    def cost(chosen):
+        return np.trace(np.linalg.inv(prior + sum(infos[i] for i in chosen)) @ weight)
+
+    after = plan_boards(infos, 6, weight, prior=prior)
+    blind = plan_boards(infos, 6, weight)
+    assert plan_boards(infos, 6, weight, prior=np.zeros_like(prior)) == blind
+    assert cost(after) < cost(blind) < np.trace(np.linalg.inv(prior) @ weight)
+    # planned_checkerboard_poses counts the boards taken the same way.
+    assert [p.tobytes() for p in planned_checkerboard_poses(camera, board, 6, 6, candidates_per_board=20, taken=taken)] \
+        == [pool[i].tobytes() for i in after]
+
+
+def test_a_camera_whose_distortion_folds_before_the_image_corner_still_plans(camera):
+    # A first calibration from 10 boards (benchmarks/calibration_planning.py --nominal, seed 9):
+    # k2 a tenth low, so the image's top right corner lies beyond the fold and has no ray. Its NaN
+    # once turned every candidate's cost into NaN and the plan into a random pick.
+    rough = dataclasses.replace(camera, fx=145.8057, fy=145.2744, cx=83.5388, cy=76.1167,
+                                dist=(-0.2721349, 0.03116001, 0.00598305, 5.935e-06, 0.0))
+    assert np.isnan(rough.rays(np.array([[camera.width - 1.0, 0.0]]))).all()
+    weight = projection_weight(rough)
+    assert np.isfinite(weight).all()
+    board = Checkerboard()
+    points = board.object_points().reshape(-1, 3)
+    truth_weight = projection_weight(camera)
+
+    def cost(poses):  # predicted with the true camera
+        return np.trace(np.linalg.inv(sum(board_information(camera, points, p) for p in poses)) @ truth_weight)
+
+    with_rough = cost(planned_checkerboard_poses(rough, board, 15, seed=9))
+    with_truth = cost(planned_checkerboard_poses(camera, board, 15, seed=9))
+    at_random = cost(checkerboard_poses(camera, board, 15, seed=9))
+    assert with_rough < 1.25 * with_truth < at_random
+    nan_weight = weight.copy()
+    nan_weight[0, 0] = np.nan
+    with pytest.raises(ValueError, match="not finite"):
+        plan_boards([board_information(camera, points, p) for p in checkerboard_poses(camera, board, 4, seed=1)],
+                    2, nan_weight)
+
+
 def test_plan_boards_command_writes_poses_that_show_the_whole_board(tmp_path, capsys):
     import yaml
 
@@ -139,8 +193,63 @@ def test_plan_boards_command_writes_poses_that_show_the_whole_board(tmp_path, ca
         assert np.allclose(pixels, entry["outline_px"], atol=0.06)
         assert np.all((pixels >= 0) & (pixels <= [camera.width - 1, camera.height - 1]))
         assert 0.0 <= entry["tilt_deg"] <= 50.0 + 1e-6
-    spread = plan["predicted_std_at_0.05px_corner_error"]
+    spread = plan["predicted_std"]
+    assert spread["corner_error_px"] == 0.05 and "taken" not in spread and "taken" not in plan
     assert spread["planned"]["cx_px"] < spread["random"]["cx_px"]
+
+
+def test_plan_boards_command_plans_after_the_boards_taken(tmp_path, capsys):
+    import yaml
+
+    from omnitof.calibration.targets import render_checkerboard_images
+    from omnitof.cli import main
+
+    rig = default_rig()
+    camera, board = rig.camera, Checkerboard()
+    images, poses = render_checkerboard_images(camera, 5, seed=2, sensor=rig.sensor, planned=False)
+    taken = tmp_path / "taken"
+    taken.mkdir()
+    for image in images:
+        np.savez(taken / f"{image.name}.npz", amplitude=image.amplitude, distance=image.distance)
+    out = tmp_path / "plan"
+    assert main(["calibrate", "plan-boards", "--out", str(out), "--taken", str(taken), "--boards", "4"]) == 0
+    printed = capsys.readouterr().out
+    assert "calibrated from 5 boards taken" in printed and "the 5 boards taken alone" in printed
+    plan = yaml.safe_load((out / "boards.yaml").read_text())
+    # The camera planned with is the one calibrated from the boards taken, not the design's.
+    assert abs(plan["camera"]["cx"] - camera.cx) < 0.5 and plan["camera"]["cx"] != camera.cx
+    assert len(plan["boards"]) == 4 and [t["name"] for t in plan["taken"]] == sorted(str(p) for p in taken.iterdir())
+    x0, x1, y0, y1 = board.extent()
+    outline = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+    for entry, pose in zip(plan["taken"], poses):  # where each board taken really was
+        truth = camera.project(outline @ pose[:3, :3].T + pose[:3, 3])
+        # The corners' order is the detector's (a board turned by 180° looks the same).
+        gaps = np.linalg.norm(truth[:, None, :] - np.array(entry["outline_px"])[None, :, :], axis=2)
+        assert gaps.min(axis=1).max() < 0.3
+    spread = plan["predicted_std"]
+    assert 0.0 < spread["corner_error_px"] < 0.05  # the boards' own residuals, not the round figure
+    assert spread["planned"]["cx_px"] < spread["taken"]["cx_px"]
+    assert spread["planned"]["cx_px"] <= spread["random"]["cx_px"]
+    assert (out / "boards.png").stat().st_size > 0
+    # Too few boards taken to calibrate from: one clear error, nothing written.
+    few = tmp_path / "few"
+    few.mkdir()
+    for image in images[:2]:
+        np.savez(few / f"{image.name}.npz", amplitude=image.amplitude, distance=image.distance)
+    assert main(["calibrate", "plan-boards", "--out", str(tmp_path / "none"), "--taken", str(few)]) == 2
+    assert "found in 2 of 2 images, need 3" in capsys.readouterr().err
+    assert not (tmp_path / "none").exists()
+
+
+def test_plan_boards_command_takes_one_source_of_the_camera(tmp_path, capsys):
+    from omnitof.cli import main
+
+    with pytest.raises(SystemExit) as stopped:  # argparse's own refusal, before anything runs
+        main(["calibrate", "plan-boards", "--out", str(tmp_path / "plan"), "--taken", str(tmp_path),
+              "--calibration", str(tmp_path / "cal.yaml")])
+    assert stopped.value.code == 2
+    assert "not allowed with argument" in capsys.readouterr().err
+    assert not (tmp_path / "plan").exists()
 
 
 def test_plan_boards_command_names_a_bad_board(tmp_path, capsys):

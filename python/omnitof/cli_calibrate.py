@@ -16,6 +16,7 @@ The command functions parse nothing themselves beyond argparse and call the libr
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -83,8 +84,12 @@ def add_calibrate_parser(sub) -> None:
     c = csub.add_parser("plan-boards", help="where to hold the checkerboard: poses planned for the intrinsics, "
                         "as YAML and a figure of where each board should appear in the image")
     c.add_argument("--out", type=Path, required=True, help="folder for boards.yaml and boards.png")
-    c.add_argument("--calibration", type=Path,
-                   help="take the nominal camera from this calibration YAML (default: the rig design's)")
+    camera_from = c.add_mutually_exclusive_group()
+    camera_from.add_argument("--calibration", type=Path,
+                             help="take the nominal camera from this calibration YAML (default: the rig design's)")
+    camera_from.add_argument("--taken", type=Path, nargs="+", metavar="IMAGES",
+                             help="checkerboard images already taken (files, folders, bags): calibrate from "
+                                  "them and plan the boards that add most to them")
     c.add_argument("--boards", type=_positive_int, default=30, help="boards to plan")
     c.add_argument("--board", default="8x6", help="squares across x down (default 8x6)")
     c.add_argument("--square", type=_number(above=0), default=0.035, help="square side in metres (default 0.035)")
@@ -302,21 +307,43 @@ def cmd_plan_boards(args: argparse.Namespace) -> int:
 
     cols, rows = _board(args.board)
     board = Checkerboard(cols=cols, rows=rows, square=args.square)
-    camera = load_calibration(args.calibration).camera if args.calibration else default_rig().camera
     # The saddle detector's scatter on rendered boards is 0.0165 px; a real camera's is the
     # user's to measure (the RMS of `calibrate intrinsics`): 0.05 px is a round figure between.
-    plan = board_plan(camera, board, args.boards, args.seed, sigma_px=0.05)
+    sigma_px, taken = 0.05, None
+    if args.taken:
+        from omnitof.calibration.images import load_images
+        from omnitof.calibration.intrinsics import calibrate_intrinsics
+
+        first = calibrate_intrinsics(load_images(args.taken), board)
+        camera, taken = first.camera, first.poses
+        # OpenCV's RMS is of the 2D error; the plan's σ is per coordinate.
+        sigma_px = first.rms_px / math.sqrt(2.0)
+        print(f"calibrated from {len(first.used)} boards taken (RMS {first.rms_px:.3f} px): "
+              f"fx {camera.fx:.2f}  cx {camera.cx:.2f}  cy {camera.cy:.2f} px")
+    elif args.calibration:
+        camera = load_calibration(args.calibration).camera
+    else:
+        camera = default_rig().camera
+    plan = board_plan(camera, board, args.boards, args.seed, sigma_px=sigma_px, taken=taken)
     args.out.mkdir(parents=True, exist_ok=True)
     with atomic_write(args.out / "boards.yaml", "w") as handle:
         yaml.safe_dump(plan, handle, sort_keys=False)
     boards = plan["boards"]
     plot_board_plan(args.out / "boards.png", camera.width, camera.height,
-                    [np.array(b["outline_px"]) for b in boards], np.array([b["first_corner_px"] for b in boards]))
-    p, r = (plan["predicted_std_at_0.05px_corner_error"][k] for k in ("planned", "random"))
+                    [np.array(b["outline_px"]) for b in boards], np.array([b["first_corner_px"] for b in boards]),
+                    taken=[np.array(b["outline_px"]) for b in plan.get("taken", [])])
+    spread = plan["predicted_std"]
+
+    def sigmas(key: str) -> str:
+        s = spread[key]
+        return f"cx {s['cx_px']:.3f}, cy {s['cy_px']:.3f} px, fx {s['fx_pct']:.3f} %"
+
     print(f"planned {len(boards)} board poses ({cols}x{rows} squares of {args.square} m): "
           f"{args.out / 'boards.yaml'}, {args.out / 'boards.png'}")
-    print(f"  predicted σ at 0.05 px corner error: cx {p['cx_px']:.3f}, cy {p['cy_px']:.3f} px, fx {p['fx_pct']:.3f} % "
-          f"(random poses: {r['cx_px']:.3f}, {r['cy_px']:.3f} px, {r['fx_pct']:.3f} %)")
+    print(f"  predicted σ at {spread['corner_error_px']:.3g} px corner error: {sigmas('planned')} "
+          f"(random poses: {sigmas('random')})")
+    if taken:
+        print(f"  the {len(taken)} boards taken alone: {sigmas('taken')}; both figures above count them")
     return 0
 
 

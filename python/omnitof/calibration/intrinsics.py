@@ -142,6 +142,7 @@ class IntrinsicsResult:
     per_view_rms_px: RMS per used image, by name. used: names of the images whose board was
     found and kept. skipped: names of the images where it was not. rejected: images whose
     board was found but fitted far worse than the others (outliers), with their RMS.
+    poses: each used image's board pose camera_T_board (4×4, metres), as the fit found it.
     """
 
     camera: Camera
@@ -150,6 +151,7 @@ class IntrinsicsResult:
     used: list[str]
     skipped: list[str] = field(default_factory=list)
     rejected: list[str] = field(default_factory=list)
+    poses: dict[str, np.ndarray] = field(default_factory=dict)
 
     def quality(self) -> dict:
         """The numbers stored in a calibration file's `quality` section."""
@@ -230,4 +232,10 @@ def calibrate_intrinsics(
     camera = Camera(width, height, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), coeffs)
     if not math.isfinite(rms):
         raise CalibrationError("cv2.calibrateCamera did not converge")
-    return IntrinsicsResult(camera, float(rms), per_view, used, skipped, rejected)
+    poses = {}
+    for name, r, t in zip(used, rvecs, tvecs):
+        pose = np.eye(4)
+        pose[:3, :3] = cv2.Rodrigues(np.asarray(r, dtype=np.float64))[0]
+        pose[:3, 3] = np.asarray(t, dtype=np.float64).ravel()
+        poses[name] = pose
+    return IntrinsicsResult(camera, float(rms), per_view, used, skipped, rejected, poses)

@@ -25,7 +25,7 @@ candidate that lowers trace(Σ W) most (greedy; a weak ridge makes the first ste
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import cv2
@@ -63,26 +63,38 @@ def projection_weight(camera: Camera, grid: tuple[int, int] = GRID) -> np.ndarra
     respect to the intrinsics: trace(Σ W) is the mean variance of a projected pixel."""
     u, v = np.meshgrid(np.linspace(0, camera.width - 1, grid[0]), np.linspace(0, camera.height - 1, grid[1]))
     rays = camera.rays(np.column_stack([u.ravel(), v.ravel()])).astype(np.float64)
+    # A corner pixel can lie beyond the distortion's fold of a rough camera (a data sheet's, or
+    # one calibrated from a few boards): no ray reaches it, so it has no uncertainty to plan for.
+    # Left in, its NaN made every candidate's cost NaN and the plan a random pick.
+    rays = rays[np.isfinite(rays).all(axis=1)]
+    if len(rays) == 0:
+        raise ValueError("no pixel of the planning grid has a ray: the camera's distortion folds everywhere")
     K, dist = _opencv_model(camera)
     _, jacobian = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, dist)
     g = jacobian[:, _INTRINSIC_COLUMNS]
     return g.T @ g / len(rays)
 
 
-def plan_boards(informations: Sequence[np.ndarray], n: int, weight: np.ndarray) -> list[int]:
+def plan_boards(informations: Sequence[np.ndarray], n: int, weight: np.ndarray,
+                prior: np.ndarray | None = None) -> list[int]:
     """Indices of n of the candidates' informations, chosen greedily to make trace(M⁻¹ W)
-    small, M the sum of the chosen informations (module docstring)."""
+    small, M the sum of the chosen informations and of `prior` (the information of boards
+    already taken; module docstring)."""
     stack = np.asarray(informations, dtype=np.float64)
     if n > len(stack):
         raise ValueError(f"cannot choose {n} from {len(stack)} candidates")
     size = stack.shape[1]
     ridge = 1e-6 * float(np.mean(np.trace(stack, axis1=1, axis2=2))) / size
     total = ridge * np.eye(size)
+    if prior is not None:
+        total = total + np.asarray(prior, dtype=np.float64)
     free = np.ones(len(stack), dtype=bool)
     chosen: list[int] = []
     for _ in range(n):
         # trace((M + I_b)⁻¹ W) for every candidate b at once.
         cost = np.trace(np.linalg.solve(total + stack, np.broadcast_to(weight, stack.shape)), axis1=1, axis2=2)
+        if not np.isfinite(cost[free]).all():
+            raise ValueError("a candidate's predicted cost is not finite (NaN in an information or the weight)")
         cost[~free] = np.inf
         best = int(np.argmin(cost))
         chosen.append(best)
@@ -98,12 +110,15 @@ def predicted_covariance(informations: Sequence[np.ndarray], sigma_px: float) ->
 
 
 
-def board_plan(camera: Camera, board: Any, n: int, seed: int, *, sigma_px: float = 0.05) -> dict[str, Any]:
+def board_plan(camera: Camera, board: Any, n: int, seed: int, *, sigma_px: float = 0.05,
+               taken: Mapping[str, np.ndarray] | None = None) -> dict[str, Any]:
     """A plan of n checkerboard views for a user to follow (`omnitof calibrate plan-boards`):
     the camera, the board, per board its pose camera_T_board, the board middle's distance and
     tilt, the pixel outline of the printed area and of the first inner corner, and the
-    predicted σ of cx, cy and fx for the plan and for as many random poses at corner errors of
-    sigma_px.
+    predicted σ of cx, cy and fx at corner errors of sigma_px: for the plan, for as many random
+    poses, and, where boards were already `taken` (name -> camera_T_board, e.g.
+    `IntrinsicsResult.poses`), for those alone; the plan and the random poses then count the
+    taken boards too, and the plan fills in what they leave uncertain.
 
     Raises:
         CalibrationError: the board does not fit whole in the camera's view at the planned
@@ -112,9 +127,10 @@ def board_plan(camera: Camera, board: Any, n: int, seed: int, *, sigma_px: float
     from omnitof.calibration import CalibrationError
     from omnitof.calibration.targets import BOARD_DEPTH, checkerboard_poses, planned_checkerboard_poses
 
+    taken = dict(taken or {})
     cols, rows = board.pattern_size[0] + 1, board.pattern_size[1] + 1
     try:
-        poses = planned_checkerboard_poses(camera, board, n, seed)
+        poses = planned_checkerboard_poses(camera, board, n, seed, taken=list(taken.values()))
         random_poses = checkerboard_poses(camera, board, n, seed)
     except ValueError as err:
         raise CalibrationError(
@@ -123,6 +139,10 @@ def board_plan(camera: Camera, board: Any, n: int, seed: int, *, sigma_px: float
         ) from None
     x0, x1, y0, y1 = board.extent()
     outline = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+
+    def outline_px(pose: np.ndarray) -> list:
+        return np.round(camera.project(outline @ pose[:3, :3].T + pose[:3, 3]), 1).tolist()
+
     middle_in_board = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
     entries = []
     for k, pose in enumerate(poses):
@@ -133,21 +153,27 @@ def board_plan(camera: Camera, board: Any, n: int, seed: int, *, sigma_px: float
             "name": f"board_{k:02d}",
             "distance_m": round(float(np.linalg.norm(middle)), 3),
             "tilt_deg": round(math.degrees(math.acos(min(1.0, cos_tilt))), 1),
-            "outline_px": np.round(camera.project(outline @ rotation.T + origin), 1).tolist(),
+            "outline_px": outline_px(pose),
             "first_corner_px": np.round(camera.project(origin[None, :])[0], 1).tolist(),
             "camera_T_board": np.round(pose, 6).tolist(),
         })
-    spread = {}
-    for name, chosen in (("planned", poses), ("random", random_poses)):
-        cov = predicted_covariance([board_information(camera, board.object_points(), p) for p in chosen], sigma_px)
+    points = board.object_points()
+    spread: dict[str, Any] = {"corner_error_px": round(float(sigma_px), 4)}
+    groups = [("planned", poses), ("random", random_poses)] + ([("taken", [])] if taken else [])
+    for name, chosen in groups:
+        cov = predicted_covariance([board_information(camera, points, p) for p in [*taken.values(), *chosen]],
+                                   sigma_px)
         spread[name] = {"cx_px": round(math.sqrt(cov[2, 2]), 4), "cy_px": round(math.sqrt(cov[3, 3]), 4),
                         "fx_pct": round(100.0 * math.sqrt(cov[0, 0]) / camera.fx, 4)}
-    return {
+    plan = {
         "camera": {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy,
                    "cx": camera.cx, "cy": camera.cy, "dist": list(camera.dist)},
         "board": {"cols": cols, "rows": rows, "square_m": board.square},
         "frames": "camera_T_board: the board's frame (first inner corner at the origin, x along a row of "
                   "corners, z out of the board) in the camera frame (z along the optical axis), metres",
-        f"predicted_std_at_{sigma_px:g}px_corner_error": spread,
+        "predicted_std": spread,
         "boards": entries,
     }
+    if taken:
+        plan["taken"] = [{"name": name, "outline_px": outline_px(pose)} for name, pose in taken.items()]
+    return plan

@@ -687,19 +687,24 @@ def _dot_pose_ok(camera, mirrors, index, target, pose, dots, outline, labels, cl
 
 
 def planned_checkerboard_poses(
-    camera: Camera, board: Checkerboard, n: int, seed: int, *, candidates_per_board: int = PLAN_CANDIDATES
+    camera: Camera, board: Checkerboard, n: int, seed: int, *, candidates_per_board: int = PLAN_CANDIDATES,
+    taken: Sequence[np.ndarray] = (),
 ) -> list[np.ndarray]:
     """n checkerboard poses chosen from n·candidates_per_board feasible ones
     (`checkerboard_poses`) for the smallest predicted uncertainty of the calibrated projection
-    (`calibration.planning`). The camera's intrinsics enter only the prediction, so nominal ones
+    (`calibration.planning`), counting what the boards already `taken` (their poses
+    camera_T_board) tell. The camera's intrinsics enter only the prediction, so nominal ones
     (a data sheet's) do: 3 % off in focal length, 2 px in the principal point and 20 % in the
     distortion, they plan the principal point nearly as well (predicted σ 0.049–0.051 against
-    0.047–0.049 px, seeds 0–3) but the image's edges less well (BENCHMARKS.md)."""
-    from omnitof.calibration.planning import board_information, plan_boards, projection_weight
+    0.047–0.049 px, seeds 0–3) but the image's edges less well; a second plan from a first
+    calibration of the boards taken repairs that (BENCHMARKS.md)."""
+    from omnitof.calibration.planning import N_INTRINSICS, board_information, plan_boards, projection_weight
 
+    points = board.object_points()
     pool = checkerboard_poses(camera, board, n * candidates_per_board, seed)
-    informations = [board_information(camera, board.object_points(), pose) for pose in pool]
-    return [pool[i] for i in plan_boards(informations, n, projection_weight(camera))]
+    informations = [board_information(camera, points, pose) for pose in pool]
+    prior = sum((board_information(camera, points, pose) for pose in taken), np.zeros((N_INTRINSICS,) * 2))
+    return [pool[i] for i in plan_boards(informations, n, projection_weight(camera), prior=prior)]
 
 
 def render_checkerboard_images(
@@ -719,12 +724,28 @@ def render_checkerboard_images(
         poses = planned_checkerboard_poses(camera, board, n, seed)
     else:
         poses = checkerboard_poses(camera, board, n, seed)
+    return render_board_views(camera, poses, seed, board=board, sensor=sensor, room=room), poses
+
+
+def render_board_views(
+    camera: Camera,
+    poses: Sequence[np.ndarray],
+    seed: int,
+    *,
+    board: Checkerboard = Checkerboard(),
+    sensor: SensorNoise | None = None,
+    room: Room = Room(),
+    first_index: int = 0,
+) -> list:
+    """Noisy amplitude/distance images (AmplitudeImage, named board_<first_index + k>) of a
+    checkerboard at the given poses (camera_T_board), seen without mirrors."""
     images = []
-    for i, pose in enumerate(poses):
+    for k, pose in enumerate(poses):
+        i = first_index + k
         frame, _ = render_target(camera, board, pose, (), rng=np.random.default_rng([seed, i]),
                                  sensor=sensor, room=room)
         images.append(AmplitudeImage(f"board_{i:02d}", frame.amplitude, frame.distance))
-    return images, poses
+    return images
 
 
 def render_dot_images(

@@ -62,26 +62,39 @@ def plot_calibration_masks(path: str | Path, cal: Calibration) -> Figure:
 
 
 def plot_board_plan(path: str | Path, width: int, height: int, outlines: Sequence[np.ndarray],
-                    first_corners: np.ndarray, dpi: int = 110) -> Figure:
+                    first_corners: np.ndarray, dpi: int = 110, taken: Sequence[np.ndarray] = ()) -> Figure:
     """Where each planned checkerboard should appear in the image: one small panel per board
     with the camera's image frame, the board's printed outline (pixels, 4×2 each) and its first
-    inner corner (a dot), numbered as in the plan (PNG, atomic)."""
-    count = len(outlines)
-    cols = min(6, max(1, count))
-    rows = (count + cols - 1) // cols
+    inner corner (a dot), numbered as in the plan; where boards were already taken, a first
+    panel with all their outlines (PNG, atomic)."""
+    panels = len(outlines) + (1 if len(taken) else 0)
+    cols = min(6, max(1, panels))
+    rows = (panels + cols - 1) // cols
     fig = Figure(figsize=(1.9 * cols, 1.65 * rows + 0.4), dpi=dpi)
     FigureCanvasAgg(fig)
-    for k, (outline, corner) in enumerate(zip(outlines, first_corners)):
-        ax = fig.add_subplot(rows, cols, k + 1)
-        closed = np.vstack([outline, outline[:1]])
-        ax.fill(closed[:, 0], closed[:, 1], color="C0", alpha=0.35, linewidth=0)
-        ax.plot(closed[:, 0], closed[:, 1], color="C0", linewidth=1)
-        ax.plot(corner[0], corner[1], "o", color="C3", markersize=3)
+
+    def frame(ax, title: str) -> None:
         ax.set_xlim(-0.5, width - 0.5)
         ax.set_ylim(height - 0.5, -0.5)
         ax.set_aspect("equal")
         ax.set_xticks([])
         ax.set_yticks([])
-        ax.set_title(f"board {k:02d}", fontsize=8)
+        ax.set_title(title, fontsize=8)
+
+    first = 1
+    if len(taken):
+        ax = fig.add_subplot(rows, cols, 1)
+        for outline in taken:
+            closed = np.vstack([outline, outline[:1]])
+            ax.plot(closed[:, 0], closed[:, 1], color="0.45", linewidth=0.8)
+        frame(ax, f"taken: {len(taken)} boards")
+        first = 2
+    for k, (outline, corner) in enumerate(zip(outlines, first_corners)):
+        ax = fig.add_subplot(rows, cols, first + k)
+        closed = np.vstack([outline, outline[:1]])
+        ax.fill(closed[:, 0], closed[:, 1], color="C0", alpha=0.35, linewidth=0)
+        ax.plot(closed[:, 0], closed[:, 1], color="C0", linewidth=1)
+        ax.plot(corner[0], corner[1], "o", color="C3", markersize=3)
+        frame(ax, f"board {k:02d}")
     fig.suptitle("planned checkerboard views (image frame; red: the first inner corner)", fontsize=9)
     return save_figure(fig, path, dpi=dpi)
