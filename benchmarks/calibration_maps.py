@@ -12,8 +12,11 @@ errors; and the same share for a map of every 10th scan at its true pose ("true 
 shows the calibration's effect on the map without the filter's (a filter's path, and so its
 map, can change by tens of points with a 0.1 px change of the principal point: BENCHMARKS.md).
 
+With `--no-slam`, only the maps at the true poses (the drive simulated, calibrated, rendered
+and its scans extracted; no filter run).
+
 Usage: python benchmarks/calibration_maps.py [--worlds room corridor1 corridor2 office]
-    [--kinds true true+correction refined closed] [--out /tmp/calmaps]
+    [--kinds true true+correction refined closed] [--seed S] [--no-slam] [--out /tmp/calmaps]
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from omnitof.demo import DemoSettings, run_world, slam_config
+from omnitof.demo import DemoSettings, run_world, simulated_scans, slam_config
 from omnitof.eval.floorplan import wall_agreement
 from omnitof.sim.laser2d import World2D
 from omnitof.slam.driver import dense_to_map
@@ -38,7 +41,20 @@ def main() -> None:
     parser.add_argument("--kinds", nargs="+", default=["true", "refined", "closed"], choices=list(KINDS))
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path("/tmp/calmaps"))
+    parser.add_argument("--no-slam", action="store_true", help="only the maps at the true poses")
     args = parser.parse_args()
+    if args.no_slam:
+        print("| world | seed | calibration | true poses: occupied ≤ 5 cm (%) |")
+        print("|---|---|---|---|")
+        for world in args.worlds:
+            for kind in args.kinds:
+                settings = DemoSettings(world=world, seed=args.seed, **KINDS[kind])
+                folder = args.out / f"{world}-{kind}"
+                folder.mkdir(parents=True, exist_ok=True)
+                sim = simulated_scans(settings, folder)
+                share = at_true_poses(sim.data.scans, sim.world, settings.preset)
+                print(f"| {world} | {args.seed} | {kind} | {100 * share:.1f} |", flush=True)
+        return
     print("| world | calibration | occupied ≤ 5 cm (%) | SLAM mean (m) | SLAM final (m) | true poses: occupied ≤ 5 cm (%) "
           "| calibration |")
     print("|---|---|---|---|---|---|---|")
@@ -50,18 +66,17 @@ def main() -> None:
             fp = s["evaluation"]["floorplan"]
             traj = s["evaluation"]["trajectory"]["slam"]
             print(f"| {world} | {kind} | {100 * fp['occupied_within_5cm']:.1f} | {traj['mean']:.3f} | "
-                  f"{traj['final']:.3f} | {100 * at_true_poses(run):.1f} | "
+                  f"{traj['final']:.3f} | {100 * at_true_poses(run.scans, run.world, run.summary['settings']['preset']):.1f} | "
                   f"{s['calibration'].get('summary', s['calibration'].get('source'))} |", flush=True)
 
 
-def at_true_poses(run) -> float:
+def at_true_poses(scans, world, preset: str) -> float:
     """Share of the occupied cells within 5 cm of a wall in the map of every 10th scan at its
-    true pose (the demo's map settings and floor plan at 0.6 m, as `demo.evaluate_run`)."""
-    scans = run.scans
+    true pose (the preset's map settings and the floor plan at 0.6 m, as `demo.evaluate_run`)."""
     which = list(range(0, len(scans), 10))
-    cfg = slam_config(run.summary["settings"]["preset"], 0).map
+    cfg = slam_config(preset, 0).map
     grid = grid_along(scans, which, scans.ground_truth[which], cfg)
-    plan = World2D(run.world.segments_at(0.6))
+    plan = World2D(world.segments_at(0.6))
     return wall_agreement(dense_to_map(*grid.to_dense(), cfg.resolution), plan.distance_to_walls,
                           tolerance=0.05).near_fraction
 

@@ -11,7 +11,7 @@ a few seeds' numbers in the last digits.)
     python benchmarks/world_filters.py --worlds corridor1 office --drives 0 1 --seeds 0 1 2 \
         [--preset tof-scanmatch] [--particles 30] [--set backend.min_score=0.65 ...] \
         [--tof-errors default|all|none|LIST] [--ideal-scans [seen]] [--odometry-scale F]
-        [--max-incidence DEG] [--cache results/world_scans]
+        [--max-incidence DEG] [--true-rig] [--cache results/world_scans]
 
 The camera's systematic errors (issue 15) are those of the demo, `default` unless told; the
 cache is kept per setting. `--ideal-scans` replaces every range by the exact distance to the
@@ -22,7 +22,8 @@ where they have a reading), to tell the ranges' errors from the readings' number
 `--odometry-scale F` multiplies every odometry step's translation by F (the simulated wheels
 report 1 % too far: F = 1/1.01 takes that out, an oracle no real run has). `--max-incidence DEG`
 drops the bins seen at a grazing angle (`ScanSettings.max_incidence_deg`, omnitof.scan.grazing),
-as the extraction would have as its last step.
+as the extraction would have as its last step. `--true-rig` extracts with the true rig, given
+the same wall-fitted distance correction as the estimate (issue 16's reference).
 
 Prints one JSON line per run, then a Markdown table.
 """
@@ -129,6 +130,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="drop the bins seen more than this far from their surface's normal (degrees; "
                              "ScanSettings.max_incidence_deg, the extraction's last step, applied to the cached "
                              "scans; 90: off)")
+    parser.add_argument("--true-rig", action="store_true",
+                        help="extract with the true rig (given the same wall-fitted distance correction) instead of "
+                             "the calibration estimated from rendered targets")
     parser.add_argument("--cache", type=Path, default=Path("results/world_scans"))
     args = parser.parse_args(argv)
 
@@ -136,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.worlds:
         world = load_world(name)
         for drive in args.drives:
-            scans = extracted_scans(name, drive, args.cache, args.tof_errors)
+            scans = extracted_scans(name, drive, args.cache, args.tof_errors, true_rig=args.true_rig)
             if args.ideal_scans:
                 scans = ideal_scans(world, scans, only_seen=args.ideal_scans == "seen")
             if args.odometry_scale != 1.0:
@@ -156,6 +160,7 @@ def main(argv: list[str] | None = None) -> int:
                 row = {
                     "world": name, "drive": drive, "seed": seed, "preset": args.preset,
                     "particles": args.particles, "set": args.set, "ideal_scans": args.ideal_scans, "odometry_scale": args.odometry_scale,
+                    "true_rig": args.true_rig,
                     "final_m": round(ev["trajectory"]["slam"]["final"], 3),
                     "mean_m": round(ev["trajectory"]["slam"]["mean"], 3),
                     "within_5cm_pct": round(100 * ev["floorplan"]["occupied_within_5cm"], 1),

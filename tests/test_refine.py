@@ -173,7 +173,7 @@ def test_a_two_mirror_board_counts_for_both_mirrors(rig):
     assert math.degrees(math.hypot(err["a"], err["b"])) < 3.0 * std["normal_deg"]
 
 
-def test_refine_and_report_commands(tmp_path, rig):
+def test_refine_and_report_commands(tmp_path, rig, capsys):
     """`omnitof calibrate refine` on rendered targets, then `calibrate report`: the refined file
     carries standard deviations, the report its sections and figures."""
     from omnitof.calibration import load_calibration
@@ -186,9 +186,18 @@ def test_refine_and_report_commands(tmp_path, rig):
     assert main(["calibrate", "intrinsics", str(folder / "intrinsics"), "--out", str(cal)]) == 0
     assert main(["calibrate", "mirrors", str(folder / "mirrors"), "--calibration", str(cal)]) == 0
     refined = tmp_path / "refined.yaml"
+    capsys.readouterr()
     assert main(["calibrate", "refine", str(folder), "--calibration", str(cal), "--out", str(refined)]) == 0
     result = load_calibration(refined)
     assert set(result.quality["refinement"]["std"]["mirrors"]) == set(result.names)
+    # What it says it used: of the 8 boards, 4 × 2 dot cards and 4 two-mirror boards read, each
+    # image used or named as not used (skipped) or left out (an outlier).
+    used = result.quality["refinement"]["views_used"]
+    printed = capsys.readouterr().out
+    assert (f"refined from {used['boards']} of 8 board, {used['dot_targets']} of 8 dot-target and "
+            f"{used['two_mirror_boards']} of 4 two-mirror images") in printed
+    unused = len(result.quality["refinement"]["skipped"]) + len(result.quality["refinement"]["rejected"])
+    assert used["boards"] + used["dot_targets"] + used["two_mirror_boards"] + unused == 8 + 8 + 4
     report = tmp_path / "report"
     assert main(["calibrate", "report", str(refined), "--out", str(report), "--truth", str(folder / "truth.yaml")]) == 0
     text = (report / "report.md").read_text()

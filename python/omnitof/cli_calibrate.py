@@ -254,7 +254,9 @@ def cmd_refine(args: argparse.Namespace) -> int:
     out = args.out or args.calibration
     save_calibration(refined, out)
     cam, sd = result.camera, result.std["camera"]
-    print(f"refined from {len(boards)} board, {len(dots)} dot-target and {len(pairs)} two-mirror images "
+    used = refined.quality["refinement"]["views_used"]
+    print(f"refined from {used['boards']} of {len(boards)} board, {used['dot_targets']} of {len(dots)} dot-target "
+          f"and {used['two_mirror_boards']} of {len(pairs)} two-mirror images "
           f"({time.perf_counter() - started:.1f} s, {result.iterations} iterations)")
     print(f"  fx {cam.fx:.3f} ± {sd['fx']:.3f}  fy {cam.fy:.3f} ± {sd['fy']:.3f}  "
           f"cx {cam.cx:.3f} ± {sd['cx']:.3f}  cy {cam.cy:.3f} ± {sd['cy']:.3f} px")

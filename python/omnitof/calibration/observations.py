@@ -281,11 +281,13 @@ def refine_calibration(
     rig = replace(calibration.rig, camera=result.camera, planes=tuple(result.planes))
     refined = calibration.with_rig(rig)
     refined.labels = labels
-    refined.quality["refinement"] = {**result.quality(), "skipped": notes}
     used = [v for v in problem.views if v.name not in result.rejected]
+    counts = {"boards": sum(v.kind == "board" for v in used), "dot_targets": sum(v.kind == "dots" for v in used),
+              "two_mirror_boards": len(problem.plane_views)}
+    refined.quality["refinement"] = {**result.quality(), "skipped": notes, "views_used": counts}
     refined.provenance["refinement"] = (
-        f"joint refinement (calibration.refine): {sum(v.kind == 'board' for v in used)} boards, "
-        f"{sum(v.kind == 'dots' for v in used)} dot targets, {len(problem.plane_views)} two-mirror boards"
+        f"joint refinement (calibration.refine): {counts['boards']} boards, "
+        f"{counts['dot_targets']} dot targets, {counts['two_mirror_boards']} two-mirror boards"
         + ("" if path_lengths else "; no ToF path lengths (distances with a systematic error)")
         + (f"; left out as outliers: {', '.join(result.rejected)}" if result.rejected else "")
     )
