@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from omnitof.calibration import CalibrationError
 from omnitof.calibration.planning import board_information, plan_boards, predicted_covariance, projection_weight
 from omnitof.calibration.targets import Checkerboard, checkerboard_poses, planned_checkerboard_poses
 from omnitof.sensor.design import default_rig
@@ -168,7 +169,7 @@ def test_a_camera_whose_distortion_folds_before_the_image_corner_still_plans(cam
     assert with_rough < 1.25 * with_truth < at_random
     nan_weight = weight.copy()
     nan_weight[0, 0] = np.nan
-    with pytest.raises(ValueError, match="not finite"):
+    with pytest.raises(CalibrationError, match="not finite"):
         plan_boards([board_information(camera, points, p) for p in checkerboard_poses(camera, board, 4, seed=1)],
                     2, nan_weight)
 

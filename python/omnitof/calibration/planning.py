@@ -68,7 +68,9 @@ def projection_weight(camera: Camera, grid: tuple[int, int] = GRID) -> np.ndarra
     # Left in, its NaN made every candidate's cost NaN and the plan a random pick.
     rays = rays[np.isfinite(rays).all(axis=1)]
     if len(rays) == 0:
-        raise ValueError("no pixel of the planning grid has a ray: the camera's distortion folds everywhere")
+        from omnitof.calibration import CalibrationError
+
+        raise CalibrationError("no pixel of the planning grid has a ray: the camera's distortion folds everywhere")
     K, dist = _opencv_model(camera)
     _, jacobian = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, dist)
     g = jacobian[:, _INTRINSIC_COLUMNS]
@@ -94,7 +96,10 @@ def plan_boards(informations: Sequence[np.ndarray], n: int, weight: np.ndarray,
         # trace((M + I_b)⁻¹ W) for every candidate b at once.
         cost = np.trace(np.linalg.solve(total + stack, np.broadcast_to(weight, stack.shape)), axis1=1, axis2=2)
         if not np.isfinite(cost[free]).all():
-            raise ValueError("a candidate's predicted cost is not finite (NaN in an information or the weight)")
+            from omnitof.calibration import CalibrationError
+
+            raise CalibrationError("a candidate board's predicted cost is not finite (NaN in its information "
+                                   "or in the weight): the camera's model cannot plan")
         cost[~free] = np.inf
         best = int(np.argmin(cost))
         chosen.append(best)
