@@ -173,6 +173,31 @@ def test_a_two_mirror_board_counts_for_both_mirrors(rig):
     assert math.degrees(math.hypot(err["a"], err["b"])) < 3.0 * std["normal_deg"]
 
 
+def test_a_dim_two_mirror_board_is_found_against_the_room_behind(rig):
+    """`simulate calibration` seed 0's back-right boards (the same poses and noise): dimmer
+    than the others, so the room behind the front and left mirrors passed the brightness test
+    and its flat patches outscored the board, which was then left unused ("seen through 1
+    mirror"). Each must give a plane view through both mirrors, its plane the board's."""
+    from omnitof.calibration import Calibration
+    from omnitof.calibration.images import AmplitudeImage
+    from omnitof.calibration.observations import plane_view
+    from omnitof.calibration.targets import render_target
+
+    camera, mirrors = rig.camera, rig.mirrors
+    back, right = (next(i for i, m in enumerate(mirrors) if m.name == n) for n in ("back", "right"))
+    truth = Calibration.from_rig(rig)
+    poses = pair_board_poses(camera, mirrors, back, right, PlainBoard(), 2, 100 + back)
+    for i, pose in enumerate(poses):
+        frame, _ = render_target(camera, PlainBoard(), pose, mirrors, rng=np.random.default_rng([0, 100 + back, i]))
+        image = AmplitudeImage(f"pair_back-right_{i:02d}", frame.amplitude, frame.distance)
+        view, why = plane_view(camera, image, truth.planes, truth.labels, np.random.default_rng(0))
+        assert view is not None, why
+        assert sorted(t.mirror for t in view.tof) == sorted([back, right])
+        normal = pose[:3, 2]
+        assert math.degrees(math.acos(min(1.0, abs(float(view.normal @ normal))))) < 1.0
+        assert abs(abs(view.c) - abs(float(normal @ pose[:3, 3]))) < 0.01
+
+
 def test_refine_and_report_commands(tmp_path, rig, capsys):
     """`omnitof calibrate refine` on rendered targets, then `calibrate report`: the refined file
     carries standard deviations, the report its sections and figures."""

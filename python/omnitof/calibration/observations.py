@@ -43,8 +43,11 @@ MIN_PLANE_PIXELS = 50
 # RANSAC of the two-mirror board's plane: inlier band (metres) and hypotheses.
 PLANE_BAND = 0.03
 PLANE_TRIALS = 300
-# Share of the brightest amplitude above which a pixel may belong to a near board.
+# Share of the brightest amplitude above which a pixel may belong to a near board, and how many
+# times the mirror pixels' median (the room behind, which the board, held close, outshines by
+# 1/r²) it must also reach: with a dim board the share alone let the background in.
 BRIGHT = 0.08
+ABOVE_BACKGROUND = 2.0
 
 
 def _samples(image: AmplitudeImage, mask: np.ndarray, mirror: int, rng: np.random.Generator) -> ToFSamples | None:
@@ -157,7 +160,11 @@ def plane_view(
         return None, f"{image.name}: no distance image"
     inner = erode_labels(labels, 3.0)
     a = np.nan_to_num(image.amplitude.astype(np.float64))
-    bright = (a > BRIGHT * np.percentile(a, 99.5)) & (inner >= 0) & np.isfinite(image.distance)
+    seen = (inner >= 0) & np.isfinite(image.distance)
+    if not seen.any():
+        return None, f"{image.name}: no pixel seen through a mirror"
+    threshold = max(BRIGHT * np.percentile(a, 99.5), ABOVE_BACKGROUND * float(np.median(a[seen])))
+    bright = (a > threshold) & seen
     rows, cols = np.nonzero(bright)
     if len(rows) < 2 * MIN_PLANE_PIXELS:
         return None, f"{image.name}: too few bright pixels in the mirrors"
@@ -168,7 +175,11 @@ def plane_view(
         sel = which == k
         virtual = rays[sel] * image.distance[rows[sel], cols[sel], None]
         points[sel] = plane.reflect_points(virtual)
-    best, best_count = None, -1
+    # A hypothesis counts by what it is wanted for: the plane seen through two mirrors. Scored
+    # by its inliers in its second-best mirror (then by all), so that a larger flat patch of the
+    # background behind one mirror cannot win over the board (simulate calibration, seed 0: a
+    # dim back-right board lost to the room behind the front mirror, and the image was unused).
+    best, best_score = None, (-1, -1)
     for _ in range(PLANE_TRIALS):
         i = rng.choice(len(points), 3, replace=False)
         n = np.cross(points[i[1]] - points[i[0]], points[i[2]] - points[i[0]])
@@ -176,8 +187,10 @@ def plane_view(
             continue
         n /= np.linalg.norm(n)
         inside = np.abs(points @ n - n @ points[i[0]]) < PLANE_BAND
-        if inside.sum() > best_count:
-            best, best_count = inside, int(inside.sum())
+        per_mirror = np.sort(np.bincount(which[inside], minlength=len(planes)))
+        score = (int(per_mirror[-2]) if len(planes) > 1 else 0, int(inside.sum()))
+        if score > best_score:
+            best, best_score = inside, score
     if best is None:
         return None, f"{image.name}: no plane found"
     centre = points[best].mean(axis=0)
