@@ -433,6 +433,31 @@ def test_turning_smears_a_depth_edge_over_the_angle_swept_between_first_and_last
     assert np.all((np.abs(still - 2.0) < 0.001) | (np.abs(still - 4.0) < 0.001))
 
 
+def test_the_samples_of_a_moving_frame_share_their_multipath_rays():
+    # The interreflection is a smooth function of the pose; its Monte-Carlo estimate is not,
+    # unless the four samples draw the same secondary rays. A frame whose samples move by
+    # nanoradians (rendered once per sample: motion_tolerance 0) must then decode like the
+    # frame at one pose, while four estimates drawn apart differ by their noise.
+    from omnitof.sensor.tof_errors import ToFErrors
+
+    sensor = SensorNoise(errors=ToFErrors(motion=True, multipath=True))
+    r = Renderer(load_world("room"), camera=CAMERA, mirrors=MIRRORS, sensor=sensor,
+                 settings=RenderSettings(sub_rays=1, motion_tolerance=0.0))
+    pose = np.array([2.0, 1.8, 0.3])
+    samples = np.tile(pose, (4, 1))
+    samples[:, 2] += 1e-9 * np.arange(4)
+    moving = r.render_many(pose[None], seed=0, sample_poses=samples[None])[0]
+    still = r.render_many(pose[None], seed=0)[0]
+    lit = np.abs(still.phasor) > 20.0
+    assert lit.sum() > 1000
+    rel = np.abs(moving.phasor - still.phasor)[lit] / np.abs(still.phasor)[lit]
+    assert rel.max() < 1e-4
+    # Each sample with rays of its own (keyed by its own pose) is another estimate.
+    own = r.phasors(samples).phasor
+    rel_own = np.abs(own[1] - own[0])[lit] / np.abs(own[0])[lit]
+    assert np.mean(rel_own > 0.05) > 0.02
+
+
 # --- multipath and the LEDs beside the lens ----------------------------------------------------------
 
 

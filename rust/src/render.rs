@@ -977,20 +977,28 @@ pub fn light_masks(rig: &Rig, params: &RenderParams) -> Option<Vec<SubRayLight>>
 /// each value the mean over the pixel's sub-rays. Runs on the current rayon pool, one image
 /// row per task; the result does not depend on the number of threads.
 pub fn render(scene: &Scene, rig: &Rig, params: &RenderParams, poses: &[[f64; 3]], out: &mut [f32]) {
-    render_with(scene, rig, params, light_masks(rig, params).as_deref(), poses, out)
+    render_with(scene, rig, params, light_masks(rig, params).as_deref(), poses, poses, out)
 }
 
 /// `render` with the rig's `light_masks` computed beforehand (None: every source is tested).
+/// Image i's secondary rays draw their random numbers from `keys[i]` (with `params.seed`):
+/// `poses` itself for frames taken at one instant; for the four samples of a frame taken while
+/// the robot moves, the frame's one pose for all four (common random numbers). The
+/// interreflection of a real scene is a smooth function of the pose; four independent
+/// Monte-Carlo estimates of it would differ by their noise (a tenth of the phasor or more in
+/// one pixel of ten with multipath on), which the 4-tap decoding turns into errors no camera makes.
 pub fn render_with(
     scene: &Scene,
     rig: &Rig,
     params: &RenderParams,
     masks: Option<&[SubRayLight]>,
     poses: &[[f64; 3]],
+    keys: &[[f64; 3]],
     out: &mut [f32],
 ) {
     let (h, w, s) = (rig.height, rig.width, rig.sub_rays);
     assert!(masks.is_none_or(|m| m.len() == rig.rays.len()), "one light mask per sub-ray");
+    assert_eq!(keys.len(), poses.len(), "one random-number key per pose");
     assert_eq!(out.len(), poses.len() * h * w * 4, "output buffer size");
     let transforms: Vec<[[f64; 4]; 3]> = poses.iter().map(|&p| rig.world_t_camera(p)).collect();
     let lit = params.illumination.is_some() || params.multipath_rays > 0;
@@ -1009,7 +1017,7 @@ pub fn render_with(
         let frame = row_index / h;
         let m = &transforms[frame];
         let first = (row_index % h) * w * s;
-        let hash = pose_hash(params.seed, poses[frame]);
+        let hash = pose_hash(params.seed, keys[frame]);
         let mut secondary = [[0.0f64; 2]; MAX_SECONDARY];
         for (col, px) in row.chunks_exact_mut(4).enumerate() {
             let mut acc = Return::default();
@@ -1463,7 +1471,7 @@ mod tests {
             let poses = [[0.0, 0.0, 0.0], [0.4, -0.3, 2.0]];
             let image = |masks: Option<&[SubRayLight]>| {
                 let mut out = vec![0f32; poses.len() * 16 * 12 * 4];
-                render_with(&scene, &rig, &p, masks, &poses, &mut out);
+                render_with(&scene, &rig, &p, masks, &poses, &poses, &mut out);
                 out
             };
             let with = image(Some(&masks));

@@ -197,19 +197,31 @@ impl PyRenderer {
     }
 
     /// (N, H, W, 4) float32: per pose (x, y, θ) and pixel, the mean over its sub-rays of the
-    /// phasor (re, im), Σ|p| and the ambient brightness Σ g1·albedo.
-    fn render<'py>(&self, py: Python<'py>, poses: PyReadonlyArray2<f64>) -> PyResult<Bound<'py, PyArray4<f32>>> {
+    /// phasor (re, im), Σ|p| and the ambient brightness Σ g1·albedo. `keys` (N, 3): the pose
+    /// whose hash seeds each image's secondary rays (default: `poses`; `render_with`).
+    #[pyo3(signature = (poses, keys=None))]
+    fn render<'py>(
+        &self,
+        py: Python<'py>,
+        poses: PyReadonlyArray2<f64>,
+        keys: Option<PyReadonlyArray2<f64>>,
+    ) -> PyResult<Bound<'py, PyArray4<f32>>> {
         let poses: Vec<[f64; 3]> = rows(&poses, 3, "poses")?.iter().map(|r| [r[0], r[1], r[2]]).collect();
         if poses.iter().flatten().any(|v| !v.is_finite()) {
             return Err(PyValueError::new_err("poses must be finite"));
         }
+        let keys: Vec<[f64; 3]> = match keys {
+            Some(k) => rows(&k, 3, "keys")?.iter().map(|r| [r[0], r[1], r[2]]).collect(),
+            None => poses.clone(),
+        };
+        same_len(poses.len(), keys.len(), "keys")?;
         let (h, w) = (self.rig.height, self.rig.width);
         let mut out = vec![0f32; poses.len() * h * w * 4];
         py.detach(|| {
             let (scene, rig, params, masks) = (&self.scene, &self.rig, &self.params, self.masks.as_deref());
             match &self.pool {
-                Some(pool) => pool.install(|| render_with(scene, rig, params, masks, &poses, &mut out)),
-                None => render_with(scene, rig, params, masks, &poses, &mut out),
+                Some(pool) => pool.install(|| render_with(scene, rig, params, masks, &poses, &keys, &mut out)),
+                None => render_with(scene, rig, params, masks, &poses, &keys, &mut out),
             }
         });
         Ok(Array4::from_shape_vec((poses.len(), h, w, 4), out).unwrap().into_pyarray(py))

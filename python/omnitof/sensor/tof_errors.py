@@ -102,7 +102,8 @@ class ToFErrors:
         fixed_pattern: a per-pixel offset, normal with fixed_pattern_std metres, drawn from
             fixed_pattern_seed (the same pattern for every frame of a camera).
         motion: the four samples taken one after another, integration_time seconds apart,
-            each rendered at the robot's pose at its own time.
+            each rendered at the robot's pose at its own time (with multipath, all four with
+            the same secondary rays, so that they differ by the motion alone).
         multipath: one diffuse interreflection, multipath_rays secondary rays per pixel
             (rust/src/light.rs).
         illumination: the light from led_count LEDs on a ring of led_radius metres around

@@ -218,12 +218,14 @@ class Renderer:
         model), read-only."""
         return self._directions
 
-    def phasors(self, poses: np.ndarray) -> Phasors:
+    def phasors(self, poses: np.ndarray, *, keys: np.ndarray | None = None) -> Phasors:
         """Noise-free pixel phasors and offsets for robot poses (N, 3) (or one pose (3,),
-        which still gives arrays (1, H, W))."""
+        which still gives arrays (1, H, W)). `keys` (N, 3): the pose whose hash draws each
+        image's multipath rays (default: its own pose; `render_many` gives a moving frame's
+        four samples their frame's pose, so that they share them)."""
         poses2 = _poses(poses)
         # (N, H, W, 4) float32: re, im, Σ|p| (kept >= |re + i·im| by the core), ambient brightness.
-        raw = self._core.render(poses2)
+        raw = self._core.render(poses2, None if keys is None else _poses(keys))
         phasor = np.ascontiguousarray(raw.view(np.complex64)[..., 0])
         active = raw[..., 2] * np.float32(1.0 / self.sensor.modulation_contrast)
         scale = self.sensor.ambient * self.world.ambient / AMBIENT_REFERENCE_ALBEDO
@@ -261,8 +263,14 @@ class Renderer:
             raise RenderConfigError(f"sample_poses must be finite with shape ({n}, 4, 3), got {sp.shape}")
         moving = self._apparent_motion(sp) > self.settings.motion_tolerance
         # One call of the core: the still frames at their poses, the moving ones at each sample's.
+        # A moving frame's four samples draw the same multipath rays (keyed by the frame's pose):
+        # the scene's interreflection changes smoothly over the frame, and four independent
+        # Monte-Carlo draws of it would differ by their noise, which the 4-tap decoding turns
+        # into distance errors that no camera makes (BENCHMARKS.md, "Multipath in frames taken
+        # while turning").
         n_still = int((~moving).sum())
-        ph = self.phasors(np.concatenate([poses2[~moving], sp[moving].reshape(-1, 3)]))
+        ph = self.phasors(np.concatenate([poses2[~moving], sp[moving].reshape(-1, 3)]),
+                          keys=np.concatenate([poses2[~moving], np.repeat(poses2[moving], 4, axis=0)]))
         first = np.empty(n, dtype=np.int64)
         first[~moving] = np.arange(n_still)
         first[moving] = n_still + 4 * np.arange(n - n_still)
