@@ -472,32 +472,39 @@ def horizontal_camera(fx: float, width: int, height: int):
     return cam, mount
 
 
-def test_a_corner_adds_the_two_path_phasor_of_the_neighbouring_wall():
-    # Two perpendicular matte walls (A: x = 3, B: y = 1), black floor and ceiling, the coaxial
-    # point source at the camera. The camera looks at P = (3, 0.5, 1) on A, 0.5 m from the
-    # corner, through a narrow lens (all pixels see P within 1 mm). The interreflection's
-    # phasor, rendered with and without multipath, is compared with a quadrature over B of
-    #   A1m·ρ_A·ρ_B/π ∫ cosθ_P·cosθ_Q/|PQ|² · cosθ_S/|QS|² · e^{i·k·(r + |PQ| + |QS|)/2} dA,
-    # k = 4πf/c, r = |SP| (the camera side), θ_S the incidence of the source's light at Q.
-    from omnitof.sensor.tof_errors import ToFErrors
-
-    materials = {"black": BLACK}
-    w = world(walls=[(3.0, -5.0, 3.0, 1.0, "wall"), (-5.0, 1.0, 3.0, 1.0, "wall")], materials=materials,
+def corner_scene():
+    """Two perpendicular matte walls (A: x = 3, B: y = 1), black floor and ceiling; a narrow
+    lens at the origin, 1 m up, looking at P = (3, 0.5, 1) on A, 0.5 m from the corner (all
+    pixels see P within 1 mm): (world, camera, mount, pose)."""
+    w = world(walls=[(3.0, -5.0, 3.0, 1.0, "wall"), (-5.0, 1.0, 3.0, 1.0, "wall")], materials={"black": BLACK},
               floor_material="black", ceiling_material="black")
     cam, mount = horizontal_camera(fx=20000.0, width=16, height=16)
-    pose = np.array([0.0, 0.0, math.atan2(0.5, 3.0)])
-    noiseless = dict(electrons_per_unit=math.inf, read_noise=0.0)
+    return w, cam, mount, np.array([0.0, 0.0, math.atan2(0.5, 3.0)])
 
-    def phasor(multipath: bool) -> complex:
-        # An isotropic source (no emission profile): the quadrature below has none either.
-        errors = ToFErrors(multipath=multipath, multipath_rays=256, led_profile_exponent=0.0, led_half_angle_deg=180.0)
-        sensor = SensorNoise(**noiseless, errors=errors)
+
+def corner_indirect(rays: int, window: int, sub_rays: int) -> np.ndarray:
+    """Per pixel of `corner_scene`, the phasor the interreflection adds (complex128 (16, 16)),
+    from a coaxial isotropic source (the quadrature of `corner_quadrature` has no profile)."""
+    from omnitof.sensor.tof_errors import ToFErrors
+
+    w, cam, mount, pose = corner_scene()
+
+    def phasor(multipath: bool) -> np.ndarray:
+        errors = ToFErrors(multipath=multipath, multipath_rays=rays, multipath_window=window,
+                           led_profile_exponent=0.0, led_half_angle_deg=180.0)
+        sensor = SensorNoise(electrons_per_unit=math.inf, read_noise=0.0, errors=errors)
         r = Renderer(w, camera=cam, mirrors=[], robot_T_camera=mount, sensor=sensor,
-                     settings=RenderSettings(sub_rays=16, max_bounces=0, seed=3))
-        return complex(r.phasors(pose).phasor[0].astype(np.complex128).mean())
+                     settings=RenderSettings(sub_rays=sub_rays, max_bounces=0, seed=3))
+        return r.phasors(pose).phasor[0].astype(np.complex128)
 
-    indirect = phasor(True) - phasor(False)
+    return phasor(True) - phasor(False)
 
+
+def corner_quadrature() -> tuple[complex, float]:
+    """The interreflection at P of `corner_scene` by a quadrature over B of
+      A1m·ρ_A·ρ_B/π ∫ cosθ_P·cosθ_Q/|PQ|² · cosθ_S/|QS|² · e^{i·k·(r + |PQ| + |QS|)/2} dA,
+    k = 4πf/c, r = |SP| (the camera side), θ_S the incidence of the source's light at Q; and
+    the direct light's amplitude at P."""
     k = 4 * math.pi * SENSOR.f_mod / 299_792_458.0
     p, s = np.array([3.0, 0.5, 1.0]), np.array([0.0, 0.0, 1.0])
     r = np.linalg.norm(p - s)
@@ -515,12 +522,29 @@ def test_a_corner_adds_the_two_path_phasor_of_the_neighbouring_wall():
     integrand = cos_p * cos_q / d_pq**2 * cos_s / d_qs**2 * np.exp(1j * k * (r + d_pq + d_qs) / 2)
     albedo = 0.6  # the bundled "wall"
     expected = SENSOR.amplitude_at_1m * albedo * albedo / math.pi * integrand.sum() * area
+    return complex(expected), SENSOR.amplitude_at_1m * albedo * (3.0 / r) / r**2
 
-    direct = SENSOR.amplitude_at_1m * albedo * (3.0 / r) / r**2
+
+def test_a_corner_adds_the_two_path_phasor_of_the_neighbouring_wall():
+    # The interreflection's phasor, rendered with and without multipath, against the quadrature.
+    expected, direct = corner_quadrature()
+    indirect = corner_indirect(rays=256, window=0, sub_rays=16).mean()
     assert abs(expected) > 0.05 * direct  # the corner matters: > 5 % of the direct light
     # Monte-Carlo over 256 pixels × 256 rays: about 1 % noise (the spread of the estimator), 4 %
     # tolerance.
     assert abs(indirect - expected) < 0.04 * abs(expected)
+
+
+def test_two_rays_averaged_over_the_pixels_that_see_the_surface_approach_the_quadrature():
+    # Two secondary rays per pixel are a noisy estimate: each pixel's alone is off by about its
+    # own size (the estimator's spread, about 2.6 per ray, over two rays). Averaged over the
+    # 7 × 7 pixels around it that see the same surface (here all see P), about 98 rays: a
+    # seventh of that spread, and no bias.
+    expected, _ = corner_quadrature()
+    alone = np.abs(corner_indirect(rays=2, window=0, sub_rays=2) - expected) / abs(expected)
+    averaged = np.abs(corner_indirect(rays=2, window=3, sub_rays=2) - expected) / abs(expected)
+    assert np.median(alone) > 0.5
+    assert np.median(averaged) < 0.35 and np.median(averaged) < np.median(alone) / 3
 
 
 # --- noise and decoding in the core ------------------------------------------------------------------

@@ -250,6 +250,7 @@ class _Renderer:
         led_profile_exponent: float = 0.0,
         led_half_angle_deg: float = 180.0,
         multipath_rays: int = 0,
+        multipath_window: int = 0,
         seed: int = 0,
     ) -> _Renderer: ...
     def render(self, poses: _F64, keys: _F64 | None = None) -> _F32: ...

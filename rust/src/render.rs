@@ -775,6 +775,10 @@ pub struct RenderParams {
     pub illumination: Option<Illumination>,
     /// Secondary rays per pixel for one diffuse interreflection (multipath); 0: none.
     pub multipath_rays: u32,
+    /// Half-width (pixels) of the window over which a pixel's interreflection is averaged with
+    /// its neighbours' that see the same surface (`smooth_row`, `smoothed_column`); 0: each
+    /// pixel alone.
+    pub multipath_window: u32,
     /// The source that lights the interreflections: one LED at the centre of the LEDs (the
     /// lens centre without them) with their emission profile.
     pub bounce: Illumination,
@@ -810,7 +814,85 @@ pub struct Return {
     /// (phase, cos, sin) of the first path added: a pixel's sub-rays mostly see one surface,
     /// their phases within a few hundredths of a radian of each other.
     reference: Option<(f64, f64, f64)>,
+    /// The interreflection (multipath), kept apart from the rest until `render_with` writes
+    /// the pixel (after averaging it with its neighbours').
+    pub indirect: Indirect,
 }
+
+/// A pixel's interreflection: the sum of its secondary paths' phasors and magnitudes, and the
+/// surface its secondary rays left from. Two rays per pixel make a noisy estimate of a smooth
+/// quantity; `smooth_row` and `smoothed_column` average it over the neighbouring pixels that
+/// see the same surface, through `smoothable()`: the phasor per unit of the surface's
+/// direct-light scale with the phase of the pixel's own path taken out, which varies slowly
+/// along a surface.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Indirect {
+    pub re: f64,
+    pub im: f64,
+    pub magnitude: f64,
+    /// Σ over the sub-rays that sent secondary rays of their direct-light scale × rays × weight.
+    scale: f64,
+    /// Σ scale·(one-way path to the surface) and Σ scale·(surface point).
+    path: f64,
+    point: [f64; 3],
+    /// The first such sub-ray's surface: unit normal and plane offset (n·x).
+    normal: [f64; 3],
+    offset: f64,
+    /// Sub-rays of the pixel sent secondary rays from different surfaces (an edge).
+    mixed: bool,
+    /// As `Return::reference`: the paths through the LEDs' images differ by centimetres.
+    reference: Option<(f64, f64, f64)>,
+}
+
+impl Indirect {
+    fn add(&mut self, amplitude: f64, phase: f64) {
+        let (s, c) = sin_cos_near(&mut self.reference, phase);
+        self.re += amplitude * c;
+        self.im += amplitude * s;
+        self.magnitude += amplitude;
+    }
+
+    /// The sub-ray at `point` (one-way path `path`, facing normal `normal`) sent secondary
+    /// rays worth `scale` (direct-light scale × rays × weight).
+    fn sent_from(&mut self, w: f64, path: f64, point: [f64; 3], normal: [f64; 3]) {
+        let offset = dot(normal, point);
+        if self.scale <= 0.0 {
+            (self.normal, self.offset) = (normal, offset);
+        } else if dot(self.normal, normal) < SAME_NORMAL || (self.offset - offset).abs() > SAME_PLANE {
+            self.mixed = true;
+        }
+        self.scale += w;
+        self.path += w * path;
+        self.point = add(self.point, scale(point, w));
+    }
+
+    /// What the averaging needs of this pixel: None without secondary rays or where they
+    /// left from different surfaces (the pixel keeps its own estimate).
+    fn smoothable(&self, k: f64) -> Option<Smoothable> {
+        if self.scale <= 0.0 || self.mixed {
+            return None;
+        }
+        let inv = 1.0 / self.scale;
+        let (s, c) = (k * self.path * inv).sin_cos();
+        // The phasor per unit scale, turned back by the phase of the mean path (e^{−ik·path}).
+        let e = [(self.re * c + self.im * s) * inv, (self.im * c - self.re * s) * inv];
+        Some(Smoothable {
+            normal: self.normal.map(|v| v as f32),
+            offset: self.offset as f32,
+            point: scale(self.point, inv).map(|v| v as f32),
+            value: [e[0], e[1], self.magnitude * inv],
+            turn: [c, s],
+            scale: self.scale,
+        })
+    }
+}
+
+/// Two sub-rays' surfaces are one plane if their normals are within 2.6° and their planes 2 cm.
+const SAME_NORMAL: f64 = 0.999;
+const SAME_PLANE: f64 = 0.02;
+/// Neighbours whose surface points lie farther apart than this (m) are not averaged: the
+/// interreflection changes over the distance to the nearest corner, rarely less than 0.2 m.
+const SMOOTH_RADIUS: f64 = 0.2;
 
 /// Paths whose phase lies this close (radians) to the pixel's first path turn its cos and sin
 /// by a series instead of calling sin_cos (error below 3·10⁻¹⁵).
@@ -819,27 +901,34 @@ const NEAR_PHASE: f64 = 0.1;
 impl Return {
     /// Add a light path's phasor: `amplitude`·e^{i·phase}.
     fn add(&mut self, amplitude: f64, phase: f64) {
-        let (s, c) = match self.reference {
-            Some((p0, c0, s0)) if (phase - p0).abs() < NEAR_PHASE => {
-                // e^{iφ} = e^{iφ0}·e^{iδ}, e^{iδ} by its Taylor series (terms to δ⁸: the
-                // remainder is below δ⁹/9! < 3·10⁻¹⁵ for |δ| < 0.1).
-                let d = phase - p0;
-                let d2 = d * d;
-                let sd = d * (1.0 - d2 / 6.0 * (1.0 - d2 / 20.0 * (1.0 - d2 / 42.0)));
-                let cd = 1.0 - d2 / 2.0 * (1.0 - d2 / 12.0 * (1.0 - d2 / 30.0 * (1.0 - d2 / 56.0)));
-                (s0 * cd + c0 * sd, c0 * cd - s0 * sd)
-            }
-            _ => {
-                let (s, c) = phase.sin_cos();
-                if self.reference.is_none() {
-                    self.reference = Some((phase, c, s));
-                }
-                (s, c)
-            }
-        };
+        let (s, c) = sin_cos_near(&mut self.reference, phase);
         self.re += amplitude * c;
         self.im += amplitude * s;
         self.magnitude += amplitude;
+    }
+}
+
+/// sin and cos of `phase`, by a series from `reference` (phase, cos, sin) where the phase lies
+/// within NEAR_PHASE of it; the first phase seen becomes the reference.
+#[inline]
+fn sin_cos_near(reference: &mut Option<(f64, f64, f64)>, phase: f64) -> (f64, f64) {
+    match *reference {
+        Some((p0, c0, s0)) if (phase - p0).abs() < NEAR_PHASE => {
+            // e^{iφ} = e^{iφ0}·e^{iδ}, e^{iδ} by its Taylor series (terms to δ⁸: the
+            // remainder is below δ⁹/9! < 3·10⁻¹⁵ for |δ| < 0.1).
+            let d = phase - p0;
+            let d2 = d * d;
+            let sd = d * (1.0 - d2 / 6.0 * (1.0 - d2 / 20.0 * (1.0 - d2 / 42.0)));
+            let cd = 1.0 - d2 / 2.0 * (1.0 - d2 / 12.0 * (1.0 - d2 / 30.0 * (1.0 - d2 / 56.0)));
+            (s0 * cd + c0 * sd, c0 * cd - s0 * sd)
+        }
+        _ => {
+            let (s, c) = phase.sin_cos();
+            if reference.is_none() {
+                *reference = Some((phase, c, s));
+            }
+            (s, c)
+        }
     }
 }
 
@@ -934,13 +1023,14 @@ pub fn trace_lit(
                 }
             }
             acc.ambient += seg.g1 * m.albedo;
-            if let Some(l) = lighting.filter(|_| direct) {
+            if let Some(l) = lighting.filter(|l| direct && !l.secondary.is_empty()) {
+                let weight = scale_p * l.secondary_weight;
                 for &u in l.secondary {
-                    let weight = scale_p * l.secondary_weight;
                     l.bounce_light.bounce(scene, point, hit.normal, u, &mut work.mail, |gain, length| {
-                        acc.add(weight * gain, 0.5 * k * (r + length));
+                        acc.indirect.add(weight * gain, 0.5 * k * (r + length));
                     });
                 }
+                acc.indirect.sent_from(weight * l.secondary.len() as f64, r, point, hit.normal);
             }
         }
         if m.specular > 0.0 && seg.bounces < params.max_bounces && seg.g2 * m.specular * m.specular >= params.min_gain {
@@ -1012,20 +1102,21 @@ pub fn render_with(
     // The pixel's secondary rays, spread over its sub-rays: sub-ray j sends rays j, j + s, ...
     let total = params.multipath_rays as usize;
     let weight = if total > 0 { s as f64 / total as f64 } else { 0.0 };
-    out.par_chunks_mut(w * 4).enumerate().for_each(|(row_index, row)| {
+    // Image row `row_index` (over all frames) into `returns`, one per pixel.
+    let trace_row = |row_index: usize, returns: &mut [Return]| {
         let mut work = Workspace::for_scene(scene);
         let frame = row_index / h;
         let m = &transforms[frame];
         let first = (row_index % h) * w * s;
         let hash = pose_hash(params.seed, keys[frame]);
         let mut secondary = [[0.0f64; 2]; MAX_SECONDARY];
-        for (col, px) in row.chunks_exact_mut(4).enumerate() {
-            let mut acc = Return::default();
+        for (col, acc) in returns.iter_mut().enumerate() {
+            *acc = Return::default();
             let pixel = ((row_index % h) * w + col) as u64;
             for (j, sub) in rig.rays[first + col * s..first + (col + 1) * s].iter().enumerate() {
                 let world = SubRay { origin: apply(m, sub.origin), dir: rotate(m, sub.dir), ..*sub };
                 if !lit {
-                    trace(scene, params, &world, &mut acc, &mut work);
+                    trace(scene, params, &world, acc, &mut work);
                     continue;
                 }
                 let mut count = 0;
@@ -1042,17 +1133,140 @@ pub fn render_with(
                     secondary: &secondary[..count],
                     secondary_weight: weight,
                 };
-                trace_lit(scene, params, &world, Some(&lighting), &mut acc, &mut work);
+                trace_lit(scene, params, &world, Some(&lighting), acc, &mut work);
             }
-            let inv = 1.0 / s as f64;
-            let (re, im) = ((acc.re * inv) as f32, (acc.im * inv) as f32);
-            px[0] = re;
-            px[1] = im;
-            // |Σp| <= Σ|p| holds exactly; keep it true after rounding to f32.
-            px[2] = ((acc.magnitude * inv) as f32).max(re.hypot(im) * (1.0 + 4.0 * f32::EPSILON));
-            px[3] = (acc.ambient * inv) as f32;
         }
-    });
+    };
+    let inv = 1.0 / s as f64;
+    let write = |acc: &Return, indirect: [f64; 3], px: &mut [f32]| {
+        let (re, im) = (((acc.re + indirect[0]) * inv) as f32, ((acc.im + indirect[1]) * inv) as f32);
+        px[0] = re;
+        px[1] = im;
+        // |Σp| <= Σ|p| holds exactly; keep it true after rounding to f32.
+        px[2] = (((acc.magnitude + indirect[2]) * inv) as f32).max(re.hypot(im) * (1.0 + 4.0 * f32::EPSILON));
+        px[3] = (acc.ambient * inv) as f32;
+    };
+    let own = |a: &Return| [a.indirect.re, a.indirect.im, a.indirect.magnitude];
+    if total == 0 || params.multipath_window == 0 {
+        out.par_chunks_mut(w * 4).enumerate().for_each(|(row_index, row)| {
+            let mut returns = vec![Return::default(); w];
+            trace_row(row_index, &mut returns);
+            for (acc, px) in returns.iter().zip(row.chunks_exact_mut(4)) {
+                write(acc, own(acc), px);
+            }
+        });
+        return;
+    }
+    // With multipath: a few frames at a time, every pixel traced, then each pixel's
+    // interreflection averaged with its neighbours' (`smooth_row`, `smoothed_column`).
+    let k = 4.0 * std::f64::consts::PI * params.f_mod / SPEED_OF_LIGHT;
+    let per_frame = h * w;
+    let mut pixels = vec![None; SMOOTH_FRAMES.min(poses.len()) * per_frame];
+    let mut rows = vec![[0.0; 3]; pixels.len()];
+    let window = params.multipath_window as usize;
+    for (chunk, out_chunk) in out.chunks_mut(SMOOTH_FRAMES * per_frame * 4).enumerate() {
+        let pixels = &mut pixels[..out_chunk.len() / 4];
+        let rows = &mut rows[..pixels.len()];
+        // Each pixel without its interreflection, and what its interreflection needs to be averaged.
+        out_chunk.par_chunks_mut(w * 4).zip(pixels.par_chunks_mut(w)).enumerate().for_each(|(r, (row, side))| {
+            let mut returns = vec![Return::default(); w];
+            trace_row(chunk * SMOOTH_FRAMES * h + r, &mut returns);
+            for ((acc, px), p) in returns.iter().zip(row.chunks_exact_mut(4)).zip(side.iter_mut()) {
+                *p = acc.indirect.smoothable(k);
+                write(acc, if p.is_some() { [0.0; 3] } else { own(acc) }, px);
+            }
+        });
+        // The interreflection averaged along each image row, then along each column of those
+        // row averages (`smooth_row`, `smoothed_column`), added to the pixel.
+        rows.par_chunks_mut(w).zip(pixels.par_chunks(w)).for_each(|(out_row, row)| smooth_row(row, window, out_row));
+        let (pixels, rows) = (&*pixels, &*rows);
+        out_chunk.par_chunks_mut(w * 4).enumerate().for_each(|(r, row)| {
+            for (col, px) in row.chunks_exact_mut(4).enumerate() {
+                let i = r * w + col;
+                if let Some([re, im, m]) = smoothed_column(pixels, rows, i, h, w, window) {
+                    let (re, im) = (px[0] + (re * inv) as f32, px[1] + (im * inv) as f32);
+                    (px[0], px[1]) = (re, im);
+                    px[2] = (px[2] + (m * inv) as f32).max(re.hypot(im) * (1.0 + 4.0 * f32::EPSILON));
+                }
+            }
+        });
+    }
+}
+
+/// Frames traced at once before their interreflection is averaged (`render_with`).
+const SMOOTH_FRAMES: usize = 4;
+
+/// What the averaging compares and averages of a pixel: its surface (plane and mean point,
+/// f32: the tolerances are centimetres), its interreflection per unit of direct-light scale
+/// with the phase of its own mean path taken out (re, im, magnitude), and the turn e^{ik·path}
+/// and scale that give it back.
+#[derive(Clone, Copy, Debug)]
+struct Smoothable {
+    normal: [f32; 3],
+    offset: f32,
+    point: [f32; 3],
+    value: [f64; 3],
+    turn: [f64; 2],
+    scale: f64,
+}
+
+impl Smoothable {
+    #[inline]
+    fn same_surface(&self, o: &Smoothable) -> bool {
+        let n = self.normal[0] * o.normal[0] + self.normal[1] * o.normal[1] + self.normal[2] * o.normal[2];
+        let d = [self.point[0] - o.point[0], self.point[1] - o.point[1], self.point[2] - o.point[2]];
+        n >= SAME_NORMAL as f32
+            && (self.offset - o.offset).abs() <= SAME_PLANE as f32
+            && d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= (SMOOTH_RADIUS * SMOOTH_RADIUS) as f32
+    }
+}
+
+/// The interreflection of each pixel of one image row averaged over the pixels within
+/// `window` columns that see the same surface (`Smoothable::same_surface`), per unit of
+/// direct-light scale with each pixel's own path phase taken out. The first of the two passes of
+/// an edge-aware average done separably, as image denoisers do (then `smoothed_column`).
+/// Written here: the quantity averaged is particular to this renderer's light paths.
+fn smooth_row(row: &[Option<Smoothable>], window: usize, out: &mut [[f64; 3]]) {
+    for (pos, (me, o)) in row.iter().zip(out.iter_mut()).enumerate() {
+        if let Some(me) = me {
+            let lo = pos.saturating_sub(window);
+            let hi = (pos + window).min(row.len() - 1);
+            *o = mean_of_same(me, (lo..=hi).map(|q| (q == pos, row[q].as_ref(), row[q].map_or([0.0; 3], |p| p.value))));
+        }
+    }
+}
+
+/// Pixel i's interreflection (re, im, Σ|p|, summed over its sub-rays): the mean over the pixels
+/// within `window` rows of i's column that see its surface of their row averages (`rows`),
+/// turned back with i's own path phase and scale. None where i has nothing to average.
+fn smoothed_column(pixels: &[Option<Smoothable>], rows: &[[f64; 3]], i: usize, h: usize, w: usize, window: usize) -> Option<[f64; 3]> {
+    let me = pixels[i].as_ref()?;
+    let per_frame = h * w;
+    let (frame_start, within) = (i - i % per_frame, i % per_frame);
+    let (col, pos) = (within % w, within / w);
+    let (lo, hi) = (pos.saturating_sub(window), (pos + window).min(h - 1));
+    let [er, ei, m] = mean_of_same(
+        me,
+        (lo..=hi).map(|q| {
+            let j = frame_start + q * w + col;
+            (q == pos, pixels[j].as_ref(), rows[j])
+        }),
+    );
+    let [c, s] = me.turn;
+    Some([me.scale * (er * c - ei * s), me.scale * (er * s + ei * c), me.scale * m])
+}
+
+/// The mean of the values of the candidates that are `me` itself or see its surface.
+#[inline]
+fn mean_of_same<'a>(me: &Smoothable, candidates: impl Iterator<Item = (bool, Option<&'a Smoothable>, [f64; 3])>) -> [f64; 3] {
+    let (mut sum, mut n) = ([0.0; 3], 0.0);
+    for (itself, other, v) in candidates {
+        if itself || other.is_some_and(|o| me.same_surface(o)) {
+            sum = [sum[0] + v[0], sum[1] + v[1], sum[2] + v[2]];
+            n += 1.0;
+        }
+    }
+    [sum[0] / n, sum[1] / n, sum[2] / n]
 }
 
 // --- small vector helpers ----------------------------------------------------------------
@@ -1268,6 +1482,7 @@ mod tests {
             min_gain: 1e-6,
             illumination: None,
             multipath_rays: 0,
+            multipath_window: 0,
             bounce: Illumination::coaxial(),
             seed: 0,
         }
@@ -1395,6 +1610,7 @@ mod tests {
         let p = RenderParams {
             illumination: Some(Illumination { leds, profile_exponent: 3.6, min_cos: 0.6 }),
             multipath_rays: 6,
+            multipath_window: 2,
             seed: 4,
             ..params()
         };
@@ -1486,5 +1702,51 @@ mod tests {
             assert!(!live.is_empty() && (tested as usize) < live.len() * sources / 2, "{tested} of {}", live.len() * sources);
         }
     }
+    #[test]
+    fn smoothing_averages_the_interreflection_relative_to_each_pixels_own_path() {
+        // One image column (w = 1) of pixels on the wall x = 3 (normal −x) at paths 3.00–3.35 m,
+        // each pixel's interreflection E_i·e^{ik·path_i} (times its scale), and one pixel on the
+        // floor among them. Averaged over the wall's pixels within the window, relative to each
+        // one's own path: with one E for all, every pixel gets its own back; with E_i apart, the
+        // mean of the E_i in its window, turned by its own path; the floor pixel stays alone.
+        let k = 4.0 * std::f64::consts::PI * 20e6 / SPEED_OF_LIGHT;
+        let pixel = |path: f64, z: f64, normal: [f64; 3], e: [f64; 2], w: f64| {
+            let mut ind = Indirect::default();
+            ind.sent_from(w, path, [3.0, 0.1, z], normal);
+            let (s, c) = (k * path).sin_cos();
+            (ind.re, ind.im, ind.magnitude) = (w * (e[0] * c - e[1] * s), w * (e[0] * s + e[1] * c), w * 0.7);
+            ind
+        };
+        let (wall, floor) = ([-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]);
+        for spread in [0.0, 0.2] {
+            let e_of = |i: usize| [0.3 + spread * (i as f64 - 3.0), -0.2];
+            let path_of = |i: usize| 3.0 + 0.05 * i as f64;
+            let column: Vec<Indirect> = (0..8)
+                .map(|i| {
+                    if i == 5 {
+                        pixel(path_of(i), 0.0, floor, [1.0, 1.0], 2.0)
+                    } else {
+                        pixel(path_of(i), 1.0 + 0.02 * i as f64, wall, e_of(i), 1.5)
+                    }
+                })
+                .collect();
+            let pixels: Vec<Option<Smoothable>> = column.iter().map(|ind| ind.smoothable(k)).collect();
+            // w = 1: each row average is the pixel itself.
+            let rows: Vec<[f64; 3]> = pixels.iter().map(|p| p.unwrap().value).collect();
+            for (i, ind) in column.iter().enumerate() {
+                let got = smoothed_column(&pixels, &rows, i, 8, 1, 2).unwrap();
+                let want = if i == 5 {
+                    [ind.re, ind.im, ind.magnitude]
+                } else {
+                    let near: Vec<usize> = (i.saturating_sub(2)..=(i + 2).min(7)).filter(|&j| j != 5).collect();
+                    let mean = near.iter().map(|&j| e_of(j)[0]).sum::<f64>() / near.len() as f64;
+                    let (s, c) = (k * path_of(i)).sin_cos();
+                    [1.5 * (mean * c + 0.2 * s), 1.5 * (mean * s - 0.2 * c), 1.5 * 0.7]
+                };
+                for (g, w) in got.iter().zip(&want) {
+                    assert!((g - w).abs() < 1e-12, "spread {spread}, pixel {i}: {got:?} vs {want:?}");
+                }
+            }
+        }
+    }
 }
-

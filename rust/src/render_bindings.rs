@@ -96,7 +96,7 @@ impl PyRenderer {
     #[pyo3(signature = (*, walls, wall_materials, boxes, box_materials, materials, floor_material,
         ceiling_material, ceiling_height, cell, directions, height, width, sub_rays, mirror_planes,
         mirror_vertices, mirror_counts, mirror_reflectivity, robot_T_camera, f_mod, amplitude_at_1m,
-        max_bounces, min_gain, threads=None, leds=None, led_profile_exponent=0.0, led_half_angle_deg=180.0, multipath_rays=0, seed=0))]
+        max_bounces, min_gain, threads=None, leds=None, led_profile_exponent=0.0, led_half_angle_deg=180.0, multipath_rays=0, multipath_window=0, seed=0))]
     #[allow(clippy::too_many_arguments, non_snake_case)]
     fn new(
         walls: PyReadonlyArray2<f64>,
@@ -126,6 +126,7 @@ impl PyRenderer {
         led_profile_exponent: f64,
         led_half_angle_deg: f64,
         multipath_rays: u32,
+        multipath_window: u32,
         seed: u64,
     ) -> PyResult<Self> {
         let wall_rows = rows(&walls, 6, "walls")?;
@@ -187,7 +188,8 @@ impl PyRenderer {
                 MAX_SECONDARY
             )));
         }
-        let params = RenderParams { f_mod, amplitude_at_1m, max_bounces, min_gain, illumination, multipath_rays, bounce, seed };
+        let params =
+            RenderParams { f_mod, amplitude_at_1m, max_bounces, min_gain, illumination, multipath_rays, multipath_window, bounce, seed };
         let pool = crate::optional_pool(threads)?;
         let masks = match &pool {
             Some(pool) => pool.install(|| light_masks(&rig, &params)),

@@ -41,9 +41,14 @@ The figures (from the literature as remembered, not re-checked against the paper
   Kolb (2006) calibrate.
 - fixed_pattern_std = 1 cm: per-pixel offsets of the order Lindner & Kolb's per-pixel
   calibration removes (an assumption for this camera class).
-- multipath_rays = 2 secondary rays per pixel: enough for the mean of the interreflection (its
-  Monte-Carlo noise adds to the shot noise of a pixel), and the cost stays within the
-  renderer's budget (BENCHMARKS.md, "ToF error budget").
+- multipath_rays = 2 secondary rays per pixel, averaged over the pixels within
+  multipath_window = 3 rows and columns that see the same surface (7 × 7 pixels, about 100
+  rays). Two rays alone are an unbiased estimate of each pixel's phasor but a very noisy one
+  (about its own size), and the scan's bins take the median of their pixels, which throws most
+  of the interreflection away with the noise: matte bins read 0.1 cm long with 2 rays a pixel,
+  1.6 cm with 64 (BENCHMARKS.md, "Multipath averaged over the pixels that see the same
+  surface"). The interreflection changes smoothly along a surface, so averaging it there gives
+  64 rays' answer at the cost of 2.
 - LEDs: 4 on a ring of 3.5 cm around the lens (the ring sampled at four points: each LED
   costs a set of light paths per surface point): the SR4000's LED array surrounds its lens
   within a few centimetres of the optical centre (from the camera's product photographs, not
@@ -105,7 +110,9 @@ class ToFErrors:
             each rendered at the robot's pose at its own time (with multipath, all four with
             the same secondary rays, so that they differ by the motion alone).
         multipath: one diffuse interreflection, multipath_rays secondary rays per pixel
-            (rust/src/light.rs).
+            (rust/src/light.rs), averaged over the pixels within multipath_window rows and
+            columns that see the same surface (0: each pixel alone; rust/src/render.rs
+            `smooth_indirect`).
         illumination: the light from led_count LEDs on a ring of led_radius metres around
             the lens (in the lens plane, the first at +x of the camera frame), each emitting
             cos^led_profile_exponent of the angle from the optical axis up to
@@ -126,6 +133,7 @@ class ToFErrors:
     integration_time: float = 0.005
     multipath: bool = False
     multipath_rays: int = 2
+    multipath_window: int = 3
     illumination: bool = False
     led_count: int = 4
     led_radius: float = 0.035
@@ -139,7 +147,7 @@ class ToFErrors:
                 if not isinstance(value, (bool, np.bool_)):
                     raise ToFErrorsError(f"errors.{f.name} must be true or false, got {value!r}")
                 continue
-            if f.name in ("fixed_pattern_seed", "multipath_rays", "led_count"):
+            if f.name in ("fixed_pattern_seed", "multipath_rays", "multipath_window", "led_count"):
                 least = 1 if f.name == "led_count" else 0
                 if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
                     raise ToFErrorsError(f"errors.{f.name} must be a whole number >= {least}, got {value!r}")

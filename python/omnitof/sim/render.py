@@ -337,6 +337,7 @@ class Renderer:
         args: dict[str, object] = {
             "seed": int(self.settings.seed),
             "multipath_rays": int(errors.multipath_rays) if errors.multipath else 0,
+            "multipath_window": int(errors.multipath_window),
             "led_profile_exponent": float(errors.led_profile_exponent),
             "led_half_angle_deg": float(errors.led_half_angle_deg),
         }
