@@ -17,10 +17,8 @@ import argparse
 
 import numpy as np
 
-from tof_errors import matte_errors, stats
+from tof_errors import stats, true_rig_errors
 
-from omnitof.calibration import Calibration
-from omnitof.scan import ScanExtractor
 from omnitof.sensor.tof import SensorNoise
 from omnitof.sensor.tof_errors import ToFErrors
 from omnitof.sim.render import Renderer
@@ -53,14 +51,7 @@ def main() -> None:
             pick = moving[np.linspace(0, len(moving) - 1, args.frames).round().astype(int)]
             poses = seq.ground_truth[pick]
             frames = renderer.render_many(poses, seed=1, sample_poses=timing[pick])
-            distance = np.stack([f.tof.distance for f in frames])
-            amplitude = np.stack([f.tof.amplitude for f in frames])
-            calibration = Calibration.from_rig(renderer.rig)
-            cells = []
-            for enabled in (False, True):
-                extractor = ScanExtractor.from_calibration(calibration, pixel_filter={"enabled": enabled})
-                e = matte_errors(world, renderer, extractor, poses, extractor.extract_many(distance, amplitude))
-                cells += [str(len(e)), stats(e)]
+            cells = [f"{len(e)} | {stats(e)}" for e in true_rig_errors(world, renderer, poses, frames)]
             print(f"| {name} | {label} | {len(moving)} of {len(seq)} | " + " | ".join(cells) + " |", flush=True)
 
 

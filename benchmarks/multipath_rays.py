@@ -18,10 +18,8 @@ import argparse
 
 import numpy as np
 
-from tof_errors import frames, matte_errors, stats
+from tof_errors import frames, stats, true_rig_errors
 
-from omnitof.calibration import Calibration
-from omnitof.scan import ScanExtractor
 from omnitof.sensor.tof_errors import ToFErrors
 from omnitof.sim.worlds import load_world
 
@@ -42,14 +40,8 @@ def main() -> None:
             for window in args.windows if rays else [0]:
                 errors = ToFErrors(multipath=True, multipath_rays=rays, multipath_window=window) if rays else ToFErrors()
                 renderer, poses, fr = frames(world, errors, args.frames)
-                distance = np.stack([f.tof.distance for f in fr])
-                amplitude = np.stack([f.tof.amplitude for f in fr])
-                calibration = Calibration.from_rig(renderer.rig)
-                cells = []
-                for enabled in (False, True):
-                    extractor = ScanExtractor.from_calibration(calibration, pixel_filter={"enabled": enabled})
-                    e = matte_errors(world, renderer, extractor, poses, extractor.extract_many(distance, amplitude))
-                    cells += [str(len(e)), f"{100 * np.median(e):+.2f}", stats(e)]
+                cells = [f"{len(e)} | {100 * np.median(e):+.2f} | {stats(e)}"
+                         for e in true_rig_errors(world, renderer, poses, fr)]
                 shown = window if rays else "–"
                 print(f"| {name} | {rays} | {shown} | " + " | ".join(cells) + " |", flush=True)
 

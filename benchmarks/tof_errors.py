@@ -77,6 +77,21 @@ def matte_errors(world, renderer, extractor, poses, ranges) -> np.ndarray:
     return np.concatenate(errs)
 
 
+def true_rig_errors(world, renderer, poses, frames) -> list[np.ndarray]:
+    """The matte bins' errors of `frames` (rendered at `poses`) with the true rig's extractor and
+    no distance correction: [pixel filter off, pixel filter on]."""
+    from omnitof.calibration import Calibration
+
+    distance = np.stack([f.tof.distance for f in frames])
+    amplitude = np.stack([f.tof.amplitude for f in frames])
+    calibration = Calibration.from_rig(renderer.rig)
+    out = []
+    for enabled in (False, True):
+        extractor = ScanExtractor.from_calibration(calibration, pixel_filter={"enabled": enabled})
+        out.append(matte_errors(world, renderer, extractor, poses, extractor.extract_many(distance, amplitude)))
+    return out
+
+
 def stats(e: np.ndarray) -> str:
     a = np.abs(e)
     return f"{100 * np.median(a):.1f} / {100 * np.percentile(a, 90):.1f} / {100 * np.mean(a < 0.05):.1f} %"
