@@ -1075,8 +1075,9 @@ pub fn render(scene: &Scene, rig: &Rig, params: &RenderParams, poses: &[[f64; 3]
 /// `poses` itself for frames taken at one instant; for the four samples of a frame taken while
 /// the robot moves, the frame's one pose for all four (common random numbers). The
 /// interreflection of a real scene is a smooth function of the pose; four independent
-/// Monte-Carlo estimates of it would differ by their noise (a tenth of the phasor or more in
-/// one pixel of ten with multipath on), which the 4-tap decoding turns into errors no camera makes.
+/// Monte-Carlo estimates of it would differ by their noise (more than 5 % of the phasor in one
+/// pixel of seven, even averaged over the neighbours), which the 4-tap decoding turns into
+/// errors no camera makes.
 pub fn render_with(
     scene: &Scene,
     rig: &Rig,

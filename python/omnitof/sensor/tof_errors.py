@@ -41,14 +41,15 @@ The figures (from the literature as remembered, not re-checked against the paper
   Kolb (2006) calibrate.
 - fixed_pattern_std = 1 cm: per-pixel offsets of the order Lindner & Kolb's per-pixel
   calibration removes (an assumption for this camera class).
-- multipath_rays = 2 secondary rays per pixel, averaged over the pixels within
-  multipath_window = 3 rows and columns that see the same surface (7 × 7 pixels, about 100
-  rays). Two rays alone are an unbiased estimate of each pixel's phasor but a very noisy one
-  (about its own size), and the scan's bins take the median of their pixels, which throws most
-  of the interreflection away with the noise: matte bins read 0.1 cm long with 2 rays a pixel,
-  1.6 cm with 64 (BENCHMARKS.md, "Multipath averaged over the pixels that see the same
-  surface"). The interreflection changes smoothly along a surface, so averaging it there gives
-  64 rays' answer at the cost of 2.
+- multipath_rays = 1 secondary ray per pixel, averaged over the pixels within
+  multipath_window = 4 rows and columns that see the same surface (9 × 9 pixels, about 80
+  rays). Rays per pixel alone are an unbiased estimate of each pixel's phasor but a very noisy
+  one (with two, about its own size), and the scan's bins take the median of their pixels,
+  which throws most of the interreflection away with the noise: matte bins read 0.1 cm long
+  with 2 rays a pixel, 1.6 cm with 64 (BENCHMARKS.md, "Multipath averaged over the pixels that
+  see the same surface"). The interreflection changes smoothly along a surface, so averaging
+  it there gives about 64 rays' answer; 1 ray a pixel over 9 × 9 pixels reads the same as 2 over
+  7 × 7 (within 0.05 cm and one point of the bins within 5 cm) at a sixth less of a frame's time.
 - LEDs: 4 on a ring of 3.5 cm around the lens (the ring sampled at four points: each LED
   costs a set of light paths per surface point): the SR4000's LED array surrounds its lens
   within a few centimetres of the optical centre (from the camera's product photographs, not
@@ -132,8 +133,8 @@ class ToFErrors:
     motion: bool = False
     integration_time: float = 0.005
     multipath: bool = False
-    multipath_rays: int = 2
-    multipath_window: int = 3
+    multipath_rays: int = 1
+    multipath_window: int = 4
     illumination: bool = False
     led_count: int = 4
     led_radius: float = 0.035
