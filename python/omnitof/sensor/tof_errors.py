@@ -113,7 +113,7 @@ class ToFErrors:
         multipath: one diffuse interreflection, multipath_rays secondary rays per pixel
             (rust/src/light.rs), averaged over the pixels within multipath_window rows and
             columns that see the same surface (0: each pixel alone; rust/src/render.rs
-            `smooth_indirect`).
+            `smooth_row`, `smoothed_column`).
         illumination: the light from led_count LEDs on a ring of led_radius metres around
             the lens (in the lens plane, the first at +x of the camera frame), each emitting
             cos^led_profile_exponent of the angle from the optical axis up to
