@@ -20,6 +20,10 @@ refinement, the correction) and extracts with it. "none" is no correction (the d
 --max-incidence adds rows extracted with `ScanSettings.max_incidence_deg` (omnitof.scan.grazing:
 bins seen at a grazing angle dropped; 90 is off, the default).
 
+--multipath-compensation off on adds rows extracted with the multipath compensation
+(omnitof.scan.multipath) set up for the rendering camera (its LEDs, amplitude scale, frequency
+and mirrors), whatever the setting: on a camera without multipath it shows what it costs.
+
 Speed: the renderer's phasors (tracer) and whole frames (noise and decoding too) per second on
 corridor1, all effects off and all on, medians of --runs runs measured alternately in one
 process.
@@ -27,11 +31,13 @@ process.
 Usage:
     python benchmarks/tof_errors.py [--frames 24] [--runs 5] [--worlds room office ...]
         [--settings default all] [--corrections none true estimated] [--max-incidence 90 70]
+        [--multipath-compensation off on]
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
 import statistics
 import time
@@ -121,11 +127,23 @@ def calibration_for(kind: str, renderer, cache: dict):
     return cache[key]
 
 
+def compensation(renderer, enabled: bool) -> dict:
+    """The ScanSettings.multipath of a --multipath-compensation value: the compensation for the
+    rendering camera (its LEDs, amplitude scale, frequency and mirrors), on or off."""
+    from omnitof.scan.multipath import MultipathSettings
+
+    settings = MultipathSettings.for_camera(renderer.sensor.errors, amplitude_at_1m=renderer.sensor.amplitude_at_1m,
+                                            f_mod=renderer.sensor.f_mod,
+                                            mirror_reflectivity=renderer.settings.mirror_reflectivity)
+    return settings.model_copy(update={"enabled": enabled}).model_dump()
+
+
 def budget(names: list[str], count: int, only: list[str] | None = None,
-           corrections: tuple[str, ...] = ("none",), incidences: tuple[float, ...] = (90.0,)) -> None:
-    print("| world | effects | correction | max incidence | bins (off / on) | median / p90 |error| (cm) / within 5 cm, "
-          "filter off | the same, filter on |")
-    print("|---|---|---|---|---|---|---|")
+           corrections: tuple[str, ...] = ("none",), incidences: tuple[float, ...] = (90.0,),
+           compensations: tuple[str, ...] = ("off",)) -> None:
+    print("| world | effects | correction | multipath compensation | max incidence | bins (off / on) | median / p90 "
+          "|error| (cm) / within 5 cm, filter off | the same, filter on |")
+    print("|---|---|---|---|---|---|---|---|")
     cache: dict = {}
     for name in names:
         world = load_world(name)
@@ -135,15 +153,16 @@ def budget(names: list[str], count: int, only: list[str] | None = None,
             a = np.stack([f.amplitude for f in fr])
             for kind in corrections:
                 cal = calibration_for(kind, renderer, cache)
-                for incidence in incidences:
+                for incidence, comp in itertools.product(incidences, compensations):
+                    multipath = compensation(renderer, comp == "on")
                     off = ScanExtractor.from_calibration(cal, pixel_filter={"enabled": False},
-                                                         max_incidence_deg=incidence)
-                    on = ScanExtractor.from_calibration(cal, max_incidence_deg=incidence)
+                                                         max_incidence_deg=incidence, multipath=multipath)
+                    on = ScanExtractor.from_calibration(cal, max_incidence_deg=incidence, multipath=multipath)
                     e_off = matte_errors(world, renderer, off, poses, off.extract_many(d, a))
                     e_on = matte_errors(world, renderer, on, poses, on.extract_many(d, a))
                     shown = "off" if incidence >= 90 else f"{incidence:g}°"
-                    print(f"| {name} | {label} | {kind} | {shown} | {len(e_off)} / {len(e_on)} | {stats(e_off)} | "
-                          f"{stats(e_on)} |", flush=True)
+                    print(f"| {name} | {label} | {kind} | {comp} | {shown} | {len(e_off)} / {len(e_on)} | "
+                          f"{stats(e_off)} | {stats(e_on)} |", flush=True)
 
 
 def speed(runs: int, count: int = 60) -> None:
@@ -188,13 +207,17 @@ def main() -> None:
                         help="distance corrections to apply (module docstring)")
     parser.add_argument("--max-incidence", nargs="+", type=float, default=[90.0],
                         help="ScanSettings.max_incidence_deg values to extract with (90: off, the default)")
+    parser.add_argument("--multipath-compensation", nargs="+", default=["off"], choices=["off", "on"],
+                        help="extract without and/or with the multipath compensation (omnitof.scan.multipath), "
+                        "set up for the rendering camera")
     args = parser.parse_args()
     print(f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.1f}")
     if not args.skip_speed:
         speed(args.runs)
     if not args.skip_budget:
-        budget(args.worlds, args.frames, args.settings, tuple(args.corrections), tuple(args.max_incidence))
+        budget(args.worlds, args.frames, args.settings, tuple(args.corrections), tuple(args.max_incidence),
+               tuple(args.multipath_compensation))
     print(f"# done, load {os.getloadavg()[0]:.1f}")
 
 

@@ -11,7 +11,7 @@ a few seeds' numbers in the last digits.)
     python benchmarks/world_filters.py --worlds corridor1 office --drives 0 1 --seeds 0 1 2 \
         [--preset tof-scanmatch] [--particles 30] [--set backend.min_score=0.65 ...] \
         [--tof-errors default|all|none|LIST] [--ideal-scans [seen]] [--odometry-scale F]
-        [--max-incidence DEG] [--true-rig] [--cache results/world_scans]
+        [--max-incidence DEG] [--true-rig] [--multipath-compensation auto|on|off] [--cache DIR]
 
 The camera's systematic errors (issue 15) are those of the demo, `default` unless told; the
 cache is kept per setting. `--ideal-scans` replaces every range by the exact distance to the
@@ -24,6 +24,8 @@ report 1 % too far: F = 1/1.01 takes that out, an oracle no real run has). `--ma
 drops the bins seen at a grazing angle (`ScanSettings.max_incidence_deg`, omnitof.scan.grazing),
 as the extraction would have as its last step. `--true-rig` extracts with the true rig, given
 the same wall-fitted distance correction as the estimate (issue 16's reference).
+`--multipath-compensation` (auto: on where the camera has multipath, as the demo) extracts with
+the compensation of omnitof.scan.multipath set up for the simulated camera (cached apart).
 
 Prints one JSON line per run, then a Markdown table.
 """
@@ -46,6 +48,7 @@ from omnitof.demo import DemoSettings, _calibrate, evaluate_run
 from omnitof.geometry import compose, relative
 from omnitof.scan import ScanExtractor, ScanSettings
 from omnitof.scan.grazing import drop_grazing
+from omnitof.scan.multipath import MultipathSettings
 from omnitof.scan.tof_input import tof_scans
 from omnitof.sensor.tof import SensorNoise
 from omnitof.sensor.tof_errors import ToFErrors
@@ -57,22 +60,31 @@ from omnitof.slam import run_slam
 from omnitof.slam.config import load_config
 
 
-def extracted_scans(name: str, drive: int, cache: Path, tof_errors: str = "default", *, true_rig: bool = False):
+def extracted_scans(name: str, drive: int, cache: Path, tof_errors: str = "default", *, true_rig: bool = False,
+                    compensation: str = "auto"):
     """The scans of world `name`, drive seed `drive`, with the estimated calibration, or with
-    `true_rig` the true rig given the same wall-fitted distance correction (cached)."""
+    `true_rig` the true rig given the same wall-fitted distance correction (cached); with the
+    multipath compensation set up for the camera where `compensation` is "on", or "auto" and the
+    camera has multipath (as `omnitof demo` does)."""
+    errors = ToFErrors.parse(tof_errors)
     tag = ("" if tof_errors == "none" else "_" + tof_errors.replace(",", "+")) + ("_truerig" if true_rig else "")
+    compensate = compensation == "on" or (compensation == "auto" and errors.multipath)
+    tag += "_mpcomp" if compensate else ""
     path = cache / f"{name}_{drive}{tag}.pkl"
     if path.exists():
         return pickle.loads(path.read_bytes())["scans"]
     settings = DemoSettings(world=name, seed=drive, calibrate=not true_rig, true_rig_correction=true_rig)
     world = load_world(name)
     sequence = make_sequence(world, seed=drive, motion=MotionSettings(speed=settings.speed))
-    sensor = SensorNoise(errors=ToFErrors.parse(tof_errors))
+    sensor = SensorNoise(errors=errors)
     renderer = Renderer(world, sensor=sensor, settings=RenderSettings(seed=drive))
     work = cache / f"{name}_{drive}{tag}"
     work.mkdir(parents=True, exist_ok=True)
     calibration, _ = _calibrate(renderer, settings, work)
-    extractor = ScanExtractor.from_calibration(calibration)
+    multipath = MultipathSettings.for_camera(errors, amplitude_at_1m=sensor.amplitude_at_1m, f_mod=sensor.f_mod,
+                                             mirror_reflectivity=renderer.settings.mirror_reflectivity,
+                                             enabled=compensate)
+    extractor = ScanExtractor.from_calibration(calibration, multipath=multipath.model_dump())
     scans = tof_scans(render_sequence(sequence, renderer), extractor, cloud_every=0, source=name).scans
     path.write_bytes(pickle.dumps({"world": name, "scans": scans}))
     return scans
@@ -119,6 +131,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", default="tof-scanmatch")
     parser.add_argument("--particles", type=int, default=30)
     parser.add_argument("--set", nargs="*", default=[], metavar="SECTION.FIELD=VALUE")
+    parser.add_argument("--multipath-compensation", choices=["auto", "on", "off"], default="auto",
+                        help="extract with the multipath compensation (omnitof.scan.multipath); auto: where the "
+                        "camera has multipath, as the demo")
     parser.add_argument("--tof-errors", default="default",
                         help="the camera's systematic errors, as `omnitof demo --tof-errors` (default: the demo's)")
     parser.add_argument("--ideal-scans", nargs="?", const="all", choices=["all", "seen"], default=None,
@@ -140,7 +155,8 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.worlds:
         world = load_world(name)
         for drive in args.drives:
-            scans = extracted_scans(name, drive, args.cache, args.tof_errors, true_rig=args.true_rig)
+            scans = extracted_scans(name, drive, args.cache, args.tof_errors, true_rig=args.true_rig,
+                                    compensation=args.multipath_compensation)
             if args.ideal_scans:
                 scans = ideal_scans(world, scans, only_seen=args.ideal_scans == "seen")
             if args.odometry_scale != 1.0:

@@ -276,6 +276,39 @@ class _Renderer:
     @property
     def shape(self) -> tuple[int, int, int]: ...
 
+# The multipath compensation of the scan extraction (rust/src/multipath.rs); its Python face is
+# omnitof.scan.multipath.MultipathCompensation.
+@final
+class _MultipathCompensator:
+    def __new__(
+        cls,
+        *,
+        width: int,
+        height: int,
+        origins: _F64,
+        directions: _F64,
+        paths: _F64,
+        labels: npt.NDArray[np.int32],
+        solid_angles: _F64,
+        emission: _F64,
+        targets: _U32,
+        windows: _F64,
+        k: float,
+        amplitude_at_1m: float,
+        mirror_reflectivity: float,
+        stride: int,
+        target_stride: int,
+        normal_radius: int,
+        smooth_radius: int,
+        depth_tolerance: float,
+        min_reflectance: float,
+        min_cos: float,
+        min_separation: float,
+        max_ratio: float,
+        threads: int | None = None,
+    ) -> _MultipathCompensator: ...
+    def correct(self, distances: _F32, amplitudes: _F32) -> _F32: ...
+
 def sample_motion_odometry(
     pose: _F64, odom_prev: _F64, odom_cur: _F64, alphas: list[float], n: int, seed: int
 ) -> _F64: ...

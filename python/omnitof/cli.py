@@ -59,6 +59,7 @@ def cmd_slam(args: argparse.Namespace) -> int:
         log=args.log, relations=args.relations, max_scans=args.max_scans, skip_bad_lines=args.skip_bad_lines,
         scan_delay=args.scan_delay, calibration=args.calibration, height=args.height, band=args.band,
         map3d=args.map3d, map3d_every=args.map3d_every, compare_2d=args.compare_2d,
+        multipath_compensation=args.multipath_compensation,
     )
     run = slam_to_folder(request, cfg, args.out, bar=_bar_factory(args))
     print(_summary_line(run.result.stats))
@@ -138,7 +139,7 @@ def cmd_scans(args: argparse.Namespace) -> int:
     from omnitof.slam_run import read_tof_input
 
     data = read_tof_input(args.log, calibration=args.calibration, height=args.height, band=args.band,
-                          max_frames=args.max_frames, bar=_bar_factory(args))
+                          multipath=args.multipath_compensation, max_frames=args.max_frames, bar=_bar_factory(args))
     scans = data.scans
     out = Path(args.out)
     if out.suffix in (".clf", ".log", ".txt"):
@@ -159,8 +160,8 @@ def cmd_scans(args: argparse.Namespace) -> int:
         plot_scan(args.figure, scans.scan_ranges(i), scans.scan_angles(i), max_range=scans.max_range,
                   title=f"frame {i} of {Path(args.log).name}")
     filled = float(np.isfinite(scans.ranges[scans.beam_mask]).mean()) if len(scans) else 0.0
-    print(f"{len(scans)} scans of 360 bins ({100 * filled:.1f} % with a reading; rig from {data.rig_source}) "
-          f"written as a {kind}: {out}")
+    print(f"{len(scans)} scans of 360 bins ({100 * filled:.1f} % with a reading; rig from {data.rig_source}; "
+          f"multipath compensation {data.multipath_rule}) written as a {kind}: {out}")
     return 0
 
 
@@ -346,6 +347,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "default: the true rig of a simulated bag")
     p.add_argument("--height", type=_number(above=0), help="ToF bags: height of the scan slice above the floor (m)")
     p.add_argument("--band", type=_number(above=0), help="ToF bags: half-thickness of the scan slice (m)")
+    p.add_argument("--multipath-compensation", choices=("auto", "on", "off"), default="auto",
+                   help="ToF bags: take each frame's interreflection, predicted from its own points, out of its "
+                   "distances (omnitof.scan.multipath); auto: on for a simulated bag whose camera has multipath, "
+                   "with that camera's figures from the sidecar")
     p.add_argument("--map3d", action="store_true", help="ToF bags: also build the 3D voxel map (map3d.ply, map3d.png)")
     p.add_argument("--map3d-every", type=_positive_int, default=5, help="ToF bags: frames between those fed to the 3D map")
     p.add_argument("--filter", choices=("2d", "3d"), default="2d",
@@ -364,6 +369,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calibration", type=Path, help="the rig's calibration YAML (default: a simulated bag's true rig)")
     p.add_argument("--height", type=_number(above=0), help="height of the scan slice above the floor (m)")
     p.add_argument("--band", type=_number(above=0), help="half-thickness of the scan slice (m)")
+    p.add_argument("--multipath-compensation", choices=("auto", "on", "off"), default="auto",
+                   help="take each frame's interreflection, predicted from its own points, out of its "
+                   "distances (omnitof.scan.multipath); auto: on for a simulated bag whose camera has multipath, "
+                   "with that camera's figures from the sidecar")
     p.add_argument("--max-frames", type=_positive_int, help="only the first N frames")
     p.add_argument("--figure", type=Path, help="draw the middle frame's scan (PNG)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bag")

@@ -193,6 +193,7 @@ def simulated_scans(settings: DemoSettings, out: str | Path, *, stages: _Stages 
     inputs of `omnitof bench`. `world`: the World already loaded (else `settings.world` is)."""
     from omnitof.io.terminal import progress_bar
     from omnitof.scan import ScanExtractor
+    from omnitof.scan.multipath import MultipathSettings
     from omnitof.scan.tof_input import tof_scans
     from omnitof.sensor.tof import SensorNoise
     from omnitof.sensor.tof_errors import ToFErrors
@@ -219,7 +220,13 @@ def simulated_scans(settings: DemoSettings, out: str | Path, *, stages: _Stages 
         calibration, calib_report = _calibrate(renderer, settings, out)
 
     with stages.stage("render frames and extract scans"):
-        extractor = ScanExtractor.from_calibration(calibration)
+        # The multipath compensation is on where the simulated camera has multipath
+        # (`--tof-errors all`), with that camera's figures, as `omnitof slam` does on its bags.
+        multipath = MultipathSettings.for_camera(sensor.errors, amplitude_at_1m=sensor.amplitude_at_1m,
+                                                 f_mod=sensor.f_mod,
+                                                 mirror_reflectivity=renderer.settings.mirror_reflectivity)
+        summary["multipath_compensation"] = multipath.enabled
+        extractor = ScanExtractor.from_calibration(calibration, multipath=multipath.model_dump())
         bar = progress_bar(n_frames, enabled=progress, desc="render+scan", unit="frame")
         with bar:
             data = tof_scans(

@@ -55,6 +55,7 @@ class SlamRequest:
     map3d_every: int = 5
     label: str | None = None
     compare_2d: bool = False
+    multipath_compensation: str = "auto"
 
 
 @dataclass
@@ -156,11 +157,12 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
 
         keyframes = (cfg.filter.linear_update, math.radians(cfg.filter.angular_update_deg)) if three_d else None
         tof_data = read_tof_input(log, calibration=request.calibration, height=request.height, band=request.band,
-                                  cloud_every=request.map3d_every if request.map3d else 0,
+                                  multipath=request.multipath_compensation, cloud_every=request.map3d_every if request.map3d else 0,
                                   cloud_pixel_stride=cfg.filter3d.pixel_stride if three_d else 1,
                                   cloud_keyframes=keyframes, max_frames=request.max_scans, bar=bar)
         scans = tof_data.scans
         extra: dict[str, Any] = {"input": {"path": label, "kind": "tof-rosbag", "rig": tof_data.rig_source,
+                                           "multipath_compensation": tof_data.multipath_rule,
                                            "scan": tof_data.extractor.settings.model_dump()}}
     else:
         data = read_scans(log, skip_bad_lines=request.skip_bad_lines)
@@ -247,11 +249,11 @@ def _run_3d(request: SlamRequest, cfg: SlamConfig, scans: ScanSequence, tof_data
 
 
 def read_tof_input(log: str | Path, *, calibration: str | Path | None = None, height: float | None = None,
-                   band: float | None = None, cloud_every: int = 0, cloud_pixel_stride: int = 1,
+                   band: float | None = None, multipath: str = "auto", cloud_every: int = 0, cloud_pixel_stride: int = 1,
                    cloud_keyframes: tuple[float, float] | None = None, max_frames: int | None = None,
                    bar: BarFactory = no_bar):
     """The scans of a ToF bag (omnitof.scan.tof_input.read_tof_scans) with the slice's height and
-    band where given, for `omnitof slam` and `omnitof scans`."""
+    band where given and the multipath compensation asked for, for `omnitof slam` and `omnitof scans`."""
     from omnitof.scan import scan_settings
     from omnitof.scan.tof_input import frame_count, read_tof_scans
 
@@ -261,7 +263,7 @@ def read_tof_input(log: str | Path, *, calibration: str | Path | None = None, he
     if max_frames is not None:
         total = min(total, max_frames)
     with bar(total, "scans", "frame") as b:
-        return read_tof_scans(log, calibration=calibration, settings=settings, cloud_every=cloud_every,
+        return read_tof_scans(log, calibration=calibration, settings=settings, multipath=multipath, cloud_every=cloud_every,
                               cloud_pixel_stride=cloud_pixel_stride, cloud_keyframes=cloud_keyframes,
                               max_frames=max_frames, progress=b.update)
 

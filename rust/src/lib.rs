@@ -10,6 +10,8 @@ pub mod light;
 pub mod loop_closure;
 mod loop_closure_bindings;
 pub mod motion;
+pub mod multipath;
+mod multipath_bindings;
 pub mod raycast;
 pub mod render;
 mod render_bindings;
@@ -926,6 +928,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(neff, m)?)?;
     m.add_function(wrap_pyfunction!(low_variance_resample, m)?)?;
     render_bindings::register(m)?;
+    multipath_bindings::register(m)?;
     loop_closure_bindings::register(m)?;
     filter3d_bindings::register(m)?;
     Ok(())

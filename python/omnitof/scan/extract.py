@@ -7,6 +7,9 @@ Per frame, the paper's steps and what this module does for each:
    surface. Back-projecting each pixel through the lens model (`Camera.rays`, which inverts the
    distortion per pixel) therefore is the undistortion, exactly, with no resampling of the images
    (resampling would interpolate distances across depth edges into points on no surface).
+   Where the camera has multipath, each frame's interreflection, predicted from its own points,
+   is first taken out of the distances (`omnitof.scan.multipath`, setting `multipath`, off by
+   default).
 2. Rough amplitude filtering, two thresholds: pixels with amplitude < `min_amplitude` (weak,
    noisy returns of dark, far or steeply seen surfaces) and pixels whose amplitude scaled to
    1 m, amplitude·distance² < `min_amplitude_1m` (an apparent reflectance too low for a real
@@ -58,6 +61,7 @@ from omnitof.sensor.camera import Camera
 from omnitof.errors import ConfigError, InputError
 from omnitof.sensor.mirrors import Mirror, MirrorPlane
 from omnitof.scan.grazing import drop_grazing
+from omnitof.scan.multipath import MultipathCompensation, MultipathSettings
 from omnitof.scan.pixel_filter import PixelFilter, PixelFilterSettings
 from omnitof.sensor.rig import Rig
 from omnitof.types import ScanSequence
@@ -69,6 +73,9 @@ _DEG = math.pi / 180.0
 _RANGE_QUANTUM = 1e-4
 _RANGE_BITS = 20
 _RANGE_LIMIT = (1 << _RANGE_BITS) * _RANGE_QUANTUM
+# How far (m) beyond a pixel's slice window its measured distance may lie and still be corrected
+# for multipath (the interreflection lengthens grazing walls' distances by up to decimetres).
+_MULTIPATH_MARGIN = 0.5
 
 
 class ScanConfigError(ConfigError, ValueError):
@@ -167,6 +174,11 @@ class ScanSettings(BaseModel):
     pixel_filter: PixelFilterSettings = Field(
         default_factory=PixelFilterSettings,
         description="the flying-pixel and multipath filter (omnitof.scan.pixel_filter)",
+    )
+    multipath: MultipathSettings = Field(
+        default_factory=MultipathSettings,
+        description="the multipath compensation (omnitof.scan.multipath): each frame's interreflection predicted "
+        "from its own points and taken out of the distances, after the distance correction; off by default",
     )
 
     @field_validator("statistic")
@@ -441,6 +453,15 @@ class ScanExtractor:
         )
         self._q = s_cfg.quantile()
         self._filter = PixelFilter(s_cfg.pixel_filter, self.labels, index) if s_cfg.pixel_filter.enabled else None
+        self._multipath = None
+        if s_cfg.multipath.enabled:
+            # The candidates are corrected wherever their distance may land in the slice once
+            # corrected: the correction shortens distances by up to decimetres.
+            windows = np.stack([path[index] + s_lo[index], path[index] + s_hi[index] + _MULTIPATH_MARGIN], axis=1)
+            self._multipath = MultipathCompensation(
+                s_cfg.multipath, self.camera, self.planes, self.labels, origin, direction, path, origin_r, dir_r,
+                index, windows,
+            )
 
     def _point_horizon(self) -> float:
         """The horizontal range (m) up to which points feed the bins: max_range + range_margin
@@ -468,6 +489,8 @@ class ScanExtractor:
             d, a = d[None], a[None]
         if self.distance_correction is not None:
             d = self.distance_correction.correct(d, a)
+        if self._multipath is not None:
+            d = self._multipath.correct(d, a)
         return d, a
 
     def _points(

@@ -41,6 +41,7 @@ class ToFScans:
     cloud_frames: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     clouds: list[np.ndarray] = field(default_factory=list)
     rig_source: str = ""
+    multipath_rule: str = ""
 
 
 class _CloudTap:
@@ -110,6 +111,41 @@ def tof_scans(
     return ToFScans(scans, extractor, np.asarray(tap.frames, dtype=np.int64), tap.clouds)
 
 
+MULTIPATH_CHOICES = ("auto", "on", "off")
+
+
+def multipath_for_bag(bag: Any, settings: ScanSettings, choice: str) -> tuple[ScanSettings, str]:
+    """The scan settings with the multipath compensation (`omnitof.scan.multipath`) that
+    `choice` asks for, and the rule applied, in words for the summary. "auto": on for a
+    simulated bag whose camera simulated multipath, with that camera's figures (LEDs, amplitude
+    scale, frequency, mirrors) from the sidecar; otherwise as `settings` say (off by default:
+    for a real camera the model needs the camera's own figures, and for a camera without
+    multipath it makes every wall read short). "on": on, with a simulated bag's camera or else
+    the settings' camera figures. "off": off."""
+    from omnitof.scan.multipath import MultipathSettings
+
+    if choice not in MULTIPATH_CHOICES:
+        raise ValueError(f"multipath compensation must be one of {', '.join(MULTIPATH_CHOICES)}, got {choice!r}")
+    if choice == "off":
+        off = settings.multipath.model_copy(update={"enabled": False})
+        return settings.model_copy(update={"multipath": off}), "off (--multipath-compensation off)"
+    sensor = bag.rig.sensor if bag.rig is not None else None
+    if sensor is None:
+        if choice == "on":
+            on = settings.multipath.model_copy(update={"enabled": True})
+            return settings.model_copy(update={"multipath": on}), \
+                "on (--multipath-compensation on), with the settings' camera figures (scan.multipath)"
+        state = "on" if settings.multipath.enabled else "off"
+        return settings, f"{state} (auto: not a simulated bag, so as the scan settings say)"
+    if choice == "auto" and not sensor.errors.multipath:
+        return settings, "off (auto: the simulated camera has no multipath)"
+    reflectivity = (bag.sidecar or {}).get("render", {}).get("mirror_reflectivity", settings.multipath.mirror_reflectivity)
+    camera = MultipathSettings.for_camera(sensor.errors, amplitude_at_1m=sensor.amplitude_at_1m, f_mod=sensor.f_mod,
+                                          mirror_reflectivity=float(reflectivity), enabled=True)
+    why = "--multipath-compensation on" if choice == "on" else "auto: the simulated camera has multipath"
+    return settings.model_copy(update={"multipath": camera}), f"on ({why}; the camera's figures from the bag's sidecar)"
+
+
 def extractor_for_bag(
     bag: Any, calibration: str | Path | None = None, settings: ScanSettings | None = None
 ) -> tuple[ScanExtractor, str]:
@@ -143,18 +179,21 @@ def read_tof_scans(
     *,
     calibration: str | Path | None = None,
     settings: ScanSettings | None = None,
+    multipath: str = "auto",
     cloud_every: int = 0,
     cloud_pixel_stride: int = 1,
     cloud_keyframes: tuple[float, float] | None = None,
     max_frames: int | None = None,
     progress: Callable[[int], Any] | None = None,
 ) -> ToFScans:
-    """Scans (and optionally clouds) of a ToF bag (`io.rosbag.read_tof_bag` layout)."""
+    """Scans (and optionally clouds) of a ToF bag (`io.rosbag.read_tof_bag` layout); `multipath`
+    one of MULTIPATH_CHOICES (`multipath_for_bag`)."""
     from itertools import islice
 
     from omnitof.io.rosbag import read_tof_bag
 
     bag = read_tof_bag(path)
+    settings, multipath_rule = multipath_for_bag(bag, settings or ScanSettings(), multipath)
     extractor, rig_source = extractor_for_bag(bag, calibration, settings)
     frames = bag.frames(samples=False)
     if max_frames is not None:
@@ -162,6 +201,7 @@ def read_tof_scans(
     out = tof_scans(frames, extractor, cloud_every=cloud_every, cloud_pixel_stride=cloud_pixel_stride,
                     cloud_keyframes=cloud_keyframes, source=str(path), progress=progress)
     out.rig_source = rig_source
+    out.multipath_rule = multipath_rule
     return out
 
 

@@ -87,10 +87,11 @@ SPEED_OF_LIGHT: float = scipy.constants.c
 # The effects a user switches on and off (`omnitof simulate --tof-errors`, `omnitof demo`).
 SWITCHES = ("wiggling", "amplitude_offset", "fixed_pattern", "motion", "multipath", "illumination")
 # What `omnitof simulate` and `omnitof demo` simulate unless told otherwise: every effect but
-# multipath. With multipath on too, the demo's corridor1 loop did not close (seed 0: SLAM ends
-# 2.82 m off, the odometry 3.53 m; BENCHMARKS.md, "ToF error budget"): the interreflection
-# lengthens the corridor walls seen at grazing angles by up to decimetres, a bias no filter of
-# the scan extraction removes yet. `--tof-errors all` turns it on.
+# multipath. With multipath on (`--tof-errors all`) the walls read long, by up to decimetres where
+# they are seen at grazing angles; the scan extraction's multipath compensation
+# (omnitof.scan.multipath, on for such a camera) takes most of it out, but the filter's runs with
+# it are not yet better in every measure (BENCHMARKS.md, "Multipath compensation"), so the
+# default realism leaves it out.
 DEFAULT_SWITCHES = ("wiggling", "amplitude_offset", "fixed_pattern", "motion", "illumination")
 
 

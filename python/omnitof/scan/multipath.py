@@ -1,0 +1,206 @@
+"""Multipath compensation: each frame's interreflection predicted from its own point cloud and
+taken out of the distances before the slice (model-based, after Fuchs, ICPR 2010, and Jiménez
+et al., Image and Vision Computing 2014).
+
+A ToF camera reads a surface too far where other lit surfaces send it light: that light comes
+along a longer path. The camera's LEDs sit beside the lens, so they light about what the
+mirrors show, and the frame's own points are the secondary sources. Each pixel Q on a grid is
+a Lambertian patch whose radiance the camera measured (its amplitude); the light it sends to a
+point P, relative to what P gets from the LEDs, is a phasor S_P whose phase follows the extra
+path, and the direct light's distance is D_P − arg(1 + S_P)/k (rust/src/multipath.rs gives
+the sum). What the model needs of the camera: its amplitude for an albedo-1 target at 1 m, its
+modulation frequency, the mirrors' reflectivity, and where its LEDs are (their emission towards
+each pixel, relative to a coaxial isotropic source, `emission_map`).
+
+What it leaves out: the visibility between P and Q (the frame does not show what lies between
+them; furniture hides part of the light, so in cluttered rooms the correction is too large),
+light from surfaces the camera does not see (the ceiling lit by the LEDs' light that misses the
+mirrors), and more than one interreflection. BENCHMARKS.md, "Multipath compensation", gives what
+it gains and costs in each world. Off by default: the simulator's default camera has no
+multipath (`omnitof.sensor.tof_errors.DEFAULT_SWITCHES`), and a correction for light that is
+not there makes every wall read short.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from omnitof import _core
+from omnitof.sensor.camera import Camera
+from omnitof.sensor.mirrors import MirrorPlane
+from omnitof.sensor.tof_errors import SPEED_OF_LIGHT, ToFErrors
+
+# The one-way distance (m) at which each pixel's LED emission is worked out: the working point
+# of the sensor model. The LEDs are a few cm from the lens, so which of them light a pixel's
+# point changes little with its distance beyond a metre.
+EMISSION_DISTANCE = 3.0
+
+
+class MultipathSettings(BaseModel):
+    """The multipath compensation of the scan extraction (module docstring). The camera's
+    figures default to the simulator's (`omnitof.sensor.tof.SensorNoise`, `ToFErrors`,
+    `omnitof.sim.render.RenderSettings`); give your camera's for real data."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    enabled: bool = Field(
+        False,
+        description="take each frame's predicted interreflection out of its distances. Off by default: the "
+        "simulator's default camera has no multipath, and on a camera without it the correction makes "
+        "walls read short (BENCHMARKS.md, 'Multipath compensation')",
+    )
+    amplitude_at_1m: float = Field(
+        7300.0, gt=0.0, description="the camera's amplitude (sample units) of an albedo-1 Lambertian target facing it at 1 m"
+    )
+    f_mod: float = Field(20e6, gt=0.0, description="the camera's modulation frequency (Hz)")
+    mirror_reflectivity: float = Field(0.9, gt=0.0, le=1.0, description="the mirrors' reflectivity")
+    leds: bool = Field(
+        True,
+        description="the light comes from LEDs beside the lens (the led_* fields); false: a point source at the "
+        "lens centre that emits the same in every direction",
+    )
+    led_count: int = Field(4, ge=1, description="LEDs on a ring around the lens")
+    led_radius: float = Field(0.035, ge=0.0, lt=0.5, description="the ring's radius (m), in the lens plane")
+    led_profile_exponent: float = Field(1.0, ge=0.0, description="each LED emits cos^p of the angle from the optical axis")
+    led_half_angle_deg: float = Field(40.0, gt=0.0, le=180.0, description="and nothing beyond this angle (degrees)")
+    stride: int = Field(
+        3, ge=1, description="every stride-th pixel of every stride-th row is a secondary source (stride² pixels' area)"
+    )
+    target_stride: int = Field(
+        2,
+        ge=1,
+        description="the sum is taken at every target_stride-th pixel of every target_stride-th row and shared with "
+        "the pixels between on the same surface (it changes slowly along a surface); 1: every pixel its own",
+    )
+    normal_radius: int = Field(3, ge=1, description="normals from the points this many pixels away on either side")
+    smooth_radius: int = Field(
+        4, ge=0, description="the distances are averaged over this many pixels around (same mirror) before the normals"
+    )
+    depth_tolerance: float = Field(
+        0.15, ge=0.0, description="only neighbours whose distance differs by at most this (m) join the average"
+    )
+    min_reflectance: float = Field(
+        300.0,
+        ge=0.0,
+        description="sources whose amplitude × distance² is lower are left out (as ScanSettings.min_amplitude_1m: "
+        "readings wrapped from beyond the unambiguous range, whose position is wrong)",
+    )
+    min_cos: float = Field(
+        0.1, gt=0.0, le=1.0, description="cosines of the view's incidence below this count as this (grazing patches)"
+    )
+    min_separation: float = Field(0.05, ge=0.0, description="sources nearer to the point than this (m) are left out")
+    max_ratio: float = Field(
+        1.0,
+        gt=0.0,
+        description="where the predicted interreflection exceeds this share of the direct light the model is not "
+        "trusted and the distance is left as measured",
+    )
+
+    @classmethod
+    def for_camera(cls, errors: ToFErrors, *, amplitude_at_1m: float, f_mod: float, **overrides: object) -> MultipathSettings:
+        """Settings for a simulated camera: on if it simulates multipath, with its LEDs."""
+        fields: dict[str, object] = dict(
+            enabled=errors.multipath, amplitude_at_1m=amplitude_at_1m, f_mod=f_mod, leds=errors.illumination,
+            led_count=errors.led_count, led_radius=errors.led_radius,
+            led_profile_exponent=errors.led_profile_exponent, led_half_angle_deg=errors.led_half_angle_deg,
+        )
+        return cls(**{**fields, **overrides})  # type: ignore[arg-type]
+
+
+def emission_map(camera: Camera, planes: list[MirrorPlane], labels: np.ndarray, origins: np.ndarray,
+                 directions: np.ndarray, settings: MultipathSettings) -> np.ndarray:
+    """(H·W,) the LEDs' light that reaches each mirror pixel's point at EMISSION_DISTANCE through
+    its own mirror, relative to a coaxial isotropic source (1 with `leds` off; 0 where no LED
+    reaches). `origins`, `directions` (H·W, 3): where each pixel's ray leaves its mirror and
+    the reflected unit direction, camera frame. An LED lights the point through the mirror if
+    the segment from the point to the LED's image in the mirror's plane crosses the plane where
+    the camera sees that mirror (`labels` at the crossing's pixel): the masks stand in for the
+    mirrors' outlines, which a calibration does not have. Each LED gives cos^p of its emission
+    angle over the LED count."""
+    flat = labels.reshape(-1)
+    out = np.zeros(len(flat))
+    if not settings.leds:
+        out[flat >= 0] = 1.0
+        return out
+    angle = 2.0 * math.pi * np.arange(settings.led_count) / settings.led_count
+    leds = np.column_stack([settings.led_radius * np.cos(angle), settings.led_radius * np.sin(angle),
+                            np.zeros(settings.led_count)])
+    min_cos = math.cos(math.radians(settings.led_half_angle_deg))
+    for m, plane in enumerate(planes):  # loop over mirrors and LEDs; pixels vectorised
+        sel = np.flatnonzero(flat == m)
+        if len(sel) == 0:
+            continue
+        x = origins[sel] + (EMISSION_DISTANCE - np.linalg.norm(origins[sel], axis=1))[:, None] * directions[sel]
+        n, d = plane.normal, plane.d
+        for led in leds:
+            if led @ n >= d:  # behind the mirror: no image in it
+                continue
+            image = led - 2.0 * (led @ n - d) * n
+            v = image - x
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = (d - x @ n) / (v @ n)
+            crossing = x + t[:, None] * v
+            emit = crossing - led
+            cos_e = emit[:, 2] / np.linalg.norm(emit, axis=1)
+            uv = camera.project(crossing)
+            ok = (t > 0.0) & (t < 1.0) & (cos_e >= min_cos) & np.all(np.isfinite(uv), axis=1)
+            col = np.clip(np.rint(np.nan_to_num(uv[:, 0])).astype(np.int64), 0, camera.width - 1)
+            row = np.clip(np.rint(np.nan_to_num(uv[:, 1])).astype(np.int64), 0, camera.height - 1)
+            inside = (uv[:, 0] > -0.5) & (uv[:, 0] < camera.width - 0.5) & (uv[:, 1] > -0.5) & (uv[:, 1] < camera.height - 0.5)
+            ok &= inside & (labels[row, col] == m)
+            out[sel] += np.where(ok, np.maximum(cos_e, 0.0) ** settings.led_profile_exponent, 0.0) / settings.led_count
+    return out
+
+
+def solid_angles(camera: Camera) -> np.ndarray:
+    """(H·W,) each pixel's solid angle (sr): the parallelogram of the unit rays one pixel apart
+    (central differences; a mirror keeps solid angles)."""
+    rays = camera.pixel_grid_rays()
+    return np.linalg.norm(np.cross(np.gradient(rays, axis=1), np.gradient(rays, axis=0)), axis=2).reshape(-1)
+
+
+class MultipathCompensation:
+    """The compensation for one rig: built once by the scan extractor, then `correct` per batch
+    of frames. `targets` are the pixels whose distance is corrected (the slice's candidates),
+    `windows` (T, 2) the distances (m) at which each is worth correcting; every mirror pixel is
+    a source."""
+
+    def __init__(self, settings: MultipathSettings, camera: Camera, planes: list[MirrorPlane], labels: np.ndarray,
+                 origins: np.ndarray, directions: np.ndarray, paths: np.ndarray, robot_origins: np.ndarray,
+                 robot_directions: np.ndarray, targets: np.ndarray, windows: np.ndarray) -> None:
+        self.settings = settings
+        emission = emission_map(camera, planes, labels, origins, directions, settings)
+        s = settings
+        finite = np.all(np.isfinite(robot_origins), axis=1) & np.all(np.isfinite(robot_directions), axis=1)
+        label = np.where(finite, labels.reshape(-1), -1).astype(np.int32)
+        self._arguments: dict[str, Any] = dict(
+            width=camera.width, height=camera.height,
+            origins=np.ascontiguousarray(np.where(finite[:, None], robot_origins, 0.0), dtype=np.float64),
+            directions=np.ascontiguousarray(np.where(finite[:, None], robot_directions, 0.0), dtype=np.float64),
+            paths=np.ascontiguousarray(np.where(finite, paths, np.inf), dtype=np.float64),
+            labels=label, solid_angles=solid_angles(camera), emission=emission,
+            targets=np.ascontiguousarray(targets, dtype=np.uint32),
+            windows=np.ascontiguousarray(windows, dtype=np.float64),
+            k=4.0 * math.pi * s.f_mod / SPEED_OF_LIGHT, amplitude_at_1m=s.amplitude_at_1m,
+            mirror_reflectivity=s.mirror_reflectivity, stride=s.stride, target_stride=s.target_stride, normal_radius=s.normal_radius,
+            smooth_radius=s.smooth_radius, depth_tolerance=s.depth_tolerance, min_reflectance=s.min_reflectance,
+            min_cos=s.min_cos, min_separation=s.min_separation, max_ratio=s.max_ratio,
+        )
+        self._core = _core._MultipathCompensator(**self._arguments)
+
+    def with_threads(self, threads: int) -> MultipathCompensation:
+        """The same compensation on a pool of `threads` workers (same results for any count)."""
+        out = object.__new__(MultipathCompensation)
+        out.settings, out._arguments = self.settings, self._arguments
+        out._core = _core._MultipathCompensator(**self._arguments, threads=threads)
+        return out
+
+    def correct(self, distances: np.ndarray, amplitudes: np.ndarray) -> np.ndarray:
+        """(F, H, W) float32 distances with the targets' interreflection taken out."""
+        d = np.ascontiguousarray(distances, dtype=np.float32)
+        a = np.ascontiguousarray(amplitudes, dtype=np.float32)
+        return self._core.correct(d, a)

@@ -1,0 +1,146 @@
+"""The multipath compensation of the scan extraction (omnitof.scan.multipath): the renderer's
+Monte-Carlo interreflection is the independent reference for the frame's own radiosity sum."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from omnitof.scan.extract import ScanConfigError, ScanExtractor, scan_settings
+from omnitof.scan.multipath import MultipathSettings, emission_map
+from omnitof.sensor.design import default_rig
+from omnitof.sensor.illumination import lit_pixels
+from omnitof.sensor.mirrors import viewing_rays
+from omnitof.sensor.tof import SensorNoise, phase_to_distance
+from omnitof.sensor.tof_errors import ToFErrors
+from omnitof.sim.render import Renderer, RenderSettings
+from omnitof.sim.worlds import parse_world
+
+RIG = default_rig()
+POSE = np.array([2.0, 0.0, 0.3])
+
+
+def corridor():
+    """A 2.4 m wide, 14 m long corridor with closed ends: walls that light each other."""
+    return parse_world({
+        "name": "corridor",
+        "ceiling_height": 2.6,
+        "walls": [{"points": [[-4.0, -1.2], [10.0, -1.2], [10.0, 1.2], [-4.0, 1.2]], "closed": True}],
+    })
+
+
+def frame(errors: ToFErrors) -> tuple[np.ndarray, np.ndarray]:
+    """Noise-free distance and amplitude images at POSE."""
+    sensor = SensorNoise(electrons_per_unit=math.inf, read_noise=0.0, errors=errors)
+    r = Renderer(corridor(), camera=RIG.camera, mirrors=RIG.mirrors, robot_T_camera=RIG.robot_T_camera,
+                 sensor=sensor, settings=RenderSettings(sub_rays=4, seed=5))
+    phasor = r.phasors(POSE).phasor[0].astype(np.complex128)
+    distance = phase_to_distance(np.mod(np.angle(phasor), 2 * np.pi), sensor.f_mod)
+    return distance.astype(np.float32), np.abs(phasor).astype(np.float32)
+
+
+def compensation(errors: ToFErrors, **overrides) -> dict:
+    sensor = SensorNoise()
+    return MultipathSettings.for_camera(errors, amplitude_at_1m=sensor.amplitude_at_1m, f_mod=sensor.f_mod,
+                                        **overrides).model_dump()
+
+
+@pytest.mark.parametrize("illumination", [False, True])
+def test_the_compensated_scan_reads_the_walls_as_without_multipath(illumination):
+    # The same frame rendered with the interreflection (32 rays a pixel, averaged over 9 × 9
+    # pixels: close to its expectation) and without: the multipath scan reads long, and the
+    # compensated one as the scan without multipath, bin by bin, to a few millimetres.
+    with_light = dict(illumination=illumination)
+    clean = frame(ToFErrors(**with_light))
+    errors = ToFErrors(multipath=True, multipath_rays=32, **with_light)
+    lit = frame(errors)
+    plain = ScanExtractor.from_rig(RIG)
+    compensated = ScanExtractor.from_rig(RIG, multipath=compensation(errors))
+    truth = plain.extract(*clean)
+    with np.errstate(invalid="ignore"):  # inf − inf where a bin has no reading
+        before = plain.extract(*lit) - truth
+        after = compensated.extract(*lit) - truth
+    both = np.isfinite(before) & np.isfinite(after)
+    assert both.sum() > 100
+    bias_before, bias_after = np.median(before[both]), np.median(after[both])
+    assert bias_before > 0.01  # the interreflection matters: the walls read over a centimetre long
+    # Coaxial light: 2.6 cm → 0.15 mm. LEDs: 4.8 cm → 1.0 cm; what stays is light the frame does
+    # not show (with the LEDs some of it leaves past the mirrors, to the ceiling above the
+    # robot, which no mirror pixel sees).
+    assert abs(bias_after) < (0.3 if illumination else 0.15) * bias_before
+    # And where it is largest (the far walls seen at grazing angles), most of it is taken out.
+    worst = both & (before > np.percentile(before[both], 90))
+    assert np.median(np.abs(after[worst])) < 0.5 * np.median(before[worst])
+
+
+def test_without_multipath_the_compensation_makes_walls_read_short():
+    # Why it is off unless the camera has multipath: on a frame without it, the light the model
+    # predicts is not there, and the distances come out short by about what it would have added.
+    errors = ToFErrors(multipath=True)
+    clean = frame(ToFErrors())
+    plain = ScanExtractor.from_rig(RIG).extract(*clean)
+    compensated = ScanExtractor.from_rig(RIG, multipath=compensation(errors, leds=False)).extract(*clean)
+    both = np.isfinite(plain) & np.isfinite(compensated)
+    assert np.median(compensated[both] - plain[both]) < -0.005
+
+
+def test_the_emission_map_agrees_with_the_lit_pixels_of_the_outlines():
+    # emission_map tests an LED's crossing against the masks (a calibration has no outlines);
+    # illumination.lit_pixels tests it against the mirrors' outlines. Where one says lit, so
+    # must the other, but for pixels along the masks' edges.
+    errors = ToFErrors(illumination=True)
+    settings = MultipathSettings.for_camera(errors, amplitude_at_1m=7300.0, f_mod=20e6)
+    labels = RIG.masks(2.0)
+    rays = viewing_rays(RIG.camera, RIG.mirrors, labels)
+    emission = emission_map(RIG.camera, list(RIG.planes), labels, rays.origins.reshape(-1, 3),
+                            rays.directions.reshape(-1, 3), settings).reshape(labels.shape)
+    lit = lit_pixels(RIG.camera, RIG.mirrors, errors, 3.0, edge_margin_px=2.0)
+    seen = labels >= 0
+    assert np.mean((emission[seen] > 0) == lit[seen]) > 0.97
+    # Each LED gives at most cos⁰ = 1 over the count: the map never exceeds the coaxial source.
+    assert emission.max() <= 1.0 + 1e-12 and np.all(emission[~seen] == 0.0)
+    off = emission_map(RIG.camera, list(RIG.planes), labels, rays.origins.reshape(-1, 3),
+                       rays.directions.reshape(-1, 3), settings.model_copy(update={"leds": False}))
+    np.testing.assert_array_equal(off.reshape(labels.shape), seen.astype(float))
+
+
+def test_the_same_frame_gives_the_same_distances_for_any_thread_count():
+    errors = ToFErrors(multipath=True, multipath_rays=2)
+    d, a = frame(errors)
+    ex = ScanExtractor.from_rig(RIG, multipath=compensation(errors))
+    one, two = (ex._multipath.with_threads(n) for n in (1, 2))
+    np.testing.assert_array_equal(one.correct(d[None], a[None]), two.correct(d[None], a[None]))
+
+
+def test_a_bad_setting_names_its_field():
+    with pytest.raises(ScanConfigError, match="multipath.stride"):
+        scan_settings(multipath={"stride": 0})
+    with pytest.raises(ScanConfigError, match="multipath.colour"):
+        scan_settings(multipath={"colour": 1})
+
+
+@pytest.mark.filterwarnings("ignore::omnitof.scan.tof_input.ToFInputWarning")
+@pytest.mark.parametrize("errors, rule", [
+    ("default", "off (auto: the simulated camera has no multipath)"),
+    ("multipath", "on (auto: the simulated camera has multipath; the camera's figures from the bag's sidecar)"),
+])
+def test_a_simulated_bag_gets_the_compensation_its_camera_needs(tmp_path, errors, rule):
+    # `auto` follows the sidecar's camera: on with multipath (with that camera's light: here
+    # its LEDs off), off without; `off` and `on` say so whatever the camera.
+    from omnitof.cli import main
+    from omnitof.scan.tof_input import read_tof_scans
+
+    bag = tmp_path / "bag"
+    assert main(["simulate", "--world", "room", "--out", str(bag), "--tof-errors", errors, "--max-frames", "2",
+                 "--quiet"]) == 0
+    auto = read_tof_scans(bag)
+    assert auto.multipath_rule == rule
+    assert auto.extractor.settings.multipath.enabled == (errors == "multipath")
+    off = read_tof_scans(bag, multipath="off")
+    assert not off.extractor.settings.multipath.enabled and off.multipath_rule == "off (--multipath-compensation off)"
+    on = read_tof_scans(bag, multipath="on")
+    assert on.extractor.settings.multipath.enabled and on.multipath_rule.startswith("on (--multipath-compensation on")
+    assert on.extractor.settings.multipath.leds == (errors == "default")  # the default camera has LEDs
+    assert np.any(on.scans.ranges != off.scans.ranges)
