@@ -1,7 +1,7 @@
 """The multipath compensation of the scan extraction (omnitof.scan.multipath): what it takes
 out of the matte walls' distances, and what it costs per frame.
 
-First, against the renderer: noise-free phasors of corridor1 at 6 of those poses, rendered
+First, against the renderer: noise-free phasors of corridor1 at the 24 poses below, rendered
 with multipath (8 rays a pixel, averaged over 9 × 9) and without, coaxial light and LEDs; for
 the pixels in the slice, the distance the interreflection really adds (the phase of the ratio
 of the two phasors) against the correction the compensation applies to the frame with it, by
@@ -37,7 +37,7 @@ from omnitof.sensor.tof_errors import ToFErrors
 from omnitof.sim.worlds import load_world
 
 
-def against_renderer(name: str = "corridor1", count: int = 6) -> None:
+def against_renderer(name: str = "corridor1", count: int = 24) -> None:
     from omnitof.sensor.tof import SensorNoise, phase_to_distance
     from omnitof.sim.render import Renderer
     from omnitof.sim.sequence import make_sequence
@@ -62,7 +62,8 @@ def against_renderer(name: str = "corridor1", count: int = 6) -> None:
         idx = ex._index
         dd = d.reshape(len(d), -1)[:, idx]
         keep = (np.abs(zn.reshape(len(d), -1)[:, idx]) > 40) & (dd >= ex._d_lo) & (dd <= ex._d_hi)
-        added = (np.angle(zm / zn).reshape(len(d), -1)[:, idx] * k)[keep] * 100
+        with np.errstate(invalid="ignore", divide="ignore"):  # unlit pixels: 0/0, left out by `keep`
+            added = (np.angle(zm / zn).reshape(len(d), -1)[:, idx] * k)[keep] * 100
         applied = (dd - corrected.reshape(len(d), -1)[:, idx])[keep] * 100
         for lo, hi in ((0, 1.5), (1.5, 3), (3, 5), (5, 8)):
             m = (dd[keep] >= lo) & (dd[keep] < hi)
