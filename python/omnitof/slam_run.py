@@ -157,7 +157,8 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
 
         keyframes = (cfg.filter.linear_update, math.radians(cfg.filter.angular_update_deg)) if three_d else None
         tof_data = read_tof_input(log, calibration=request.calibration, height=request.height, band=request.band,
-                                  multipath=request.multipath_compensation, cloud_every=request.map3d_every if request.map3d else 0,
+                                  multipath=request.multipath_compensation,
+                                  cloud_every=request.map3d_every if request.map3d else 0,
                                   cloud_pixel_stride=cfg.filter3d.pixel_stride if three_d else 1,
                                   cloud_keyframes=keyframes, max_frames=request.max_scans, bar=bar)
         scans = tof_data.scans
@@ -263,7 +264,8 @@ def read_tof_input(log: str | Path, *, calibration: str | Path | None = None, he
     if max_frames is not None:
         total = min(total, max_frames)
     with bar(total, "scans", "frame") as b:
-        return read_tof_scans(log, calibration=calibration, settings=settings, multipath=multipath, cloud_every=cloud_every,
+        return read_tof_scans(log, calibration=calibration, settings=settings, multipath=multipath,
+                              cloud_every=cloud_every,
                               cloud_pixel_stride=cloud_pixel_stride, cloud_keyframes=cloud_keyframes,
                               max_frames=max_frames, progress=b.update)
 
