@@ -14,8 +14,7 @@ each pixel, relative to a coaxial isotropic source, `emission_map`).
 
 What it leaves out: the visibility between P and Q (the frame does not show what lies between
 them; furniture hides part of the light, so in cluttered rooms the correction is too large),
-light from surfaces the camera does not see (most likely the ceiling above the robot, lit by
-the LEDs' light that leaves past the mirrors), and more than one interreflection. BENCHMARKS.md,
+light from surfaces the camera does not see, and more than one interreflection. BENCHMARKS.md,
 "Multipath compensation", gives what it gains and costs in each world. Off unless asked, or
 (`auto`, `omnitof.scan.tof_input.multipath_for_bag`) for a simulated camera with multipath: the
 simulator's default camera has none (`omnitof.sensor.tof_errors.DEFAULT_SWITCHES`), a
