@@ -735,7 +735,7 @@ impl PyOccupancyGrid {
 }
 
 /// Rows of an (N, 3) float64 array.
-fn points3(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]>> {
+pub(crate) fn points3(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]>> {
     let shape = a.shape();
     if shape[1] != 3 {
         return Err(PyValueError::new_err(format!("{what} must have shape (N, 3), got {shape:?}")));

@@ -9,14 +9,7 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
 use crate::multipath::{CompensationParams, Compensator};
-
-fn triples(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<[f64; 3]>> {
-    let shape = a.shape();
-    if shape[1] != 3 {
-        return Err(PyValueError::new_err(format!("{what} must have shape (N, 3), got {shape:?}")));
-    }
-    Ok(a.as_slice()?.chunks_exact(3).map(|r| [r[0], r[1], r[2]]).collect())
-}
+use crate::points3;
 
 #[pyclass(name = "_MultipathCompensator", module = "omnitof._core")]
 struct PyMultipathCompensator {
@@ -63,8 +56,8 @@ impl PyMultipathCompensator {
         let inner = Compensator::new(
             width,
             height,
-            triples(&origins, "origins")?,
-            triples(&directions, "directions")?,
+            points3(&origins, "origins")?,
+            points3(&directions, "directions")?,
             paths.as_slice()?.to_vec(),
             labels.as_slice()?.to_vec(),
             solid_angles.as_slice()?.to_vec(),
