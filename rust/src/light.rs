@@ -43,13 +43,6 @@ impl Illumination {
         Illumination { leds: vec![[0.0; 3]], profile_exponent: 0.0, min_cos: -1.0 }
     }
 
-    /// The mean position of the LEDs.
-    pub fn centre(&self) -> [f64; 3] {
-        let n = self.leds.len().max(1) as f64;
-        let sum = self.leds.iter().fold([0.0; 3], |a, &l| add(a, l));
-        scale(sum, 1.0 / n)
-    }
-
     pub fn check(&self) -> Result<(), String> {
         if self.leds.is_empty() || self.leds.iter().flatten().any(|v| !v.is_finite()) {
             return Err("illumination needs at least one LED with finite coordinates".into());
@@ -191,7 +184,8 @@ impl PoseLight {
 
     /// Calls `f(gain, length)` for every light path from an LED to the point `x` whose unit
     /// normal `n` faces the side the light must come from (module docs). With `occlusion`,
-    /// paths the scene blocks are left out (the mirrors are not part of the scene). Sources
+    /// paths the scene blocks are left out (the mirrors are not part of the scene), tested once
+    /// per mirror and once for the LEDs' direct light. Sources
     /// whose bit (in the order of `sources`) is clear in `candidates` are skipped untested;
     /// `candidate_masks` clears only those that light no point of the camera ray that x lies on
     /// (and the renderer the direct LEDs' bits beyond their reach), so the result is the same
@@ -218,6 +212,7 @@ impl PoseLight {
             })
         })
         .chain(&self.sources[masked..]);
+        let (mut tested, mut blocked) = (0u64, 0u64);
         for s in chosen {
             // x's signed distance to an image's mirror plane (< 0: on its reflective side): an
             // image lights only points on that side.
@@ -269,9 +264,19 @@ impl PoseLight {
                 }
             };
             if occlusion {
-                // Unit direction from x towards where the light leaves the last optical surface.
-                let dir = scale(rel, -inv_length);
-                if scene.occluded(x, dir, T_MIN, reach * (1.0 - 1e-9), mail) {
+                // One test per mirror (bit k; the direct light bit 63): the LEDs' images in a
+                // mirror lie a few centimetres apart, so the scene blocks their paths from x
+                // alike but at the edges of shadows.
+                let bit = 1u64 << s.mirror.map_or(63, |k| k.min(62));
+                if tested & bit == 0 {
+                    tested |= bit;
+                    // Unit direction from x towards where the light leaves the last optical surface.
+                    let dir = scale(rel, -inv_length);
+                    if scene.occluded(x, dir, T_MIN, reach * (1.0 - 1e-9), mail) {
+                        blocked |= bit;
+                    }
+                }
+                if blocked & bit != 0 {
                     continue;
                 }
             }

@@ -779,8 +779,9 @@ pub struct RenderParams {
     /// its neighbours' that see the same surface (`smooth_row`, `smoothed_column`); 0: each
     /// pixel alone.
     pub multipath_window: u32,
-    /// The source that lights the interreflections: one LED at the centre of the LEDs (the
-    /// lens centre without them) with their emission profile.
+    /// The light of the interreflections' sources: the LEDs themselves (the same light as the
+    /// direct returns', so a surface sends the light it is seen to get); without LEDs, one
+    /// source at the lens centre with the LEDs' emission profile.
     pub bounce: Illumination,
     /// Seed of the secondary rays' directions.
     pub seed: u64,
@@ -796,8 +797,8 @@ pub struct Lighting<'a> {
     pub light: &'a PoseLight,
     /// The LEDs' sources that may light this sub-ray's points, and how far (`light::candidate_masks`).
     pub reach: SubRayLight,
-    /// One source at the centre of the LEDs with their profile, for the interreflection: its
-    /// light is smooth and weak, and one occlusion test per path keeps it cheap.
+    /// The light of the interreflections' sources (`RenderParams::bounce`), with an occlusion
+    /// test per path.
     pub bounce_light: &'a PoseLight,
     pub secondary: &'a [[f64; 2]],
     pub secondary_weight: f64,

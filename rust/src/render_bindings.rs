@@ -171,8 +171,8 @@ impl PyRenderer {
         if !(f_mod > 0.0 && amplitude_at_1m > 0.0 && min_gain >= 0.0) {
             return Err(PyValueError::new_err("f_mod and amplitude_at_1m must be > 0, min_gain >= 0"));
         }
-        // Without `leds` the light is coaxial; the interreflections are lit by one LED at the
-        // centre (of the LEDs, or of the lens) with the LEDs' profile either way.
+        // Without `leds` the light is coaxial, and the interreflections are lit by one source at
+        // the lens centre with the LEDs' profile; with them, by the LEDs themselves.
         let positions: Vec<[f64; 3]> = match &leds {
             None => vec![[0.0; 3]],
             Some(a) => rows(a, 3, "leds")?.iter().map(|r| [r[0], r[1], r[2]]).collect(),
@@ -180,7 +180,7 @@ impl PyRenderer {
         let min_cos = led_half_angle_deg.to_radians().cos();
         let light = Illumination { leds: positions, profile_exponent: led_profile_exponent, min_cos };
         light.check().map_err(PyValueError::new_err)?;
-        let bounce = Illumination { leds: vec![light.centre()], ..light.clone() };
+        let bounce = light.clone();
         let illumination = leds.is_some().then_some(light);
         if multipath_rays as usize > MAX_SECONDARY * sub_rays {
             return Err(PyValueError::new_err(format!(

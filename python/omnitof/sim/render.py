@@ -332,8 +332,9 @@ class Renderer:
     def _light_arguments(self) -> dict[str, object]:
         """The LEDs (`errors.illumination`) and secondary rays (`errors.multipath`) for the core."""
         errors = self.sensor.errors
-        # The profile also lights the interreflections when the LEDs themselves are off (one
-        # LED at the lens centre): the camera's light leaves in a cone, not in every direction.
+        # The interreflections' sources are lit by the LEDs when they are on (the light that
+        # the direct returns get), else by one source at the lens centre with the LEDs' profile:
+        # the camera's light leaves in a cone, not in every direction.
         args: dict[str, object] = {
             "seed": int(self.settings.seed),
             "multipath_rays": int(errors.multipath_rays) if errors.multipath else 0,
