@@ -291,6 +291,7 @@ class _MultipathCompensator:
         labels: npt.NDArray[np.int32],
         solid_angles: _F64,
         emission: _F64,
+        source_gain: _F64,
         targets: _U32,
         windows: _F64,
         k: float,

@@ -7,8 +7,10 @@
 //! LED → Q → P → camera and reads P too far (BENCHMARKS.md, "ToF error budget"). The LEDs light
 //! about what the mirrors show (the LEDs sit beside the lens), so the frame's own points are
 //! the secondary sources: each pixel Q (on a grid of `stride` pixels) is a Lambertian patch whose
-//! radiance the camera measured, L_Q = A_Q / (A₁·ρ_m·π) (A₁ the amplitude of an albedo-1 target
-//! at 1 m, ρ_m the mirror's reflectivity on the way back), of area Ω_Q·stride²·D_Q²/cos θ_Q,v
+//! radiance the camera measured, L_Q = g_Q·A_Q / (A₁·ρ_m·π) (A₁ the amplitude of an albedo-1
+//! target at 1 m, ρ_m the mirror's reflectivity on the way back, g_Q ≥ 1 the light the LEDs send
+//! onto Q's surface beside the view per unit of what Q shows, `source_gain`), of area
+//! Ω_Q·stride²·D_Q²/cos θ_Q,v
 //! (Ω the pixel's solid angle, D the one-way path, θ_v the angle between the view ray and Q's
 //! normal). P's irradiance from them, relative to the LEDs' own, is
 //!
@@ -54,8 +56,9 @@ pub struct CompensationParams {
 
 /// What is fixed per rig: per pixel (row-major, H·W) where its light leaves the mirror, the
 /// reflected unit direction, the path camera → mirror, its mirror (−1: none), its solid angle,
-/// and the LEDs' relative emission towards it; and the pixels to correct with their windows of
-/// distances (the others are only sources).
+/// the LEDs' relative emission towards it, and how much of its surface's light it stands for as
+/// a source (`source_gain`); and the pixels to correct with their windows of distances (the
+/// others are only sources).
 pub struct Compensator {
     pub width: usize,
     pub height: usize,
@@ -65,6 +68,9 @@ pub struct Compensator {
     pub label: Vec<i32>,
     pub omega: Vec<f64>,
     pub emission: Vec<f64>,
+    /// Per pixel, the factor on its radiance as a source: the LEDs' light that lands on its
+    /// surface beside the view, per unit of what the pixel shows (1: none; see the module docs).
+    pub source_gain: Vec<f64>,
     pub targets: Vec<u32>,
     pub windows: Vec<[f64; 2]>,
     pub params: CompensationParams,
@@ -94,11 +100,13 @@ impl Compensator {
         label: Vec<i32>,
         omega: Vec<f64>,
         emission: Vec<f64>,
+        source_gain: Vec<f64>,
         targets: Vec<u32>,
         windows: Vec<[f64; 2]>,
         params: CompensationParams,
     ) -> Result<Compensator, String> {
-        let mut c = Compensator { width, height, origin, dir, path, label, omega, emission, targets, windows, params, window_of: vec![] };
+        let mut c =
+            Compensator { width, height, origin, dir, path, label, omega, emission, source_gain, targets, windows, params, window_of: vec![] };
         c.check()?;
         let mut window_of = vec![u32::MAX; width * height];
         for (k, &t) in c.targets.iter().enumerate() {
@@ -117,10 +125,14 @@ impl Compensator {
             ("labels", self.label.len()),
             ("solid angles", self.omega.len()),
             ("emission", self.emission.len()),
+            ("source gains", self.source_gain.len()),
         ] {
             if len != n {
                 return Err(format!("{name}: {len} values for {n} pixels"));
             }
+        }
+        if self.source_gain.iter().any(|g| !(g.is_finite() && *g >= 0.0)) {
+            return Err("source gains must be finite and >= 0".into());
         }
         if self.targets.len() != self.windows.len() {
             return Err(format!("{} targets but {} windows", self.targets.len(), self.windows.len()));
@@ -152,7 +164,8 @@ impl Compensator {
     }
 
     /// One frame (H·W distances and amplitudes): `out` gets the distances with each target's
-    /// interreflection taken out (others as given). Returns how many targets were corrected.
+    /// interreflection taken out (NaN where it exceeds max_ratio; others as given). Returns how
+    /// many targets were corrected or dropped.
     pub fn correct(&self, distance: &[f32], amplitude: &[f32], out: &mut [f32]) -> usize {
         out.copy_from_slice(distance);
         let valid: Vec<bool> = (0..distance.len())
@@ -180,7 +193,7 @@ impl Compensator {
                 }
                 let n = self.normal(i, &points, &smooth, &valid)?;
                 let cos_v = self.incidence(i, n);
-                let radiance = a / (p.amplitude_at_1m * p.mirror_reflectivity * std::f64::consts::PI);
+                let radiance = self.source_gain[i] * a / (p.amplitude_at_1m * p.mirror_reflectivity * std::f64::consts::PI);
                 let area = self.omega[i] * (st * st) as f64 * d * d / cos_v;
                 Some(Source { point: points[i], normal: n, distance: d, weight: radiance * area })
             })
@@ -225,7 +238,7 @@ impl Compensator {
                 } else {
                     self.shared(i, distance, &at_anchor).or_else(|| ratio_at(i))
                 }?;
-                self.correction(ratio)
+                Some(self.correction(ratio))
             })
             .collect();
         let mut count = 0;
@@ -263,13 +276,14 @@ impl Compensator {
         (count > 0).then(|| [re / count as f64, im / count as f64])
     }
 
-    /// The distance (m) that the relative interreflection S adds, arg(1 + S)/k; None beyond
-    /// max_ratio, where the model is not trusted.
-    fn correction(&self, [re, im]: [f64; 2]) -> Option<f64> {
+    /// The distance (m) that the relative interreflection S adds, arg(1 + S)/k; NaN beyond
+    /// max_ratio, where the reading is mostly interreflection and the model's error would
+    /// exceed what it takes out: the pixel is dropped.
+    fn correction(&self, [re, im]: [f64; 2]) -> f64 {
         if re.hypot(im) > self.params.max_ratio || 1.0 + re <= 0.0 {
-            return None;
+            return f64::NAN;
         }
-        Some(im.atan2(1.0 + re) / self.params.k)
+        im.atan2(1.0 + re) / self.params.k
     }
 
     /// S at point x (normal n, measured distance d, cosine of the view's incidence, LED emission η), the
@@ -453,13 +467,21 @@ mod tests {
         }
     }
 
-    #[test]
-    fn a_corner_gives_the_quadrature_of_the_neighbouring_wall() {
-        // Wall A (z = 3, facing the camera) meets wall B (x = 0.8) in a corner; a coaxial point
-        // light at the camera, albedo 0.6. For a pixel on A 0.3 m from the corner, the
-        // compensator's sum over B's pixels against a quadrature over the part of B the fan sees:
-        // S = ∫ (ρ·G_Q/π)·cos θ_P·cos θ_Q/d² · e^{i·k/2·(d + |Q| − |P|)} dA / G_P.
-        let (w, h, half) = (64, 64, 0.6);
+    /// Wall A (z = 3, facing the camera) meets wall B (x = 0.8) in a corner, seen by a fan of
+    /// w × h pixels `half` radians either side of the axis; a coaxial point light at the camera,
+    /// albedo 0.6, amplitude scale 7300. The target: the middle row's pixel on A nearest to
+    /// x = 0.5 (0.3 m from the corner).
+    struct Corner {
+        dir: Vec<[f64; 3]>,
+        omega: Vec<f64>,
+        distance: Vec<f32>,
+        amplitude: Vec<f32>,
+        target: usize,
+        rho: f64,
+        c: f64,
+    }
+
+    fn corner(w: usize, h: usize, half: f64) -> Corner {
         let (dir, omega) = fan(w, h, half);
         let (rho, c) = (0.6, 7300.0);
         let (mut distance, mut amplitude) = (vec![0.0f32; w * h], vec![0.0f32; w * h]);
@@ -469,17 +491,53 @@ mod tests {
             distance[i] = t as f32;
             amplitude[i] = (c * rho * cos / (t * t)) as f32;
         }
-        // The target: the middle row's pixel on A nearest to x = 0.5.
         let row = h / 2;
         let col = (0..w).min_by(|&a, &b| {
             let x = |j: usize| (3.0 / dir[row * w + j][2] * dir[row * w + j][0] - 0.5).abs();
             x(a).total_cmp(&x(b))
         }).unwrap();
-        let target = row * w + col;
+        Corner { dir, omega, distance, amplitude, target: row * w + col, rho, c }
+    }
+
+    #[test]
+    fn a_source_gain_scales_the_interreflection_and_max_ratio_drops_the_pixel() {
+        let (w, h) = (48, 48);
+        let Corner { dir, omega, distance, amplitude, target, c, .. } = corner(w, h, 0.6);
+        let run = |gain: f64, max_ratio: f64| -> f32 {
+            let params = CompensationParams { target_stride: 1, amplitude_at_1m: c, min_cos: 1e-3, max_ratio, ..params() };
+            let comp = Compensator::new(w, h, vec![[0.0; 3]; w * h], dir.clone(), vec![0.0; w * h], vec![0; w * h],
+                omega.clone(), vec![1.0; w * h], vec![gain; w * h], vec![target as u32], vec![[0.0, 10.0]], params).unwrap();
+            let mut out = vec![0.0f32; w * h];
+            assert_eq!(comp.correct(&distance, &amplitude, &mut out), 1);
+            distance[target] - out[target]
+        };
+        let (one, two, three) = (run(1.0, 10.0) as f64, run(2.0, 10.0) as f64, run(3.0, 10.0) as f64);
+        assert!(one > 0.005, "the corner matters: {one} m");
+        // The gain multiplies S = a + ib: tan(k·c_g) = g·b/(1 + g·a). Gains 1 and 2 give a and b;
+        // gain 3 must then give atan2(3b, 1 + 3a)/k.
+        let k = params().k;
+        let (t1, t2) = ((k * one).tan(), (k * two).tan());
+        let a = (2.0 * t1 - t2) / (2.0 * (t2 - t1));
+        let b = t1 * (1.0 + a);
+        let want = (3.0 * b).atan2(1.0 + 3.0 * a) / k;
+        assert!((three - want).abs() < 0.01 * want, "gain 3: {three} m, from gains 1 and 2: {want} m (S = {a} + {b}i)");
+        assert!(two > 1.5 * one, "gain 1: {one} m, gain 2: {two} m");
+        assert_eq!(run(0.0, 10.0), 0.0, "sources that stand for nothing send nothing");
+        assert!(run(1.0, 1e-6).is_nan(), "beyond max_ratio the pixel is dropped");
+    }
+
+    #[test]
+    fn a_corner_gives_the_quadrature_of_the_neighbouring_wall() {
+        // Wall A (z = 3, facing the camera) meets wall B (x = 0.8) in a corner; a coaxial point
+        // light at the camera, albedo 0.6. For a pixel on A 0.3 m from the corner, the
+        // compensator's sum over B's pixels against a quadrature over the part of B the fan sees:
+        // S = ∫ (ρ·G_Q/π)·cos θ_P·cos θ_Q/d² · e^{i·k/2·(d + |Q| − |P|)} dA / G_P.
+        let (w, h, half) = (64, 64, 0.6);
+        let Corner { dir, omega, distance, amplitude, target, rho, c } = corner(w, h, half);
         let params = CompensationParams { target_stride: 1, mirror_reflectivity: 1.0, amplitude_at_1m: c, min_cos: 1e-3, ..params() };
         let k = params.k;
         let comp = Compensator::new(w, h, vec![[0.0; 3]; w * h], dir.clone(), vec![0.0; w * h], vec![0; w * h], omega,
-            vec![1.0; w * h], vec![target as u32], vec![[0.0, 10.0]], params).unwrap();
+            vec![1.0; w * h], vec![1.0; w * h], vec![target as u32], vec![[0.0, 10.0]], params).unwrap();
         let mut out = vec![0.0f32; w * h];
         assert_eq!(comp.correct(&distance, &amplitude, &mut out), 1);
         let got = (distance[target] - out[target]) as f64;
@@ -529,6 +587,7 @@ mod tests {
             vec![0.0; w * h],
             vec![0; w * h],
             omega,
+            vec![1.0; w * h],
             vec![1.0; w * h],
             (0..(w * h) as u32).collect(),
             vec![[0.0, 10.0]; w * h],

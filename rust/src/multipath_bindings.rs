@@ -20,8 +20,8 @@ struct PyMultipathCompensator {
 #[pymethods]
 impl PyMultipathCompensator {
     #[new]
-    #[pyo3(signature = (*, width, height, origins, directions, paths, labels, solid_angles, emission, targets,
-        windows, k, amplitude_at_1m, mirror_reflectivity, stride, target_stride, normal_radius, smooth_radius,
+    #[pyo3(signature = (*, width, height, origins, directions, paths, labels, solid_angles, emission, source_gain,
+        targets, windows, k, amplitude_at_1m, mirror_reflectivity, stride, target_stride, normal_radius, smooth_radius,
         depth_tolerance, min_reflectance, min_cos, min_separation, max_ratio, threads=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
@@ -33,6 +33,7 @@ impl PyMultipathCompensator {
         labels: PyReadonlyArray1<i32>,
         solid_angles: PyReadonlyArray1<f64>,
         emission: PyReadonlyArray1<f64>,
+        source_gain: PyReadonlyArray1<f64>,
         targets: PyReadonlyArray1<u32>,
         windows: PyReadonlyArray2<f64>,
         k: f64,
@@ -62,6 +63,7 @@ impl PyMultipathCompensator {
             labels.as_slice()?.to_vec(),
             solid_angles.as_slice()?.to_vec(),
             emission.as_slice()?.to_vec(),
+            source_gain.as_slice()?.to_vec(),
             targets.as_slice()?.to_vec(),
             windows.as_slice()?.chunks_exact(2).map(|r| [r[0], r[1]]).collect(),
             CompensationParams {

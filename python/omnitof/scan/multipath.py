@@ -9,8 +9,9 @@ a Lambertian patch whose radiance the camera measured (its amplitude); the light
 point P, relative to what P gets from the LEDs, is a phasor S_P whose phase follows the extra
 path, and the direct light's distance is D_P − arg(1 + S_P)/k (rust/src/multipath.rs gives
 the sum). What the model needs of the camera: its amplitude for an albedo-1 target at 1 m, its
-modulation frequency, the mirrors' reflectivity, and where its LEDs are (their emission towards
-each pixel, relative to a coaxial isotropic source, `emission_map`).
+modulation frequency, the mirrors' reflectivity, and where its LEDs are: their emission towards
+each pixel, relative to a coaxial isotropic source (`emission_map`), and the light they send
+onto the seen surfaces just beside the view, which each source stands for (`source_gains`).
 
 What it leaves out: the visibility between P and Q (the frame does not show what lies between
 them; furniture hides part of the light, so in cluttered rooms the correction is too large),
@@ -97,8 +98,8 @@ class MultipathSettings(BaseModel):
     max_ratio: float = Field(
         1.0,
         gt=0.0,
-        description="where the predicted interreflection exceeds this share of the direct light the model is not "
-        "trusted and the distance is left as measured",
+        description="pixels whose predicted interreflection exceeds this share of the direct light are dropped: "
+        "their reading is mostly interreflection, and the model's error would exceed what it takes out",
     )
 
     @classmethod
@@ -114,14 +115,11 @@ class MultipathSettings(BaseModel):
 
 def emission_map(camera: Camera, planes: list[MirrorPlane], labels: np.ndarray, origins: np.ndarray,
                  directions: np.ndarray, settings: MultipathSettings) -> np.ndarray:
-    """(H·W,) the LEDs' light that reaches each mirror pixel's point at EMISSION_DISTANCE through
-    its own mirror, relative to a coaxial isotropic source (1 with `leds` off; 0 where no LED
-    reaches). `origins`, `directions` (H·W, 3): where each pixel's ray leaves its mirror and
-    the reflected unit direction, camera frame. An LED lights the point through the mirror if
-    the segment from the point to the LED's image in the mirror's plane crosses the plane where
-    the camera sees that mirror (`labels` at the crossing's pixel): the masks stand in for the
-    mirrors' outlines, which a calibration does not have. Each LED gives cos^p of its emission
-    angle over the LED count."""
+    """(H·W,) the LEDs' light that reaches each mirror pixel's point at EMISSION_DISTANCE,
+    relative to a coaxial isotropic source (1 with `leds` off; 0 where no LED reaches).
+    `origins`, `directions` (H·W, 3): where each pixel's ray leaves its mirror and the
+    reflected unit direction, camera frame. Each LED gives cos^p of its emission angle over the
+    LED count, through every mirror whose face the light can cross (`_lit_through`)."""
     flat = labels.reshape(-1)
     out = np.zeros(len(flat))
     if not settings.leds:
@@ -131,12 +129,12 @@ def emission_map(camera: Camera, planes: list[MirrorPlane], labels: np.ndarray, 
     leds = np.column_stack([settings.led_radius * np.cos(angle), settings.led_radius * np.sin(angle),
                             np.zeros(settings.led_count)])
     min_cos = math.cos(math.radians(settings.led_half_angle_deg))
+    on_mirror = _near_mirror_pixels(labels)
+    sel = np.flatnonzero(flat >= 0)
+    x = origins[sel] + (EMISSION_DISTANCE - np.linalg.norm(origins[sel], axis=1))[:, None] * directions[sel]
     for m, plane in enumerate(planes):  # loop over mirrors and LEDs; pixels vectorised
-        sel = np.flatnonzero(flat == m)
-        if len(sel) == 0:
-            continue
-        x = origins[sel] + (EMISSION_DISTANCE - np.linalg.norm(origins[sel], axis=1))[:, None] * directions[sel]
         n, d = plane.normal, plane.d
+        facing = x @ n < d  # the point lies on the mirror's reflective side
         for led in leds:
             if led @ n >= d:  # behind the mirror: no image in it
                 continue
@@ -147,14 +145,61 @@ def emission_map(camera: Camera, planes: list[MirrorPlane], labels: np.ndarray, 
             crossing = x + t[:, None] * v
             emit = crossing - led
             cos_e = emit[:, 2] / np.linalg.norm(emit, axis=1)
-            uv = camera.project(crossing)
-            ok = (t > 0.0) & (t < 1.0) & (cos_e >= min_cos) & np.all(np.isfinite(uv), axis=1)
-            col = np.clip(np.rint(np.nan_to_num(uv[:, 0])).astype(np.int64), 0, camera.width - 1)
-            row = np.clip(np.rint(np.nan_to_num(uv[:, 1])).astype(np.int64), 0, camera.height - 1)
-            inside = (uv[:, 0] > -0.5) & (uv[:, 0] < camera.width - 0.5) & (uv[:, 1] > -0.5) & (uv[:, 1] < camera.height - 0.5)
-            ok &= inside & (labels[row, col] == m)
+            ok = facing & (t > 0.0) & (t < 1.0) & (cos_e >= min_cos)
+            ok &= _lit_through(camera, planes, m, crossing, on_mirror)
             out[sel] += np.where(ok, np.maximum(cos_e, 0.0) ** settings.led_profile_exponent, 0.0) / settings.led_count
     return out
+
+
+# Crossings up to this many pixels from the masks count as on a mirror: the masks leave a margin
+# (`Calibration.edge_margin_px`, 2 px by default) along the mirrors' edges that the mirrors fill.
+MASK_REACH_PX = 4.0
+
+
+def _near_mirror_pixels(labels: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels within MASK_REACH_PX of a mirror pixel of the masks."""
+    from scipy.ndimage import distance_transform_edt
+
+    return distance_transform_edt(labels < 0) <= MASK_REACH_PX
+
+
+def _lit_through(camera: Camera, planes: list[MirrorPlane], m: int, crossing: np.ndarray,
+                 on_mirror: np.ndarray) -> np.ndarray:
+    """Whether light crossing mirror m's plane at `crossing` (camera frame) meets mirror m. The
+    mirrors are the faces of a convex pyramid, each the half-space n·x ≥ d behind its plane,
+    so a point of plane m lies on face m where the ray from the camera centre through it
+    enters plane m's half-space last. Where the camera sees the crossing, it must also lie on a
+    mirror in the masks (their outer edges end the mirrors); beyond the image the mirrors are
+    taken to go on, since a calibration knows their planes but not their outlines there (16 %
+    of the LEDs' paths through the default rig cross a mirror outside the view)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        entry = np.stack([np.where(crossing @ p.normal > 0.0, p.d / (crossing @ p.normal), np.inf) for p in planes], axis=1)
+    ok = np.all(np.isfinite(entry), axis=1) & (np.argmax(entry, axis=1) == m)
+    uv = camera.project(crossing)
+    seen = np.all(np.isfinite(uv), axis=1) & (uv[:, 0] > -0.5) & (uv[:, 0] < camera.width - 0.5)
+    seen &= (uv[:, 1] > -0.5) & (uv[:, 1] < camera.height - 0.5)
+    col = np.clip(np.rint(np.nan_to_num(uv[:, 0])).astype(np.int64), 0, camera.width - 1)
+    row = np.clip(np.rint(np.nan_to_num(uv[:, 1])).astype(np.int64), 0, camera.height - 1)
+    return ok & (~seen | on_mirror[row, col])
+
+
+def source_gains(camera: Camera, planes: list[MirrorPlane], labels: np.ndarray, origins: np.ndarray,
+                 directions: np.ndarray, settings: MultipathSettings, emission: np.ndarray) -> np.ndarray:
+    """(H·W,) how much of its surface's light each pixel stands for as a secondary source. LEDs
+    beside the lens light the seen points less than a source at the lens centre would
+    (`emission` below 1: a point lit by two LEDs of four), and send the rest of their light onto
+    the same surfaces just beside the view (the walls above and below what the mirrors show),
+    where the frame cannot see it. A source at the centre lights what the camera sees and
+    nothing else, and the ring sends out about the same light, so each seen point stands for the
+    light the centre would give it: the gain is the centre's emission over the ring's, between 1
+    and the LED count (one LED's light standing for all of them). 1 with `leds` off."""
+    if not settings.leds:
+        return np.ones(len(emission))
+    centre = emission_map(camera, planes, labels, origins, directions,
+                          settings.model_copy(update={"led_count": 1, "led_radius": 0.0}))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gain = np.where(emission > 0.0, centre / emission, 1.0)
+    return np.clip(gain, 1.0, float(settings.led_count))
 
 
 def solid_angles(camera: Camera) -> np.ndarray:
@@ -184,6 +229,7 @@ class MultipathCompensation:
             directions=np.ascontiguousarray(np.where(finite[:, None], robot_directions, 0.0), dtype=np.float64),
             paths=np.ascontiguousarray(np.where(finite, paths, np.inf), dtype=np.float64),
             labels=label, solid_angles=solid_angles(camera), emission=emission,
+            source_gain=source_gains(camera, planes, labels, origins, directions, settings, emission),
             targets=np.ascontiguousarray(targets, dtype=np.uint32),
             windows=np.ascontiguousarray(windows, dtype=np.float64),
             k=4.0 * math.pi * s.f_mod / SPEED_OF_LIGHT, amplitude_at_1m=s.amplitude_at_1m,
