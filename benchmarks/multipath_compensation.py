@@ -5,7 +5,8 @@ First, against the renderer: noise-free phasors of corridor1 at the 24 poses bel
 with multipath (8 rays a pixel, averaged over 9 × 9) and without, coaxial light and LEDs; for
 the pixels in the slice, the distance the interreflection really adds (the phase of the ratio
 of the two phasors) against the correction the compensation applies to the frame with it, by
-measured distance (`--skip-check` leaves it out).
+measured distance, over the pixels it keeps (it drops those beyond `max_ratio`; their share is
+given) (`--skip-check` leaves it out).
 
 Then, per world, the 24 frames of benchmarks/tof_errors.py (seed 0, default rig, 4 sub-rays, noise
 on), rendered with multipath alone and with every effect on; scans from the true rig's
@@ -17,7 +18,7 @@ compensation, alternately, `--runs` times (frames/s, median and range), and the 
 results for 1 and 2 threads compared.
 
     python benchmarks/multipath_compensation.py [--worlds corridor1 room] [--runs 5] [--skip-check]
-        [--skip-accuracy]
+        [--skip-accuracy] [--skip-speed]
 """
 
 from __future__ import annotations
@@ -45,9 +46,9 @@ def against_renderer(name: str = "corridor1", count: int = 24) -> None:
     world = load_world(name)
     seq = make_sequence(world, seed=0)
     poses = seq.ground_truth[np.linspace(0, len(seq) - 1, count).round().astype(int)]
-    print("| light | measured distance m | pixels | added by the interreflection, median / mean cm | "
+    print("| light | measured distance m | pixels | dropped | added by the interreflection, median / mean cm | "
           "the compensation's correction, median / mean cm |")
-    print("|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|")
     for leds in (False, True):
         with_mp = Renderer(world, sensor=SensorNoise(errors=ToFErrors(multipath=True, multipath_rays=8,
                                                                       illumination=leds)))
@@ -66,9 +67,11 @@ def against_renderer(name: str = "corridor1", count: int = 24) -> None:
             added = (np.angle(zm / zn).reshape(len(d), -1)[:, idx] * k)[keep] * 100
         applied = (dd - corrected.reshape(len(d), -1)[:, idx])[keep] * 100
         for lo, hi in ((0, 1.5), (1.5, 3), (3, 5), (5, 8)):
-            m = (dd[keep] >= lo) & (dd[keep] < hi)
-            print(f"| {'LEDs' if leds else 'coaxial'} | {lo}–{hi} | {m.sum()} | {np.median(added[m]):.2f} / "
-                  f"{np.mean(added[m]):.2f} | {np.median(applied[m]):.2f} / {np.mean(applied[m]):.2f} |", flush=True)
+            band = (dd[keep] >= lo) & (dd[keep] < hi)
+            m = band & np.isfinite(applied)  # the pixels it drops (beyond max_ratio) apart
+            print(f"| {'LEDs' if leds else 'coaxial'} | {lo}–{hi} | {m.sum()} | {100 * (1 - m.sum() / band.sum()):.1f} % | "
+                  f"{np.median(added[m]):.2f} / {np.mean(added[m]):.2f} | {np.median(applied[m]):.2f} / "
+                  f"{np.mean(applied[m]):.2f} |", flush=True)
 
 
 def accuracy(names: list[str], count: int) -> None:
@@ -116,6 +119,7 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=5)
     parser.add_argument("--skip-accuracy", action="store_true")
     parser.add_argument("--skip-check", action="store_true")
+    parser.add_argument("--skip-speed", action="store_true")
     args = parser.parse_args()
     print(f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.1f}")
@@ -123,7 +127,8 @@ def main() -> None:
         against_renderer()
     if not args.skip_accuracy:
         accuracy(args.worlds, args.frames)
-    speed(args.runs)
+    if not args.skip_speed:
+        speed(args.runs)
     print(f"# done, load {os.getloadavg()[0]:.1f}")
 
 

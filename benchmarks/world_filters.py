@@ -11,7 +11,8 @@ a few seeds' numbers in the last digits.)
     python benchmarks/world_filters.py --worlds corridor1 office --drives 0 1 --seeds 0 1 2 \
         [--preset tof-scanmatch] [--particles 30] [--set backend.min_score=0.65 ...] \
         [--tof-errors default|all|none|LIST] [--ideal-scans [seen]] [--odometry-scale F]
-        [--max-incidence DEG] [--true-rig] [--multipath-compensation auto|on|off] [--cache DIR]
+        [--max-incidence DEG] [--true-rig] [--multipath-compensation auto|on|off]
+        [--multipath-max-ratio R] [--cache DIR]
 
 The camera's systematic errors (issue 15) are those of the demo, `default` unless told; the
 cache is kept per setting. `--ideal-scans` replaces every range by the exact distance to the
@@ -25,7 +26,8 @@ drops the bins seen at a grazing angle (`ScanSettings.max_incidence_deg`, omnito
 as the extraction would have as its last step. `--true-rig` extracts with the true rig, given
 the same wall-fitted distance correction as the estimate (issue 16's reference).
 `--multipath-compensation` (auto: on where the camera has multipath, as the demo) extracts with
-the compensation of omnitof.scan.multipath set up for the simulated camera (cached apart).
+the compensation of omnitof.scan.multipath set up for the simulated camera (cached apart);
+`--multipath-max-ratio R` gives it that `max_ratio` (cached apart).
 
 Prints one JSON line per run, then a Markdown table.
 """
@@ -61,15 +63,16 @@ from omnitof.slam.config import load_config
 
 
 def extracted_scans(name: str, drive: int, cache: Path, tof_errors: str = "default", *, true_rig: bool = False,
-                    compensation: str = "auto"):
+                    compensation: str = "auto", max_ratio: float | None = None):
     """The scans of world `name`, drive seed `drive`, with the estimated calibration, or with
     `true_rig` the true rig given the same wall-fitted distance correction (cached); with the
     multipath compensation set up for the camera where `compensation` is "on", or "auto" and the
-    camera has multipath (as `omnitof demo` does)."""
+    camera has multipath (as `omnitof demo` does), with `max_ratio` if given."""
     errors = ToFErrors.parse(tof_errors)
     tag = ("" if tof_errors == "none" else "_" + tof_errors.replace(",", "+")) + ("_truerig" if true_rig else "")
     compensate = compensation == "on" or (compensation == "auto" and errors.multipath)
     tag += "_mpcomp" if compensate else ""
+    tag += f"_ratio{max_ratio:g}" if compensate and max_ratio is not None else ""
     path = cache / f"{name}_{drive}{tag}.pkl"
     if path.exists():
         return pickle.loads(path.read_bytes())["scans"]
@@ -83,7 +86,8 @@ def extracted_scans(name: str, drive: int, cache: Path, tof_errors: str = "defau
     calibration, _ = _calibrate(renderer, settings, work)
     multipath = MultipathSettings.for_camera(errors, amplitude_at_1m=sensor.amplitude_at_1m, f_mod=sensor.f_mod,
                                              mirror_reflectivity=renderer.settings.mirror_reflectivity,
-                                             enabled=compensate)
+                                             enabled=compensate,
+                                             **({} if max_ratio is None else {"max_ratio": max_ratio}))
     extractor = ScanExtractor.from_calibration(calibration, multipath=multipath.model_dump())
     scans = tof_scans(render_sequence(sequence, renderer), extractor, cloud_every=0, source=name).scans
     path.write_bytes(pickle.dumps({"world": name, "scans": scans}))
@@ -134,6 +138,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--multipath-compensation", choices=["auto", "on", "off"], default="auto",
                         help="extract with the multipath compensation (omnitof.scan.multipath); auto: where the "
                         "camera has multipath, as the demo")
+    parser.add_argument("--multipath-max-ratio", type=float, default=None,
+                        help="the compensation's max_ratio (MultipathSettings; default: its default)")
     parser.add_argument("--tof-errors", default="default",
                         help="the camera's systematic errors, as `omnitof demo --tof-errors` (default: the demo's)")
     parser.add_argument("--ideal-scans", nargs="?", const="all", choices=["all", "seen"], default=None,
@@ -156,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
         world = load_world(name)
         for drive in args.drives:
             scans = extracted_scans(name, drive, args.cache, args.tof_errors, true_rig=args.true_rig,
-                                    compensation=args.multipath_compensation)
+                                    compensation=args.multipath_compensation, max_ratio=args.multipath_max_ratio)
             if args.ideal_scans:
                 scans = ideal_scans(world, scans, only_seen=args.ideal_scans == "seen")
             if args.odometry_scale != 1.0:
