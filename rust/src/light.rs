@@ -264,15 +264,23 @@ impl PoseLight {
                 }
             };
             if occlusion {
-                // One test per mirror (bit k; the direct light bit 63): the LEDs' images in a
-                // mirror lie a few centimetres apart, so the scene blocks their paths from x
-                // alike but at the edges of shadows.
-                let bit = 1u64 << s.mirror.map_or(63, |k| k.min(62));
-                if tested & bit == 0 {
+                // One test per mirror (bit k; the direct light bit 63; a mirror past the 63rd is
+                // tested for every path): the LEDs' images in a mirror lie a few centimetres
+                // apart, so the scene blocks their paths from x alike but at shadows' edges.
+                let bit = match s.mirror {
+                    None => 1u64 << 63,
+                    Some(k) if k < 63 => 1u64 << k,
+                    Some(_) => 0,
+                };
+                if bit == 0 || tested & bit == 0 {
                     tested |= bit;
                     // Unit direction from x towards where the light leaves the last optical surface.
                     let dir = scale(rel, -inv_length);
-                    if scene.occluded(x, dir, T_MIN, reach * (1.0 - 1e-9), mail) {
+                    let occluded = scene.occluded(x, dir, T_MIN, reach * (1.0 - 1e-9), mail);
+                    if bit == 0 && occluded {
+                        continue;
+                    }
+                    if occluded {
                         blocked |= bit;
                     }
                 }

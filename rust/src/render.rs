@@ -797,8 +797,8 @@ pub struct Lighting<'a> {
     pub light: &'a PoseLight,
     /// The LEDs' sources that may light this sub-ray's points, and how far (`light::candidate_masks`).
     pub reach: SubRayLight,
-    /// The light of the interreflections' sources (`RenderParams::bounce`), with an occlusion
-    /// test per path.
+    /// The light of the interreflections' sources (`RenderParams::bounce`), tested for
+    /// occlusion (`PoseLight::paths`).
     pub bounce_light: &'a PoseLight,
     pub secondary: &'a [[f64; 2]],
     pub secondary_weight: f64,
