@@ -15,8 +15,10 @@ onto the seen surfaces just beside the view, which each source stands for (`sour
 
 What it leaves out: the visibility between P and Q (the frame does not show what lies between
 them; furniture hides part of the light, so in cluttered rooms the correction is too large),
-light from surfaces the camera does not see, and more than one interreflection. BENCHMARKS.md,
-"Multipath compensation", gives what it gains and costs in each world. Off unless asked, or
+where the LEDs' light beside the view lands (each source stands for it at its own place), light
+from other surfaces the camera does not see, and more than one interreflection. BENCHMARKS.md,
+"Multipath compensation" and "The LEDs' light in the compensation", gives what it gains and
+costs in each world. Off unless asked, or
 (`auto`, `omnitof.scan.tof_input.multipath_for_bag`) for a simulated camera with multipath: the
 simulator's default camera has none (`omnitof.sensor.tof_errors.DEFAULT_SWITCHES`), a
 correction for light that is not there makes every wall read short, and for a real camera the
