@@ -12,7 +12,8 @@ from omnitof.scan.extract import ScanConfigError, ScanExtractor, scan_settings
 from omnitof.scan.multipath import MultipathSettings, emission_map, source_gains
 from omnitof.sensor.design import default_rig
 from omnitof.sensor.illumination import lit_pixels
-from omnitof.sensor.mirrors import viewing_rays
+from omnitof.sensor.mirrors import pyramid, viewing_rays
+from omnitof.sensor.rig import Rig
 from omnitof.sensor.tof import SensorNoise, phase_to_distance
 from omnitof.sensor.tof_errors import ToFErrors
 from omnitof.sim.render import Renderer, RenderSettings
@@ -31,10 +32,10 @@ def corridor():
     })
 
 
-def frame(errors: ToFErrors) -> tuple[np.ndarray, np.ndarray]:
+def frame(errors: ToFErrors, rig=RIG) -> tuple[np.ndarray, np.ndarray]:
     """Noise-free distance and amplitude images at POSE."""
     sensor = SensorNoise(electrons_per_unit=math.inf, read_noise=0.0, errors=errors)
-    r = Renderer(corridor(), camera=RIG.camera, mirrors=RIG.mirrors, robot_T_camera=RIG.robot_T_camera,
+    r = Renderer(corridor(), camera=rig.camera, mirrors=rig.mirrors, robot_T_camera=rig.robot_T_camera,
                  sensor=sensor, settings=RenderSettings(sub_rays=4, seed=5))
     phasor = r.phasors(POSE).phasor[0].astype(np.complex128)
     distance = phase_to_distance(np.mod(np.angle(phasor), 2 * np.pi), sensor.f_mod)
@@ -86,28 +87,33 @@ def test_without_multipath_the_compensation_makes_walls_read_short():
     assert np.median(compensated[both] - plain[both]) < -0.005
 
 
-def test_the_emission_map_is_the_renderers_led_light():
+@pytest.mark.parametrize("rig", [
+    RIG,
+    # A pyramid the rule was not worked out on: five mirrors, another tilt, yaw and apex.
+    Rig.from_mirrors(RIG.camera, pyramid(5, 50.0, 0.14, yaw_deg=10.0, camera=RIG.camera)),
+], ids=["default", "five-mirrors"])
+def test_the_emission_map_is_the_renderers_led_light(rig):
     # Independent: the renderer's LEDs light each point through the mirrors' outlines (light.rs),
     # the map through the planes and the masks. Rendered without multipath and noise, the LED
     # frame's amplitude over the coaxial frame's is the LEDs' light relative to a coaxial
     # isotropic source, up to the incidence and the 1/ℓ² of paths a few cm longer.
-    led = frame(ToFErrors(illumination=True))[1].astype(float).reshape(-1)
-    coaxial = frame(ToFErrors())[1].astype(float).reshape(-1)
+    led = frame(ToFErrors(illumination=True), rig)[1].astype(float).reshape(-1)
+    coaxial = frame(ToFErrors(), rig)[1].astype(float).reshape(-1)
     settings = MultipathSettings.for_camera(ToFErrors(illumination=True), amplitude_at_1m=7300.0, f_mod=20e6)
-    labels = RIG.masks(2.0)
-    rays = viewing_rays(RIG.camera, RIG.mirrors, labels)
-    emission = emission_map(RIG.camera, list(RIG.planes), labels, rays.origins.reshape(-1, 3),
+    labels = rig.masks(2.0)
+    rays = viewing_rays(rig.camera, rig.mirrors, labels)
+    emission = emission_map(rig.camera, list(rig.planes), labels, rays.origins.reshape(-1, 3),
                             rays.directions.reshape(-1, 3), settings)
     seen = (labels.reshape(-1) >= 0) & (coaxial > 0)
     ratio = led[seen] / coaxial[seen]
     lit = emission[seen] > 0.05
     assert lit.mean() > 0.9
-    # Half the mirror pixels get the light of two LEDs of four or less: the map must say which.
+    # A third of the mirror pixels or more get the light of two LEDs of four or less: the map
+    # must say which.
     assert np.mean(emission[seen][lit] < 0.55) > 0.3
     close = np.abs(ratio[lit] / emission[seen][lit] - 1.0) < 0.1
-    assert close.mean() > 0.85
-    assert np.mean(ratio[~lit] > 0.05) < 0.2  # where the map says dark, the renderer mostly is
-    assert np.mean((~lit) & (ratio > 0.05)) < 0.01
+    assert close.mean() > 0.85  # 0.93 and 0.90; 0.52 on the default rig with masks alone
+    assert np.mean((~lit) & (ratio > 0.05)) < 0.01  # where the map says dark, the renderer is
 
 
 def test_sources_stand_for_the_light_the_ring_sends_beside_the_view():
