@@ -272,19 +272,17 @@ impl PoseLight {
                     Some(k) if k < 63 => 1u64 << k,
                     Some(_) => 0,
                 };
-                if bit == 0 || tested & bit == 0 {
-                    tested |= bit;
+                let occluded = if tested & bit != 0 {
+                    blocked & bit != 0
+                } else {
                     // Unit direction from x towards where the light leaves the last optical surface.
                     let dir = scale(rel, -inv_length);
                     let occluded = scene.occluded(x, dir, T_MIN, reach * (1.0 - 1e-9), mail);
-                    if bit == 0 && occluded {
-                        continue;
-                    }
-                    if occluded {
-                        blocked |= bit;
-                    }
-                }
-                if blocked & bit != 0 {
+                    tested |= bit;
+                    blocked |= if occluded { bit } else { 0 };
+                    occluded
+                };
+                if occluded {
                     continue;
                 }
             }

@@ -36,7 +36,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from omnitof import _core
 from omnitof.sensor.camera import Camera
 from omnitof.sensor.mirrors import MirrorPlane
-from omnitof.sensor.tof_errors import SPEED_OF_LIGHT, ToFErrors
+from omnitof.sensor.tof_errors import SPEED_OF_LIGHT, ToFErrors, led_ring
 
 # The one-way distance (m) at which each pixel's LED emission is worked out: the working point
 # of the sensor model. The LEDs are a few cm from the lens, so which of them light a pixel's
@@ -127,9 +127,7 @@ def emission_map(camera: Camera, planes: list[MirrorPlane], labels: np.ndarray, 
     if not settings.leds:
         out[flat >= 0] = 1.0
         return out
-    angle = 2.0 * math.pi * np.arange(settings.led_count) / settings.led_count
-    leds = np.column_stack([settings.led_radius * np.cos(angle), settings.led_radius * np.sin(angle),
-                            np.zeros(settings.led_count)])
+    leds = led_ring(settings.led_count, settings.led_radius)
     min_cos = math.cos(math.radians(settings.led_half_angle_deg))
     on_mirror = _near_mirror_pixels(labels)
     sel = np.flatnonzero(flat >= 0)
