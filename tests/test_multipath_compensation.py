@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from omnitof.scan.extract import ScanConfigError, ScanExtractor, scan_settings
-from omnitof.scan.multipath import MultipathSettings, emission_map, source_gains
+from omnitof.scan.multipath import MultipathSettings, beyond_view_sources, emission_map, source_gains
 from omnitof.sensor.design import default_rig
 from omnitof.sensor.illumination import lit_pixels
 from omnitof.sensor.mirrors import pyramid, viewing_rays
@@ -74,6 +74,50 @@ def test_the_compensated_scan_reads_the_walls_as_without_multipath(illumination)
     # And where it is largest (the far walls seen at grazing angles), most of it is taken out.
     worst = both & (before > np.percentile(before[both], 90))
     assert np.median(np.abs(after[worst])) < 0.5 * np.median(before[worst])
+
+
+def test_the_light_beyond_the_view_is_the_renderers():
+    # One LED at the lens centre (so that no light goes beside the view through the ring's
+    # offset): its 40° cone reaches beyond the image (30–33° to its sides) through the mirrors,
+    # which go on, and lights the walls above the band the mirrors show. The renderer follows
+    # that light; the compensation without `beyond_view` misses it and leaves the most affected
+    # bins reading long (1.5 of 8.3 cm); with it they read right (0.05 cm) and the bias goes
+    # from 2.9 cm to -0.2 (without: 0.55).
+    centre = dict(illumination=True, led_radius=0.0, led_count=1, led_profile_exponent=0.0)
+    clean = frame(ToFErrors(**centre))
+    errors = ToFErrors(multipath=True, multipath_rays=32, **centre)
+    lit = frame(errors)
+    plain = ScanExtractor.from_rig(RIG)
+    truth = plain.extract(*clean)
+    after = {}
+    for beyond in (False, True):
+        compensated = ScanExtractor.from_rig(RIG, multipath=compensation(errors, beyond_view=beyond))
+        with np.errstate(invalid="ignore"):  # inf − inf where a bin has no reading
+            before = plain.extract(*lit) - truth
+            after[beyond] = compensated.extract(*lit) - truth
+    both = np.isfinite(before) & np.isfinite(after[False]) & np.isfinite(after[True])
+    assert both.sum() > 100
+    worst = both & (before > np.percentile(before[both], 90))
+    assert np.median(after[False][worst]) > 0.1 * np.median(before[worst])
+    assert abs(np.median(after[True][worst])) < 0.05 * np.median(before[worst])
+    assert abs(np.median(after[True][both])) < 0.12 * np.median(before[both])
+
+
+def test_a_cone_within_the_view_sends_no_light_beyond_it():
+    # LEDs whose cone the image holds whole light nothing beyond the view: no such sources, and
+    # the compensation is the one without them.
+    narrow = ToFErrors(multipath=True, illumination=True, led_half_angle_deg=20.0)
+    labels = RIG.masks(2.0)
+    rays = viewing_rays(RIG.camera, RIG.mirrors, labels)
+    settings = MultipathSettings.for_camera(narrow, amplitude_at_1m=7300.0, f_mod=20e6, beyond_view=True)
+    emission = emission_map(RIG.camera, list(RIG.planes), labels, rays.origins.reshape(-1, 3),
+                            rays.directions.reshape(-1, 3), settings)
+    sources = beyond_view_sources(RIG.camera, list(RIG.planes), labels, emission, RIG.robot_T_camera, settings)
+    assert all(len(v) == 0 for v in sources.values())
+    distance, amplitude = frame(narrow)
+    with_it = ScanExtractor.from_rig(RIG, multipath=settings.model_dump()).extract(distance, amplitude)
+    without = ScanExtractor.from_rig(RIG, multipath={**settings.model_dump(), "beyond_view": False}).extract(distance, amplitude)
+    np.testing.assert_array_equal(with_it, without)
 
 
 def test_without_multipath_the_compensation_makes_walls_read_short():

@@ -306,6 +306,11 @@ class _MultipathCompensator:
         min_cos: float,
         min_separation: float,
         max_ratio: float,
+        beyond_origins: _F64 | None = None,
+        beyond_directions: _F64 | None = None,
+        beyond_paths: _F64 | None = None,
+        beyond_anchors: _U32 | None = None,
+        beyond_factors: _F64 | None = None,
         threads: int | None = None,
     ) -> _MultipathCompensator: ...
     def correct(self, distances: _F32, amplitudes: _F32) -> _F32: ...

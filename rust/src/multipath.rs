@@ -24,6 +24,8 @@
 //! direct light's distance is D_P − arg(1 + S_P)/k. The visibility between P and Q is not
 //! tested (the frame does not show what lies between them): in cluttered rooms the sum is too
 //! large by what furniture hides (BENCHMARKS.md gives the figures).
+//! Optional sources beyond the image (`BeyondView`, `with_beyond_view`) stand for the surfaces
+//! the LEDs light outside the view, continued from the image's edge.
 //!
 //! Normals come from the points of a distance image smoothed over `smooth_radius` pixels of the
 //! same mirror (neighbours within `depth_tolerance`), by differences `normal_radius` pixels
@@ -74,8 +76,28 @@ pub struct Compensator {
     pub targets: Vec<u32>,
     pub windows: Vec<[f64; 2]>,
     pub params: CompensationParams,
+    /// Sources beyond the image (`BeyondView`; `with_beyond_view`), none by default.
+    pub beyond: Vec<BeyondView>,
     /// Per pixel, its index in `targets` (u32::MAX: not a target); filled by `new`.
     window_of: Vec<u32>,
+}
+
+/// A secondary source beyond the image: the LEDs light the mirrors, and the scene through them,
+/// beyond the camera's view (their cone is wider than the image), so the walls just above and
+/// below what the mirrors show, and the floor near the robot, light the seen points too. Such a
+/// source is a ray beyond the image, reflected by the pyramid's face it meets (robot frame, as
+/// `origin`, `dir`, `path`), that continues the surface of an anchor pixel at the image's edge
+/// on the same mirror: it meets the anchor's plane (or the floor, z = 0, below it). Its weight is
+/// the anchor's, L·area without the source gain, times `factor` = (the centre's emission along
+/// the ray · the ray's cell's solid angle) / (the anchor's emission · its cell's solid angle):
+/// the anchor's albedo, lit as the ray's point is.
+#[derive(Clone, Copy, Debug)]
+pub struct BeyondView {
+    pub origin: [f64; 3],
+    pub dir: [f64; 3],
+    pub path: f64,
+    pub anchor: u32,
+    pub factor: f64,
 }
 
 /// A secondary source: point, unit normal, measured distance and its weight L_Q·area_Q.
@@ -105,8 +127,22 @@ impl Compensator {
         windows: Vec<[f64; 2]>,
         params: CompensationParams,
     ) -> Result<Compensator, String> {
-        let mut c =
-            Compensator { width, height, origin, dir, path, label, omega, emission, source_gain, targets, windows, params, window_of: vec![] };
+        let mut c = Compensator {
+            width,
+            height,
+            origin,
+            dir,
+            path,
+            label,
+            omega,
+            emission,
+            source_gain,
+            targets,
+            windows,
+            params,
+            beyond: vec![],
+            window_of: vec![],
+        };
         c.check()?;
         let mut window_of = vec![u32::MAX; width * height];
         for (k, &t) in c.targets.iter().enumerate() {
@@ -114,6 +150,21 @@ impl Compensator {
         }
         c.window_of = window_of;
         Ok(c)
+    }
+
+    /// The same compensator with sources beyond the image (`BeyondView`), checked.
+    pub fn with_beyond_view(mut self, beyond: Vec<BeyondView>) -> Result<Compensator, String> {
+        let n = self.width * self.height;
+        for b in &beyond {
+            if b.anchor as usize >= n {
+                return Err("a source beyond the view has its anchor outside the image".into());
+            }
+            if !(b.factor.is_finite() && b.factor >= 0.0 && b.path.is_finite()) || b.origin.iter().chain(&b.dir).any(|v| !v.is_finite()) {
+                return Err("sources beyond the view need finite origins, directions, paths and factors >= 0".into());
+            }
+        }
+        self.beyond = beyond;
+        Ok(self)
     }
 
     fn check(&self) -> Result<(), String> {
@@ -198,6 +249,20 @@ impl Compensator {
                 Some(Source { point: points[i], normal: n, distance: d, weight: radiance * area })
             })
             .collect();
+        let mut sources = sources;
+        sources.extend(self.beyond.iter().filter_map(|b| {
+            let i = b.anchor as usize;
+            let (d, a) = (distance[i] as f64, amplitude[i] as f64);
+            if !valid[i] || a * d * d < p.min_reflectance {
+                return None;
+            }
+            let n = self.normal(i, &points, &smooth, &valid)?;
+            let cos_v = self.incidence(i, n);
+            // The anchor's L·area per unit of its cell, without the source gain (module docs).
+            let weight = a / (p.amplitude_at_1m * p.mirror_reflectivity * std::f64::consts::PI) * self.omega[i] * (st * st) as f64 * d * d / cos_v;
+            let (point, normal, s) = continued(b, points[i], n, smooth[i] - self.path[i])?;
+            Some(Source { point, normal, distance: b.path + s, weight: weight * b.factor })
+        }));
         // Which targets need a correction in this frame: measured within their window.
         let wanted = |i: usize| valid[i] && {
             let t = self.window_of[i];
@@ -396,6 +461,27 @@ impl Compensator {
     }
 }
 
+/// Where the ray of a source beyond the view meets the surface of its anchor (point x, unit
+/// normal n facing the camera, `reach` metres from its mirror): (point, normal, distance along
+/// the ray). The anchor's plane, or the floor (z = 0, robot frame) where the plane lies below
+/// it. None where the ray does not face the plane or meets it further from the anchor than
+/// the anchor's own `reach` (a plane continued that far is a guess).
+fn continued(b: &BeyondView, x: [f64; 3], n: [f64; 3], reach: f64) -> Option<([f64; 3], [f64; 3], f64)> {
+    let facing = dot(n, b.dir);
+    if facing > -1e-3 {
+        return None;
+    }
+    let mut s = dot(n, sub(x, b.origin)) / facing;
+    let mut normal = n;
+    let mut point = [b.origin[0] + s * b.dir[0], b.origin[1] + s * b.dir[1], b.origin[2] + s * b.dir[2]];
+    if point[2] < 0.0 && b.dir[2] < 0.0 {
+        s = -b.origin[2] / b.dir[2];
+        point = [b.origin[0] + s * b.dir[0], b.origin[1] + s * b.dir[1], 0.0];
+        normal = [0.0, 0.0, 1.0];
+    }
+    (s > 0.0 && norm(sub(point, x)) <= reach).then_some((point, normal, s))
+}
+
 /// sin and cos of x by Taylor polynomials after reduction to [−π/2, π/2] (absolute error below
 /// 1e-7, far below the phase noise): written here because the standard library's `sin_cos`
 /// was two thirds of the sum's time, and no crate in use offers a faster one.
@@ -543,10 +629,19 @@ mod tests {
         let got = (distance[target] - out[target]) as f64;
 
         let p = scale(dir[target], distance[target] as f64);
+        let want = corner_quadrature(p, half, 0.8 / half.tan(), k, rho);
+        // 1.60 against 1.70 cm: the sources are whole pixels, sampled at their centres.
+        assert!((got - want).abs() < 0.1 * want.abs(), "compensator {got} m, quadrature {want} m");
+    }
+
+    /// For `corner`'s point p on wall A, the interreflection's distance arg(1 + S)/k by a
+    /// quadrature over wall B (x = 0.8) from z0 to 3, within the fan's spread |y| ≤ z·tan(half):
+    /// S = ∫ (ρ·G_Q/π)·cos θ_P·cos θ_Q/d² · e^{i·k/2·(d + |Q| − |P|)} dA / G_P.
+    fn corner_quadrature(p: [f64; 3], half: f64, z0: f64, k: f64, rho: f64) -> f64 {
         let g_p = (3.0 / norm(p)) / dot(p, p);
-        let tan = (half as f64).tan();
+        let tan = half.tan();
         let (n_z, n_y) = (600, 600);
-        let (z0, z1) = (0.8 / tan, 3.0);
+        let z1 = 3.0;
         let (mut re, mut im) = (0.0, 0.0);
         for iz in 0..n_z {
             let z = z0 + (iz as f64 + 0.5) * (z1 - z0) / n_z as f64;
@@ -566,10 +661,64 @@ mod tests {
             }
         }
         let (re, im) = (re / g_p, im / g_p);
-        let want = im.atan2(1.0 + re) / k;
         assert!(re.hypot(im) > 0.02, "the corner matters: |S| = {}", re.hypot(im));
-        // 1.60 against 1.70 cm: the sources are whole pixels, sampled at their centres.
-        assert!((got - want).abs() < 0.1 * want.abs(), "compensator {got} m, quadrature {want} m");
+        im.atan2(1.0 + re) / k
+    }
+
+    #[test]
+    fn sources_beyond_the_view_continue_the_wall_at_the_images_edge() {
+        // `corner`'s fan sees wall B from z = 0.8/tan(0.6) on; rays beyond its last column, out
+        // to 0.9 rad, continue B (their anchors: the last column's pixels, on B) down to
+        // z = 0.8/tan(0.9). What they add must be what the quadrature over that part of B adds
+        // (the in-view sum's own error, whole pixels sampled at their centres, cancels).
+        let (w, h, half) = (64, 64, 0.6);
+        let Corner { dir, omega, distance, amplitude, target, rho, c } = corner(w, h, half);
+        let params = CompensationParams { target_stride: 1, mirror_reflectivity: 1.0, amplitude_at_1m: c, min_cos: 1e-3, ..params() };
+        let k = params.k;
+        let step = 2.0 * half / w as f64;
+        let mut beyond = Vec::new();
+        let mut ax = half + 0.5 * step;
+        while ax < 0.9 {
+            for r in 0..h {
+                let ay = (r as f64 + 0.5) * step - half;
+                let (tx, ty) = (ax.tan(), ay.tan());
+                let v = [tx, ty, 1.0];
+                let cell = step * step * (1.0 + tx * tx) * (1.0 + ty * ty) / (1.0 + tx * tx + ty * ty).powf(1.5);
+                let anchor = r * w + w - 1;
+                beyond.push(BeyondView { origin: [0.0; 3], dir: scale(v, 1.0 / norm(v)), path: 0.0, anchor: anchor as u32, factor: cell / omega[anchor] });
+            }
+            ax += step;
+        }
+        let run = |beyond: Vec<BeyondView>| -> f64 {
+            let comp = Compensator::new(w, h, vec![[0.0; 3]; w * h], dir.clone(), vec![0.0; w * h], vec![0; w * h],
+                omega.clone(), vec![1.0; w * h], vec![1.0; w * h], vec![target as u32], vec![[0.0, 10.0]], params.clone())
+                .unwrap()
+                .with_beyond_view(beyond)
+                .unwrap();
+            let mut out = vec![0.0f32; w * h];
+            assert_eq!(comp.correct(&distance, &amplitude, &mut out), 1);
+            (distance[target] - out[target]) as f64
+        };
+        let p = scale(dir[target], distance[target] as f64);
+        let (seen, wider) = (corner_quadrature(p, half, 0.8 / half.tan(), k, rho), corner_quadrature(p, half, 0.8 / 0.9f64.tan(), k, rho));
+        assert!(wider > 1.1 * seen, "the part beyond the view matters: {seen} against {wider} m");
+        let (without, with) = (run(vec![]), run(beyond));
+        let (added, want) = (with - without, wider - seen);
+        assert!((added - want).abs() < 0.1 * want, "beyond the view adds {added} m, the quadrature {want} m");
+    }
+
+    #[test]
+    fn a_ray_beyond_the_view_meets_its_anchors_plane_or_the_floor() {
+        // The wall x = 2 (normal −x, towards the camera at x = 0.4 m up); anchor at (2, 0, 0.5).
+        let (x, n) = ([2.0, 0.0, 0.5], [-1.0, 0.0, 0.0]);
+        let ray = |d: [f64; 3]| BeyondView { origin: [0.0, 0.0, 0.4], dir: scale(d, 1.0 / norm(d)), path: 0.1, anchor: 0, factor: 1.0 };
+        let (q, normal, s) = continued(&ray([1.0, 0.0, 0.2]), x, n, 2.0).unwrap();
+        assert!(norm(sub(q, [2.0, 0.0, 0.8])) < 1e-12 && normal == n && (s - 2.0 * 1.04f64.sqrt()).abs() < 1e-12);
+        // Down so steeply that the wall would be met below the floor: the floor, 0.8 m out.
+        let (q, normal, _) = continued(&ray([1.0, 0.0, -0.5]), x, n, 2.0).unwrap();
+        assert!(norm(sub(q, [0.8, 0.0, 0.0])) < 1e-12 && normal == [0.0, 0.0, 1.0]);
+        assert!(continued(&ray([0.0, 1.0, 0.0]), x, n, 2.0).is_none(), "parallel to the wall");
+        assert!(continued(&ray([1.0, 0.0, 0.2]), x, n, 0.2).is_none(), "further from the anchor than its reach");
     }
 
     #[test]

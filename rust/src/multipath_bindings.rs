@@ -8,7 +8,7 @@ use numpy::{IntoPyArray, PyArray3, PyReadonlyArray1, PyReadonlyArray2, PyReadonl
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
-use crate::multipath::{CompensationParams, Compensator};
+use crate::multipath::{BeyondView, CompensationParams, Compensator};
 use crate::points3;
 
 #[pyclass(name = "_MultipathCompensator", module = "omnitof._core")]
@@ -22,7 +22,8 @@ impl PyMultipathCompensator {
     #[new]
     #[pyo3(signature = (*, width, height, origins, directions, paths, labels, solid_angles, emission, source_gain,
         targets, windows, k, amplitude_at_1m, mirror_reflectivity, stride, target_stride, normal_radius, smooth_radius,
-        depth_tolerance, min_reflectance, min_cos, min_separation, max_ratio, threads=None))]
+        depth_tolerance, min_reflectance, min_cos, min_separation, max_ratio, beyond_origins=None, beyond_directions=None,
+        beyond_paths=None, beyond_anchors=None, beyond_factors=None, threads=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         width: usize,
@@ -48,6 +49,11 @@ impl PyMultipathCompensator {
         min_cos: f64,
         min_separation: f64,
         max_ratio: f64,
+        beyond_origins: Option<PyReadonlyArray2<f64>>,
+        beyond_directions: Option<PyReadonlyArray2<f64>>,
+        beyond_paths: Option<PyReadonlyArray1<f64>>,
+        beyond_anchors: Option<PyReadonlyArray1<u32>>,
+        beyond_factors: Option<PyReadonlyArray1<f64>>,
         threads: Option<usize>,
     ) -> PyResult<Self> {
         let shape = windows.shape();
@@ -82,6 +88,19 @@ impl PyMultipathCompensator {
             },
         )
         .map_err(PyValueError::new_err)?;
+        let beyond = match (beyond_origins, beyond_directions, beyond_paths, beyond_anchors, beyond_factors) {
+            (None, None, None, None, None) => vec![],
+            (Some(o), Some(d), Some(p), Some(a), Some(f)) => {
+                let (o, d) = (points3(&o, "beyond_origins")?, points3(&d, "beyond_directions")?);
+                let (p, a, f) = (p.as_slice()?, a.as_slice()?, f.as_slice()?);
+                if [d.len(), p.len(), a.len(), f.len()].iter().any(|&len| len != o.len()) {
+                    return Err(PyValueError::new_err("the beyond_* arrays must all have one row per source"));
+                }
+                (0..o.len()).map(|i| BeyondView { origin: o[i], dir: d[i], path: p[i], anchor: a[i], factor: f[i] }).collect()
+            }
+            _ => return Err(PyValueError::new_err("give all five beyond_* arrays or none")),
+        };
+        let inner = inner.with_beyond_view(beyond).map_err(PyValueError::new_err)?;
         Ok(PyMultipathCompensator { inner, pool: crate::optional_pool(threads)? })
     }
 

@@ -460,7 +460,7 @@ class ScanExtractor:
             windows = np.stack([path[index] + s_lo[index], path[index] + s_hi[index] + _MULTIPATH_MARGIN], axis=1)
             self._multipath = MultipathCompensation(
                 s_cfg.multipath, self.camera, self.planes, self.labels, origin, direction, path, origin_r, dir_r,
-                index, windows,
+                index, windows, self.robot_T_camera,
             )
 
     def _point_horizon(self) -> float:

@@ -16,7 +16,8 @@ onto the seen surfaces just beside the view, which each source stands for (`sour
 What it leaves out: the visibility between P and Q (the frame does not show what lies between
 them; furniture hides part of the light, so in cluttered rooms the correction is too large),
 where the LEDs' light beside the view lands (each source stands for it at its own place), light
-from other surfaces the camera does not see, and more than one interreflection. BENCHMARKS.md,
+from other surfaces the camera does not see (the light beyond the image only with
+`beyond_view`, `beyond_view_sources`, off by default), and more than one interreflection. BENCHMARKS.md,
 "Multipath compensation" and "The LEDs' light in the compensation", gives what it gains and
 costs in each world. Off unless asked, or
 (`auto`, `omnitof.scan.tof_input.multipath_for_bag`) for a simulated camera with multipath: the
@@ -97,6 +98,13 @@ class MultipathSettings(BaseModel):
         0.1, gt=0.0, le=1.0, description="cosines of the view's incidence below this count as this (grazing patches)"
     )
     min_separation: float = Field(0.05, ge=0.0, description="sources nearer to the point than this (m) are left out")
+    beyond_view: bool = Field(
+        False,
+        description="also take as sources the surfaces the LEDs light beyond the image (their cone is wider than the "
+        "view): each seen surface at the image's edge continued beyond it, down to the floor (`beyond_view_sources`; "
+        "with `leds` only). Off: it adds light that furniture hides as often as not (BENCHMARKS.md, 'The light "
+        "beyond the view')",
+    )
     max_ratio: float = Field(
         1.0,
         gt=0.0,
@@ -202,6 +210,82 @@ def source_gains(camera: Camera, planes: list[MirrorPlane], labels: np.ndarray, 
     return np.clip(gain, 1.0, float(settings.led_count))
 
 
+# Anchors lit less than this (relative to a coaxial source) give no source beyond the view: the
+# albedo read from them would be mostly noise.
+MIN_ANCHOR_EMISSION = 0.2
+
+
+def beyond_view_sources(camera: Camera, planes: list[MirrorPlane], labels: np.ndarray, emission: np.ndarray,
+                        robot_T_camera: np.ndarray, settings: MultipathSettings) -> dict[str, np.ndarray]:
+    """The secondary sources beyond the image (rust/src/multipath.rs, `BeyondView`), as the
+    `beyond_*` arrays of the core's compensator. The LEDs' cone (`led_half_angle_deg`, 40°) is
+    wider than the image (30–33° to its sides), and the mirrors go on beyond it, so the LEDs
+    light the scene above and below the band the mirrors show: the walls near the robot higher
+    up and lower down, and the floor around it. Those surfaces light the seen points, and the
+    frame does not show them (BENCHMARKS.md, "The light beyond the view": a third of the
+    interreflection at 1.5–5 m). Each ray on a grid of `stride` pixels continued beyond the
+    image (pinhole; the lens's distortion is not known there) and within the cone meets the
+    pyramid's face it enters last (as `_lit_through`), and continues the surface of the nearest
+    pixel of that mirror at the image's edge, its anchor; its weight is the anchor's albedo lit
+    as a source at the lens centre lights the ray's point."""
+    s = settings
+    st = s.stride
+    half = math.radians(s.led_half_angle_deg)
+    w, h = camera.width, camera.height
+    # Pixel centres beyond the image, as far as the cone reaches.
+    reach_u = math.ceil(camera.fx * math.tan(half)) + st
+    reach_v = math.ceil(camera.fy * math.tan(half)) + st
+    u = np.arange(camera.cx - reach_u, camera.cx + reach_u + 1, st)
+    v = np.arange(camera.cy - reach_v, camera.cy + reach_v + 1, st)
+    uu, vv = np.meshgrid(u, v)
+    uu, vv = uu.ravel(), vv.ravel()
+    outside = (uu < -0.5) | (uu > w - 0.5) | (vv < -0.5) | (vv > h - 0.5)
+    uu, vv = uu[outside], vv[outside]
+    ray = np.stack([(uu - camera.cx) / camera.fx, (vv - camera.cy) / camera.fy, np.ones(len(uu))], axis=1)
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    cos_axis = ray[:, 2]
+    inside_cone = cos_axis >= math.cos(half)
+    uu, vv, ray, cos_axis = uu[inside_cone], vv[inside_cone], ray[inside_cone], cos_axis[inside_cone]
+    # The face each ray meets: the plane it enters last (the mirrors are a convex pyramid's faces).
+    with np.errstate(divide="ignore", invalid="ignore"):
+        entry = np.stack([np.where(ray @ p.normal > 0.0, p.d / (ray @ p.normal), np.inf) for p in planes], axis=1)
+    hits = np.all(np.isfinite(entry), axis=1)
+    face = np.argmax(np.where(hits[:, None], entry, -np.inf), axis=1)
+    t = entry[np.arange(len(ray)), face]
+    # The anchor: the nearest pixel of that mirror to where the ray leaves the image, no
+    # further than the masks' reach beyond the image's edge.
+    edge_u, edge_v = np.clip(uu, 0, w - 1), np.clip(vv, 0, h - 1)
+    anchor = np.full(len(ray), -1, dtype=np.int64)
+    from scipy.ndimage import distance_transform_edt
+
+    for m in range(len(planes)):
+        sel = np.flatnonzero(hits & (face == m))
+        if len(sel) == 0 or not np.any(labels == m):
+            continue
+        gap, (rows, cols) = distance_transform_edt(labels != m, return_indices=True)
+        er, ec = np.rint(edge_v[sel]).astype(np.int64), np.rint(edge_u[sel]).astype(np.int64)
+        near = gap[er, ec] <= MASK_REACH_PX + 1.0
+        anchor[sel[near]] = rows[er[near], ec[near]] * w + cols[er[near], ec[near]]
+    ok = (anchor >= 0) & (t > 0.0)
+    ok[ok] &= emission[anchor[ok]] >= MIN_ANCHOR_EMISSION
+    ray, face, t, anchor, cos_axis = ray[ok], face[ok], t[ok], anchor[ok], cos_axis[ok]
+    origin = ray * t[:, None]
+    normals = np.array([p.normal for p in planes]).reshape(-1, 3)[face]
+    reflected = ray - 2.0 * np.sum(ray * normals, axis=1, keepdims=True) * normals
+    # A cell of stride² pinhole pixels subtends st²·cos³/(fx·fy); the anchor's cell st²·Ω.
+    cell = st * st * cos_axis ** 3 / (camera.fx * camera.fy)
+    centre = cos_axis ** s.led_profile_exponent
+    factor = centre * cell / (emission[anchor] * st * st * solid_angles(camera)[anchor])
+    rotation, translation = robot_T_camera[:3, :3], robot_T_camera[:3, 3]
+    return dict(
+        beyond_origins=np.ascontiguousarray(origin @ rotation.T + translation, dtype=np.float64),
+        beyond_directions=np.ascontiguousarray(reflected @ rotation.T, dtype=np.float64),
+        beyond_paths=np.ascontiguousarray(t, dtype=np.float64),
+        beyond_anchors=np.ascontiguousarray(anchor, dtype=np.uint32),
+        beyond_factors=np.ascontiguousarray(factor, dtype=np.float64),
+    )
+
+
 def solid_angles(camera: Camera) -> np.ndarray:
     """(H·W,) each pixel's solid angle (sr): the parallelogram of the unit rays one pixel apart
     (central differences; a mirror keeps solid angles)."""
@@ -217,7 +301,8 @@ class MultipathCompensation:
 
     def __init__(self, settings: MultipathSettings, camera: Camera, planes: list[MirrorPlane], labels: np.ndarray,
                  origins: np.ndarray, directions: np.ndarray, paths: np.ndarray, robot_origins: np.ndarray,
-                 robot_directions: np.ndarray, targets: np.ndarray, windows: np.ndarray) -> None:
+                 robot_directions: np.ndarray, targets: np.ndarray, windows: np.ndarray,
+                 robot_T_camera: np.ndarray | None = None) -> None:
         self.settings = settings
         emission = emission_map(camera, planes, labels, origins, directions, settings)
         s = settings
@@ -237,6 +322,8 @@ class MultipathCompensation:
             smooth_radius=s.smooth_radius, depth_tolerance=s.depth_tolerance, min_reflectance=s.min_reflectance,
             min_cos=s.min_cos, min_separation=s.min_separation, max_ratio=s.max_ratio,
         )
+        if settings.leds and settings.beyond_view and robot_T_camera is not None:
+            self._arguments.update(beyond_view_sources(camera, planes, labels, emission, robot_T_camera, settings))
         self._core = _core._MultipathCompensator(**self._arguments)
 
     def with_threads(self, threads: int) -> MultipathCompensation:
