@@ -23,6 +23,8 @@ bins seen at a grazing angle dropped; 90 is off, the default).
 --multipath-compensation off on adds rows extracted with the multipath compensation
 (omnitof.scan.multipath) set up for the rendering camera (its LEDs, amplitude scale, frequency
 and mirrors), whatever the setting: on a camera without multipath it shows what it costs.
+--multipath-set KEY=VALUE ... changes its settings (`MultipathSettings` fields, values as YAML:
+`visibility=true beyond_view=true`).
 
 Speed: the renderer's phasors (tracer) and whole frames (noise and decoding too) per second on
 corridor1, all effects off and all on, medians of --runs runs measured alternately in one
@@ -31,7 +33,7 @@ process.
 Usage:
     python benchmarks/tof_errors.py [--frames 24] [--runs 5] [--worlds room office ...]
         [--settings default all] [--corrections none true estimated] [--max-incidence 90 70]
-        [--multipath-compensation off on]
+        [--multipath-compensation off on] [--multipath-set visibility=true ...]
 """
 
 from __future__ import annotations
@@ -127,15 +129,20 @@ def calibration_for(kind: str, renderer, cache: dict):
     return cache[key]
 
 
+# --multipath-set: changes to the compensation's settings for every row.
+MULTIPATH_CHANGES: dict = {}
+
+
 def compensation(renderer, enabled: bool) -> dict:
     """The ScanSettings.multipath of a --multipath-compensation value: the compensation for the
-    rendering camera (its LEDs, amplitude scale, frequency and mirrors), on or off."""
+    rendering camera (its LEDs, amplitude scale, frequency and mirrors), on or off, with
+    MULTIPATH_CHANGES."""
     from omnitof.scan.multipath import MultipathSettings
 
     settings = MultipathSettings.for_camera(renderer.sensor.errors, amplitude_at_1m=renderer.sensor.amplitude_at_1m,
                                             f_mod=renderer.sensor.f_mod,
                                             mirror_reflectivity=renderer.settings.mirror_reflectivity)
-    return settings.model_copy(update={"enabled": enabled}).model_dump()
+    return MultipathSettings(**{**settings.model_dump(), **MULTIPATH_CHANGES, "enabled": enabled}).model_dump()
 
 
 def budget(names: list[str], count: int, only: list[str] | None = None,
@@ -210,7 +217,16 @@ def main() -> None:
     parser.add_argument("--multipath-compensation", nargs="+", default=["off"], choices=["off", "on"],
                         help="extract without and/or with the multipath compensation (omnitof.scan.multipath), "
                         "set up for the rendering camera")
+    parser.add_argument("--multipath-set", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="MultipathSettings fields to change (values as YAML), e.g. visibility=true")
     args = parser.parse_args()
+    import yaml
+
+    for item in args.multipath_set:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"--multipath-set takes KEY=VALUE, got {item!r}")
+        MULTIPATH_CHANGES[key] = yaml.safe_load(value)
     print(f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.1f}")
     if not args.skip_speed:

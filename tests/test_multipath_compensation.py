@@ -23,19 +23,20 @@ RIG = default_rig()
 POSE = np.array([2.0, 0.0, 0.3])
 
 
-def corridor():
+def corridor(boxes: list | None = None):
     """A 2.4 m wide, 14 m long corridor with closed ends: walls that light each other."""
     return parse_world({
         "name": "corridor",
         "ceiling_height": 2.6,
         "walls": [{"points": [[-4.0, -1.2], [10.0, -1.2], [10.0, 1.2], [-4.0, 1.2]], "closed": True}],
+        "boxes": boxes or [],
     })
 
 
-def frame(errors: ToFErrors, rig=RIG) -> tuple[np.ndarray, np.ndarray]:
-    """Noise-free distance and amplitude images at POSE."""
+def frame(errors: ToFErrors, rig=RIG, world=None) -> tuple[np.ndarray, np.ndarray]:
+    """Noise-free distance and amplitude images at POSE (in the corridor unless given a world)."""
     sensor = SensorNoise(electrons_per_unit=math.inf, read_noise=0.0, errors=errors)
-    r = Renderer(corridor(), camera=rig.camera, mirrors=rig.mirrors, robot_T_camera=rig.robot_T_camera,
+    r = Renderer(world or corridor(), camera=rig.camera, mirrors=rig.mirrors, robot_T_camera=rig.robot_T_camera,
                  sensor=sensor, settings=RenderSettings(sub_rays=4, seed=5))
     phasor = r.phasors(POSE).phasor[0].astype(np.complex128)
     distance = phase_to_distance(np.mod(np.angle(phasor), 2 * np.pi), sensor.f_mod)
@@ -74,6 +75,34 @@ def test_the_compensated_scan_reads_the_walls_as_without_multipath(illumination)
     # And where it is largest (the far walls seen at grazing angles), most of it is taken out.
     worst = both & (before > np.percentile(before[both], 90))
     assert np.median(np.abs(after[worst])) < 0.5 * np.median(before[worst])
+
+
+@pytest.mark.parametrize("illumination", [False, True])
+def test_the_visibility_test_leaves_out_the_light_that_boxes_hide(illumination):
+    # Two boxes 1.5 m high across the middle of the corridor, 1.5 m before and behind the
+    # robot: the renderer's secondary rays stop at them, the sum over the frame's points does
+    # not unless it tests what stands between. With the test the bins' p90 error falls from 3.2
+    # to 0.6 cm (coaxial) and from 6.3 to 1.2 cm (LEDs); in the empty corridor it changes nothing.
+    boxes = [{"centre": [x, 0.0], "size": [0.6, 1.2], "height": 1.5} for x in (0.5, 3.5)]
+    errors = ToFErrors(multipath=True, multipath_rays=32, illumination=illumination)
+    plain = ScanExtractor.from_rig(RIG)
+    p90 = {}
+    for world in ("empty", "boxes"):
+        scene = corridor(boxes if world == "boxes" else None)
+        truth = plain.extract(*frame(ToFErrors(illumination=illumination), world=scene))
+        lit = frame(errors, world=scene)
+        after = {}
+        for visibility in (False, True):
+            compensated = ScanExtractor.from_rig(RIG, multipath=compensation(errors, visibility=visibility))
+            with np.errstate(invalid="ignore"):  # inf − inf where a bin has no reading
+                after[visibility] = compensated.extract(*lit) - truth
+        both = np.isfinite(after[False]) & np.isfinite(after[True])
+        assert both.sum() > 150
+        p90[world] = {v: np.percentile(np.abs(after[v][both]), 90) for v in (False, True)}
+        if world == "boxes":
+            assert abs(np.median(after[True][both])) < 0.003
+    assert p90["boxes"][True] < 0.3 * p90["boxes"][False]
+    assert abs(p90["empty"][True] - p90["empty"][False]) < 0.1 * p90["empty"][False]
 
 
 def test_the_light_beyond_the_view_is_the_renderers():

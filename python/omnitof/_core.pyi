@@ -306,6 +306,7 @@ class _MultipathCompensator:
         min_cos: float,
         min_separation: float,
         max_ratio: float,
+        visibility: bool = False,
         beyond_origins: _F64 | None = None,
         beyond_directions: _F64 | None = None,
         beyond_paths: _F64 | None = None,

@@ -54,6 +54,8 @@ pub struct CompensationParams {
     pub min_cos: f64,
     pub min_separation: f64,
     pub max_ratio: f64,
+    /// Test each source's visibility from the point against the frame's own points (`Heights`).
+    pub visibility: bool,
 }
 
 /// What is fixed per rig: per pixel (row-major, H·W) where its light leaves the mirror, the
@@ -272,11 +274,17 @@ impl Compensator {
                 d >= lo && d <= hi
             }
         };
+        // The blockers: the points the sources are drawn from (wrapped readings left out).
+        let heights = p.visibility.then(|| {
+            let solid: Vec<bool> =
+                (0..distance.len()).map(|i| valid[i] && amplitude[i] as f64 * (distance[i] as f64).powi(2) >= p.min_reflectance).collect();
+            Heights::new(&points, &solid)
+        });
         let ratio_at = |i: usize| -> Option<[f64; 2]> {
             let n = self.normal(i, &points, &smooth, &valid)?;
             let d = distance[i] as f64;
             let cos_v = self.incidence(i, n);
-            self.relative_interreflection(points[i], n, d, cos_v, self.emission[i], &sources)
+            self.relative_interreflection(points[i], n, d, cos_v, self.emission[i], &sources, heights.as_ref())
         };
         // The sum relative to the direct light changes slowly along a surface: it is taken at
         // the anchors (every target_stride-th pixel of every target_stride-th row) and shared
@@ -354,7 +362,17 @@ impl Compensator {
     /// S at point x (normal n, measured distance d, cosine of the view's incidence, LED emission η), the
     /// interreflection relative to the direct light (module docs), as (re, im); None where the
     /// LEDs do not light x.
-    fn relative_interreflection(&self, x: [f64; 3], n: [f64; 3], d: f64, cos_v: f64, emission: f64, sources: &[Source]) -> Option<[f64; 2]> {
+    #[allow(clippy::too_many_arguments)]
+    fn relative_interreflection(
+        &self,
+        x: [f64; 3],
+        n: [f64; 3],
+        d: f64,
+        cos_v: f64,
+        emission: f64,
+        sources: &[Source],
+        heights: Option<&Heights>,
+    ) -> Option<[f64; 2]> {
         let p = &self.params;
         let direct = p.mirror_reflectivity * emission * cos_v / (d * d);
         if !(direct > 0.0) {
@@ -375,6 +393,9 @@ impl Compensator {
                 continue;
             }
             let dist = d2.sqrt();
+            if heights.is_some_and(|g| g.blocked(x, n, q.point, q.normal, dist)) {
+                continue;
+            }
             // cos θ_P·cos θ_Q/|PQ|² = along_p·along_q/|PQ|⁴.
             let gain = q.weight * along_p * along_q / (d2 * d2);
             let (s, c) = sin_cos(0.5 * p.k * (dist + q.distance - d));
@@ -461,6 +482,82 @@ impl Compensator {
     }
 }
 
+/// What the frame shows of the space between two of its points: per cell of a horizontal grid
+/// (robot frame, `HEIGHT_CELL` m), the lowest and highest point seen in it. A segment is taken
+/// as blocked where it passes through a cell within that height range: furniture and walls
+/// stand on the floor and are seen down to it or to the view's lower edge. Written here: a
+/// 2.5D height-interval map of one frame, simpler than any library's voxel map for this use.
+struct Heights {
+    x0: f64,
+    y0: f64,
+    nx: usize,
+    ny: usize,
+    lo: Vec<f32>,
+    hi: Vec<f32>,
+}
+
+/// The height map's cell (m), the spacing of the tests along a segment (m), how far from each
+/// end the tests start (m: the ends' own surfaces fill the cells beside them), and the margin
+/// on each cell's height range (m).
+const HEIGHT_CELL: f64 = 0.1;
+const VISIBILITY_STEP: f64 = 0.15;
+const VISIBILITY_MARGIN: f64 = 0.25;
+const HEIGHT_TOLERANCE: f64 = 0.05;
+/// Cells beyond this many on a side are not kept (a frame's points lie within ±8 m).
+const MAX_CELLS: usize = 400;
+
+impl Heights {
+    fn new(points: &[[f64; 3]], valid: &[bool]) -> Heights {
+        let seen = || points.iter().zip(valid).filter(|(p, &v)| v && p.iter().all(|c| c.is_finite())).map(|(p, _)| p);
+        let (mut x0, mut y0, mut x1, mut y1) = (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
+        for p in seen() {
+            (x0, y0, x1, y1) = (x0.min(p[0]), y0.min(p[1]), x1.max(p[0]), y1.max(p[1]));
+        }
+        if !(x0 <= x1 && y0 <= y1) {
+            return Heights { x0: 0.0, y0: 0.0, nx: 0, ny: 0, lo: vec![], hi: vec![] };
+        }
+        let nx = (((x1 - x0) / HEIGHT_CELL) as usize + 1).min(MAX_CELLS);
+        let ny = (((y1 - y0) / HEIGHT_CELL) as usize + 1).min(MAX_CELLS);
+        let mut g = Heights { x0, y0, nx, ny, lo: vec![f32::INFINITY; nx * ny], hi: vec![f32::NEG_INFINITY; nx * ny] };
+        for p in seen() {
+            if let Some(c) = g.cell(p[0], p[1]) {
+                g.lo[c] = g.lo[c].min(p[2] as f32);
+                g.hi[c] = g.hi[c].max(p[2] as f32);
+            }
+        }
+        g
+    }
+
+    #[inline]
+    fn cell(&self, x: f64, y: f64) -> Option<usize> {
+        let (cx, cy) = (((x - self.x0) / HEIGHT_CELL).floor(), ((y - self.y0) / HEIGHT_CELL).floor());
+        (cx >= 0.0 && cy >= 0.0 && (cx as usize) < self.nx && (cy as usize) < self.ny).then(|| cy as usize * self.nx + cx as usize)
+    }
+
+    /// Whether the segment a → b (length `length`; the ends' surfaces have the unit normals
+    /// na, nb) passes through a seen cell at a height it spans. Tests within a cell's diagonal
+    /// of either end's plane are skipped: the cells there hold that surface's own points (a
+    /// segment leaving a wall at a grazing angle stays beside it for a while).
+    fn blocked(&self, a: [f64; 3], na: [f64; 3], b: [f64; 3], nb: [f64; 3], length: f64) -> bool {
+        let own = HEIGHT_CELL * std::f64::consts::SQRT_2;
+        let steps = (length / VISIBILITY_STEP).ceil() as usize;
+        (1..steps).any(|j| {
+            let t = j as f64 / steps as f64;
+            if t * length < VISIBILITY_MARGIN || (1.0 - t) * length < VISIBILITY_MARGIN {
+                return false;
+            }
+            let p = [a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]), a[2] + t * (b[2] - a[2])];
+            if dot(sub(p, a), na).abs() < own || dot(sub(p, b), nb).abs() < own {
+                return false;
+            }
+            self.cell(p[0], p[1]).is_some_and(|c| {
+                let z = p[2] as f32;
+                z >= self.lo[c] - HEIGHT_TOLERANCE as f32 && z <= self.hi[c] + HEIGHT_TOLERANCE as f32
+            })
+        })
+    }
+}
+
 /// Where the ray of a source beyond the view meets the surface of its anchor (point x, unit
 /// normal n facing the camera, `reach` metres from its mirror): (point, normal, distance along
 /// the ray). The anchor's plane, or the floor (z = 0, robot frame) where the plane lies below
@@ -541,6 +638,7 @@ mod tests {
             min_cos: 0.05,
             min_separation: 0.0,
             max_ratio: 10.0,
+            visibility: false,
         }
     }
 
@@ -632,6 +730,13 @@ mod tests {
         let want = corner_quadrature(p, half, 0.8 / half.tan(), k, rho);
         // 1.60 against 1.70 cm: the sources are whole pixels, sampled at their centres.
         assert!((got - want).abs() < 0.1 * want.abs(), "compensator {got} m, quadrature {want} m");
+        // Nothing stands between the two walls: the visibility test must keep every source
+        // (the segments that run along B to their source stay within its cells).
+        let seen = CompensationParams { visibility: true, ..comp.params.clone() };
+        let comp = Compensator::new(w, h, vec![[0.0; 3]; w * h], dir.clone(), vec![0.0; w * h], vec![0; w * h],
+            comp.omega.clone(), vec![1.0; w * h], vec![1.0; w * h], vec![target as u32], vec![[0.0, 10.0]], seen).unwrap();
+        comp.correct(&distance, &amplitude, &mut out);
+        assert_eq!((distance[target] - out[target]) as f64, got, "with the visibility test");
     }
 
     /// For `corner`'s point p on wall A, the interreflection's distance arg(1 + S)/k by a
@@ -705,6 +810,28 @@ mod tests {
         let (without, with) = (run(vec![]), run(beyond));
         let (added, want) = (with - without, wider - seen);
         assert!((added - want).abs() < 0.1 * want, "beyond the view adds {added} m, the quadrature {want} m");
+    }
+
+    #[test]
+    fn a_slab_between_two_points_blocks_them_and_their_own_surfaces_do_not() {
+        // A slab at x = 1 (|y| <= 1, 0 <= z <= 1) seen point by point, walls at x = 0 and x = 2.
+        let mut points = Vec::new();
+        for iy in -10..=10 {
+            for iz in 0..=10 {
+                let (y, z) = (iy as f64 * 0.1, iz as f64 * 0.1);
+                points.extend([[1.0, y, z], [0.0, y, z], [2.0, y, z]]);
+            }
+        }
+        let g = Heights::new(&points, &vec![true; points.len()]);
+        let (west, east) = ([1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]);
+        let test = |a: [f64; 3], b: [f64; 3]| g.blocked(a, west, b, east, norm(sub(b, a)));
+        assert!(test([0.0, 0.0, 0.5], [2.0, 0.0, 0.5]), "through the slab");
+        assert!(test([0.0, 0.0, 0.5], [2.0, 0.0, 1.4]), "through its top edge (z 0.95 at the slab)");
+        assert!(!test([0.0, 0.0, 1.2], [2.0, 0.0, 1.4]), "over it");
+        assert!(!test([0.0, 0.0, 0.5], [0.0, 0.9, 0.5].map(|v| v + 0.0)), "along the wall it stands on");
+        // Along the west wall at a grazing angle, then out to the east wall beyond the slab's end.
+        assert!(!test([0.0, -0.9, 0.5], [0.3, 0.95, 0.5]), "beside its own wall");
+        assert!(!g.blocked([0.0, 1.6, 0.5], west, [2.0, 1.6, 0.5], east, 2.0), "beside the slab");
     }
 
     #[test]

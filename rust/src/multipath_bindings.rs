@@ -22,7 +22,7 @@ impl PyMultipathCompensator {
     #[new]
     #[pyo3(signature = (*, width, height, origins, directions, paths, labels, solid_angles, emission, source_gain,
         targets, windows, k, amplitude_at_1m, mirror_reflectivity, stride, target_stride, normal_radius, smooth_radius,
-        depth_tolerance, min_reflectance, min_cos, min_separation, max_ratio, beyond_origins=None, beyond_directions=None,
+        depth_tolerance, min_reflectance, min_cos, min_separation, max_ratio, visibility=false, beyond_origins=None, beyond_directions=None,
         beyond_paths=None, beyond_anchors=None, beyond_factors=None, threads=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
@@ -49,6 +49,7 @@ impl PyMultipathCompensator {
         min_cos: f64,
         min_separation: f64,
         max_ratio: f64,
+        visibility: bool,
         beyond_origins: Option<PyReadonlyArray2<f64>>,
         beyond_directions: Option<PyReadonlyArray2<f64>>,
         beyond_paths: Option<PyReadonlyArray1<f64>>,
@@ -85,6 +86,7 @@ impl PyMultipathCompensator {
                 min_cos,
                 min_separation,
                 max_ratio,
+                visibility,
             },
         )
         .map_err(PyValueError::new_err)?;

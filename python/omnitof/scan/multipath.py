@@ -98,6 +98,11 @@ class MultipathSettings(BaseModel):
         0.1, gt=0.0, le=1.0, description="cosines of the view's incidence below this count as this (grazing patches)"
     )
     min_separation: float = Field(0.05, ge=0.0, description="sources nearer to the point than this (m) are left out")
+    visibility: bool = Field(
+        False,
+        description="leave out the sources that the frame's own points hide from the point: a segment is blocked where it "
+        "passes through a 0.1 m cell of the floor plan at a height between the lowest and highest point seen there",
+    )
     beyond_view: bool = Field(
         False,
         description="also take as sources the surfaces the LEDs light beyond the image (their cone is wider than the "
@@ -320,7 +325,7 @@ class MultipathCompensation:
             k=4.0 * math.pi * s.f_mod / SPEED_OF_LIGHT, amplitude_at_1m=s.amplitude_at_1m,
             mirror_reflectivity=s.mirror_reflectivity, stride=s.stride, target_stride=s.target_stride, normal_radius=s.normal_radius,
             smooth_radius=s.smooth_radius, depth_tolerance=s.depth_tolerance, min_reflectance=s.min_reflectance,
-            min_cos=s.min_cos, min_separation=s.min_separation, max_ratio=s.max_ratio,
+            min_cos=s.min_cos, min_separation=s.min_separation, max_ratio=s.max_ratio, visibility=s.visibility,
         )
         if settings.leds and settings.beyond_view and robot_T_camera is not None:
             self._arguments.update(beyond_view_sources(camera, planes, labels, emission, robot_T_camera, settings))
