@@ -3,12 +3,16 @@ mistakes reported as one line with exit status 2 (no traceback)."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
+import omnitof
 from omnitof.cli import main
 from omnitof.eval.relations import read_relations
 from omnitof.geometry import relative
@@ -84,6 +88,17 @@ def test_config_prints_a_loadable_configuration(tmp_path, capsys):
     assert data["filter"]["particles"] == 200 and data["filter"]["seed"] == 9
     assert main(["config", "--list"]) == 0
     assert "laser180" in capsys.readouterr().out
+
+
+def test_python_dash_m_runs_the_command(tmp_path):
+    # The package's folder on the child's path, as the installed package would be.
+    env = {**os.environ, "PYTHONPATH": str(Path(omnitof.__file__).parents[1])}
+    ok = subprocess.run([sys.executable, "-m", "omnitof", "config", "--list"], capture_output=True, text=True,
+                        env=env, cwd=tmp_path)
+    assert ok.returncode == 0 and "laser180" in ok.stdout
+    bad = subprocess.run([sys.executable, "-m", "omnitof", "config", "--preset", "nope"], capture_output=True,
+                         text=True, env=env, cwd=tmp_path)
+    assert bad.returncode == 2 and "unknown preset" in bad.stderr and "Traceback" not in bad.stderr
 
 
 @pytest.mark.parametrize(

@@ -136,7 +136,8 @@ def test_dotted_settings_override_like_a_file_and_name_the_field():
     assert (cfg.filter.particles, cfg.backend.enabled, cfg.filter.seed) == (5, True, 4)
     # The named options win over a setting of the same field.
     assert slam_config(settings={"filter.particles": 5}, particles=9).filter.particles == 9
-    for bad, message in [({"filter": 5}, "expected SECTION.FIELD"), ({"filter.a.b": 5}, "expected SECTION.FIELD"),
+    for bad, message in [({"filter": 5}, "expected SECTION.FIELD"), ({"filter.a.b": 5}, "filter.a"), ({"filter..b": 5}, "expected SECTION.FIELD"),
+                         ({"scan.multipath": {}, "scan.multipath.enabled": True}, "given twice"),
                          ({"filter.partcles": 5}, "filter.partcles"), ({"filter.particles": 0}, "filter.particles")]:
         with pytest.raises(ConfigError, match=message):
             slam_config(settings=bad)

@@ -19,7 +19,7 @@ STAGES = ["foundation", "sensor", "io", "sim", "calibration", "scan", "slam", "m
           "bench", "commands"]
 FOUNDATION = {"errors", "types", "geometry", "interrupts", "_core", "_moved", "__init__", "__version__"}
 RUNS = {"demo", "results", "slam_run", "calibration_report"}
-COMMANDS = {"cli", "cli_calibrate"}
+COMMANDS = {"cli", "cli_calibrate", "__main__"}
 TOP_LEVEL = FOUNDATION | RUNS | COMMANDS  # the stages that are modules, not folders
 DATA_FOLDERS = {"worlds", "presets", "__pycache__"}
 

@@ -87,6 +87,33 @@ def test_cli_slam_on_a_simulated_tof_bag(tmp_path, capsys):
         assert (out / name).exists(), name
 
 
+def test_the_configurations_scan_section_reaches_the_extraction(tmp_path, capsys):
+    from omnitof.cli import main
+
+    bag = tmp_path / "room"
+    assert main(["simulate", "--world", "room", "--out", str(bag), "--max-frames", "12", "--seed", "3",
+                 "--tof-errors", "all", "--quiet"]) == 0
+    out = tmp_path / "slam"
+    argv = ["slam", str(bag), "--out", str(out), "--quiet", "--height", "0.55", "--set", "scan.max_range=3",
+            "--set", "scan.height=0.7", "--set", "scan.multipath.stride=4", "--set", "scan.multipath.amplitude_at_1m=1"]
+    with pytest.warns(UserWarning, match="true rig"):
+        assert main(argv) == 0
+    summary = yaml.safe_load((out / "summary.yaml").read_text())
+    scan = summary["input"]["scan"]
+    # --height wins over the configuration; the filter's sensor takes the section's max_range.
+    assert scan["height"] == 0.55 and scan["max_range"] == 3.0
+    assert summary["input"]["max_range"]["metres"] == 3.0
+    assert yaml.safe_load((out / "config.yaml").read_text())["scan"]["height"] == 0.55
+    # The simulated camera has multipath: auto turns the compensation on with the camera's own
+    # figures from the sidecar, and keeps how the configuration takes the sum.
+    assert scan["multipath"]["enabled"] and scan["multipath"]["stride"] == 4
+    assert scan["multipath"]["amplitude_at_1m"] > 1000
+    capsys.readouterr()
+    assert main(["slam", str(bag), "--out", str(tmp_path / "bad"), "--quiet", "--set", "scan.max_range=-1"]) == 2
+    err = capsys.readouterr().err
+    assert "scan.max_range" in err and "Traceback" not in err and not (tmp_path / "bad").exists()
+
+
 def test_cli_slam_refuses_calibration_for_a_laser_log(tmp_path, capsys):
     from omnitof.cli import main
     from omnitof.io.carmen import write_carmen

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from omnitof.errors import OmnitofError
+from omnitof.scan.extract import ScanSettings
 from omnitof.slam.config import SlamConfig
 from omnitof.types import ScanSequence
 
@@ -124,6 +125,12 @@ def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *,
 
     log = Path(request.log)
     label = request.label if request.label is not None else str(log)
+    # --height and --band win over the configuration's scan section, and config.yaml records them.
+    slice_given = {k: v for k, v in (("height", request.height), ("band", request.band)) if v is not None}
+    if slice_given:
+        from omnitof.scan import scan_settings
+
+        cfg = cfg.model_copy(update={"scan": scan_settings(cfg.scan, **slice_given)})
     tof = is_tof_bag(log)
     if not tof and (request.calibration is not None or request.map3d):
         raise OmnitofError(f"{log}: --calibration and --map3d need a bag of ToF images")
@@ -156,7 +163,7 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
         import math
 
         keyframes = (cfg.filter.linear_update, math.radians(cfg.filter.angular_update_deg)) if three_d else None
-        tof_data = read_tof_input(log, calibration=request.calibration, height=request.height, band=request.band,
+        tof_data = read_tof_input(log, calibration=request.calibration, settings=cfg.scan,
                                   multipath=request.multipath_compensation,
                                   cloud_every=request.map3d_every if request.map3d else 0,
                                   cloud_pixel_stride=cfg.filter3d.pixel_stride if three_d else 1,
@@ -249,17 +256,20 @@ def _run_3d(request: SlamRequest, cfg: SlamConfig, scans: ScanSequence, tof_data
     return result, paths
 
 
-def read_tof_input(log: str | Path, *, calibration: str | Path | None = None, height: float | None = None,
-                   band: float | None = None, multipath: str = "auto", cloud_every: int = 0, cloud_pixel_stride: int = 1,
+def read_tof_input(log: str | Path, *, calibration: str | Path | None = None, settings: ScanSettings | None = None,
+                   height: float | None = None, band: float | None = None, multipath: str = "auto",
+                   cloud_every: int = 0, cloud_pixel_stride: int = 1,
                    cloud_keyframes: tuple[float, float] | None = None, max_frames: int | None = None,
                    bar: BarFactory = no_bar):
-    """The scans of a ToF bag (omnitof.scan.tof_input.read_tof_scans) with the slice's height and
-    band where given and the multipath compensation asked for, for `omnitof slam` and `omnitof scans`."""
+    """The scans of a ToF bag (omnitof.scan.tof_input.read_tof_scans) with the scan settings
+    (default: the defaults; a SLAM configuration's `scan` section), the slice's height and band
+    over them where given, and the multipath compensation asked for, for `omnitof slam` and
+    `omnitof scans`."""
     from omnitof.scan import scan_settings
     from omnitof.scan.tof_input import frame_count, read_tof_scans
 
     given = {k: v for k, v in (("height", height), ("band", band)) if v is not None}
-    settings = scan_settings(**given)
+    settings = scan_settings(settings, **given)
     total = frame_count(log)
     if max_frames is not None:
         total = min(total, max_frames)

@@ -157,7 +157,7 @@ class ExperimentSpec(_Strict):
 
 
 def _check_dotted(key: str) -> None:
-    if not re.fullmatch(r"[a-z_]+\.[a-z_0-9]+", str(key)):
+    if not re.fullmatch(r"[a-z_0-9]+(\.[a-z_0-9]+)+", str(key)):
         raise ValueError(f"{key!r}: expected SECTION.FIELD of the configuration, e.g. filter.particles")
 
 

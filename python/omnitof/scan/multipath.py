@@ -50,7 +50,7 @@ class MultipathSettings(BaseModel):
     figures default to the simulator's (`omnitof.sensor.tof.SensorNoise`, `ToFErrors`,
     `omnitof.sim.render.RenderSettings`); give your camera's for real data."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     enabled: bool = Field(
         False,
@@ -101,7 +101,9 @@ class MultipathSettings(BaseModel):
     visibility: bool = Field(
         False,
         description="leave out the sources that the frame's own points hide from the point: a segment is blocked where it "
-        "passes through a 0.1 m cell of the floor plan at a height between the lowest and highest point seen there",
+        "passes through a 0.1 m cell of the floor plan at a height between the lowest and highest point seen there. "
+        "Off: it slows the compensation twelvefold and moves the simulated worlds' bins by -0.9 to +1.0 points "
+        "(BENCHMARKS.md, 'The visibility test's cost')",
     )
     beyond_view: bool = Field(
         False,

@@ -36,7 +36,7 @@ class PixelFilterSettings(BaseModel):
     """The filter's switches and thresholds (module docstring); `enabled` false keeps every
     pixel (the extraction as before issue 15)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     enabled: bool = Field(True, description="apply the flying-pixel and multipath filter")
     min_neighbours: int = Field(2, ge=0, le=8, description="same-mirror neighbours that must agree (of 8)")

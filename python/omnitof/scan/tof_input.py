@@ -112,13 +112,18 @@ def tof_scans(
 
 
 MULTIPATH_CHOICES = ("auto", "on", "off")
+# The MultipathSettings fields that describe the camera (the rest say how the sum is taken).
+CAMERA_FIGURES = frozenset({"enabled", "amplitude_at_1m", "f_mod", "mirror_reflectivity", "leds", "led_count", "led_radius",
+                            "led_profile_exponent", "led_half_angle_deg"})
 
 
 def multipath_for_bag(bag: Any, settings: ScanSettings, choice: str) -> tuple[ScanSettings, str]:
     """The scan settings with the multipath compensation (`omnitof.scan.multipath`) that
     `choice` asks for, and the rule applied, in words for the summary. "auto": on for a
     simulated bag whose camera simulated multipath, with that camera's figures (LEDs, amplitude
-    scale, frequency, mirrors) from the sidecar; otherwise as `settings` say (off by default:
+    scale, frequency, mirrors: `CAMERA_FIGURES`) from the sidecar and the rest of
+    `settings.multipath` (how the sum is taken); off for a simulated bag without it; otherwise
+    as `settings` say (a SLAM configuration's `scan.multipath`; off by default:
     for a real camera the model needs the camera's own figures, and for a camera without
     multipath it makes every wall read short). "on": on, with a simulated bag's camera or else
     the settings' camera figures. "off": off."""
@@ -138,12 +143,16 @@ def multipath_for_bag(bag: Any, settings: ScanSettings, choice: str) -> tuple[Sc
         state = "on" if settings.multipath.enabled else "off"
         return settings, f"{state} (auto: not a simulated bag, so as the scan settings say)"
     if choice == "auto" and not sensor.errors.multipath:
-        return settings, "off (auto: the simulated camera has no multipath)"
+        off = settings.multipath.model_copy(update={"enabled": False})
+        return settings.model_copy(update={"multipath": off}), "off (auto: the simulated camera has no multipath)"
     reflectivity = (bag.sidecar or {}).get("render", {}).get("mirror_reflectivity", settings.multipath.mirror_reflectivity)
+    # The camera's figures from the sidecar; how the sum is taken (stride, visibility, ...) as the settings say.
     camera = MultipathSettings.for_camera(sensor.errors, amplitude_at_1m=sensor.amplitude_at_1m, f_mod=sensor.f_mod,
                                           mirror_reflectivity=float(reflectivity), enabled=True)
+    figures = camera.model_dump(include=CAMERA_FIGURES)
     why = "--multipath-compensation on" if choice == "on" else "auto: the simulated camera has multipath"
-    return settings.model_copy(update={"multipath": camera}), f"on ({why}; the camera's figures from the bag's sidecar)"
+    on = settings.multipath.model_copy(update=figures)
+    return settings.model_copy(update={"multipath": on}), f"on ({why}; the camera's figures from the bag's sidecar)"
 
 
 def extractor_for_bag(

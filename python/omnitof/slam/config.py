@@ -22,6 +22,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from omnitof.errors import ConfigError
+from omnitof.scan.extract import ScanSettings
 
 
 # Every number has its real domain here, not only its sign: a value outside it would not
@@ -349,6 +350,10 @@ class SlamConfig(_Section):
     map: MapConfig = MapConfig()
     backend: BackendConfig = BackendConfig()
     filter3d: Filter3DConfig = Filter3DConfig()
+    # ToF bags only (laser logs ignore it): how each frame becomes a 1° scan, the slice, the
+    # range limits, the pixel filter and the multipath compensation with the camera's figures
+    # (omnitof.scan.ScanSettings). A real rig sets them here, e.g. --set scan.max_range=5.
+    scan: ScanSettings = ScanSettings()
 
     @model_validator(mode="after")
     def _dropped_readings_stay_dropped(self) -> "SlamConfig":
@@ -409,15 +414,23 @@ def _validate(data: dict[str, Any], source: str) -> SlamConfig:
 
 def settings_overrides(settings: Mapping[str, Any], source: str = "settings") -> dict[str, Any]:
     """Nested overrides ({"filter": {"particles": 10}}) from dotted SECTION.FIELD settings
-    ({"filter.particles": 10}), the form of `omnitof slam --set` and of an experiment's grid
+    ({"filter.particles": 10}; a field of a field as SECTION.FIELD.FIELD, e.g.
+    scan.multipath.enabled), the form of `omnitof slam --set` and of an experiment's grid
     (omnitof.bench). Only the form is checked here; `load_config` checks names and values and
     names the field."""
     out: dict[str, Any] = {}
-    for key, value in settings.items():
-        section, dot, name = str(key).partition(".")
-        if not (section and dot and name) or "." in name:
+    paths = [str(key).split(".") for key in settings]
+    for key, parts in zip(settings, paths):
+        if len(parts) < 2 or not all(parts):
             raise ConfigError(f"{source}: {key!r}: expected SECTION.FIELD, e.g. filter.particles")
-        out.setdefault(section, {})[name] = value
+        # A field given whole and through one of its fields: which should win is not clear.
+        if any(other != parts and other == parts[: len(other)] for other in paths):
+            raise ConfigError(f"{source}: {key!r}: given twice (also through one of its fields)")
+    for (key, value), parts in zip(settings.items(), paths):
+        node = out
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = value
     return out
 
 

@@ -85,10 +85,10 @@ DRIVER_FILTER_FIELDS = frozenset({
 
 def core_sections(cfg: SlamConfig) -> dict:
     """The configuration's sections as the core's filter takes them: every section but the
-    back end's and the 3D filter's, less the fields this driver uses itself (which scans to integrate, the poses of
-    the others)."""
+    back end's, the 3D filter's and the scan extraction's, less the fields this driver uses itself (which scans to
+    integrate, the poses of the others)."""
     return cfg.model_dump(
-        exclude={"filter": set(DRIVER_FILTER_FIELDS), "backend": True, "filter3d": True}
+        exclude={"filter": set(DRIVER_FILTER_FIELDS), "backend": True, "filter3d": True, "scan": True}
     )
 
 
