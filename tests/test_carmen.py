@@ -485,6 +485,15 @@ def test_crlf_and_trailing_whitespace(tmp_path):
     np.testing.assert_array_equal(log.scans.timestamps, [10.05, 10.15, 10.15])
 
 
+def test_a_byte_order_mark_before_the_first_message(tmp_path):
+    # Some Windows editors write one; it sits before the first message, not in a comment.
+    path = tmp_path / "bom.clf"
+    lines = [line for line in old_log() if not line.startswith("#")]
+    path.write_bytes(b"\xef\xbb\xbf" + ("\r\n".join(lines) + "\r\n").encode())
+    log = read_carmen(path)
+    assert len(log.scans) == 3 and log.params["robot_use_laser"] == "on"
+
+
 # --------------------------------------------------------------------------------------------
 # Errors
 

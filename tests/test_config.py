@@ -53,8 +53,11 @@ def test_unknown_preset_and_bad_yaml(tmp_path):
         load_config(preset="nope")
     path = tmp_path / "bad.yaml"
     path.write_text("filter: [1, 2\n")
-    with pytest.raises(ConfigError, match="not valid YAML"):
+    with pytest.raises(ConfigError, match="not valid YAML") as caught:
         load_config(path)
+    # One line, naming the file and the line where the parser gave up (PyYAML's own message
+    # spans four and quotes the text).
+    assert str(caught.value).startswith(f"{path}:2: ") and "\n" not in str(caught.value)
     with pytest.raises(ConfigError, match="cannot read"):
         load_config(tmp_path / "missing.yaml")
 

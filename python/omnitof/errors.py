@@ -43,3 +43,12 @@ class ResourceError(OmnitofError):
 class OmnitofWarning(UserWarning):
     """Something in the user's data was accepted but deserves a look; the command line prints
     it as one line (`omnitof: warning: ...`). Each reader has its own subclass."""
+
+
+def yaml_problem(err: Exception) -> tuple[str, int | None]:
+    """What a YAML parser found wrong, on one line ("not valid YAML: ..."), and the 1-based line
+    of the file where it found it (None where the parser does not say): PyYAML's own message
+    spans several lines and quotes the text."""
+    mark = getattr(err, "problem_mark", None)
+    problem = getattr(err, "problem", None) or " ".join(str(err).split())
+    return f"not valid YAML: {problem}", None if mark is None else mark.line + 1

@@ -35,7 +35,7 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from omnitof.errors import ConfigError, OmnitofError
+from omnitof.errors import ConfigError, OmnitofError, yaml_problem
 
 METRICS = ("relations", "trajectory", "floorplan", "table1")
 # A run's folder name is built from these; anything else in a value becomes "_".
@@ -258,7 +258,8 @@ def load_experiment(path: str | Path) -> Experiment:
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as err:
-        raise ExperimentError(f"{path}: not valid YAML: {' '.join(str(err).split())}") from None
+        problem, line = yaml_problem(err)
+        raise ExperimentError(f"{path}{'' if line is None else f':{line}'}: {problem}") from None
     if not isinstance(data, dict):
         raise ExperimentError(f"{path}: an experiment is a mapping (inputs, presets, grid, seeds, ...)")
     try:

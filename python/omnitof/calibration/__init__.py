@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from omnitof.errors import InputError
+from omnitof.errors import InputError, yaml_problem
 from omnitof.io.atomic import atomic_write
 from omnitof.io.plain import to_plain
 from omnitof.calibration.distance import DistanceCorrection, DistanceCorrectionError
@@ -394,7 +394,6 @@ def load_calibration(path: str | Path) -> Calibration:
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        line = None if mark is None else mark.line + 1
-        raise CalibrationError(f"not valid YAML: {getattr(err, 'problem', err)}", path, line) from None
+        problem, line = yaml_problem(err)
+        raise CalibrationError(problem, path, line) from None
     return calibration_from_dict(data, path)

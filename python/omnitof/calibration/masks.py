@@ -28,6 +28,7 @@ from matplotlib.path import Path as MplPath
 from scipy.ndimage import distance_transform_edt
 
 from omnitof.calibration import CalibrationError
+from omnitof.errors import yaml_problem
 from omnitof.sensor.camera import Camera
 from omnitof.io.atomic import atomic_write
 from omnitof.sensor.mirrors import MirrorPlane
@@ -137,7 +138,8 @@ def read_polygon_file(path: str | Path) -> dict[str, np.ndarray]:
     except UnicodeDecodeError:
         raise CalibrationError("not a text file (polygons are a UTF-8 YAML file)", path) from None
     except yaml.YAMLError as err:
-        raise CalibrationError(f"not valid YAML: {err}", path) from None
+        problem, line = yaml_problem(err)
+        raise CalibrationError(problem, path, line) from None
     if isinstance(data, Mapping) and "polygons" in data:
         data = data["polygons"]
     if not isinstance(data, Mapping) or not data:

@@ -32,6 +32,7 @@ import numpy as np
 import yaml
 
 from omnitof.calibration.distance import DistanceCorrection, samples_from_plane
+from omnitof.errors import yaml_problem
 
 # Wall distances (metres, horizontal, from the centre of the mirror's view): the scans' range
 # (ScanSettings.max_range 7 m; oblique rays reach the 7.49 m unambiguous range beyond 5 m).
@@ -323,9 +324,8 @@ def read_wall_recordings(path: str | Path, calibration: Any) -> list[WallRecordi
     except OSError as err:
         raise CalibrationError(f"cannot read the walls file: {err.strerror or err}", path) from None
     except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        raise CalibrationError(f"not valid YAML: {getattr(err, 'problem', err)}", path,
-                               None if mark is None else mark.line + 1) from None
+        problem, line = yaml_problem(err)
+        raise CalibrationError(problem, path, line) from None
     entries = data.get("walls") if isinstance(data, dict) else None
     if not isinstance(entries, list) or not entries:
         raise CalibrationError("expected a list 'walls:' of positions, each with frames, mirror and distance", path)

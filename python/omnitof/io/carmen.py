@@ -317,8 +317,9 @@ def _lines(ctx: _Context) -> Iterator[tuple[int, str]]:
             if b"\x00" in raw.peek(_SNIFF_BYTES)[:_SNIFF_BYTES]:
                 raise ctx.error("not a CARMEN log: binary content (NUL bytes)")
             # Hostnames may hold any bytes; the numbers are ASCII, so never fail on decoding.
-            # newline=None folds CRLF (and lone CR) line ends into "\n".
-            stream = io.TextIOWrapper(raw, encoding="utf-8", errors="replace", newline=None)
+            # newline=None folds CRLF (and lone CR) line ends into "\n"; utf-8-sig drops the byte
+            # order mark that some Windows editors write at the start.
+            stream = io.TextIOWrapper(raw, encoding="utf-8-sig", errors="replace", newline=None)
             for number, line in enumerate(stream, start=1):
                 text = line.strip()
                 if text and not text.startswith("#"):

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from omnitof.errors import InputError
+from omnitof.errors import InputError, yaml_problem
 from omnitof.io.atomic import atomic_write
 from omnitof.types import OccupancyMap
 
@@ -159,7 +159,8 @@ def _load_yaml(path: Path) -> dict[str, Any]:
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"cannot read the map description: {exc}", path) from exc
     except yaml.YAMLError as exc:
-        raise InputError(f"not valid YAML: {exc}", path) from exc
+        problem, line = yaml_problem(exc)
+        raise InputError(problem, path, line) from None
     if not isinstance(meta, dict):
         raise InputError(
             "a map description must be a YAML mapping with image, resolution, ...", path

@@ -41,7 +41,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from omnitof.errors import InputError
+from omnitof.errors import InputError, yaml_problem
 from omnitof.sim.laser2d import World2D
 
 # Obstacles that reach below this height (m) block the robot: a Pioneer-class base with the
@@ -510,9 +510,8 @@ def _read_merged(path: Path, chain: tuple[Path, ...]) -> dict:
     except UnicodeDecodeError:
         raise WorldError("not a text file (a world is a UTF-8 YAML file)", path) from None
     except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        line = mark.line + 1 if mark is not None else None
-        raise WorldError(f"not valid YAML: {getattr(err, 'problem', err)}", path, line) from None
+        problem, line = yaml_problem(err)
+        raise WorldError(problem, path, line) from None
     if not isinstance(data, dict):
         raise WorldError("a world file must hold a mapping of fields", path)
     base_name = data.pop("extends", None)

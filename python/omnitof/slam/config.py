@@ -21,7 +21,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from omnitof.errors import ConfigError
+from omnitof.errors import ConfigError, yaml_problem
 from omnitof.scan.extract import ScanSettings
 
 
@@ -388,7 +388,8 @@ def _read_yaml(text: str, source: str) -> dict[str, Any]:
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as err:
-        raise ConfigError(f"{source}: not valid YAML: {err}") from None
+        problem, line = yaml_problem(err)
+        raise ConfigError(f"{source}{'' if line is None else f':{line}'}: {problem}") from None
     if data is None:
         return {}
     if not isinstance(data, dict):
