@@ -385,7 +385,8 @@ class Renderer:
                 **self._light_arguments(),
             )
         except ValueError as err:  # the core refuses a scene it cannot hold (a plan too wide)
-            raise RenderConfigError(f"world {world.name!r}: {err}") from None
+            where = f"{world.source}: " if getattr(world, "source", None) else ""
+            raise RenderConfigError(f"{where}world {world.name!r}: {err}") from None
 
 
 def subpixel_offsets(height: int, width: int, sub_rays: int, seed: int) -> np.ndarray:
