@@ -114,6 +114,46 @@ def test_the_configurations_scan_section_reaches_the_extraction(tmp_path, capsys
     assert "scan.max_range" in err and "Traceback" not in err and not (tmp_path / "bad").exists()
 
 
+def test_a_drivers_bag_with_depth_images_gives_the_same_scans(tmp_path, capsys):
+    # The simulated bag rewritten as a camera driver would record it: other topic names and the
+    # depth z instead of the radial distance. Read with --tof-topics and --tof-distance depth, it
+    # must give the scans of the original.
+    import dataclasses
+
+    from omnitof.cli import main
+    from omnitof.io.carmen import read_carmen
+    from omnitof.io.rosbag import ToFTopics, read_tof_bag, write_tof_bag
+
+    bag = tmp_path / "room"
+    assert main(["simulate", "--world", "room", "--out", str(bag), "--max-frames", "8", "--quiet"]) == 0
+    original = read_tof_bag(bag)
+    ray_z = original.camera.pixel_grid_rays()[..., 2].astype(np.float32)
+    topics = ToFTopics(distance="/sr/depth", amplitude="/sr/amplitude", camera_info="/sr/camera_info",
+                       odometry="/wheel_odom")
+    frames = [dataclasses.replace(f, distance=f.distance * ray_z, samples=None) for f in original.frames()]
+    driver = tmp_path / "driver"
+    write_tof_bag(driver, frames, camera=original.camera, odometry=original.odometry, sidecar=original.sidecar,
+                  topics=topics)
+    with pytest.warns(UserWarning, match="true rig"):
+        assert main(["scans", str(bag), "--out", str(tmp_path / "a.clf"), "--quiet"]) == 0
+        assert main(["scans", str(driver), "--out", str(tmp_path / "b.clf"), "--quiet", "--tof-distance", "depth",
+                     "--tof-topics", "distance=/sr/depth,amplitude=/sr/amplitude,camera_info=/sr/camera_info,"
+                     "odometry=/wheel_odom"]) == 0
+    a, b = read_carmen(tmp_path / "a.clf").scans, read_carmen(tmp_path / "b.clf").scans
+    assert np.isfinite(a.ranges).sum() > 1000
+    np.testing.assert_array_equal(np.isfinite(a.ranges), np.isfinite(b.ranges))
+    seen = np.isfinite(a.ranges)
+    np.testing.assert_allclose(b.ranges[seen], a.ranges[seen], atol=2e-3)
+    # Without --tof-distance depth the same bag reads short: z is less than the radial distance.
+    capsys.readouterr()
+    with pytest.warns(UserWarning, match="true rig"):
+        assert main(["scans", str(driver), "--out", str(tmp_path / "c.clf"), "--quiet", "--tof-topics",
+                     "distance=/sr/depth,amplitude=/sr/amplitude,camera_info=/sr/camera_info,odometry=/wheel_odom"]) == 0
+    c = read_carmen(tmp_path / "c.clf").scans
+    both = seen & np.isfinite(c.ranges)
+    assert np.median(a.ranges[both] - c.ranges[both]) > 0.05
+
+
 def test_cli_slam_refuses_calibration_for_a_laser_log(tmp_path, capsys):
     from omnitof.cli import main
     from omnitof.io.carmen import write_carmen

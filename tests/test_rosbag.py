@@ -456,8 +456,38 @@ def test_missing_and_mistyped_topics(tmp_path: Path) -> None:
 
 
 def test_wrong_encoding(tmp_path: Path) -> None:
-    path = raw_tof_bag(tmp_path / "b", [NS], encoding="16UC1")
-    expect_error(path, "topic /tof/distance", "encoding '16UC1'", "expected '32FC1'")
+    path = raw_tof_bag(tmp_path / "b", [NS], encoding="bgr8")
+    expect_error(path, "topic /tof/distance", "encoding 'bgr8'", "expected '32FC1' or '16UC1'")
+
+
+def test_a_drivers_bag_depth_in_millimetres(tmp_path: Path) -> None:
+    # A camera driver's layout: its own topic names, the depth z along the optical axis in
+    # 16UC1 millimetres (0: no reading), the amplitude as mono8.
+    topics = ToFTopics(distance="/cam/depth/image_raw", amplitude="/cam/amplitude/image_raw",
+                       camera_info="/cam/depth/camera_info", odometry="/wheel_odom")
+    rng = np.random.default_rng(5)
+    depth_mm = rng.integers(300, 7000, size=SMALL.shape).astype(np.uint16)
+    depth_mm[1, 2] = 0
+    amplitude = rng.integers(0, 255, size=SMALL.shape).astype(np.uint8)
+    messages = [("/wheel_odom", ODOM, odometry_msg(HUMBLE, ns, (k, 0, 0))) for k, ns in enumerate([NS, 2 * NS])]
+    messages += [("/cam/depth/camera_info", INFO, camera_info_msg(NS, SMALL)),
+                 ("/cam/depth/image_raw", IMG, image_msg(NS, depth_mm, "16UC1")),
+                 ("/cam/amplitude/image_raw", IMG, image_msg(NS, amplitude, "mono8"))]
+    path = write_raw(tmp_path / "driver", messages)
+    (frame,) = list(read_tof_bag(path, topics=topics, depth=True).frames())
+    # The radial distance: z over the z component of each pixel's unit ray (through the lens's
+    # distortion), computed here from the camera's own ray of each pixel.
+    v, u = np.mgrid[0:SMALL.height, 0:SMALL.width]
+    rays = SMALL.rays(np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64)).reshape(*SMALL.shape, 3)
+    expected = depth_mm * 0.001 / (rays[..., 2] / np.linalg.norm(rays, axis=2))
+    expected[1, 2] = np.nan
+    np.testing.assert_allclose(frame.distance, expected, rtol=1e-6)
+    seen = depth_mm > 0
+    assert np.isnan(frame.distance[1, 2]) and np.all(frame.distance[seen] >= depth_mm[seen] * 0.001 - 1e-6)
+    np.testing.assert_array_equal(frame.amplitude, amplitude.astype(np.float32))
+    # Read as radial distances, the same bag gives the millimetres in metres.
+    (radial,) = list(read_tof_bag(path, topics=topics).frames())
+    np.testing.assert_allclose(radial.distance[seen], depth_mm[seen] * 0.001, rtol=1e-6)
 
 
 def test_image_size_mismatch(tmp_path: Path) -> None:

@@ -60,6 +60,7 @@ def cmd_slam(args: argparse.Namespace) -> int:
         scan_delay=args.scan_delay, calibration=args.calibration, height=args.height, band=args.band,
         map3d=args.map3d, map3d_every=args.map3d_every, compare_2d=args.compare_2d,
         multipath_compensation=args.multipath_compensation,
+        tof_topics=args.tof_topics, tof_depth=args.tof_distance == "depth",
     )
     run = slam_to_folder(request, cfg, args.out, bar=_bar_factory(args))
     print(_summary_line(run.result.stats))
@@ -135,11 +136,31 @@ def _number(*, above: float | None = None, at_least: float | None = None, at_mos
     return parse
 
 
+def _tof_topics(text: str):
+    from omnitof.io.rosbag import ToFTopics
+
+    try:
+        return ToFTopics.parse(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
+def _add_tof_bag_options(p: argparse.ArgumentParser, prefix: str) -> None:
+    """--tof-topics and --tof-distance: a camera driver's bag, not the simulator's."""
+    p.add_argument("--tof-topics", type=_tof_topics, metavar="ROLE=TOPIC,...",
+                   help=f"{prefix}the bag's topics where they are not the simulator's, e.g. "
+                   "distance=/cam/distance,amplitude=/cam/amplitude,camera_info=/cam/camera_info,odometry=/odom")
+    p.add_argument("--tof-distance", choices=("radial", "depth"), default="radial",
+                   help=f"{prefix}what the distance images hold: the radial distance the camera measures "
+                   "(the simulator's), or the depth z along the optical axis that many drivers publish")
+
+
 def cmd_scans(args: argparse.Namespace) -> int:
     from omnitof.slam_run import read_tof_input
 
     data = read_tof_input(args.log, calibration=args.calibration, height=args.height, band=args.band,
-                          multipath=args.multipath_compensation, max_frames=args.max_frames, bar=_bar_factory(args))
+                          multipath=args.multipath_compensation, max_frames=args.max_frames, bar=_bar_factory(args),
+                          topics=args.tof_topics, depth=args.tof_distance == "depth")
     scans = data.scans
     out = Path(args.out)
     if out.suffix in (".clf", ".log", ".txt"):
@@ -351,6 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ToF bags: take each frame's interreflection, predicted from its own points, out of its "
                    "distances (omnitof.scan.multipath); auto: on for a simulated bag whose camera has multipath, "
                    "with that camera's figures from the sidecar")
+    _add_tof_bag_options(p, "ToF bags: ")
     p.add_argument("--map3d", action="store_true", help="ToF bags: also build the 3D voxel map (map3d.ply, map3d.png)")
     p.add_argument("--map3d-every", type=_positive_int, default=5, help="ToF bags: frames between those fed to the 3D map")
     p.add_argument("--filter", choices=("2d", "3d"), default="2d",
@@ -373,6 +395,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="take each frame's interreflection, predicted from its own points, out of its "
                    "distances (omnitof.scan.multipath); auto: on for a simulated bag whose camera has multipath, "
                    "with that camera's figures from the sidecar")
+    _add_tof_bag_options(p, "")
     p.add_argument("--max-frames", type=_positive_int, help="only the first N frames")
     p.add_argument("--figure", type=Path, help="draw the middle frame's scan (PNG)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bag")

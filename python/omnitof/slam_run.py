@@ -37,7 +37,9 @@ class SlamRequest:
 
     scan_delay: seconds, "auto" (estimated from the log, `omnitof.slam.timing`) or None for the
         default: "auto" for laser logs and LaserScan bags (they are stamped when the reading
-        arrives), none for ToF bags. calibration, height, band, map3d, map3d_every: ToF bags only.
+        arrives), none for ToF bags. calibration, height, band, map3d, map3d_every, tof_topics
+        (an `io.rosbag.ToFTopics`; default the simulator's topics), tof_depth (the distance
+        images hold depth z, not the radial distance): ToF bags only.
     compare_2d: with the 3D filter (`filter3d.enabled`), also run the 2D filter on the same
         scans and record how far the two trajectories lie apart (trajectory_2d.tum, summary).
     label: the input's path as summary.yaml records it (default `log`): `omnitof bench` runs on
@@ -57,6 +59,8 @@ class SlamRequest:
     label: str | None = None
     compare_2d: bool = False
     multipath_compensation: str = "auto"
+    tof_topics: Any = None
+    tof_depth: bool = False
 
 
 @dataclass
@@ -167,10 +171,13 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
                                   multipath=request.multipath_compensation,
                                   cloud_every=request.map3d_every if request.map3d else 0,
                                   cloud_pixel_stride=cfg.filter3d.pixel_stride if three_d else 1,
-                                  cloud_keyframes=keyframes, max_frames=request.max_scans, bar=bar)
+                                  cloud_keyframes=keyframes, max_frames=request.max_scans, bar=bar,
+                                  topics=request.tof_topics, depth=request.tof_depth)
         scans = tof_data.scans
         extra: dict[str, Any] = {"input": {"path": label, "kind": "tof-rosbag", "rig": tof_data.rig_source,
                                            "multipath_compensation": tof_data.multipath_rule,
+                                           "topics": _topics_record(request.tof_topics),
+                                           "distance_images": "depth" if request.tof_depth else "radial distance",
                                            "scan": tof_data.extractor.settings.model_dump()}}
     else:
         data = read_scans(log, skip_bad_lines=request.skip_bad_lines)
@@ -260,24 +267,33 @@ def read_tof_input(log: str | Path, *, calibration: str | Path | None = None, se
                    height: float | None = None, band: float | None = None, multipath: str = "auto",
                    cloud_every: int = 0, cloud_pixel_stride: int = 1,
                    cloud_keyframes: tuple[float, float] | None = None, max_frames: int | None = None,
-                   bar: BarFactory = no_bar):
+                   bar: BarFactory = no_bar, topics: Any = None, depth: bool = False):
     """The scans of a ToF bag (omnitof.scan.tof_input.read_tof_scans) with the scan settings
     (default: the defaults; a SLAM configuration's `scan` section), the slice's height and band
     over them where given, and the multipath compensation asked for, for `omnitof slam` and
-    `omnitof scans`."""
+    `omnitof scans`. `topics` (an `io.rosbag.ToFTopics`) and `depth`: as `read_tof_scans`."""
     from omnitof.scan import scan_settings
     from omnitof.scan.tof_input import frame_count, read_tof_scans
 
     given = {k: v for k, v in (("height", height), ("band", band)) if v is not None}
     settings = scan_settings(settings, **given)
-    total = frame_count(log)
+    total = frame_count(log, topics)
     if max_frames is not None:
         total = min(total, max_frames)
     with bar(total, "scans", "frame") as b:
         return read_tof_scans(log, calibration=calibration, settings=settings, multipath=multipath,
                               cloud_every=cloud_every,
                               cloud_pixel_stride=cloud_pixel_stride, cloud_keyframes=cloud_keyframes,
-                              max_frames=max_frames, progress=b.update)
+                              max_frames=max_frames, progress=b.update, topics=topics, depth=depth)
+
+
+def _topics_record(topics: Any) -> dict[str, str]:
+    """The ToF bag's topic names as summary.yaml records them."""
+    import dataclasses
+
+    from omnitof.io.rosbag import ToFTopics
+
+    return dataclasses.asdict(topics or ToFTopics())
 
 
 def _retimed(scans: ScanSequence, delay: str | float, *, given: bool,

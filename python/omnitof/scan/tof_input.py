@@ -194,14 +194,17 @@ def read_tof_scans(
     cloud_keyframes: tuple[float, float] | None = None,
     max_frames: int | None = None,
     progress: Callable[[int], Any] | None = None,
+    topics: Any = None,
+    depth: bool = False,
 ) -> ToFScans:
-    """Scans (and optionally clouds) of a ToF bag (`io.rosbag.read_tof_bag` layout); `multipath`
-    one of MULTIPATH_CHOICES (`multipath_for_bag`)."""
+    """Scans (and optionally clouds) of a ToF bag (`io.rosbag.read_tof_bag` layout, its topics
+    `topics`, an `io.rosbag.ToFTopics`, default the simulator's; `depth`: the distance images
+    are depth images); `multipath` one of MULTIPATH_CHOICES (`multipath_for_bag`)."""
     from itertools import islice
 
-    from omnitof.io.rosbag import read_tof_bag
+    from omnitof.io.rosbag import ToFTopics, read_tof_bag
 
-    bag = read_tof_bag(path)
+    bag = read_tof_bag(path, topics=topics or ToFTopics(), depth=depth)
     settings, multipath_rule = multipath_for_bag(bag, settings or ScanSettings(), multipath)
     extractor, rig_source = extractor_for_bag(bag, calibration, settings)
     frames = bag.frames(samples=False)
@@ -214,8 +217,8 @@ def read_tof_scans(
     return out
 
 
-def frame_count(path: str | Path) -> int:
+def frame_count(path: str | Path, topics: Any = None) -> int:
     """Frames in a ToF bag (for a progress bar)."""
-    from omnitof.io.rosbag import read_tof_bag
+    from omnitof.io.rosbag import ToFTopics, read_tof_bag
 
-    return read_tof_bag(path).n_frames
+    return read_tof_bag(path, topics=topics or ToFTopics()).n_frames

@@ -22,6 +22,12 @@ header stamp. Images are little-endian, rows packed (step = width · 4 · channe
 orientation the quaternion of a rotation by θ about +z, covariances and twist left zero
 (unknown).
 
+A camera driver's bag (read only) may name its topics otherwise (`ToFTopics`, `omnitof slam
+--tof-topics`), carry distances as 16UC1 millimetres (REP 118; 0 = no reading) instead of 32FC1
+metres, amplitudes as 16UC1 / mono16 / mono8, and give the depth z along the optical axis
+instead of the radial distance (`read_tof_bag(..., depth=True)`, `--tof-distance depth`): each
+pixel's z is then divided by its unit ray's z component, which undoes what the driver did.
+
 The sidecar (`<bag>/omnitof.yaml`), the all-or-nothing write and the time conversions are those
 of `omnitof.io.rosbag.common`.
 """
@@ -133,6 +139,23 @@ class ToFTopics:
     camera_info: str = "/tof/camera_info"
     odometry: str = "/odom"
     ground_truth: str = "/ground_truth"
+
+    @classmethod
+    def parse(cls, text: str) -> ToFTopics:
+        """Topics from "ROLE=TOPIC,ROLE=TOPIC" (the roles are the fields; the others keep their
+        defaults), as `--tof-topics` takes them; ValueError naming a bad item."""
+        given: dict[str, str] = {}
+        for item in filter(None, (part.strip() for part in str(text).split(","))):
+            role, eq, topic = item.partition("=")
+            role, topic = role.strip(), topic.strip()
+            if not eq or not topic:
+                raise ValueError(f"{item!r}: expected ROLE=TOPIC, e.g. distance=/camera/distance")
+            if role not in cls.__dataclass_fields__:
+                raise ValueError(f"{item!r}: unknown role {role!r}; the roles are {', '.join(cls.__dataclass_fields__)}")
+            if role in given:
+                raise ValueError(f"{item!r}: the role {role} is given twice")
+            given[role] = topic
+        return cls(**given)
 
 
 # --- writing ToF bags ----------------------------------------------------------------------
@@ -331,6 +354,8 @@ class ToFBag:
         topics: the topic names used.
         n_frames: the number of distance images in the bag.
         has_samples: whether the bag has the raw-samples topic.
+        depth: the distance images hold the depth z along the optical axis, which the frames
+            turn into the radial distance (module docstring).
     """
 
     path: Path
@@ -341,6 +366,7 @@ class ToFBag:
     topics: ToFTopics
     n_frames: int
     has_samples: bool
+    depth: bool = False
     _timestamps: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
@@ -374,7 +400,6 @@ class ToFBag:
         roles = {self.topics.distance: "distance", self.topics.amplitude: "amplitude"}
         if samples and self.has_samples:
             roles[self.topics.samples] = "samples"
-        formats = {"distance": ("32FC1", 1), "amplitude": ("32FC1", 1), "samples": ("32FC4", 4)}
         shape = self.camera.shape
         last_ns = dict.fromkeys(roles.values(), -1)
         pending: OrderedDict[int, dict[str, np.ndarray]] = OrderedDict()
@@ -392,11 +417,10 @@ class ToFBag:
                         self.path,
                     )
                 last_ns[role] = ns
-                encoding, channels = formats[role]
-                pending.setdefault(ns, {})[role] = _decode_image(
-                    msg, self.path, conn.topic, encoding, channels, shape,
-                    self.topics.camera_info,
-                )  # fmt: skip
+                image = _decode_image(msg, self.path, conn.topic, IMAGE_FORMATS[role], shape, self.topics.camera_info)
+                if role == "distance" and self.depth:
+                    image = image / self._ray_z()
+                pending.setdefault(ns, {})[role] = image
                 while pending:
                     stamp, parts = next(iter(pending.items()))
                     missing = [r for r in last_ns if r not in parts]
@@ -432,6 +456,10 @@ class ToFBag:
                 RosbagWarning,
                 stacklevel=2,
             )
+
+    def _ray_z(self) -> np.ndarray:
+        """(H, W) float32 the z component of each pixel's unit ray: depth z = radial distance × it."""
+        return self.camera.pixel_grid_rays()[..., 2].astype(np.float32)
 
     def frame_timestamps(self) -> np.ndarray:
         """(N,) float64 header stamps of the distance images, seconds (one pass, cached)."""
@@ -493,7 +521,7 @@ class ToFBag:
 
 
 def read_tof_bag(
-    path: str | Path, *, topics: ToFTopics = ToFTopics(), require_odometry: bool = True
+    path: str | Path, *, topics: ToFTopics = ToFTopics(), require_odometry: bool = True, depth: bool = False
 ) -> ToFBag:
     """Open a ToF bag: read its camera, trajectories and sidecar; stream frames on demand.
 
@@ -505,6 +533,8 @@ def read_tof_bag(
         topics: topic names.
         require_odometry: when False, a bag without the odometry topic is accepted (odometry
             None), e.g. a recording of a calibration target.
+        depth: the distance topic holds depth images (z along the optical axis), as many
+            camera drivers publish them; the frames get the radial distance.
 
     Raises:
         InputError: naming the bag (and the topic): not a bag, a missing topic or one of the
@@ -538,18 +568,33 @@ def read_tof_bag(
         topics=topics,
         n_frames=n_frames,
         has_samples=samples is not None,
+        depth=bool(depth),
     )
 
 
+# The image encodings each role accepts: (numpy type, channels, scale to the role's unit, whether
+# 0 means no reading). Distances in metres (16UC1: millimetres, REP 118, where 0 is no reading),
+# amplitudes in the camera's own units.
+IMAGE_FORMATS: dict[str, dict[str, tuple[str, int, float, bool]]] = {
+    "distance": {"32FC1": ("f4", 1, 1.0, False), "16UC1": ("u2", 1, 0.001, True)},
+    "amplitude": {"32FC1": ("f4", 1, 1.0, False), "16UC1": ("u2", 1, 1.0, False), "mono16": ("u2", 1, 1.0, False),
+                  "mono8": ("u1", 1, 1.0, False)},
+    "samples": {"32FC4": ("f4", 4, 1.0, False)},
+}
+
+
 def _decode_image(
-    msg: Any, path: Path, topic: str, encoding: str, channels: int,
+    msg: Any, path: Path, topic: str, formats: dict[str, tuple[str, int, float, bool]],
     shape: tuple[int, int], info_topic: str,
 ) -> np.ndarray:  # fmt: skip
-    """(H, W) or (H, W, channels) float32 pixels of a sensor_msgs/Image, checked."""
-    if msg.encoding != encoding:
+    """(H, W) or (H, W, channels) float32 pixels of a sensor_msgs/Image in one of `formats`
+    (IMAGE_FORMATS), scaled to the role's unit, checked."""
+    encoding = str(msg.encoding)
+    if encoding not in formats:
         raise InputError(
-            f"topic {topic}: image encoding {msg.encoding!r}, expected {encoding!r}", path
+            f"topic {topic}: image encoding {encoding!r}, expected {' or '.join(repr(e) for e in formats)}", path
         )
+    kind, channels, scale, zero_is_none = formats[encoding]
     height, width = int(msg.height), int(msg.width)
     if (height, width) != shape:
         raise InputError(
@@ -558,7 +603,7 @@ def _decode_image(
             f"{shape[1]}×{shape[0]}",
             path,
         )
-    row = width * 4 * channels
+    row = width * np.dtype(kind).itemsize * channels
     data = np.asarray(msg.data, dtype=np.uint8)
     if msg.step < row or data.size != msg.step * height:
         raise InputError(
@@ -567,7 +612,12 @@ def _decode_image(
             path,
         )
     rows = data.reshape(height, msg.step)[:, :row].copy()  # copy: detach from the bag's buffer
-    pixels = rows.view(">f4" if msg.is_bigendian else "<f4").astype(np.float32, copy=False)
+    raw = rows.view((">" if msg.is_bigendian else "<") + kind)
+    pixels = raw.astype(np.float32, copy=False)
+    if scale != 1.0:
+        pixels = pixels * np.float32(scale)
+    if zero_is_none:
+        pixels[raw == 0] = np.nan
     return pixels.reshape((height, width) if channels == 1 else (height, width, channels))
 
 
