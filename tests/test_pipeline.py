@@ -163,6 +163,8 @@ def test_cli_slam_refuses_calibration_for_a_laser_log(tmp_path, capsys):
     write_carmen(log, make_loop_dataset(seed=0).slice(0, 20))
     assert main(["slam", str(log), "--out", str(tmp_path / "o"), "--map3d", "--quiet"]) == 2
     assert "ToF images" in capsys.readouterr().err
+    assert main(["slam", str(log), "--out", str(tmp_path / "o"), "--tof-distance", "depth", "--quiet"]) == 2
+    assert "--tof-distance need a bag of ToF images" in capsys.readouterr().err
 
 
 def test_cli_scans_exports_carmen_and_laserscan_bag(tmp_path, capsys):

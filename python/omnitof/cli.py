@@ -53,7 +53,7 @@ def cmd_slam(args: argparse.Namespace) -> int:
 
     if args.filter == "3d":
         args.set = [*(args.set or []), "filter3d.enabled=true"]
-    preset = "tof3d" if args.filter == "3d" else default_preset(args.log)
+    preset = "tof3d" if args.filter == "3d" else default_preset(args.log, args.tof_topics)
     cfg = _config_from_args(args, default_preset=preset)
     request = SlamRequest(
         log=args.log, relations=args.relations, max_scans=args.max_scans, skip_bad_lines=args.skip_bad_lines,

@@ -90,11 +90,18 @@ def no_bar(total: int, desc: str, unit: str) -> Iterator[Any]:
     yield _Null()
 
 
-def default_preset(log: str | Path) -> str:
-    """The preset `omnitof slam` uses when none is given: by the kind of input."""
-    from omnitof.io.scans import is_tof_bag
+def default_preset(log: str | Path, tof_topics: Any = None) -> str:
+    """The preset `omnitof slam` uses when none is given: by the kind of input (a bag with named
+    ToF topics is a ToF bag, whatever else it holds)."""
+    return DEFAULT_PRESET_TOF if _is_tof_input(Path(log), tof_topics) else DEFAULT_PRESET_LASER
 
-    return DEFAULT_PRESET_TOF if is_tof_bag(log) else DEFAULT_PRESET_LASER
+
+def _is_tof_input(log: Path, tof_topics: Any) -> bool:
+    """Whether to read `log` as a ToF bag: one of ToF images only, or any bag whose ToF topics
+    are named (a robot's bag may hold a laser's scans beside the camera's images)."""
+    from omnitof.io.scans import is_bag, is_tof_bag
+
+    return is_tof_bag(log) or (tof_topics is not None and log.exists() and is_bag(log))
 
 
 def slam_config(
@@ -124,7 +131,6 @@ def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *,
     (omnitof.results; summary.yaml is written last). `echo` prints what the run decided (the
     scan delay)."""
     from omnitof.interrupts import pause_point
-    from omnitof.io.scans import is_tof_bag
     from omnitof.results import results_folder
 
     log = Path(request.log)
@@ -135,9 +141,10 @@ def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *,
         from omnitof.scan import scan_settings
 
         cfg = cfg.model_copy(update={"scan": scan_settings(cfg.scan, **slice_given)})
-    tof = is_tof_bag(log)
-    if not tof and (request.calibration is not None or request.map3d):
-        raise OmnitofError(f"{log}: --calibration and --map3d need a bag of ToF images")
+    tof = _is_tof_input(log, request.tof_topics)
+    if not tof and (request.calibration is not None or request.map3d or request.tof_topics is not None
+                    or request.tof_depth):
+        raise OmnitofError(f"{log}: --calibration, --map3d, --tof-topics and --tof-distance need a bag of ToF images")
     if not tof and cfg.filter3d.enabled:
         raise OmnitofError(f"{log}: the 3D filter (--filter 3d, filter3d.enabled) needs a bag of ToF images")
     relations = None
