@@ -488,6 +488,14 @@ def test_a_drivers_bag_depth_in_millimetres(tmp_path: Path) -> None:
     # Read as radial distances, the same bag gives the millimetres in metres.
     (radial,) = list(read_tof_bag(path, topics=topics).frames())
     np.testing.assert_allclose(radial.distance[seen], depth_mm[seen] * 0.001, rtol=1e-6)
+    # The calibration reads such a bag the same way (`omnitof calibrate ... --tof-topics`).
+    from omnitof.calibration.images import load_images
+
+    (image,) = load_images([path], topics=topics, depth=True)
+    np.testing.assert_array_equal(image.distance, frame.distance)
+    np.testing.assert_array_equal(image.amplitude, frame.amplitude)
+    with pytest.raises(InputError, match="/tof/distance"):
+        load_images([path])
 
 
 def test_image_size_mismatch(tmp_path: Path) -> None:

@@ -35,7 +35,7 @@ walls:                      # one entry per position of the rig before a flat ma
 
 def add_calibrate_parser(sub) -> None:
     """Register `calibrate` and its subcommands on the `omnitof` subparsers."""
-    from omnitof.cli import _number, _positive_int, _seed  # the command's argument types
+    from omnitof.cli import _add_tof_bag_options, _number, _positive_int, _seed  # the command's argument types
 
     p = sub.add_parser("calibrate", help="calibrate the camera and the mirrors (paper sec. II-C)")
     csub = p.add_subparsers(dest="calibrate_command", required=True)
@@ -46,6 +46,7 @@ def add_calibrate_parser(sub) -> None:
     c.add_argument("--board", default="8x6", help="squares across x down (default 8x6)")
     c.add_argument("--square", type=_number(above=0), default=0.035, help="square side in metres (default 0.035)")
     c.add_argument("--fit-k3", action="store_true", help="also fit k3 (default: k3 = 0)")
+    _add_tof_bag_options(c, "ROS bags: ")
     c.set_defaults(func=cmd_intrinsics)
 
     c = csub.add_parser("mirrors", help="mirror planes from four-dot target images (Hu, Brown, Nelson)")
@@ -58,6 +59,7 @@ def add_calibrate_parser(sub) -> None:
                    help="metric scale from the dot spacing or from the ToF distances")
     c.add_argument("--mirror", help="the mirror all images show (default: found from the image)")
     c.add_argument("--margin", type=_number(at_least=0), help="mask edge margin in pixels (default: the file's)")
+    _add_tof_bag_options(c, "ROS bags: ")
     c.set_defaults(func=cmd_mirrors)
 
     c = csub.add_parser("refine", help="refine intrinsics, mirrors and target poses jointly from all images "
@@ -70,6 +72,7 @@ def add_calibrate_parser(sub) -> None:
     c.add_argument("--board", default="8x6", help="checkerboard squares across x down (default 8x6)")
     c.add_argument("--square", type=_number(above=0), default=0.035, help="square side in metres (default 0.035)")
     c.add_argument("--spacing", type=_number(above=0), default=0.012, help="side of the square of dots, metres")
+    _add_tof_bag_options(c, "ROS bags: ")
     c.set_defaults(func=cmd_refine)
 
     c = csub.add_parser("report", help="write a report (Markdown + PNG) of a calibration: uncertainties, "
@@ -79,6 +82,7 @@ def add_calibrate_parser(sub) -> None:
     c.add_argument("--truth", type=Path, help="true calibration of a simulated rig (adds error columns)")
     c.add_argument("--frame", type=Path, help="a recorded frame among equal-height objects (.npz or bag) "
                    "for the Fig. 6 check (default: the simulated scene)")
+    _add_tof_bag_options(c, "ROS bags: ")
     c.set_defaults(func=cmd_report)
 
     c = csub.add_parser("plan-boards", help="where to hold the checkerboard: poses planned for the intrinsics, "
@@ -94,6 +98,7 @@ def add_calibrate_parser(sub) -> None:
     c.add_argument("--board", default="8x6", help="squares across x down (default 8x6)")
     c.add_argument("--square", type=_number(above=0), default=0.035, help="square side in metres (default 0.035)")
     c.add_argument("--seed", type=_seed, default=0, help="fixes the candidate poses drawn")
+    _add_tof_bag_options(c, "ROS bags: ")
     c.set_defaults(func=cmd_plan_boards)
 
     c = csub.add_parser("render-targets", help="simulate checkerboard and dot-target images")
@@ -131,6 +136,7 @@ def add_calibrate_parser(sub) -> None:
     c.add_argument("--min-height", type=_number(), help="ignore points lower than this (m; default 0.3)")
     c.add_argument("--figure", type=Path, help="side view PNG")
     c.add_argument("--seed", type=_seed, default=0)
+    _add_tof_bag_options(c, "ROS bags: ")
     c.set_defaults(func=cmd_check)
 
     c = csub.add_parser("masks", help="export the mirror regions as polygons, or redraw them from polygons")
@@ -172,7 +178,7 @@ def cmd_intrinsics(args: argparse.Namespace) -> int:
     cols, rows = _board(args.board)
     board = Checkerboard(cols=cols, rows=rows, square=args.square)
     started = time.perf_counter()
-    images = load_images(args.images)
+    images = load_images(args.images, **_bag_format(args))
     result = calibrate_intrinsics(images, board, fix_k3=not args.fit_k3)
     camera = result.camera
     if args.out.exists():
@@ -206,7 +212,7 @@ def cmd_mirrors(args: argparse.Namespace) -> int:
 
     cal = load_calibration(args.calibration)
     started = time.perf_counter()
-    images = load_images(args.images)
+    images = load_images(args.images, **_bag_format(args))
     outside = _design_outside(cal.camera)
     regions = labels_from_planes(cal.camera, cal.planes, outside, 0.0)
     target = DotTarget(spacing=args.spacing)
@@ -244,9 +250,9 @@ def cmd_refine(args: argparse.Namespace) -> int:
     cols, rows = _board(args.board)
     started = time.perf_counter()
     folder = args.folder
-    boards = load_images([folder / "intrinsics"])
-    dots = load_images([folder / "mirrors"])
-    pairs = load_images([folder / "pairs"]) if (folder / "pairs").is_dir() else []
+    boards = load_images([folder / "intrinsics"], **_bag_format(args))
+    dots = load_images([folder / "mirrors"], **_bag_format(args))
+    pairs = load_images([folder / "pairs"], **_bag_format(args)) if (folder / "pairs").is_dir() else []
     refined, result = refine_calibration(
         cal, boards, dots, pairs, outside=_design_outside(cal.camera),
         board=Checkerboard(cols=cols, rows=rows, square=args.square), target=DotTarget(spacing=args.spacing),
@@ -286,7 +292,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         from omnitof.calibration import CalibrationError
         from omnitof.calibration.images import load_images
 
-        frames = load_images([args.frame])
+        frames = load_images([args.frame], **_bag_format(args))
         if not frames or frames[0].distance is None:
             raise CalibrationError("the check needs a distance image (.npz or a ROS bag)", args.frame)
         distance = frames[0].distance
@@ -316,7 +322,7 @@ def cmd_plan_boards(args: argparse.Namespace) -> int:
         from omnitof.calibration.images import load_images
         from omnitof.calibration.intrinsics import calibrate_intrinsics
 
-        first = calibrate_intrinsics(load_images(args.taken), board)
+        first = calibrate_intrinsics(load_images(args.taken, **_bag_format(args)), board)
         camera, taken = first.camera, first.poses
         # OpenCV's RMS is of the 2D error; the plan's σ is per coordinate.
         sigma_px = first.rms_px / math.sqrt(2.0)
@@ -418,7 +424,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         from omnitof.calibration import CalibrationError
         from omnitof.calibration.images import load_images
 
-        frames = load_images([args.frame])
+        frames = load_images([args.frame], **_bag_format(args))
         if not frames or frames[0].distance is None:
             raise CalibrationError("the check needs a distance image (.npz or a ROS bag)", args.frame)
         distance = frames[0].distance
@@ -482,3 +488,6 @@ def cmd_masks(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bag_format(args: argparse.Namespace) -> dict:
+    """How to read the ROS bags among the images (--tof-topics, --tof-distance)."""
+    return {"topics": args.tof_topics, "depth": args.tof_distance == "depth"}

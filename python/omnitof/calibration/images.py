@@ -7,12 +7,13 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
 from omnitof.calibration import CalibrationError
-from omnitof.io.rosbag import read_tof_bag
+from omnitof.io.rosbag import ToFTopics, read_tof_bag
 
 IMAGE_SUFFIXES = (".png", ".pgm", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
@@ -28,12 +29,14 @@ class AmplitudeImage:
     distance: np.ndarray | None = None
 
 
-def load_images(paths: Iterable[str | Path]) -> list[AmplitudeImage]:
+def load_images(paths: Iterable[str | Path], *, topics: Any = None, depth: bool = False) -> list[AmplitudeImage]:
     """Read amplitude (and distance) images from files, folders of them, and ROS bags.
 
     A folder that is a ROS 2 bag (has metadata.yaml) is read as a bag; another folder is read
-    as the sorted image and .npz files inside it (x.npz rather than x.png when both exist). Raises CalibrationError naming the file for
-    an unreadable or unknown input.
+    as the sorted image and .npz files inside it (x.npz rather than x.png when both exist). A
+    bag's topics are `topics` (an `io.rosbag.ToFTopics`; default the simulator's), its distance
+    images depth images with `depth` (`io.rosbag.read_tof_bag`). Raises CalibrationError naming
+    the file for an unreadable or unknown input.
     """
     out: list[AmplitudeImage] = []
     for raw in paths:
@@ -48,9 +51,9 @@ def load_images(paths: Iterable[str | Path]) -> list[AmplitudeImage]:
             members = [p for p in members if p.suffix.lower() == ".npz" or p.stem not in npz]
             if not members:
                 raise CalibrationError("folder holds no images (.png, .npz, ...)", path)
-            out.extend(load_images(members))
+            out.extend(load_images(members, topics=topics, depth=depth))
         elif path.is_dir() or path.suffix.lower() in BAG_SUFFIXES:
-            out.extend(_bag_images(path))
+            out.extend(_bag_images(path, topics, depth))
         elif path.suffix.lower() == ".npz":
             out.append(_npz_image(path))
         elif path.suffix.lower() in IMAGE_SUFFIXES:
@@ -83,8 +86,8 @@ def _npz_image(path: Path) -> AmplitudeImage:
     return AmplitudeImage(str(path), amplitude, distance)
 
 
-def _bag_images(path: Path) -> list[AmplitudeImage]:
-    bag = read_tof_bag(path, require_odometry=False)
+def _bag_images(path: Path, topics: Any = None, depth: bool = False) -> list[AmplitudeImage]:
+    bag = read_tof_bag(path, topics=topics or ToFTopics(), require_odometry=False, depth=depth)
     return [
         AmplitudeImage(f"{path}:frame{k}", frame.amplitude, frame.distance)
         for k, frame in enumerate(bag.frames(samples=False))
