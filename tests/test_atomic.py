@@ -77,6 +77,16 @@ def test_an_unwritable_place_is_refused_before_the_block(tmp_path):
             pytest.fail("the block must not run")
 
 
+def test_a_file_in_a_missing_folder_names_the_file_not_its_temporary(tmp_path):
+    target = tmp_path / "missing" / "scans.clf"
+    for opener in (lambda: atomic_write(target), lambda: temporary_folder(target)):
+        with pytest.raises(OutputError, match="its folder does not exist") as caught:
+            with opener():
+                pass
+        assert str(caught.value).startswith(str(target)) and ".tmp" not in str(caught.value)
+    assert not (tmp_path / "missing").exists()
+
+
 def test_may_replace_can_refuse_an_existing_folder(tmp_path):
     out = folder_with(tmp_path / "home", {"thesis.tex": "precious"})
 

@@ -46,6 +46,13 @@ def _temporary(path: Path, kind: str) -> Path:
     return path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(6)}.{kind}")
 
 
+def _unwritable(path: Path, err: OSError) -> OutputError:
+    """The error for an output whose temporary beside it cannot be made: named by the output, not
+    by the temporary."""
+    why = "its folder does not exist" if not path.parent.is_dir() else (err.strerror or str(err))
+    return OutputError(f"{path}: cannot write: {why}")
+
+
 def _alive(pid: int) -> bool:
     """Whether process `pid` exists (a process of another user counts)."""
     try:
@@ -134,6 +141,8 @@ def atomic_write(
             break
         except FileExistsError:
             continue
+        except OSError as err:
+            raise _unwritable(path, err) from None
     _ACTIVE.add(tmp)
     try:
         if mode == "wb":
@@ -167,6 +176,8 @@ def temporary_folder(path: str | Path) -> Iterator[Path]:
             break
         except FileExistsError:
             continue
+        except OSError as err:
+            raise _unwritable(path, err) from None
     _ACTIVE.add(folder)
     try:
         yield folder

@@ -439,7 +439,7 @@ def _atomic_path(path: Path, overwrite: bool) -> Iterator[Path]:
     removed and `path` is left as it was. What a killed writer left is swept first.
     """
     if path.exists() and not overwrite:
-        raise BagExistsError(f"{path} exists already; pass overwrite=True to replace it")
+        raise BagExistsError(f"{path} exists already; replace it with --overwrite (overwrite=True in Python)")
     path.parent.mkdir(parents=True, exist_ok=True)
     with temporary_folder(path) as staging:
         inner = staging / path.name
