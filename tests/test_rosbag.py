@@ -537,6 +537,26 @@ def test_incomplete_frame_is_skipped(tmp_path: Path) -> None:
     np.testing.assert_array_equal(got[1].distance, np.full(SMALL.shape, 3.0, np.float32))
 
 
+def test_images_stamped_a_little_apart_are_one_frame(tmp_path: Path) -> None:
+    # A driver that stamps each topic when it publishes it: the amplitude 2 ms after the
+    # distance (and once 2 ms before); a 40 ms gap is another frame, whose partner never comes.
+    messages = [("/odom", ODOM, odometry_msg(HUMBLE, k * NS, (k, 0, 0))) for k in range(5)]
+    offsets = {NS: 2_000_000, 2 * NS: -2_000_000, 3 * NS: 40_000_000}
+    for ns, dt in offsets.items():
+        messages.append(("/tof/camera_info", INFO, camera_info_msg(ns, SMALL)))
+        if dt < 0:
+            messages.append(("/tof/amplitude", IMG, image_msg(ns + dt, np.full(SMALL.shape, 7.0, np.float32))))
+        messages.append(("/tof/distance", IMG, image_msg(ns, np.full(SMALL.shape, ns / NS, np.float32))))
+        if dt > 0:
+            messages.append(("/tof/amplitude", IMG, image_msg(ns + dt, np.full(SMALL.shape, 7.0, np.float32))))
+    path = write_raw(tmp_path / "b", messages)
+    with pytest.warns(RosbagWarning, match="skipped 2 frame"):
+        got = list(read_tof_bag(path).frames())
+    # The frames take the distance image's stamp, as frame_timestamps() does.
+    assert [f.timestamp for f in got] == [1.0, 2.0]
+    assert [float(f.distance[0, 0]) for f in got] == [1.0, 2.0] and all(f.amplitude[0, 0] == 7.0 for f in got)
+
+
 def test_topic_that_stops(tmp_path: Path) -> None:
     stamps = [k * NS for k in range(1, 71)]
     path = raw_tof_bag(tmp_path / "b", stamps, skip_amplitude=set(stamps[3:]))

@@ -16,7 +16,8 @@ distributions for the types used here); the reader takes ROS 1 bags too. Default
     /ground_truth     nav_msgs/Odometry       world → base_link, optional (simulation)
 
 The images and the camera info of one frame share one header stamp: that stamp *is* the frame's
-timestamp, and the reader groups a frame's images by it. Each message's bag (log) time equals its
+timestamp, and the reader groups a frame's images by it (a driver's images stamped up to 5 ms
+apart are paired too; the distance image's stamp is then the frame's). Each message's bag (log) time equals its
 header stamp. Images are little-endian, rows packed (step = width · 4 · channels), pixel
 [row, col] as in omnitof.sensor.camera. Odometry poses are planar: position (x, y, 0),
 orientation the quaternion of a rotation by θ about +z, covariances and twist left zero
@@ -82,6 +83,9 @@ __all__ = ["ToFBag", "ToFFrameStamped", "ToFTopics", "read_tof_bag", "write_tof_
 
 # Images of one frame that wait for their partners; more means a topic stopped publishing.
 _MAX_PENDING_FRAMES = 64
+# Images of one frame stamped this far apart (ns) are still paired: some drivers stamp each topic
+# when they publish it. 5 ms is a quarter of a frame at 50 Hz, so two frames cannot be confused.
+_PAIRING_NS = 5_000_000
 
 
 # --- plain types ---------------------------------------------------------------------------
@@ -403,6 +407,7 @@ class ToFBag:
         shape = self.camera.shape
         last_ns = dict.fromkeys(roles.values(), -1)
         pending: OrderedDict[int, dict[str, np.ndarray]] = OrderedDict()
+        distance_ns: dict[int, int] = {}  # a pending frame's distance image's own stamp
         emitted_ns = -1
         dropped: list[int] = []
         with _opened(self.path) as reader:
@@ -420,13 +425,17 @@ class ToFBag:
                 image = _decode_image(msg, self.path, conn.topic, IMAGE_FORMATS[role], shape, self.topics.camera_info)
                 if role == "distance" and self.depth:
                     image = image / self._ray_z()
-                pending.setdefault(ns, {})[role] = image
+                key = _frame_key(pending, role, ns)
+                pending.setdefault(key, {})[role] = image
+                if role == "distance":
+                    distance_ns[key] = ns
                 while pending:
-                    stamp, parts = next(iter(pending.items()))
+                    key, parts = next(iter(pending.items()))
                     missing = [r for r in last_ns if r not in parts]
-                    if missing and not all(last_ns[r] > stamp for r in missing):
+                    if missing and not all(last_ns[r] > key + _PAIRING_NS for r in missing):
                         break  # its missing images may still come
-                    del pending[stamp]
+                    del pending[key]
+                    stamp = distance_ns.pop(key, key)
                     if missing:
                         dropped.append(stamp)
                         continue
@@ -445,7 +454,7 @@ class ToFBag:
                     raise InputError(
                         f"topic {', '.join(missing)}: no image for the frame at "
                         f"{_ns_to_s(stamp):.9f} s while {len(pending)} frames wait for it; "
-                        "the images of one frame must share one header stamp",
+                        "the images of one frame must share one header stamp (or lie within 5 ms of it)",
                         self.path,
                     )
         dropped.extend(pending)
@@ -518,6 +527,15 @@ class ToFBag:
         return ToFFrameStamped(
             t, parts["distance"], parts["amplitude"], samples, odometry, ground_truth
         )
+
+
+def _frame_key(pending: OrderedDict[int, dict[str, np.ndarray]], role: str, ns: int) -> int:
+    """The pending frame an image of `role` stamped `ns` belongs to: the one of that stamp, else
+    the nearest one within _PAIRING_NS that lacks this role, else a new one (`ns`)."""
+    if ns in pending and role not in pending[ns]:
+        return ns
+    near = [s for s, parts in pending.items() if role not in parts and abs(s - ns) <= _PAIRING_NS]
+    return min(near, key=lambda s: abs(s - ns)) if near else ns
 
 
 def read_tof_bag(
