@@ -408,6 +408,8 @@ class ToFBag:
         last_ns = dict.fromkeys(roles.values(), -1)
         pending: OrderedDict[int, dict[str, np.ndarray]] = OrderedDict()
         distance_ns: dict[int, int] = {}  # a pending frame's distance image's own stamp
+        # Depth z = radial distance × the z component of the pixel's unit ray.
+        ray_z = self.camera.pixel_grid_rays()[..., 2].astype(np.float32) if self.depth else None
         emitted_ns = -1
         dropped: list[int] = []
         with _opened(self.path) as reader:
@@ -423,8 +425,8 @@ class ToFBag:
                     )
                 last_ns[role] = ns
                 image = _decode_image(msg, self.path, conn.topic, IMAGE_FORMATS[role], shape, self.topics.camera_info)
-                if role == "distance" and self.depth:
-                    image = image / self._ray_z()
+                if role == "distance" and ray_z is not None:
+                    image = image / ray_z
                 key = _frame_key(pending, role, ns)
                 pending.setdefault(key, {})[role] = image
                 if role == "distance":
@@ -465,10 +467,6 @@ class ToFBag:
                 RosbagWarning,
                 stacklevel=2,
             )
-
-    def _ray_z(self) -> np.ndarray:
-        """(H, W) float32 the z component of each pixel's unit ray: depth z = radial distance × it."""
-        return self.camera.pixel_grid_rays()[..., 2].astype(np.float32)
 
     def frame_timestamps(self) -> np.ndarray:
         """(N,) float64 header stamps of the distance images, seconds (one pass, cached)."""
