@@ -5,6 +5,7 @@ not: the 3D filter localises there, the 2D one cannot."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -217,3 +218,23 @@ def test_slam_filter_3d_writes_the_voxel_map_its_projection_and_the_difference(t
     log.write_text("ODOM 0 0 0 0 0 0 1.0 host 0\n")
     assert main(["slam", str(log), "--filter", "3d", "--out", str(tmp_path / "x"), "--quiet"]) == 2
     assert "needs a bag of ToF images" in capsys.readouterr().err
+
+
+def test_odometry_far_out_gives_the_same_run_moved(atrium_run):
+    # 1000 km out: 10 million voxels of 0.1 m, beyond the core's ±2^20 (omnitof.map3d.voxels).
+    from omnitof.map3d import VoxelMap
+
+    data, cfg = atrium_run
+    keep = 8
+    scans = data.scans.slice(0, int(data.cloud_frames[keep - 1]) + 1)
+    shift = np.array([1e6, -2e5, 0.0])
+    far = dataclasses.replace(scans, odometry=scans.odometry + shift)
+    a = run_slam3d(scans, data.cloud_frames[:keep], data.clouds[:keep], cfg)
+    b = run_slam3d(far, data.cloud_frames[:keep], data.clouds[:keep], cfg)
+    moved = b.result.trajectory.poses - a.result.trajectory.poses - shift
+    assert np.abs(moved).max() < 1e-6
+    assert np.subtract(b.result.map.origin, a.result.map.origin) == pytest.approx(shift[:2], abs=1e-6)
+    near_voxels = VoxelMap.of_grid(a.voxels, offset=a.offset).occupied()
+    far_voxels = VoxelMap.of_grid(b.voxels, offset=b.offset).occupied()
+    assert len(near_voxels) > 1000 and far_voxels.shape == near_voxels.shape
+    assert np.abs(far_voxels - shift - near_voxels).max() < 1e-6

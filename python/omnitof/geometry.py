@@ -44,6 +44,18 @@ def relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return compose(inverse(a), b)
 
 
+def anchor_offset(xy: np.ndarray, cell: float, reach_cells: float, unit_cells: int) -> np.ndarray:
+    """(x, y) metres by which to move points (N, 2) that lie far from their origin before they
+    go into a grid of `cell` metres: zero where every point lies within `reach_cells` cells of
+    the origin, else the first point rounded to whole units of `unit_cells` cells, so that the
+    moved grid's cells keep their place in the world (omnitof.slam.anchor tells why)."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    if len(xy) == 0 or not np.max(np.abs(xy)) / cell > reach_cells:
+        return np.zeros(2)
+    unit = unit_cells * cell
+    return np.round(xy[0] / unit) * unit
+
+
 def yaw_to_quaternion(theta: np.ndarray) -> np.ndarray:
     """Unit quaternions (qx, qy, qz, qw) of rotations by theta about +z."""
     theta = np.asarray(theta, dtype=np.float64)

@@ -251,7 +251,7 @@ def _run_3d(request: SlamRequest, cfg: SlamConfig, scans: ScanSequence, tof_data
         run3 = run_slam3d(scans, tof_data.cloud_frames, tof_data.clouds, cfg,
                           progress=_pausing(b.update, "slam", len(scans) // 2))
     result = run3.result
-    paths = write_voxel_outputs(VoxelMap.of_grid(run3.voxels), out, trajectory=result.trajectory.poses,
+    paths = write_voxel_outputs(VoxelMap.of_grid(run3.voxels, offset=run3.offset), out, trajectory=result.trajectory.poses,
                                 title="3D filter: occupied voxels of the best particle")
     if request.compare_2d:
         with bar(len(scans), "slam 2d", "scan") as b:

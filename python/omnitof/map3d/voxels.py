@@ -15,6 +15,11 @@ drives on a flat floor). Voxel (i, j, k) covers [i·r, (i+1)·r) × [j·r, (j+1)
 [k·r, (k+1)·r) for resolution r; its centre is ((i, j, k) + ½)·r. Log-odds are float32, NaN
 where unknown.
 
+Georeferenced odometry (UTM: millions of metres) would put the voxels beyond the core's
+indices (±2^20 per axis, rust/src/voxel.rs: 105 km at 0.1 m), so a map whose first frame lies
+more than 2^14 voxels from (0, 0) (omnitof.slam.anchor.voxel_offset) keeps its voxels relative to `offset`, that frame's
+(x, y) in whole 8-voxel blocks; every point going in or out is moved by it.
+
 Where the points come from: `backproject_frame` turns one frame's distance image into rays in
 the robot frame (from the mirror point of each pixel to its measured surface point).
 """
@@ -33,6 +38,7 @@ from omnitof.errors import ConfigError
 from omnitof.sensor.mirrors import Mirror, MirrorPlane, mount_rotation
 from omnitof.sim.worlds import World
 from omnitof.sensor.tof import DEFAULT_F_MOD, unambiguous_range
+from omnitof.slam.anchor import voxel_offset
 
 DEFAULT_RESOLUTION = 0.1  # metres: the paper's Fig. 11(b) grid
 # The same increments and limits as the 2D grid (omnitof.slam.config, MapConfig defaults).
@@ -93,13 +99,17 @@ class VoxelMap:
             raise Map3DError(str(exc)) from None
         self.max_range = float(max_range)
         self.frames = 0
+        self.offset = np.zeros(3)  # world point of the grid's own origin (module notes)
 
     @classmethod
-    def of_grid(cls, grid: "_core.VoxelGrid", max_range: float = DEFAULT_MAX_RANGE) -> "VoxelMap":
+    def of_grid(cls, grid: "_core.VoxelGrid", max_range: float = DEFAULT_MAX_RANGE,
+                offset: Sequence[float] = (0.0, 0.0)) -> "VoxelMap":
         """A VoxelMap around a core VoxelGrid made elsewhere (the 3D filter's best map,
-        `_core.ParticleFilter3D.map`)."""
+        `_core.ParticleFilter3D.map`), whose voxels lie relative to the world point `offset`
+        (x, y)."""
         vm = cls.__new__(cls)
         vm._grid, vm.max_range, vm.frames = grid, float(max_range), 0
+        vm.offset = np.array([float(offset[0]), float(offset[1]), 0.0])
         return vm
 
     @property
@@ -112,8 +122,10 @@ class VoxelMap:
         e = _points(endpoints, "endpoints")
         if o.shape != e.shape:
             raise Map3DError(f"origins {o.shape} and endpoints {e.shape} differ in shape")
+        if self.frames == 0 and self._grid.voxel_count() == 0:
+            self.offset[:2] = voxel_offset(o[:, :2], self.resolution)
         try:
-            stats = IntegrateStats(*self._grid.integrate(o, e, self.max_range))
+            stats = IntegrateStats(*self._grid.integrate(o - self.offset, e - self.offset, self.max_range))
         except ValueError as exc:
             raise Map3DError(str(exc)) from None
         self.frames += 1
@@ -133,15 +145,16 @@ class VoxelMap:
     def occupied(self, threshold: float = DEFAULT_OCCUPIED_THRESHOLD) -> np.ndarray:
         """(M, 3) centres (metres) of the voxels whose log-odds exceed `threshold`, sorted by
         voxel index (i, j, k)."""
-        return self._grid.occupied(float(threshold))
+        return self._grid.occupied(float(threshold)) + self.offset
 
     def observed(self) -> tuple[np.ndarray, np.ndarray]:
-        """(indices (K, 3) int64, log-odds (K,) float32) of every observed voxel, sorted."""
+        """(indices (K, 3) int64, log-odds (K,) float32) of every observed voxel, sorted; the
+        indices count from `offset` (module notes)."""
         return self._grid.observed()
 
     def log_odds_at(self, points: np.ndarray) -> np.ndarray:
         """(N,) log-odds of the voxels holding world points (N, 3); NaN where unknown."""
-        return self._grid.log_odds_at(_points(points, "points"))
+        return self._grid.log_odds_at(_points(points, "points") - self.offset)
 
     def voxel_count(self) -> int:
         """Observed (free, occupied or in between) voxels."""
@@ -154,7 +167,7 @@ class VoxelMap:
     def bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(min corner (3,), max corner (3,)) metres of the observed voxels; None if empty."""
         b = self._grid.bounds()
-        return None if b is None else (np.array(b[0]), np.array(b[1]))
+        return None if b is None else (np.array(b[0]) + self.offset, np.array(b[1]) + self.offset)
 
 
 def build_voxel_map(

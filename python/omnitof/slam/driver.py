@@ -19,6 +19,7 @@ import numpy as np
 
 from omnitof import _core
 from omnitof.errors import InputError, ResourceError
+from omnitof.slam.anchor import moved, moved_back, run_offset
 from omnitof.slam.backend import PoseGraphBackend
 from omnitof.slam.limits import MemoryWatch, check_limits
 from omnitof.slam.config import SlamConfig
@@ -166,8 +167,9 @@ def run_slam(
             that ran out all the same.
     """
     check_limits(scans, cfg)
+    offset = run_offset(scans.odometry, cfg.map.resolution)  # odometry far out (slam.anchor)
     try:
-        result = _run(scans, cfg, progress)
+        result = in_odometry_frame(_run(moved(scans, offset), cfg, progress), offset, scans)
     except MemoryError as err:  # the core's allocations fail as MemoryError, never as an abort
         raise ResourceError(
             f"out of memory during SLAM ({err or 'no detail'}) with filter.particles "
@@ -180,6 +182,19 @@ def run_slam(
             f"{cfg.map.max_range:g} m, and map.clear_no_echo is off): there is nothing to map",
             scans.source or None,
         )
+    return result
+
+
+def in_odometry_frame(result: SlamResult, offset: np.ndarray, scans: ScanSequence) -> SlamResult:
+    """A result of the run moved by -offset (omnitof.slam.anchor) in the odometry's own frame."""
+    if not np.any(offset):
+        return result
+    result.trajectory = Trajectory(result.trajectory.timestamps, moved_back(result.trajectory.poses, offset))
+    result.odometry = Trajectory(scans.timestamps, scans.odometry)
+    x0, y0 = result.map.origin
+    result.map.origin = (x0 + float(offset[0]), y0 + float(offset[1]))
+    if result.graph is not None:
+        result.graph["nodes"] = moved_back(result.graph["nodes"], offset)
     return result
 
 

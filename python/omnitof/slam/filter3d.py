@@ -25,7 +25,8 @@ import numpy as np
 from omnitof import _core
 from omnitof.errors import InputError, ResourceError
 from omnitof.slam.config import SlamConfig
-from omnitof.slam.driver import DRIVER_FILTER_FIELDS, SlamResult, fill_trajectory
+from omnitof.slam.driver import DRIVER_FILTER_FIELDS, SlamResult, fill_trajectory, in_odometry_frame
+from omnitof.slam.anchor import moved, voxel_offset
 from omnitof.slam.limits import MemoryWatch
 from omnitof.types import OccupancyMap, ScanSequence, Trajectory
 
@@ -38,6 +39,7 @@ class Slam3DResult:
     result: SlamResult
     voxels: Any  # _core.VoxelGrid
     frame_seconds: list[float] = field(default_factory=list)
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(2))  # the voxels' world origin (x, y)
 
 
 def core_sections_3d(cfg: SlamConfig) -> dict:
@@ -96,13 +98,18 @@ def run_slam3d(
                          f"(got {len(frames)} frames, {len(clouds)} clouds)", scans.source or None)
     if np.any(np.diff(frames) <= 0) or frames[-1] >= len(scans):
         raise InputError("the 3D filter's frames must be increasing scan indices", scans.source or None)
+    # Odometry far from its origin: the run is moved next to it (omnitof.slam.anchor), and its
+    # voxels stay relative to `offset` (omnitof.map3d.voxels notes).
+    offset = voxel_offset(scans.odometry[:, :2], cfg.filter3d.resolution)
     try:
-        return _run(scans, frames, clouds, cfg, progress)
+        run = _run(moved(scans, offset), frames, clouds, cfg, progress)
     except MemoryError as err:
         raise ResourceError(
             f"out of memory in the 3D filter ({err or 'no detail'}) with filter.particles {cfg.filter.particles} "
             f"and filter3d.resolution {cfg.filter3d.resolution:g} m: choose fewer particles or a coarser resolution"
         ) from None
+    run.result, run.offset = in_odometry_frame(run.result, offset, scans), offset
+    return run
 
 
 def _run(scans: ScanSequence, frames: np.ndarray, clouds: Sequence[np.ndarray], cfg: SlamConfig,

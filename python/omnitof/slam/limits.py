@@ -52,6 +52,8 @@ _CHUNK = 2048  # scans per chunk when the extent is computed (bounds the tempora
 # Where the memory available is unknown, estimates above this are refused: 1 PiB, more than any
 # single machine has.
 NO_MACHINE_BYTES = float(2**50)
+# Odometry positions must resolve this fraction of a cell (check_odometry_precision).
+PRECISION_CELLS = 1e-3
 
 
 @dataclass(frozen=True)
@@ -321,9 +323,35 @@ def check_mappable(scans: ScanSequence, cfg: SlamConfig) -> None:
         )
 
 
+def check_odometry_precision(scans: ScanSequence, resolution: float) -> None:
+    """Refuse odometry so far from its origin that float64 no longer resolves a thousandth of a
+    cell there: positions hold only steps of np.spacing(|x|) (1e-9 m at 5e6 m, 1 m at 1e16 m),
+    and the log's motions are lost already when it is read.
+
+    Raises:
+        InputError: naming the first such scan, its position and the precision left.
+    """
+    if len(scans) == 0:
+        return
+    far = np.max(np.abs(scans.odometry[:, :2]), axis=1)
+    coarse = np.spacing(far) > PRECISION_CELLS * resolution
+    if coarse.any():
+        k = int(np.flatnonzero(coarse)[0])
+        x, y = scans.odometry[k, :2]
+        raise InputError(
+            f"the odometry pose of scan {k} lies at ({x:.6g}, {y:.6g}) m, so far from its origin that "
+            f"a float64 position there holds only steps of {np.spacing(far[k]):.3g} m, coarser than a "
+            f"thousandth of a cell of map.resolution {resolution:g} m: the log's motions are lost "
+            "(subtract a reference position from the odometry)",
+            scans.source or None,
+        )
+
+
 def check_limits(scans: ScanSequence, cfg: SlamConfig, *, available: float | None = None) -> MemoryEstimate:
     """Everything a run can be refused for before it runs: scans that cannot make a map
-    (`check_mappable`), submaps too wide (`check_submaps`), memory (`check_memory`)."""
+    (`check_mappable`), odometry too far out to resolve its motions (`check_odometry_precision`),
+    submaps too wide (`check_submaps`), memory (`check_memory`)."""
     check_mappable(scans, cfg)
+    check_odometry_precision(scans, cfg.map.resolution)
     check_submaps(scans, cfg)
     return check_memory(scans, cfg, available=available)
