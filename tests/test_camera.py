@@ -256,6 +256,7 @@ def test_undistort_image_keeps_dtype_and_nearest_keeps_values():
         ({"cx": math.inf}, "cx"),
         ({"width": 0}, "width"),
         ({"height": 144.5}, "height"),
+        ({"width": 10**9}, "width"),  # a typo: its ray table alone would need 10 PB
         ({"dist": (-0.8, 0.3, 0.01, 0.0)}, "dist"),
         ({"dist": (-0.8, 0.3, 0.01, 0.0, 0.0, 0.0)}, "dist"),
         ({"dist": (-0.8, math.nan, 0.01, 0.0, 0.0)}, "dist"),

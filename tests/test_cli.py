@@ -337,3 +337,17 @@ def test_the_demo_refuses_a_bad_configuration_before_any_work(tmp_path, capsys):
     assert main(["demo", "--out", str(out), "--particles", "0", "--quiet"]) == 2
     captured = capsys.readouterr()
     assert "filter.particles" in captured.err and "[1]" not in captured.out and not out.exists()
+
+
+def test_running_out_of_memory_is_one_line_and_leaves_nothing(tmp_path, monkeypatch, capsys):
+    # Whatever asks for more memory than the machine has, past every field's bound: numpy's
+    # MemoryError (as a path of 1e12 laps raised, before path.laps was bounded) is one line.
+    def too_big(*args, **kwargs):
+        raise MemoryError("Unable to allocate 58.2 TiB for an array with shape (1000000000000, 8)")
+
+    monkeypatch.setattr("omnitof.sim.sequence.robot_path", too_big)
+    out = tmp_path / "bag"
+    assert main(["simulate", "--world", "room", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert err.startswith("omnitof: error: out of memory (Unable to allocate 58.2 TiB") and not out.exists()

@@ -202,6 +202,8 @@ BAD_FILES = [
      ["boxes[0].height", "above bottom"]),
     ("name: x\nceiling_height: 2.5\nwalls:\n  - points: [[0, 0], [3, nan]]\n", ["walls[0].points[1][1]", "finite"]),
     ("name: x\nceiling_height: 2.5\n", ["walls", "at least one wall or box"]),
+    ("name: x\nceiling_height: 2.5\nwalls:\n  - points: [[0, 0], [3, 0]]\npath:\n  waypoints: [[1, 1], [2, 1]]\n"
+     "  laps: 1000000000000\n", ["path.laps", "less than or equal to 10000"]),
     ("name: x\nceiling_height: 2.5\nwalls: [[0, 0], [1, 0]\n", ["not valid YAML"]),
 ]
 

@@ -514,6 +514,11 @@ def main(argv: list[str] | None = None) -> int:
         except OSError as err:  # an input that cannot be read, an output folder that cannot be written
             print(f"omnitof: error: {err}", file=sys.stderr)
             return 2
+        except MemoryError as err:  # a setting or input that asks for more than any check foresaw
+            detail = f" ({err})" if str(err) else ""
+            print(f"omnitof: error: out of memory{detail}: an input or setting asks for more than this "
+                  "machine has; nothing half-written was left", file=sys.stderr)
+            return 2
         except Terminated:
             print("omnitof: terminated (SIGTERM); nothing half-written was left", file=sys.stderr)
             return 128 + signal.SIGTERM

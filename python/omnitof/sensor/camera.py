@@ -51,6 +51,11 @@ class CameraParameterError(ConfigError, ValueError):
     """A bad camera parameter or input array, named in the message; ConfigError and ValueError."""
 
 
+# Image sides beyond this are refused: no camera has them, and the images and ray tables of one
+# would need terabytes (a typo such as an extra digit, not a camera).
+MAX_IMAGE_SIDE = 16384
+
+
 @dataclass(frozen=True)
 class Camera:
     """Intrinsics of a pinhole camera with distortion, in OpenCV's parameterisation.
@@ -79,6 +84,11 @@ class Camera:
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
                 raise CameraParameterError(
                     f"Camera.{name} must be a positive whole number of pixels, got {value!r}"
+                )
+            if value > MAX_IMAGE_SIDE:
+                raise CameraParameterError(
+                    f"Camera.{name} must be at most {MAX_IMAGE_SIDE} pixels (the largest image sensors), "
+                    f"got {value!r}"
                 )
             object.__setattr__(self, name, int(value))
         for name in ("fx", "fy"):

@@ -17,7 +17,7 @@ A world file (`omnitof/worlds/<name>.yaml`, package data) describes one floor of
   `bottom` and `height` (z of the lowest and highest face);
 - `landmarks`: places where the distance between two opposite walls is known (the paper's
   Table I): `position`, `direction_deg` of the measurement, true `distance`, `height`;
-- `path`: the robot's loop as `waypoints` (closed unless `closed: false`), driven `laps` times;
+- `path`: the robot's loop as `waypoints` (closed unless `closed: false`), driven `laps` times (1 to 10 000);
 - `extends`: another world file (name in the same folder, without .yaml) whose keys this one
   takes over and may replace, key by key; a name starting with "_" is a shared part, not a world.
 
@@ -205,7 +205,8 @@ class LandmarkSpec(_Strict):
 class PathSpec(_Strict):
     waypoints: Annotated[list[Point2], Field(min_length=2)]
     closed: bool = True
-    laps: Annotated[int, Field(ge=1)] = 1
+    # 10 000 laps of a 10 m loop are 100 km, a million frames at 10 Hz: more is a typo.
+    laps: Annotated[int, Field(ge=1, le=10_000)] = 1
 
 
 class WorldSpec(_Strict):
