@@ -6,8 +6,13 @@ The frames are rendered once (every effect of the camera on, spread over the wor
 that the machine's drift falls on every variant alike. Reported: frames/s, the median of the
 runs and their range, and the ratio to "as shipped" in the same run.
 
+With --keyframes, instead: the 3D filter's keyframes, whose rays and scan both come from
+the frame (`scan.tof_input`), with the compensation as shipped: corrected once for both
+(`ScanExtractor.corrected_distances`, as reading a bag does now) against corrected for each
+(as it did before), every frame a keyframe.
+
 Usage:
-    python benchmarks/multipath_speed.py [--world corridor1] [--frames 30] [--runs 7]
+    python benchmarks/multipath_speed.py [--world corridor1] [--frames 30] [--runs 7] [--keyframes]
 """
 
 from __future__ import annotations
@@ -39,11 +44,15 @@ def main() -> None:
     parser.add_argument("--world", default="corridor1")
     parser.add_argument("--frames", type=int, default=30)
     parser.add_argument("--runs", type=int, default=7)
+    parser.add_argument("--keyframes", action="store_true", help="rays and scans of keyframes, corrected once or twice")
     args = parser.parse_args()
     renderer, _, rendered = frames(load_world(args.world), ToFErrors.realistic(), args.frames)
     d = np.stack([f.distance for f in rendered])
     a = np.stack([f.amplitude for f in rendered])
     cal = Calibration.from_rig(renderer.rig)
+    if args.keyframes:
+        keyframes(args, ScanExtractor.from_calibration(cal, multipath=compensation(renderer, True)), d, a)
+        return
     extractors = {
         label: ScanExtractor.from_calibration(
             cal, **({} if change is None else {"multipath": {**compensation(renderer, True), **change}})
@@ -63,6 +72,35 @@ def main() -> None:
     for label, s in seconds.items():
         print(f"| {label} | {len(d) / statistics.median(s):.1f} ({len(d) / max(s):.1f}–{len(d) / min(s):.1f}) | "
               f"{statistics.median(s) / shipped:.2f} |")
+
+
+def keyframes(args: argparse.Namespace, extractor: ScanExtractor, d: np.ndarray, a: np.ndarray) -> None:
+    """Rays and scans of every frame: corrected once for both, or once for each."""
+
+    def once() -> None:
+        fixed = extractor.corrected_distances(d, a)
+        for k in range(len(d)):
+            extractor.rays(fixed[k], a[k], corrected=True)
+        extractor.extract_many(fixed, a, corrected=np.ones(len(d), dtype=bool))
+
+    def twice() -> None:
+        for k in range(len(d)):
+            extractor.rays(d[k], a[k])
+        extractor.extract_many(d, a)
+
+    seconds: dict[str, list[float]] = {"corrected once (now)": [], "corrected for each (before)": []}
+    for _ in range(args.runs):
+        for label, run in zip(seconds, (once, twice)):
+            t = time.perf_counter()
+            run()
+            seconds[label].append(time.perf_counter() - t)
+    now = statistics.median(seconds["corrected once (now)"])
+    print(f"# {args.world}, {len(d)} keyframes, compensation as shipped, {args.runs} runs, load {os.getloadavg()[0]:.1f}")
+    print("| rays and scan of each keyframe | keyframes/s, median (min–max) | time / now |")
+    print("|---|---|---|")
+    for label, s in seconds.items():
+        print(f"| {label} | {len(d) / statistics.median(s):.1f} ({len(d) / max(s):.1f}–{len(d) / min(s):.1f}) | "
+              f"{statistics.median(s) / now:.2f} |")
 
 
 if __name__ == "__main__":

@@ -266,3 +266,32 @@ def test_a_simulated_bag_gets_the_compensation_its_camera_needs(tmp_path, errors
     assert on.extractor.settings.multipath.enabled and on.multipath_rule.startswith("on (--multipath-compensation on")
     assert on.extractor.settings.multipath.leds == (errors == "default")  # the default camera has LEDs
     assert np.any(on.scans.ranges != off.scans.ranges)
+
+
+def test_a_keyframe_is_compensated_once_for_its_rays_and_its_scan():
+    # The 3D filter's keyframes go into both the rays and the scans: the compensation (as long
+    # as the rest of the extraction) runs once per frame, and the results are the ones each
+    # extraction gives on its own.
+    from omnitof.scan.tof_input import tof_scans
+    from omnitof.sim.sequence import MotionSettings, make_sequence, render_sequence
+
+    errors = ToFErrors(multipath=True, multipath_rays=2)
+    world = parse_world({"name": "c", "ceiling_height": 2.6,
+                         "walls": [{"points": [[-4.0, -1.2], [10.0, -1.2], [10.0, 1.2], [-4.0, 1.2]], "closed": True}],
+                         "path": {"waypoints": [[-2.0, 0.0], [8.0, 0.0]], "closed": False}})
+    sensor = SensorNoise(errors=errors)
+    r = Renderer(world, camera=RIG.camera, mirrors=RIG.mirrors, robot_T_camera=RIG.robot_T_camera, sensor=sensor,
+                 settings=RenderSettings(sub_rays=1, seed=2))
+    frames = list(render_sequence(make_sequence(world, seed=2, motion=MotionSettings(speed=1.0, rate_hz=4.0)), r))[:12]
+    ex = ScanExtractor.from_rig(RIG, multipath=compensation(errors))
+    corrected = []
+    original = ex._multipath.correct
+    ex._multipath.correct = lambda d, a: corrected.append(len(d)) or original(d, a)
+    data = tof_scans(frames, ex, cloud_keyframes=(0.5, 1.0))
+    assert 3 <= len(data.cloud_frames) < len(frames) and sum(corrected) == len(frames)
+    ex._multipath.correct = original
+    alone = np.stack([ex.extract(f.distance, f.amplitude) for f in frames])
+    np.testing.assert_array_equal(data.scans.ranges, alone)
+    for k, cloud in zip(data.cloud_frames, data.clouds):
+        origins, points = ex.rays(frames[k].distance, frames[k].amplitude)
+        np.testing.assert_array_equal(cloud, np.hstack([origins, points]).astype(np.float32))

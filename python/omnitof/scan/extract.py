@@ -332,10 +332,12 @@ class ScanExtractor:
         d, a = self._check(distance, amplitude, single=True)
         return self._extract(d, a)[0]
 
-    def extract_many(self, distances: np.ndarray, amplitudes: np.ndarray, *, chunk: int = 32) -> np.ndarray:
+    def extract_many(self, distances: np.ndarray, amplitudes: np.ndarray, *, chunk: int = 32,
+                     corrected: np.ndarray | None = None) -> np.ndarray:
         """(N, 360) float32 ranges of N frames (N, H, W); +inf where no reading. Frames are
-        processed `chunk` at a time (bounded memory, same result; 32 ran fastest, 2 cores)."""
-        d, a = self._check(distances, amplitudes, single=False)
+        processed `chunk` at a time (bounded memory, same result; 32 ran fastest, 2 cores).
+        `corrected` (N,) bool marks frames whose distances `corrected_distances` gave already."""
+        d, a = self._check(distances, amplitudes, single=False, corrected=corrected)
         if chunk < 1:
             raise ScanConfigError(f"chunk must be >= 1, got {chunk!r}")
         out = np.empty((len(d), N_BINS), dtype=np.float32)
@@ -359,13 +361,23 @@ class ScanExtractor:
         out[pts.rows, pts.cols] = True
         return out
 
-    def rays(self, distance: np.ndarray, amplitude: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def corrected_distances(self, distances: np.ndarray, amplitudes: np.ndarray) -> np.ndarray:
+        """(N, H, W) distances of frames (N, H, W) with the distance correction and the
+        multipath compensation applied, as every extraction applies them. A frame that goes
+        both into `rays` and into `extract_many` (a 3D filter's keyframe) is corrected once
+        this way and handed to both with `corrected=True`: the multipath compensation takes
+        about as long as the rest of the extraction."""
+        return self._check(distances, amplitudes, single=False)[0]
+
+    def rays(self, distance: np.ndarray, amplitude: np.ndarray, *,
+             corrected: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """The measured rays of one frame, robot frame, metres: (origins (K, 3), points (K, 3)),
         where each pixel's light leaves its mirror and the surface point it measured. Every
         filter but the slice applies (mirror mask, both amplitude thresholds, finite distance,
         the point beyond the mirror, horizontal range within min_range..max_range); rows in
-        image order. For 3D maps: the space between origin and point is free."""
-        d, a = self._check(distance, amplitude, single=True)
+        image order. For 3D maps: the space between origin and point is free. `corrected`:
+        the distance is one `corrected_distances` gave."""
+        d, a = self._check(distance, amplitude, single=True, corrected=corrected)
         flat_d = d.reshape(-1).astype(np.float64)
         flat_a = a.reshape(-1).astype(np.float64)
         pixels = np.flatnonzero(self._all_ok)
@@ -471,7 +483,8 @@ class ScanExtractor:
             return self.settings.max_range
         return self.settings.max_range + self.settings.range_margin
 
-    def _check(self, distance: Any, amplitude: Any, *, single: bool) -> tuple[np.ndarray, np.ndarray]:
+    def _check(self, distance: Any, amplitude: Any, *, single: bool,
+               corrected: bool | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         d = np.asarray(distance)
         a = np.asarray(amplitude)
         want = self.camera.shape if single else ("N", *self.camera.shape)
@@ -487,11 +500,22 @@ class ScanExtractor:
             raise ScanInputError(f"distances {d.shape} and amplitudes {a.shape} must have one shape")
         if single:
             d, a = d[None], a[None]
+        # Frames marked `corrected` were corrected already (corrected_distances): not twice.
+        if corrected is not None and np.shape(corrected) not in ((), (len(d),)):
+            raise ScanInputError(f"corrected must hold one flag per frame ({len(d)}), got shape {np.shape(corrected)}")
+        done = np.broadcast_to(np.asarray(False if corrected is None else corrected, dtype=bool), (len(d),))
+        if done.all() or (self.distance_correction is None and self._multipath is None):
+            return d, a
+        fixed, amp = (d, a) if not done.any() else (d[~done], a[~done])
         if self.distance_correction is not None:
-            d = self.distance_correction.correct(d, a)
+            fixed = self.distance_correction.correct(fixed, amp)
         if self._multipath is not None:
-            d = self._multipath.correct(d, a)
-        return d, a
+            fixed = self._multipath.correct(fixed, amp)
+        if not done.any():
+            return fixed, a
+        out = np.empty(d.shape, dtype=fixed.dtype)
+        out[done], out[~done] = d[done], fixed
+        return out, a
 
     def _points(
         self, d: np.ndarray, a: np.ndarray
@@ -566,7 +590,9 @@ def scans_from_frames(
         extractor: the rig's ScanExtractor.
         frames: objects with `.distance` and `.amplitude` (H, W): `io.rosbag.ToFFrameStamped`
             (its .timestamp, .odometry, .ground_truth are used when present) or
-            `sim.render.Frame` (its .pose is the ground truth).
+            `sim.render.Frame` (its .pose is the ground truth). A frame whose
+            `.distance_corrected` is true carries distances that
+            `extractor.corrected_distances` gave already.
         timestamps: (N,) seconds; default the frames' .timestamp.
         odometry: (N, 3) odometry poses; default the frames' .odometry.
         ground_truth: (N, 3) true poses; default the frames' .ground_truth or .pose, else none.
@@ -582,18 +608,21 @@ def scans_from_frames(
     ranges: list[np.ndarray] = []
     batch_d: list[np.ndarray] = []
     batch_a: list[np.ndarray] = []
+    batch_done: list[bool] = []
 
     def flush() -> None:
         if batch_d:
-            ranges.append(extractor.extract_many(np.stack(batch_d), np.stack(batch_a)))
+            ranges.append(extractor.extract_many(np.stack(batch_d), np.stack(batch_a), corrected=np.array(batch_done)))
             batch_d.clear()
             batch_a.clear()
+            batch_done.clear()
 
     for i, frame in enumerate(frames):
         if not (hasattr(frame, "distance") and hasattr(frame, "amplitude")):
             raise ScanInputError(f"frame {i} has no .distance and .amplitude images")
         batch_d.append(np.asarray(frame.distance))
         batch_a.append(np.asarray(frame.amplitude))
+        batch_done.append(bool(getattr(frame, "distance_corrected", False)))
         stamps.append(getattr(frame, "timestamp", math.nan))
         odo.append(getattr(frame, "odometry", None))
         gt = getattr(frame, "ground_truth", None)

@@ -44,6 +44,19 @@ class ToFScans:
     multipath_rule: str = ""
 
 
+class _Corrected:
+    """A frame whose distances the extractor corrected already (`ScanExtractor.corrected_distances`);
+    every other attribute is the frame's own."""
+
+    distance_corrected = True
+
+    def __init__(self, frame: Any, distance: np.ndarray) -> None:
+        self._frame, self.distance = frame, distance
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._frame, name)
+
+
 class _CloudTap:
     """Passes frames through unchanged and keeps the rays of every `every`-th one, or with
     `keyframes` (linear m, angular rad) of each frame after which the odometry moved more than
@@ -79,10 +92,14 @@ class _CloudTap:
     def __call__(self, frames: Iterable[Any]) -> Iterable[Any]:
         for i, frame in enumerate(frames):
             if self._keep(i, frame):
-                origins, points = self.extractor.rays(np.asarray(frame.distance), np.asarray(frame.amplitude))
+                # Corrected once (distance correction, multipath) for both its rays and its scan.
+                amplitude = np.asarray(frame.amplitude)
+                distance = self.extractor.corrected_distances(np.asarray(frame.distance)[None], amplitude[None])[0]
+                origins, points = self.extractor.rays(distance, amplitude, corrected=True)
                 keep = slice(None, None, self.stride)
                 self.frames.append(i)
                 self.clouds.append(np.hstack([origins[keep], points[keep]]).astype(np.float32))
+                frame = _Corrected(frame, distance)
             yield frame
             if self.progress is not None:
                 self.progress(1)
