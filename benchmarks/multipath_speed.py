@@ -59,19 +59,26 @@ def main() -> None:
         )
         for label, change in VARIANTS.items()
     }
-    seconds: dict[str, list[float]] = {label: [] for label in VARIANTS}
-    for _ in range(args.runs):
-        for label, extractor in extractors.items():
-            t = time.perf_counter()
-            extractor.extract_many(d, a)
-            seconds[label].append(time.perf_counter() - t)
-    shipped = statistics.median(seconds["as shipped"])
+    runs = {label: (lambda e=extractor: e.extract_many(d, a)) for label, extractor in extractors.items()}
     print(f"# {args.world}, {len(d)} frames, {args.runs} runs, load {os.getloadavg()[0]:.1f}")
-    print("| compensation | frames/s, median (min–max) | time / as shipped |")
+    timed(runs, args.runs, len(d), ("compensation", "frames/s"), "as shipped")
+
+
+def timed(runs: dict, repeats: int, count: int, header: tuple[str, str], baseline: str) -> None:
+    """Time each of `runs` (label: callable) in turn, `repeats` times, and print the table: rate
+    of `count` items per second, median (min–max), and time against `baseline`'s."""
+    seconds: dict[str, list[float]] = {label: [] for label in runs}
+    for _ in range(repeats):
+        for label, run in runs.items():
+            t = time.perf_counter()
+            run()
+            seconds[label].append(time.perf_counter() - t)
+    base = statistics.median(seconds[baseline])
+    print(f"| {header[0]} | {header[1]}, median (min–max) | time / {baseline} |")
     print("|---|---|---|")
     for label, s in seconds.items():
-        print(f"| {label} | {len(d) / statistics.median(s):.1f} ({len(d) / max(s):.1f}–{len(d) / min(s):.1f}) | "
-              f"{statistics.median(s) / shipped:.2f} |")
+        print(f"| {label} | {count / statistics.median(s):.1f} ({count / max(s):.1f}–{count / min(s):.1f}) | "
+              f"{statistics.median(s) / base:.2f} |")
 
 
 def keyframes(args: argparse.Namespace, extractor: ScanExtractor, d: np.ndarray, a: np.ndarray) -> None:
@@ -88,19 +95,9 @@ def keyframes(args: argparse.Namespace, extractor: ScanExtractor, d: np.ndarray,
             extractor.rays(d[k], a[k])
         extractor.extract_many(d, a)
 
-    seconds: dict[str, list[float]] = {"corrected once (now)": [], "corrected for each (before)": []}
-    for _ in range(args.runs):
-        for label, run in zip(seconds, (once, twice)):
-            t = time.perf_counter()
-            run()
-            seconds[label].append(time.perf_counter() - t)
-    now = statistics.median(seconds["corrected once (now)"])
     print(f"# {args.world}, {len(d)} keyframes, compensation as shipped, {args.runs} runs, load {os.getloadavg()[0]:.1f}")
-    print("| rays and scan of each keyframe | keyframes/s, median (min–max) | time / now |")
-    print("|---|---|---|")
-    for label, s in seconds.items():
-        print(f"| {label} | {len(d) / statistics.median(s):.1f} ({len(d) / max(s):.1f}–{len(d) / min(s):.1f}) | "
-              f"{statistics.median(s) / now:.2f} |")
+    timed({"corrected once (now)": once, "corrected for each (before)": twice}, args.runs, len(d),
+          ("rays and scan of each keyframe", "keyframes/s"), "corrected once (now)")
 
 
 if __name__ == "__main__":
