@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from omnitof.slam.config import SlamConfig, load_config, preset_names
+from omnitof.slam.config import SlamConfig, load_config, parse_setting, preset_names
 from omnitof.errors import ConfigError
 
 
@@ -146,3 +146,24 @@ def test_dotted_settings_override_like_a_file_and_name_the_field():
             slam_config(settings=bad)
     with pytest.raises(ConfigError, match="SECTION.FIELD=VALUE"):
         parse_setting("filter.particles")
+
+
+@pytest.mark.parametrize("value, problem", [
+    ("9" * 5000, "a value that cannot be read (Exceeds the limit (4300 digits)"),
+    ("2024-13-45", "a value that cannot be read (month must be in 1..12)"),
+    ("[" * 20000, "nested too deeply to read"),
+])
+def test_yaml_that_pyyaml_cannot_convert_is_one_line_naming_the_file(tmp_path, value, problem):
+    # PyYAML raised ValueError and RecursionError for these: tracebacks before. Worlds,
+    # calibrations, polygons, bag sidecars, ROS maps and experiments read YAML the same way.
+    from omnitof.sim.worlds import WorldError, load_world
+
+    path = tmp_path / "odd.yaml"
+    path.write_text(f"map:\n  resolution: {value}\n")
+    with pytest.raises(ConfigError) as caught:
+        load_config(path)
+    assert str(caught.value).startswith(f"{path}: not valid YAML: {problem}"), caught.value
+    with pytest.raises(WorldError, match="not valid YAML"):
+        load_world(path)
+    with pytest.raises(ConfigError, match=r"--set .*the value is not valid YAML"):
+        parse_setting(f"map.resolution={value}")

@@ -7,6 +7,9 @@ status, never a traceback, because they describe a user's mistake (bad file, bad
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
+
+import yaml
 
 
 class OmnitofError(Exception):
@@ -43,6 +46,19 @@ class ResourceError(OmnitofError):
 class OmnitofWarning(UserWarning):
     """Something in the user's data was accepted but deserves a look; the command line prints
     it as one line (`omnitof: warning: ...`). Each reader has its own subclass."""
+
+
+def load_yaml(text: str) -> Any:
+    """`yaml.safe_load`, where everything a hostile or mistyped text makes PyYAML raise is a
+    `yaml.YAMLError` (for `yaml_problem`): besides its own errors, a ValueError from a value it
+    cannot convert (an integer of more than 4300 digits, a date such as 2024-13-45) and a
+    RecursionError from nesting deeper than Python's stack allows."""
+    try:
+        return yaml.safe_load(text)
+    except RecursionError:
+        raise yaml.YAMLError("nested too deeply to read") from None
+    except ValueError as err:
+        raise yaml.YAMLError(f"a value that cannot be read ({' '.join(str(err).split(';')[0].split())})") from None
 
 
 def yaml_problem(err: Exception) -> tuple[str, int | None]:

@@ -35,7 +35,7 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from omnitof.errors import ConfigError, OmnitofError, yaml_problem
+from omnitof.errors import ConfigError, OmnitofError, load_yaml, yaml_problem
 
 METRICS = ("relations", "trajectory", "floorplan", "table1")
 # A run's folder name is built from these; anything else in a value becomes "_".
@@ -256,7 +256,7 @@ def load_experiment(path: str | Path) -> Experiment:
     except UnicodeDecodeError:
         raise ExperimentError(f"{path}: not a text file (an experiment is YAML text)") from None
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
     except yaml.YAMLError as err:
         problem, line = yaml_problem(err)
         raise ExperimentError(f"{path}{'' if line is None else f':{line}'}: {problem}") from None

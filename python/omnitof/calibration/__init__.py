@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from omnitof.errors import InputError, yaml_problem
+from omnitof.errors import InputError, load_yaml, yaml_problem
 from omnitof.io.atomic import atomic_write
 from omnitof.io.plain import to_plain
 from omnitof.calibration.distance import DistanceCorrection, DistanceCorrectionError
@@ -392,7 +392,7 @@ def load_calibration(path: str | Path) -> Calibration:
     except UnicodeDecodeError:
         raise CalibrationError("not a text file (a calibration is a UTF-8 YAML file)", path) from None
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
     except yaml.YAMLError as err:
         problem, line = yaml_problem(err)
         raise CalibrationError(problem, path, line) from None

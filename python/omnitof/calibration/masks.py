@@ -28,7 +28,7 @@ from matplotlib.path import Path as MplPath
 from scipy.ndimage import distance_transform_edt
 
 from omnitof.calibration import CalibrationError
-from omnitof.errors import yaml_problem
+from omnitof.errors import load_yaml, yaml_problem
 from omnitof.sensor.camera import Camera
 from omnitof.io.atomic import atomic_write
 from omnitof.sensor.mirrors import MirrorPlane
@@ -132,7 +132,7 @@ def read_polygon_file(path: str | Path) -> dict[str, np.ndarray]:
     """Polygons from a YAML file {name: [[u, v], ...], ...}; errors name the file and mirror."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = load_yaml(path.read_text(encoding="utf-8"))
     except OSError as err:
         raise CalibrationError(f"cannot read the polygon file: {err.strerror or err}", path) from None
     except UnicodeDecodeError:

@@ -32,7 +32,7 @@ import numpy as np
 import yaml
 
 from omnitof.calibration.distance import DistanceCorrection, samples_from_plane
-from omnitof.errors import yaml_problem
+from omnitof.errors import load_yaml, yaml_problem
 
 # Wall distances (metres, horizontal, from the centre of the mirror's view): the scans' range
 # (ScanSettings.max_range 7 m; oblique rays reach the 7.49 m unambiguous range beyond 5 m).
@@ -320,7 +320,7 @@ def read_wall_recordings(path: str | Path, calibration: Any) -> list[WallRecordi
 
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = load_yaml(path.read_text())
     except OSError as err:
         raise CalibrationError(f"cannot read the walls file: {err.strerror or err}", path) from None
     except yaml.YAMLError as err:

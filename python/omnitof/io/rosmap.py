@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from omnitof.errors import InputError, yaml_problem
+from omnitof.errors import InputError, load_yaml, yaml_problem
 from omnitof.io.atomic import atomic_write
 from omnitof.types import OccupancyMap
 
@@ -155,7 +155,7 @@ def read_ros_map(yaml_path: str | Path, *, log_odds: float = DEFAULT_LOG_ODDS) -
 
 def _load_yaml(path: Path) -> dict[str, Any]:
     try:
-        meta = yaml.safe_load(path.read_text(encoding="utf-8"))
+        meta = load_yaml(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"cannot read the map description: {exc}", path) from exc
     except yaml.YAMLError as exc:

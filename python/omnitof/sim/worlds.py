@@ -41,7 +41,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from omnitof.errors import InputError, yaml_problem
+from omnitof.errors import InputError, load_yaml, yaml_problem
 from omnitof.sim.laser2d import World2D
 
 # Obstacles that reach below this height (m) block the robot: a Pioneer-class base with the
@@ -507,7 +507,7 @@ def _read_merged(path: Path, chain: tuple[Path, ...]) -> dict:
     if resolved in chain:
         raise WorldError("extends: the files extend each other in a cycle", path)
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = load_yaml(path.read_text(encoding="utf-8"))
     except UnicodeDecodeError:
         raise WorldError("not a text file (a world is a UTF-8 YAML file)", path) from None
     except yaml.YAMLError as err:

@@ -21,7 +21,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from omnitof.errors import ConfigError, yaml_problem
+from omnitof.errors import ConfigError, load_yaml, yaml_problem
 from omnitof.scan.extract import ScanSettings
 
 
@@ -386,7 +386,7 @@ def _merge(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
 
 def _read_yaml(text: str, source: str) -> dict[str, Any]:
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
     except yaml.YAMLError as err:
         problem, line = yaml_problem(err)
         raise ConfigError(f"{source}{'' if line is None else f':{line}'}: {problem}") from None
@@ -442,7 +442,7 @@ def parse_setting(text: str) -> tuple[str, Any]:
     if not eq:
         raise ConfigError(f"--set {text!r}: expected SECTION.FIELD=VALUE")
     try:
-        parsed = yaml.safe_load(value)
+        parsed = load_yaml(value)
     except yaml.YAMLError:
         raise ConfigError(f"--set {text!r}: the value is not valid YAML") from None
     settings_overrides({key: parsed}, "--set")  # the key's form

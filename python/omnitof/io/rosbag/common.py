@@ -39,7 +39,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from omnitof.errors import InputError, OmnitofError, OmnitofWarning, yaml_problem
+from omnitof.errors import InputError, OmnitofError, OmnitofWarning, load_yaml, yaml_problem
 from omnitof.geometry import quaternion_to_yaw, yaw_to_quaternion
 from omnitof.interrupts import deferred_signals
 from omnitof.io.atomic import fsync_dir, temporary_folder
@@ -382,7 +382,7 @@ def _read_sidecar(path: Path) -> dict | None:
     if not sidecar.is_file():
         return None
     try:
-        data = yaml.safe_load(sidecar.read_text(encoding="utf-8"))
+        data = load_yaml(sidecar.read_text(encoding="utf-8"))
     except yaml.YAMLError as err:
         problem, line = yaml_problem(err)
         raise InputError(f"the bag's sidecar is {problem}", sidecar, line) from None
