@@ -103,6 +103,7 @@ def test_world_calibration_and_polygon_files_that_are_not_text_are_refused_with_
 
 @pytest.mark.parametrize("section, field, value, message", [
     ("map", "resolution", 1e-5, "greater than or equal to 0.001"),  # panicked in the core before
+    ("likelihood_field", "z_rand", 0.0, "greater than 0"),  # every particle's weight NaN before
     ("map", "resolution", 1e-4, "greater than or equal to 0.001"),  # aborted allocating 24 GB before
     ("map", "resolution", float("nan"), "finite number"),
     ("map", "max_range", float("inf"), "finite number"),
@@ -167,3 +168,16 @@ def test_yaml_that_pyyaml_cannot_convert_is_one_line_naming_the_file(tmp_path, v
         load_world(path)
     with pytest.raises(ConfigError, match=r"--set .*the value is not valid YAML"):
         parse_setting(f"map.resolution={value}")
+
+
+def test_the_core_refuses_a_likelihood_field_without_its_uniform_part():
+    # Python's configuration refuses it first; the core, which API users may reach, too.
+    import numpy as np
+
+    from omnitof import _core
+    from omnitof.slam.driver import core_sections
+
+    sections = core_sections(load_config(preset="laser180-scanmatch"))
+    sections["likelihood_field"]["z_rand"] = 0.0
+    with pytest.raises(ValueError, match="z_rand above 0"):
+        _core.ParticleFilter(**sections, angles=np.linspace(-1.5, 1.5, 181), sensor_pose=np.zeros(3), scan_max_range=20.0)

@@ -109,6 +109,17 @@ fn field_settings(sigma: f64, max_range: f64, window: i32) -> PyResult<()> {
     Ok(())
 }
 
+/// The likelihood field's weights: z_rand > 0, since with none a single end point far from every
+/// wall has likelihood 0 and makes every particle's weight 0 (NaN once normalised).
+fn field_weights(z_hit: f64, z_rand: f64) -> PyResult<()> {
+    if !(z_hit.is_finite() && z_hit >= 0.0 && z_rand.is_finite() && z_rand > 0.0) {
+        return Err(PyValueError::new_err(format!(
+            "likelihood_field: z_hit must be at least 0 and z_rand above 0, got {z_hit} and {z_rand}"
+        )));
+    }
+    Ok(())
+}
+
 /// A scan's own beam bearings: one finite angle per range.
 fn scan_angles(angles: &[f64], n_ranges: usize) -> PyResult<&[f64]> {
     if angles.len() != n_ranges {
@@ -276,6 +287,7 @@ fn filter_params(
         "likelihood_field" => ObservationKind::LikelihoodField,
         other => return Err(PyValueError::new_err(format!("sensor_model.model: unknown observation model {other:?}"))),
     };
+    field_weights(lf.z_hit, lf.z_rand)?;
     if sm.search_xy > 0.0 && !(sm.search_step_xy > 0.0 && sm.search_step_deg > 0.0) {
         return Err(PyValueError::new_err("scan_matcher: the wide search needs positive steps"));
     }
@@ -682,6 +694,7 @@ impl PyOccupancyGrid {
             return Err(PyValueError::new_err("angles must be finite for every beam with a range"));
         }
         field_settings(sigma, max_range, window)?;
+        field_weights(z_hit, z_rand)?;
         if beam_stride < 1 || gauss_newton > MAX_MATCH_ITERATIONS {
             return Err(PyValueError::new_err(format!(
                 "beam_stride must be at least 1 and gauss_newton at most {MAX_MATCH_ITERATIONS}"

@@ -91,7 +91,10 @@ class LikelihoodFieldConfig(_Section):
 
     sigma: float = Field(0.05, ge=0.001, le=10, description="standard deviation of the end-point distance (m)")
     z_hit: float = Field(0.9, ge=0, le=1, description="weight of the Gaussian part")
-    z_rand: float = Field(0.1, ge=0, le=1, description="weight of the uniform part")
+    z_rand: float = Field(
+        0.1, gt=0, le=1,
+        description="weight of the uniform part (above 0: without it one reading far from every wall rules a pose out)",
+    )
     window_cells: int = Field(3, ge=1, le=20, description="how far (cells) to search for the nearest obstacle")
     fit_walls: bool = Field(
         False,
