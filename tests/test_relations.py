@@ -268,3 +268,18 @@ def test_intel_relations_real_data() -> None:
     errors = dict(zip(np.flatnonzero(result.matched), result.trans_errors, strict=True))
     assert errors[k] == pytest.approx(0.1, rel=1e-9)
     assert sum(errors.values()) == pytest.approx(0.1, rel=1e-9)
+
+
+def test_errors_beyond_float_range_are_inf_without_numpy_warnings():
+    # A relation 1e308 m long: its square overflows. The statistics that overflow say inf (the
+    # squares' spread nan), quietly, where numpy printed eight lines of RuntimeWarning before.
+    import warnings
+
+    est = Trajectory(np.array([10.0, 11.0, 12.0]), np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]]))
+    rel = Relations(np.array([10.0, 11.0]), np.array([11.0, 12.0]), np.array([[1e308, 0.0, 0.0], [1.0, 0.0, 0.0]]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = evaluate_relations(est, rel)
+    assert result.trans_mean == 5e307 and result.trans_std == math.inf and result.trans2_mean == math.inf
+    assert math.isnan(result.trans2_std) and result.rot_mean == 0.0
+    assert list(result.trans_errors) == [1e308, 0.0]

@@ -205,20 +205,26 @@ def evaluate_relations(
     matched = ok1 & ok2
     if not matched.any():
         raise InputError(_no_match_message(traj, relations, time_tolerance), source)
-    trans, rot = relation_errors(
-        traj.poses[i1[matched]], traj.poses[i2[matched]], relations.delta[matched]
-    )
+    # Errors beyond float64's range (a trajectory or a relation 1e300 m off) are inf, and so are
+    # their statistics: the answer, not a page of numpy's overflow warnings.
+    with np.errstate(over="ignore", invalid="ignore"):
+        trans, rot = relation_errors(
+            traj.poses[i1[matched]], traj.poses[i2[matched]], relations.delta[matched]
+        )
+        stats = dict(
+            trans_mean=_mean(trans),
+            trans_std=_sample_std(trans),
+            trans2_mean=_mean(trans**2),
+            trans2_std=_sample_std(trans**2),
+            rot_mean=_mean(rot),
+            rot_std=_sample_std(rot),
+            rot2_mean=_mean(rot**2),
+            rot2_std=_sample_std(rot**2),
+        )
     return RelationsResult(
         n_relations=len(relations),
         n_matched=int(matched.sum()),
-        trans_mean=_mean(trans),
-        trans_std=_sample_std(trans),
-        trans2_mean=_mean(trans**2),
-        trans2_std=_sample_std(trans**2),
-        rot_mean=_mean(rot),
-        rot_std=_sample_std(rot),
-        rot2_mean=_mean(rot**2),
-        rot2_std=_sample_std(rot**2),
+        **stats,
         trans_errors=trans,
         rot_errors=rot,
         matched=matched,
