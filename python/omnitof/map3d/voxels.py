@@ -17,8 +17,9 @@ where unknown.
 
 Georeferenced odometry (UTM: millions of metres) would put the voxels beyond the core's
 indices (±2^20 per axis, rust/src/voxel.rs: 105 km at 0.1 m), so a map whose first frame lies
-more than 2^14 voxels from (0, 0) (omnitof.slam.anchor.voxel_offset) keeps its voxels relative to `offset`, that frame's
-(x, y) in whole 8-voxel blocks; every point going in or out is moved by it.
+more than 2^14 voxels from (0, 0) (omnitof.slam.anchor.voxel_offset) keeps its voxels relative
+to `offset`, that frame's (x, y) in whole 8-voxel blocks; every point going in or out is moved
+by it.
 
 Where the points come from: `backproject_frame` turns one frame's distance image into rays in
 the robot frame (from the mirror point of each pixel to its measured surface point).

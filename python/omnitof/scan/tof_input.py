@@ -58,11 +58,13 @@ class _Corrected:
 
 
 class _CloudTap:
-    """Passes frames through unchanged and keeps the rays of every `every`-th one, or with
-    `keyframes` (linear m, angular rad) of each frame after which the odometry moved more than
-    `linear` or turned more than `angular` since the last one kept (the first frame always): the
-    rule by which `slam.driver.select_scans` picks the scans to integrate, so that the 3D filter
-    (`slam.filter3d`) gets the rays of exactly the frames it integrates, and only those."""
+    """Passes frames through and keeps the rays of every `every`-th one, or with `keyframes`
+    (linear m, angular rad) of each frame after which the odometry moved more than `linear` or
+    turned more than `angular` since the last one kept (the first frame always): the rule by
+    which `slam.driver.select_scans` picks the scans to integrate, so that the 3D filter
+    (`slam.filter3d`) gets the rays of exactly the frames it integrates, and only those. A kept
+    frame goes on with the distances corrected for its rays (`_Corrected`), not to be corrected
+    twice."""
 
     def __init__(self, extractor: ScanExtractor, every: int, pixel_stride: int,
                  progress: Callable[[int], Any] | None,
