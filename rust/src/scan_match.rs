@@ -72,9 +72,11 @@ const TABLE_SIZE: usize = 4096;
 impl LogLikelihoodTable {
     fn new(sigma: f64, z_hit: f64, z_rand: f64, max_range: f64) -> Self {
         let peak = z_hit / (sigma * (2.0 * std::f64::consts::PI).sqrt());
-        let floor = z_rand / max_range;
+        // Never 0: ln(0) = −inf would make every particle's weight NaN (z_rand = 5e-324 does it).
+        let floor = (z_rand / max_range).max(f64::MIN_POSITIVE);
         // Where peak·e^(−q) = 1e-9·floor; at least one knot apart from 0 for degenerate settings.
-        let q_max = (peak / (1e-9 * floor)).ln().max(1.0);
+        // In logarithms: peak / (1e-9·floor) overflows to inf for a floor below ~1e-296.
+        let q_max = (peak.ln() - floor.ln() + 9.0 * std::f64::consts::LN_10).max(1.0);
         let knots_per_q = (TABLE_SIZE - 1) as f64 / q_max;
         let values = (0..TABLE_SIZE).map(|k| (peak * (-(k as f64) / knots_per_q).exp() + floor).ln()).collect();
         LogLikelihoodTable { q_max, knots_per_q, values, floor_ln: floor.ln() }
@@ -981,6 +983,23 @@ mod tests {
     use super::*;
     use crate::grid::LogOddsModel;
     use crate::sensor_model::integrate_scan;
+
+    #[test]
+    fn the_table_stays_finite_for_a_vanishing_floor() {
+        // z_rand = 1e-300 made peak / (1e-9·floor) overflow to inf: every value became NaN.
+        for z_rand in [0.1, 1e-12, 1e-300, f64::MIN_POSITIVE, 5e-324] {
+            let t = LogLikelihoodTable::new(0.05, 0.9, z_rand, 15.0);
+            let exact = |q: f64| (0.9 / (0.05 * (2.0 * std::f64::consts::PI).sqrt()) * (-q).exp() + z_rand / 15.0).ln();
+            for q in [0.0, 0.5, 3.0, 40.0] {
+                let v = t.at(q);
+                assert!(v.is_finite(), "z_rand {z_rand:e}, q {q}: {v}");
+                if q < t.q_max && exact(q).is_finite() {
+                    assert!((v - exact(q)).abs() < 1e-4, "z_rand {z_rand:e}, q {q}: {v} vs {}", exact(q));
+                }
+            }
+            assert!(t.at(f64::INFINITY).is_finite());
+        }
+    }
 
     fn room() -> (TiledGrid, Vec<f64>, Vec<f32>) {
         // A 6 m × 4 m box seen from (2, 1.5): ranges computed exactly.
