@@ -368,6 +368,14 @@ def test_beam_angles_beyond_a_turn_are_refused(tmp_path, start, res):
     assert excinfo.value.line == 2
 
 
+def test_a_zero_angular_resolution_is_refused(tmp_path):
+    # Every beam at one angle: the scans would draw a single ray and the filter weigh nonsense.
+    lines = [robotlaser([1.0, 2.0, 3.0], [], 1.0, (0, 0, 0), (0, 0, 0), res=0.0)]
+    with pytest.raises(InputError, match=r"angular_resolution is '0\.0+': it would put all 3 beams") as excinfo:
+        read_carmen(write(tmp_path, lines))
+    assert excinfo.value.line == 1
+
+
 def test_a_reading_that_rounds_to_the_maximum_in_float32_is_no_echo(tmp_path):
     line = robotlaser([29.9999999, 29.99, 1.0], [], 1.0, (0, 0, 0), (0, 0, 0), max_range=30.0)
     ranges = read_carmen(write(tmp_path, [line])).scans.ranges

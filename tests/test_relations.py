@@ -202,9 +202,19 @@ def test_read_relations(tmp_path: Path) -> None:
     [
         ("1 2 0.1 0.2 0 0 0", "8 numbers"),
         ("1 2 0.1 0.2 0 0 0 0.3 7", "8 numbers"),
-        ("1 2 0.1 x 0 0 0 0.3", "8 numbers"),
-        ("1 2 0.1 0.2 0 0 nan 0.3", "finite"),
+        ("1 2 0.1 x 0 0 0 0.3", "y is 'x', not a finite decimal number"),
+        ("1 2 0.1 0.2 0 0 nan 0.3", "pitch is 'nan', not a finite"),
         ("1 2 0.1 0.2 0 0.5 0 0.3", "planar"),
+        # Python's float() reads "1_0" as 10 and "infinity" as inf; neither is what a writer meant.
+        ("1 2 1_0 0.2 0 0 0 0.3", "x is '1_0', not a finite decimal number"),
+        ("1 2 0.1 0.2 0 0 0 infinity", "yaw is 'infinity'"),
+        ("1 1e400 0.1 0.2 0 0 0 0.3", "t2 is '1e400', not a finite"),
+        # Values a broken writer leaves: their statistics printed as 300-digit numbers.
+        ("1 2 1e308 0.2 0 0 0 0.3", r"x is 1e\+308, beyond ±1e\+09"),
+        ("1 2 0.1 0.2 0 0 0 1e200", r"yaw is 1e\+200, beyond ±1000"),
+        ("5 5 0.1 0.2 0 0 0 0.3", "t1 and t2 are both 5.000000: a relation joins two different times"),
+        # A field of 5000 digits is quoted, not echoed whole.
+        ("1 2 0.1 " + "9" * 5000 + "x 0 0 0 0.3", r"y is '9{40}\.\.\.', not a finite"),
     ],
 )
 def test_bad_relation_rows(tmp_path: Path, row: str, match: str) -> None:

@@ -69,7 +69,7 @@ def test_reads_comments_blank_lines_and_unnormalised_quaternions(tmp_path: Path)
     np.testing.assert_allclose(traj.poses, [[1, 2, 0], [3, 4, np.pi / 2]], atol=1e-6)
 
 
-@pytest.mark.parametrize("row", ["1.0 2 3 4 0 0 0", "1.0 2 3 4 0 0 0 1 9", "1.0 2 3 a 0 0 0 1"])
+@pytest.mark.parametrize("row", ["1.0 2 3 4 0 0 0", "1.0 2 3 4 0 0 0 1 9"])
 def test_bad_row_names_file_line_and_format(tmp_path: Path, row: str) -> None:
     path = tmp_path / "bad.tum"
     path.write_text(f"# header\n0.5 0 0 0 0 0 0 1\n{row}\n")
@@ -77,6 +77,25 @@ def test_bad_row_names_file_line_and_format(tmp_path: Path, row: str) -> None:
         read_tum(path)
     assert info.value.path == path and info.value.line == 3
     assert ROW_MESSAGE in str(info.value) and str(path) in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("row", "message"),
+    [
+        ("1.0 2 3 a 0 0 0 1", "z is 'a', not a finite decimal number"),
+        ("1.0 2 1_0 4 0 0 0 1", "y is '1_0', not a finite decimal number"),  # float() reads 10
+        ("nan 2 3 4 0 0 0 1", "timestamp is 'nan', not a finite decimal number"),
+        ("1.0 2 0x10 4 0 0 0 1", "y is '0x10', not a finite decimal number"),
+        ("1.0 1e200 3 4 0 0 0 1", "x is 1e+200, beyond ±1e+09: not a plausible value"),
+        ("1.0 2 3 4 0 0 1e300 1", "qz is 1e+300, beyond ±1000: not a plausible value"),
+    ],
+)
+def test_a_bad_field_is_named_with_its_value(tmp_path: Path, row: str, message: str) -> None:
+    path = tmp_path / "bad.tum"
+    path.write_text(f"0.5 0 0 0 0 0 0 1\n{row}\n")
+    with pytest.raises(InputError) as info:
+        read_tum(path)
+    assert info.value.line == 2 and message in str(info.value)
 
 
 def test_non_increasing_timestamps(tmp_path: Path) -> None:

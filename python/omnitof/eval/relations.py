@@ -49,6 +49,9 @@ from omnitof.geometry import relative, wrap_angle
 from omnitof.types import Trajectory
 
 ROW_MESSAGE = "relation rows need 8 numbers: t1 t2 x y z roll pitch yaw"
+_FIELDS = ("t1", "t2", "x", "y", "z", "roll", "pitch", "yaw")
+# A relative motion beyond a million kilometres or a thousand radians comes from a broken writer.
+_LIMITS = {"x": 1e9, "y": 1e9, "z": 1e9, "roll": 1e3, "pitch": 1e3, "yaw": 1e3}
 
 # z, roll and pitch of a planar benchmark are 0 (written as 0.000000); anything larger means a 3D
 # relation that a planar evaluation would silently get wrong.
@@ -105,7 +108,9 @@ def read_relations(path: str | Path) -> Relations:
 
 
 def _parse_relation(text: str, path: str | Path, number: int) -> list[float]:
-    row = parse_float_row(text, 8, ROW_MESSAGE, path, number)
+    row = parse_float_row(text, 8, ROW_MESSAGE, path, number, names=_FIELDS, limits=_LIMITS)
+    if row[0] == row[1]:
+        raise InputError(f"t1 and t2 are both {row[0]:.6f}: a relation joins two different times", path, number)
     if max(abs(v) for v in row[4:7]) > _PLANAR_TOLERANCE:
         raise InputError(
             "z, roll and pitch must be 0: only planar relations are supported", path, number

@@ -555,6 +555,11 @@ def _parse_new_laser(tokens: list[str], with_pose: bool) -> _Scan:
     start, resolution, max_range = config[1], config[3], config[4]
     if not max_range > 0.0:
         raise _Malformed(f"maximum_range is {tokens[5]!r}; it must be positive")
+    if n > 1 and resolution == 0.0:
+        raise _Malformed(
+            f"angular_resolution is {tokens[4]!r}: it would put all {n} beams at one angle "
+            f"(field_of_view is {tokens[3]!r})"
+        )
     last = start + max(n - 1, 0) * resolution
     if not (abs(start) <= _MAX_BEAM_ANGLE and abs(last) <= _MAX_BEAM_ANGLE):
         raise _Malformed(

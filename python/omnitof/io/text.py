@@ -3,23 +3,51 @@
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 from omnitof.errors import InputError
 
+# A decimal number as the formats write them. Python's float() also takes "1_0" (as 10), "nan",
+# "infinity" and full-width digits, none of which a trajectory writer means.
+_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
 
-def parse_float_row(text: str, count: int, expected: str, path: str | Path, number: int) -> list[float]:
-    """The `count` finite numbers of one line, or an InputError naming the file and line.
+# Longest piece of a user's line quoted back in an error.
+_QUOTE = 40
 
-    `expected` says what a row must hold (e.g. "TUM trajectory rows need 8 numbers: ...").
+
+def quote(text: str) -> str:
+    """`text` for an error message: repr'd (control characters shown), cut after 40 characters."""
+    return repr(text if len(text) <= _QUOTE else text[:_QUOTE] + "...")
+
+
+def parse_float_row(
+    text: str,
+    count: int,
+    expected: str,
+    path: str | Path,
+    number: int,
+    *,
+    names: tuple[str, ...] = (),
+    limits: dict[str, float] | None = None,
+) -> list[float]:
+    """The `count` finite numbers of one line, or an InputError naming the file, line and field.
+
+    `expected` says what a row must hold (e.g. "TUM trajectory rows need 8 numbers: ...");
+    `names` names the fields in order, and `limits` bounds the magnitude of named fields (a
+    position of 1e300 m is a broken writer, and its statistics print as 300 digits).
     """
     fields = text.split()
-    try:
-        row = [float(v) for v in fields]
-    except ValueError:
-        row = []
-    if len(row) != count:
+    if len(fields) != count:
         raise InputError(f"{expected} (found {len(fields)} fields)", path, number)
-    if not all(math.isfinite(v) for v in row):
-        raise InputError(f"{expected}, all finite (found nan or inf)", path, number)
+    row = []
+    for k, value in enumerate(fields):
+        name = names[k] if k < len(names) else f"field {k + 1}"
+        parsed = float(value) if _NUMBER.fullmatch(value) else math.nan
+        if not math.isfinite(parsed):  # also 1e400, which float() reads as inf
+            raise InputError(f"{name} is {quote(value)}, not a finite decimal number", path, number)
+        bound = (limits or {}).get(name)
+        if bound is not None and abs(parsed) > bound:
+            raise InputError(f"{name} is {parsed:g}, beyond ±{bound:g}: not a plausible value", path, number)
+        row.append(parsed)
     return row

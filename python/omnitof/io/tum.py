@@ -20,6 +20,10 @@ from omnitof.types import Trajectory
 
 HEADER = "# timestamp x y z qx qy qz qw"
 ROW_MESSAGE = "TUM trajectory rows need 8 numbers: timestamp x y z qx qy qz qw"
+_FIELDS = ("timestamp", "x", "y", "z", "qx", "qy", "qz", "qw")
+# Positions beyond a million kilometres and quaternions far from unit length come from a broken
+# writer; the statistics over them overflow or print as hundreds of digits.
+_LIMITS = {"x": 1e9, "y": 1e9, "z": 1e9, "qx": 1e3, "qy": 1e3, "qz": 1e3, "qw": 1e3}
 
 # Unix times (~1e9 s) at microsecond precision need 6 decimals; positions to the micrometre, and
 # quaternions to 1e-9 so that yaw survives a round trip to ~1e-9 rad.
@@ -108,7 +112,7 @@ def _read_lines(path: str | Path) -> list[str]:
 
 
 def _parse_row(text: str, path: str | Path, number: int) -> list[float]:
-    row = parse_float_row(text, 8, ROW_MESSAGE, path, number)
+    row = parse_float_row(text, 8, ROW_MESSAGE, path, number, names=_FIELDS, limits=_LIMITS)
     if max(abs(v) for v in row[4:8]) < 1e-9:
         raise InputError("the quaternion qx qy qz qw has zero length", path, number)
     return row
