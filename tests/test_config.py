@@ -181,3 +181,62 @@ def test_the_core_refuses_a_likelihood_field_without_its_uniform_part():
     sections["likelihood_field"]["z_rand"] = 0.0
     with pytest.raises(ValueError, match="z_rand above 0"):
         _core.ParticleFilter(**sections, angles=np.linspace(-1.5, 1.5, 181), sensor_pose=np.zeros(3), scan_max_range=20.0)
+
+
+def test_a_bad_value_is_blamed_on_the_layer_that_set_it(tmp_path):
+    # The preset, the file, --set and --particles each blamed for their own value, not the last
+    # layer read (a bad --set was reported as the preset's fault).
+    from omnitof.slam_run import slam_config
+
+    good = tmp_path / "good.yaml"
+    good.write_text("filter:\n  particles: 12\n")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("map:\n  resolution: -1\n")
+    cases = [
+        (dict(preset="paper", settings={"map.resolution": -1}), "--set map.resolution=-1: invalid configuration: map.resolution"),
+        (dict(preset="paper", config=good, settings={"map.resolution": -1}), "--set map.resolution=-1:"),
+        (dict(preset="paper", config=bad, settings={"filter.particles": 3}), f"{bad}: invalid configuration: map.resolution"),
+        (dict(preset="paper", particles=0), "--particles 0: invalid configuration: filter.particles"),
+        (dict(settings={"sensor_model.z_rand": 0.5}), "--set sensor_model.z_rand=0.5: invalid configuration: sensor_model: z_hit"),
+        (dict(settings={"filter.seed": int("9" * 300)}), "--set filter.seed=" + "9" * 40 + "...:"),
+    ]
+    for kwargs, message in cases:
+        with pytest.raises(ConfigError) as err:
+            slam_config(**kwargs)
+        assert message in str(err.value), (kwargs, str(err.value))
+        assert "preset paper" not in str(err.value)
+
+
+@pytest.mark.parametrize("setting", ["map.resolution", "filter.particles", "motion.alpha1", "scan.height"])
+def test_a_boolean_is_no_number(setting):
+    # pydantic reads true as 1.0 (or 1): a user who wrote it meant something else.
+    from omnitof.slam_run import slam_config
+
+    field = setting.split(".")[1]
+    with pytest.raises(ConfigError, match=f"--set {setting}=true: .*{field} expects a number, got the boolean true"):
+        slam_config(settings={setting: True})
+
+
+def test_a_world_with_a_boolean_for_a_number_is_refused(tmp_path):
+    from omnitof.errors import InputError
+    from omnitof.sim.worlds import load_world
+
+    from omnitof.sim.worlds import worlds_folder
+
+    path = tmp_path / "w.yaml"
+    path.write_text((worlds_folder() / "room.yaml").read_text().replace("ceiling_height: 2.6", "ceiling_height: true"))
+    with pytest.raises((InputError, ConfigError), match="expects a number, got the boolean true"):
+        load_world(path)
+
+
+def test_a_key_given_twice_is_refused_with_its_line(tmp_path):
+    # PyYAML keeps the last value silently: this file would run with 3 particles.
+    path = tmp_path / "dup.yaml"
+    path.write_text("filter:\n  particles: 30\n  seed: 1\n  particles: 3\n")
+    with pytest.raises(ConfigError, match=r"dup\.yaml:4: not valid YAML: the key 'particles' is given twice"):
+        load_config(path)
+    # A merge key may override on purpose.
+    path.write_text("base: &b {particles: 7}\nfilter:\n  <<: *b\n  particles: 8\n")
+    from omnitof.errors import load_yaml
+
+    assert load_yaml(path.read_text())["filter"] == {"particles": 8}

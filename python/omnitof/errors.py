@@ -48,13 +48,36 @@ class OmnitofWarning(UserWarning):
     it as one line (`omnitof: warning: ...`). Each reader has its own subclass."""
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key given twice in one mapping: PyYAML keeps the last
+    silently, so `particles: 30` above `particles: 3` would run with 3 and no word said."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *base` may override on purpose
+                continue
+            key = self.construct_object(key_node, deep=True)
+            try:
+                duplicate = key in seen
+                seen.add(key)
+            except TypeError:  # an unhashable key; PyYAML's own check reports it
+                continue
+            if duplicate:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"the key {str(key)[:40]!r} is given twice in one mapping", key_node.start_mark
+                )
+        return super().construct_mapping(node, deep=deep)
+
+
 def load_yaml(text: str) -> Any:
     """`yaml.safe_load`, where everything a hostile or mistyped text makes PyYAML raise is a
     `yaml.YAMLError` (for `yaml_problem`): besides its own errors, a ValueError from a value it
     cannot convert (an integer of more than 4300 digits, a date such as 2024-13-45) and a
-    RecursionError from nesting deeper than Python's stack allows."""
+    RecursionError from nesting deeper than Python's stack allows. A key given twice in one
+    mapping is an error too."""
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a SafeLoader)
     except RecursionError:
         raise yaml.YAMLError("nested too deeply to read") from None
     except ValueError as err:

@@ -116,13 +116,12 @@ def slam_config(
 ) -> SlamConfig:
     """The configuration of a run: the defaults, then the preset, then the file, then
     `settings` ({"SECTION.FIELD": value}, `--set`), then particles, seed and threads."""
-    from omnitof.slam.config import load_config, settings_overrides
+    from omnitof.slam.config import load_layers, settings_overrides
 
     overrides = settings_overrides(settings or {}, source)
     named = {k: v for k, v in (("particles", particles), ("seed", seed), ("threads", threads)) if v is not None}
-    if named:
-        overrides.setdefault("filter", {}).update(named)
-    return load_config(config, preset=preset, overrides=overrides)
+    return load_layers(config, preset=preset, settings=overrides, settings_source=source,
+                       options={"filter": named} if named else None)
 
 
 def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *,

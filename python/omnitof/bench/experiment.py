@@ -33,8 +33,9 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import AfterValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from omnitof.settings_model import SettingsModel
 from omnitof.errors import ConfigError, OmnitofError, load_yaml, yaml_problem
 
 METRICS = ("relations", "trajectory", "floorplan", "table1")
@@ -47,7 +48,7 @@ class ExperimentError(ConfigError):
     """A mistake in an experiment file; the message names the file and the field."""
 
 
-class _Strict(BaseModel):
+class _Strict(SettingsModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 

@@ -55,8 +55,9 @@ from collections.abc import Iterable, Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from omnitof.settings_model import SettingsModel
 from omnitof.sensor.camera import Camera
 from omnitof.errors import ConfigError, InputError
 from omnitof.sensor.mirrors import Mirror, MirrorPlane
@@ -97,7 +98,7 @@ class SlicePoints(NamedTuple):
     bins: np.ndarray
 
 
-class ScanSettings(BaseModel):
+class ScanSettings(SettingsModel):
     """How a horizontal slice of the ToF point cloud becomes a 1° range scan.
 
     Defaults for the default rig (`design.default_rig`: SR4000 wide lens, 4 mirrors tilted 56°,

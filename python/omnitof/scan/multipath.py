@@ -32,8 +32,9 @@ import math
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
+from omnitof.settings_model import SettingsModel
 from omnitof import _core
 from omnitof.sensor.camera import Camera
 from omnitof.sensor.mirrors import MirrorPlane
@@ -45,7 +46,7 @@ from omnitof.sensor.tof_errors import SPEED_OF_LIGHT, ToFErrors, led_ring
 EMISSION_DISTANCE = 3.0
 
 
-class MultipathSettings(BaseModel):
+class MultipathSettings(SettingsModel):
     """The multipath compensation of the scan extraction (module docstring). The camera's
     figures default to the simulator's (`omnitof.sensor.tof.SensorNoise`, `ToFErrors`,
     `omnitof.sim.render.RenderSettings`); give your camera's for real data."""

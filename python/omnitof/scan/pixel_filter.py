@@ -28,11 +28,13 @@ candidate pixels (no per-pixel Python).
 from __future__ import annotations
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 from scipy import ndimage
 
+from omnitof.settings_model import SettingsModel
 
-class PixelFilterSettings(BaseModel):
+
+class PixelFilterSettings(SettingsModel):
     """The filter's switches and thresholds (module docstring); `enabled` false keeps every
     pixel (the extraction as before issue 15)."""
 

@@ -39,8 +39,9 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import ConfigDict, Field, ValidationError, model_validator
 
+from omnitof.settings_model import SettingsModel
 from omnitof.errors import InputError, load_yaml, yaml_problem
 from omnitof.sim.laser2d import World2D
 
@@ -68,7 +69,7 @@ class WorldError(InputError):
 KINDS = ("matte", "metal", "glass", "grid")
 
 
-class _Strict(BaseModel):
+class _Strict(SettingsModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
 

@@ -13,14 +13,15 @@ same field there (and its use). Only the scan selection (`filter.linear_update`,
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import ConfigDict, Field, ValidationError, model_validator
 
+from omnitof.settings_model import SettingsModel
 from omnitof.errors import ConfigError, load_yaml, yaml_problem
 from omnitof.scan.extract import ScanSettings
 
@@ -35,7 +36,7 @@ MAX_LOG_ODDS = 100.0  # a probability of 1 - 4e-44: certainty, far beyond any us
 MAX_SEARCH_POSES = 1e6  # 70 times the laser180-scanmatch preset's wide search (13 671 poses)
 
 
-class _Section(BaseModel):
+class _Section(SettingsModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
@@ -405,15 +406,76 @@ def _read_yaml(text: str, source: str) -> dict[str, Any]:
     return data
 
 
-def _validate(data: dict[str, Any], source: str) -> SlamConfig:
+# A layer of the configuration: where it came from, its nested fields, and how a bad value in it
+# is named: "file" blames the source (a preset, a --config file), "settings" each field as
+# `SOURCE FIELD=VALUE` (--set), "options" each field as the option that set it (--particles 0).
+_Layer = tuple[str, dict[str, Any], Literal["file", "settings", "options"]]
+
+
+def _validate(layers: list[_Layer]) -> SlamConfig:
+    data: dict[str, Any] = {}
+    for _, fields, _ in layers:
+        data = _merge(data, fields)
     try:
         return SlamConfig.model_validate(data)
     except ValidationError as err:
-        problems = []
+        problems: dict[str, list[str]] = {}
         for e in err.errors():
-            field = ".".join(str(p) for p in e["loc"]) or "(top level)"
-            problems.append(f"{field}: {e['msg']}")
-        raise ConfigError(f"{source}: invalid configuration: " + "; ".join(problems)) from None
+            loc = tuple(str(p) for p in e["loc"])
+            field = ".".join(loc) or "(top level)"
+            # A check of ours: its own words, without pydantic's "Value error, ".
+            message = str(e["ctx"]["error"]) if e["type"] == "value_error" else e["msg"]
+            problems.setdefault(_blame(loc, layers), []).append(f"{field}: {message}")
+        raise ConfigError(
+            "; ".join(f"{source}: invalid configuration: " + "; ".join(found) for source, found in problems.items())
+        ) from None
+
+
+def _blame(loc: tuple[str, ...], layers: list[_Layer]) -> str:
+    """The last layer that set the field at `loc` (or, for a section's own check, any field of it)."""
+    for source, fields, style in reversed(layers):
+        node: Any = fields
+        for part in loc:
+            if not isinstance(node, dict):
+                break  # the layer set a whole value that holds `loc` (an item of a list)
+            if part not in node:
+                node = None
+                break
+            node = node[part]
+        if node is None:
+            continue
+        if style == "file":
+            return source
+        given = _flatten(fields, loc)
+        if style == "options":
+            return ", ".join(f"--{key.rsplit('.', 1)[-1]} {_shown(value)}" for key, value in given)
+        return ", ".join(f"{source} {key}={_shown(value)}" for key, value in given)
+    return "defaults"
+
+
+def _flatten(fields: dict[str, Any], loc: tuple[str, ...]) -> list[tuple[str, Any]]:
+    """The dotted keys and values that `fields` sets at or under `loc` (or above it, if set whole)."""
+    node: Any = fields
+    path: list[str] = []
+    for part in loc:
+        if not isinstance(node, dict):
+            break
+        node, path = node[part], [*path, part]
+    return list(_leaves(node, path))
+
+
+def _leaves(node: Any, path: list[str]) -> Iterator[tuple[str, Any]]:
+    if isinstance(node, dict) and node:
+        for key, value in node.items():
+            yield from _leaves(value, [*path, str(key)])
+    else:
+        yield ".".join(path), node
+
+
+def _shown(value: Any) -> str:
+    """A value as the user wrote it, cut after 40 characters."""
+    text = "true" if value is True else "false" if value is False else "null" if value is None else str(value)
+    return text if len(text) <= 40 else text[:40] + "..."
 
 
 def settings_overrides(settings: Mapping[str, Any], source: str = "settings") -> dict[str, Any]:
@@ -465,13 +527,27 @@ def load_config(
     *,
     preset: str | None = None,
     overrides: dict[str, Any] | None = None,
+    override_source: str = "overrides",
 ) -> SlamConfig:
-    """Defaults, then the preset, then the file, then explicit overrides (nested dicts)."""
-    data: dict[str, Any] = {}
-    source = "defaults"
+    """Defaults, then the preset, then the file, then explicit overrides (nested dicts). A bad
+    override is named as `OVERRIDE_SOURCE FIELD=VALUE`."""
+    return load_layers(path, preset=preset, settings=overrides, settings_source=override_source)
+
+
+def load_layers(
+    path: str | Path | None = None,
+    *,
+    preset: str | None = None,
+    settings: dict[str, Any] | None = None,
+    settings_source: str = "--set",
+    options: dict[str, Any] | None = None,
+) -> SlamConfig:
+    """Defaults, then the preset, then the file, then `settings` (nested, from `--set`), then
+    `options` (nested, from options like --particles), each bad value blamed on the layer that
+    set it: `--set map.resolution=-1` or `--particles 0`, not the preset."""
+    layers: list[_Layer] = []
     if preset is not None:
-        data = _merge(data, load_preset(preset))
-        source = f"preset {preset}"
+        layers.append((f"preset {preset}", load_preset(preset), "file"))
     if path is not None:
         path = Path(path)
         try:
@@ -480,8 +556,6 @@ def load_config(
             raise ConfigError(f"{path}: cannot read configuration: {err.strerror}") from None
         except UnicodeDecodeError:
             raise ConfigError(f"{path}: not a text file (a YAML configuration is UTF-8 text)") from None
-        data = _merge(data, _read_yaml(text, str(path)))
-        source = str(path)
-    if overrides:
-        data = _merge(data, overrides)
-    return _validate(data, source)
+        layers.append((str(path), _read_yaml(text, str(path)), "file"))
+    layers += [(settings_source, settings or {}, "settings"), ("", options or {}, "options")]
+    return _validate(layers)
