@@ -174,11 +174,15 @@ pub fn integrate_scan(
         beams.push((i, len, hit));
     }
     let res = grid.resolution;
-    // A beam of length l crosses at most √2·l/T + 2 tiles of side T: bound what the scan may
+    // A beam of length l crosses at most √2·l/T + 2 tiles of side T, and every tile the scan
+    // writes lies in the box around the sensor and the end points: bound what the scan may
     // allocate before it allocates anything (tiles are allocated one by one, where a failure
-    // could not be caught).
+    // could not be caught). The box matters for dense scans: two million beams of 4 m overlap
+    // in a few hundred tiles, where their sum counted twelve million.
     let tile = TILE as f64 * res;
-    let tiles: f64 = beams.iter().map(|&(_, len, _)| std::f64::consts::SQRT_2 * len / tile + 2.0).sum();
+    let along: f64 = beams.iter().map(|&(_, len, _)| std::f64::consts::SQRT_2 * len / tile + 2.0).sum();
+    let boxed = ((x1 - x0 + 2.0 * res) / tile + 2.0) * ((y1 - y0 + 2.0 * res) / tile + 2.0);
+    let tiles = along.min(boxed);
     if !(tiles <= MAX_SCAN_TILES) {
         return Err(GridError::NoMemory {
             what: "the tiles one scan would write",
@@ -250,6 +254,22 @@ mod tests {
         assert_eq!(g.tiles().count(), 0);
         integrate_scan(&mut g, &lm, &geom, [0.0; 3], &[0.5, 1.0], 1e6, false).unwrap();
         assert!(g.tiles().count() > 0);
+    }
+
+    #[test]
+    fn a_dense_scan_within_a_small_box_is_written() {
+        // 150 000 beams of 4 m at 1 cm: 5.6 million tiles summed along the beams, more than
+        // MAX_SCAN_TILES, but all of them inside the 8 m box of 52 × 52 tiles.
+        let lm = LogOddsModel { l_occ: 0.9, l_free: -0.4, l_min: -2.0, l_max: 3.5 };
+        let n = 150_000;
+        let angles: Vec<f64> = (0..n).map(|k| k as f64 * std::f64::consts::TAU / n as f64).collect();
+        let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
+        let along: f64 = n as f64 * (std::f64::consts::SQRT_2 * 4.0 / (TILE as f64 * 0.01) + 2.0);
+        assert!(along > MAX_SCAN_TILES);
+        let mut g = TiledGrid::new(0.01);
+        integrate_scan(&mut g, &lm, &geom, [0.0; 3], &vec![4.0; n], 10.0, false).unwrap();
+        let tiles = g.tiles().count();
+        assert!(tiles > 1500 && tiles <= 52 * 52, "{tiles}");
     }
 
     #[test]
