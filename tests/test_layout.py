@@ -17,7 +17,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "python" / "omnitof"
 # over many inputs and settings, and the commands sit on top of everything.
 STAGES = ["foundation", "sensor", "io", "sim", "calibration", "scan", "slam", "map3d", "eval", "viz", "runs",
           "bench", "commands"]
-FOUNDATION = {"errors", "types", "geometry", "interrupts", "_core", "_moved", "__init__", "__version__"}
+FOUNDATION = {"errors", "types", "geometry", "interrupts", "settings_model", "_core", "_moved", "__init__", "__version__"}
 RUNS = {"demo", "results", "slam_run", "calibration_report"}
 COMMANDS = {"cli", "cli_calibrate", "__main__"}
 TOP_LEVEL = FOUNDATION | RUNS | COMMANDS  # the stages that are modules, not folders
