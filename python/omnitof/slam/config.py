@@ -527,11 +527,10 @@ def load_config(
     *,
     preset: str | None = None,
     overrides: dict[str, Any] | None = None,
-    override_source: str = "overrides",
 ) -> SlamConfig:
     """Defaults, then the preset, then the file, then explicit overrides (nested dicts). A bad
-    override is named as `OVERRIDE_SOURCE FIELD=VALUE`."""
-    return load_layers(path, preset=preset, settings=overrides, settings_source=override_source)
+    override is named as `overrides FIELD=VALUE`."""
+    return load_layers(path, preset=preset, settings=overrides, settings_source="overrides")
 
 
 def load_layers(
