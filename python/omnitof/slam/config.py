@@ -237,7 +237,8 @@ class FilterConfig(_Section):
     )
     seed: int = Field(0, ge=0, lt=2**63, description="seed of every random draw; same seed, same map")
     threads: int = Field(
-        0, ge=0, le=1024, description="worker threads; 0 uses every core (results do not depend on it)"
+        0, ge=0, le=1024, description="worker threads; 0 uses every core, more than the cores are the cores, with a warning "
+        "(omnitof.slam.limits.within_cores); results do not depend on it"
     )
 
 

@@ -21,7 +21,7 @@ from omnitof import _core
 from omnitof.errors import InputError, ResourceError
 from omnitof.slam.anchor import moved, moved_back, run_offset
 from omnitof.slam.backend import PoseGraphBackend
-from omnitof.slam.limits import MemoryWatch, check_limits
+from omnitof.slam.limits import MemoryWatch, check_limits, within_cores
 from omnitof.slam.config import SlamConfig
 from omnitof.slam.final_match import final_match, grid_along
 from omnitof.slam.moving import drop_moving
@@ -166,6 +166,7 @@ def run_slam(
             cannot fit (omnitof.slam.limits.check_limits, before the filter starts), memory
             that ran out all the same.
     """
+    cfg = within_cores(cfg)
     check_limits(scans, cfg)
     offset = run_offset(scans.odometry, cfg.map.resolution)  # odometry far out (slam.anchor)
     try:

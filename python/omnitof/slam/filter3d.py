@@ -27,7 +27,7 @@ from omnitof.errors import InputError, ResourceError
 from omnitof.slam.config import SlamConfig
 from omnitof.slam.driver import DRIVER_FILTER_FIELDS, SlamResult, fill_trajectory, in_odometry_frame
 from omnitof.slam.anchor import moved, voxel_offset
-from omnitof.slam.limits import MemoryWatch
+from omnitof.slam.limits import MemoryWatch, within_cores
 from omnitof.types import OccupancyMap, ScanSequence, Trajectory
 
 
@@ -92,6 +92,7 @@ def run_slam3d(
         InputError: no frames, or frames and clouds that do not pair up.
         ResourceError: memory that ran out.
     """
+    cfg = within_cores(cfg)
     frames = np.asarray(frames, dtype=np.int64).reshape(-1)
     if len(frames) == 0 or frames[0] != 0 or len(frames) != len(clouds):
         raise InputError(f"the 3D filter needs the rays of the first frame and one cloud per integrated frame "

@@ -1,5 +1,6 @@
 """What a configuration implies for a log, checked before the filter runs: whether the scans can
-make a map at all, the memory the run will need and the size of the back end's submaps. A run that cannot fit stops at once, with
+make a map at all, the memory the run will need and the size of the back end's submaps (and,
+`within_cores`, the worker threads the machine can use). A run that cannot fit stops at once, with
 the number and the setting that decides it, instead of failing or being killed hours later.
 While a run goes on, `MemoryWatch` stops it with the same kind of message where the memory
 really left runs short (the estimate below is an order, not a bound).
@@ -32,6 +33,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from omnitof import _core
-from omnitof.errors import ConfigError, InputError, ResourceError
+from omnitof.errors import ConfigError, InputError, OmnitofWarning, ResourceError
 from omnitof.geometry import compose
 from omnitof.slam.config import SlamConfig
 from omnitof.types import ScanSequence
@@ -355,3 +357,28 @@ def check_limits(scans: ScanSequence, cfg: SlamConfig, *, available: float | Non
     check_odometry_precision(scans, cfg.map.resolution)
     check_submaps(scans, cfg)
     return check_memory(scans, cfg, available=available)
+
+
+class ThreadsWarning(OmnitofWarning):
+    """More worker threads asked for than the process has cores."""
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (a container's or taskset's share, not the machine's)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def within_cores(cfg: SlamConfig) -> SlamConfig:
+    """`cfg` with `filter.threads` bounded by the usable cores. Threads beyond them only wait
+    for each other (1024 threads on 2 cores ran a 3000-line log in 47 s instead of 3 s), and
+    the map does not depend on the count. Bounded where the run runs, not where it was
+    configured: a `bench` run's configuration (and its digest) is the same on every worker."""
+    cores = usable_cores()
+    if cfg.filter.threads <= cores:
+        return cfg
+    warnings.warn(ThreadsWarning(f"filter.threads {cfg.filter.threads} is more than the {cores} cores this "
+                                 f"process may use; {cores} are used (the map does not depend on it)"))
+    return cfg.model_copy(update={"filter": cfg.filter.model_copy(update={"threads": cores})})
