@@ -86,6 +86,7 @@ def test_bad_row_names_file_line_and_format(tmp_path: Path, row: str) -> None:
         ("1.0 2 1_0 4 0 0 0 1", "y is '1_0', not a finite decimal number"),  # float() reads 10
         ("nan 2 3 4 0 0 0 1", "timestamp is 'nan', not a finite decimal number"),
         ("1.0 2 0x10 4 0 0 0 1", "y is '0x10', not a finite decimal number"),
+        ("1.0 2 \u0661\u0662 4 0 0 0 1", "y is '\u0661\u0662', not a finite decimal number"),  # float() reads 12
         ("1.0 1e200 3 4 0 0 0 1", "x is 1e+200, beyond ±1e+09: not a plausible value"),
         ("1.0 2 3 4 0 0 1e300 1", "qz is 1e+300, beyond ±1000: not a plausible value"),
     ],

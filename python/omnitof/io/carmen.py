@@ -40,6 +40,7 @@ from typing import BinaryIO, Iterator
 import numpy as np
 
 from omnitof.errors import ConfigError, InputError, OmnitofWarning
+from omnitof.io.text import is_decimal
 from omnitof.geometry import interpolate_poses, relative, wrap_angle
 from omnitof.types import (
     ScanSequence,
@@ -375,10 +376,7 @@ def _add_param(ctx: _Context, raw: _RawLog, number: int, tokens: list[str]) -> N
 
 
 def _is_number(token: str) -> bool:
-    try:
-        return math.isfinite(float(token))
-    except ValueError:
-        return False
+    return is_decimal(token)
 
 
 # --------------------------------------------------------------------------------------------
@@ -439,14 +437,17 @@ def _floats(tokens: list[str], start: int, stop: int, layout: _Layout) -> np.nda
             values = np.array([float(t) for t in tokens[start:stop]])
         else:
             values = np.array(tokens[start:stop], dtype=np.float64)
-        if np.isfinite(values).all():
+        # float() and numpy also read "1_0" as 10 and non-ASCII digits; checked on the joined
+        # text, so that a good line costs no loop over its tokens in Python.
+        text = " ".join(tokens[start:stop])
+        if np.isfinite(values).all() and "_" not in text and text.isascii():
             return values
     except ValueError:
         pass
     for index in range(start, stop):
         if not _is_number(tokens[index]):
             raise _Malformed(
-                f"{layout.describe(index)} is {tokens[index][:40]!r}, not a finite number; "
+                f"{layout.describe(index)} is {tokens[index][:40]!r}, not a finite decimal number; "
                 f"{layout.expected}"
             )
     raise AssertionError("unreachable: some token failed to parse")
@@ -468,10 +469,10 @@ def _timestamp(tokens: list[str], layout: _Layout) -> float:
     """The ipc timestamp; the logger timestamp is checked but not kept."""
     stamp, logger_stamp = tokens[-3], tokens[-1]
     if not _is_number(stamp):
-        raise _Malformed(f"ipc_timestamp is {stamp[:40]!r}, not a finite number; {layout.expected}")
+        raise _Malformed(f"ipc_timestamp is {stamp[:40]!r}, not a finite decimal number; {layout.expected}")
     if not _is_number(logger_stamp):
         raise _Malformed(
-            f"logger_timestamp is {logger_stamp[:40]!r}, not a finite number; {layout.expected}"
+            f"logger_timestamp is {logger_stamp[:40]!r}, not a finite decimal number; {layout.expected}"
         )
     return float(stamp)
 
@@ -720,7 +721,7 @@ def _param_float(ctx: _Context, params: dict[str, tuple[str, int]], name: str) -
         return None
     value, line = params[name]
     if not _is_number(value):
-        raise ctx.error(f"PARAM {name} is {value[:40]!r}, not a finite number", line)
+        raise ctx.error(f"PARAM {name} is {value[:40]!r}, not a finite decimal number", line)
     return float(value)
 
 

@@ -9,11 +9,17 @@ from pathlib import Path
 from omnitof.errors import InputError
 
 # A decimal number as the formats write them. Python's float() also takes "1_0" (as 10), "nan",
-# "infinity" and full-width digits, none of which a trajectory writer means.
-_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
+# "infinity" and full-width or Arabic-Indic digits, none of which a writer of these formats
+# means (re.ASCII: without it \d matches those digits too).
+_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?", re.ASCII)
 
 # Longest piece of a user's line quoted back in an error.
 _QUOTE = 40
+
+
+def is_decimal(token: str) -> bool:
+    """Whether `token` is a plain decimal number (a finite one: 1e400 is not)."""
+    return _NUMBER.fullmatch(token) is not None and math.isfinite(float(token))
 
 
 def quote(text: str) -> str:
@@ -43,9 +49,9 @@ def parse_float_row(
     row = []
     for k, value in enumerate(fields):
         name = names[k] if k < len(names) else f"field {k + 1}"
-        parsed = float(value) if _NUMBER.fullmatch(value) else math.nan
-        if not math.isfinite(parsed):  # also 1e400, which float() reads as inf
+        if not is_decimal(value):
             raise InputError(f"{name} is {quote(value)}, not a finite decimal number", path, number)
+        parsed = float(value)
         bound = (limits or {}).get(name)
         if bound is not None and abs(parsed) > bound:
             raise InputError(f"{name} is {parsed:g}, beyond ±{bound:g}: not a plausible value", path, number)
