@@ -252,6 +252,7 @@ def test_a_second_run_replaces_the_whole_folder(tmp_path, short_log, corridor_lo
     ("under a file", "is a file, not a folder"),
     ("foreign folder", "holds files that are not results of omnitof (notes.txt)"),
     ("unwritable", "cannot create the results folder"),
+    ("name too long", "cannot be the results folder: File name too long"),  # was a raw OSError
 ])
 def test_an_output_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys, case, message):
     # The log is malformed too: the output is checked first, so its error is the one reported.
@@ -261,11 +262,24 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_work(tmp_path, c
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "notes.txt").write_text("keep me")
     out = {"file": tmp_path / "taken", "under a file": tmp_path / "taken" / "run",
-           "foreign folder": tmp_path / "mine", "unwritable": Path("/proc/omnitof-run")}[case]
+           "foreign folder": tmp_path / "mine", "unwritable": Path("/proc/omnitof-run"),
+           "name too long": tmp_path / ("a" * 300)}[case]
     assert quick_slam(log, out) == 2
     err = capsys.readouterr().err
     assert message in err and "bad.clf" not in err and err.count("\n") == 1
     assert (tmp_path / "taken").read_text() == "a file" and (tmp_path / "mine" / "notes.txt").exists()
+
+
+def test_a_path_the_file_system_refuses_is_named_once_before_its_problem(tmp_path, short_log, capsys):
+    # OSError's own text put "[Errno 36] File name too long:" before the path, and repeated it.
+    long = tmp_path / ("b" * 300)
+    for argv in (["slam", str(long), "--out", str(tmp_path / "o")],
+                 ["slam", str(short_log), "--relations", str(long), "--out", str(tmp_path / "o")],
+                 ["eval", "relations", str(long), str(long)]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"omnitof: error: {long}: ") and err.count(str(long)) == 1, err
+        assert "File name too long" in err and "Errno" not in err and err.count("\n") == 1
 
 
 def test_relations_that_do_not_parse_or_match_are_refused_before_slam(tmp_path, short_log, capsys):

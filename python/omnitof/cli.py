@@ -15,7 +15,7 @@ import warnings
 from pathlib import Path
 
 from omnitof import __version__
-from omnitof.errors import OmnitofError, OmnitofWarning
+from omnitof.errors import OmnitofError, OmnitofWarning, os_error_message
 
 
 def _config_from_args(args: argparse.Namespace, default_preset: str | None = None):
@@ -512,7 +512,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"omnitof: error: {err}", file=sys.stderr)
             return 2
         except OSError as err:  # an input that cannot be read, an output folder that cannot be written
-            print(f"omnitof: error: {err}", file=sys.stderr)
+            print(f"omnitof: error: {os_error_message(err)}", file=sys.stderr)
             return 2
         except MemoryError as err:  # a setting or input that asks for more than any check foresaw
             detail = f" ({err})" if str(err) else ""

@@ -91,3 +91,21 @@ def yaml_problem(err: Exception) -> tuple[str, int | None]:
     mark = getattr(err, "problem_mark", None)
     problem = getattr(err, "problem", None) or " ".join(str(err).split())
     return f"not valid YAML: {problem}", None if mark is None else mark.line + 1
+
+
+def read_problem(err: OSError | UnicodeDecodeError | ValueError) -> str:
+    """What went wrong reading a file, for a message that already names it: OSError's own text
+    repeats the path ("[Errno 36] File name too long: '/a/...'"), after the path was named."""
+    if isinstance(err, UnicodeDecodeError):
+        return f"not UTF-8 text (byte {err.start})"
+    if isinstance(err, OSError) and err.strerror:
+        return err.strerror
+    return str(err)
+
+
+def os_error_message(err: OSError) -> str:
+    """An OSError that reached the command line, path first as in every other message."""
+    if err.filename is None or not err.strerror:
+        return str(err)
+    target = f" -> {err.filename2}" if err.filename2 is not None else ""
+    return f"{err.filename}{target}: {err.strerror}"

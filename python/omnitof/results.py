@@ -24,6 +24,7 @@ summary.yaml is written last, so a folder that holds it is complete (`is_complet
 from __future__ import annotations
 
 import errno
+import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -86,7 +87,7 @@ def results_folder(out: str | Path) -> Iterator[Path]:
     SIGTERM), `out` is left as it was; a write that fails for lack of room becomes an
     OutputError that says so.
     """
-    existed = Path(out).is_dir()
+    existed = os.path.isdir(out)  # False for a name the file system cannot hold; atomic_folder says why
     try:
         with atomic_folder(out, may_replace=_only_results) as folder:
             yield folder

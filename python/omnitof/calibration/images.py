@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from omnitof.calibration import CalibrationError
+from omnitof.errors import read_problem
 from omnitof.io.rosbag import ToFTopics, read_tof_bag
 
 IMAGE_SUFFIXES = (".png", ".pgm", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
@@ -80,7 +81,7 @@ def _npz_image(path: Path) -> AmplitudeImage:
             amplitude = np.asarray(data["amplitude"], dtype=np.float32)
             distance = np.asarray(data["distance"], dtype=np.float32) if "distance" in data else None
     except (OSError, ValueError) as err:
-        raise CalibrationError(f"cannot read the npz file: {err}", path) from None
+        raise CalibrationError(f"cannot read the npz file: {read_problem(err)}", path) from None
     if amplitude.ndim != 2 or (distance is not None and distance.shape != amplitude.shape):
         raise CalibrationError("npz images must be (H, W), amplitude and distance alike", path)
     return AmplitudeImage(str(path), amplitude, distance)

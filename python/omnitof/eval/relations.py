@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from omnitof.errors import InputError
+from omnitof.errors import InputError, read_problem
 from omnitof.io.text import parse_float_row
 from omnitof.geometry import relative, wrap_angle
 from omnitof.types import Trajectory
@@ -95,7 +95,7 @@ def read_relations(path: str | Path) -> Relations:
     try:
         lines = Path(path).read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read the relations file: {exc}", path) from exc
+        raise InputError(f"cannot read the relations file: {read_problem(exc)}", path) from None
     rows = [
         _parse_relation(text, path, number)
         for number, text in enumerate((line.strip() for line in lines), start=1)

@@ -208,19 +208,12 @@ def atomic_folder(
     `path` is left as it was.
     """
     shown = Path(path)
-    path = Path(os.path.abspath(shown))
-    if path.is_symlink():
-        path = path.resolve()  # replace the folder the link names, keep the link
-    if path.parent == path:
-        raise OutputError(f"{shown}: the root folder cannot be a results folder")
-    if path.exists() and not path.is_dir():
-        raise OutputError(f"{shown}: is a file, not a folder; choose another place for the results")
-    here, real = Path.cwd().resolve(), path.resolve()
-    if here == real or real in here.parents:
-        raise OutputError(f"{shown}: holds the current folder, which a new folder in its place would pull away")
-    if path.is_dir() and may_replace is not None:
-        may_replace(path)
-    sweep_leftovers(path)
+    if "\0" in str(shown):
+        raise OutputError(f"{str(shown)!r}: a path cannot hold a NUL character")
+    try:
+        path = _checked_target(shown, may_replace)
+    except OSError as err:  # a name too long for the file system, a folder that cannot be listed
+        raise OutputError(f"{shown}: cannot be the results folder: {err.strerror or err}") from None
     made = _make_parents(path.parent, shown)
     staging = _temporary(path, "partial")
     try:
@@ -241,6 +234,24 @@ def atomic_folder(
         raise
     finally:
         _ACTIVE.discard(staging)
+
+
+def _checked_target(shown: Path, may_replace: Callable[[Path], None] | None) -> Path:
+    """The absolute folder `shown` names, once it is known that a results folder may go there."""
+    path = Path(os.path.abspath(shown))
+    if path.is_symlink():
+        path = path.resolve()  # replace the folder the link names, keep the link
+    if path.parent == path:
+        raise OutputError(f"{shown}: the root folder cannot be a results folder")
+    if path.exists() and not path.is_dir():
+        raise OutputError(f"{shown}: is a file, not a folder; choose another place for the results")
+    here, real = Path.cwd().resolve(), path.resolve()
+    if here == real or real in here.parents:
+        raise OutputError(f"{shown}: holds the current folder, which a new folder in its place would pull away")
+    if path.is_dir() and may_replace is not None:
+        may_replace(path)
+    sweep_leftovers(path)
+    return path
 
 
 def _make_parents(folder: Path, shown: Path) -> list[Path]:

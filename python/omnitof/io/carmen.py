@@ -39,7 +39,7 @@ from typing import BinaryIO, Iterator
 
 import numpy as np
 
-from omnitof.errors import ConfigError, InputError, OmnitofWarning
+from omnitof.errors import ConfigError, InputError, OmnitofWarning, read_problem
 from omnitof.io.text import is_decimal
 from omnitof.geometry import interpolate_poses, relative, wrap_angle
 from omnitof.types import (
@@ -326,7 +326,7 @@ def _lines(ctx: _Context) -> Iterator[tuple[int, str]]:
                 if text and not text.startswith("#"):
                     yield number, text
     except (OSError, EOFError, zlib.error) as exc:
-        raise ctx.error(f"cannot read the file: {exc}") from exc
+        raise ctx.error(f"cannot read the file: {read_problem(exc)}") from None
 
 
 def _scan_file(ctx: _Context, laser: str) -> _RawLog:

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from omnitof.errors import InputError, load_yaml, yaml_problem
+from omnitof.errors import InputError, load_yaml, read_problem, yaml_problem
 from omnitof.io.atomic import atomic_write
 from omnitof.types import OccupancyMap
 
@@ -157,7 +157,7 @@ def _load_yaml(path: Path) -> dict[str, Any]:
     try:
         meta = load_yaml(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read the map description: {exc}", path) from exc
+        raise InputError(f"cannot read the map description: {read_problem(exc)}", path) from None
     except yaml.YAMLError as exc:
         problem, line = yaml_problem(exc)
         raise InputError(problem, path, line) from None
@@ -232,7 +232,7 @@ def _decode_pgm(path: Path) -> tuple[np.ndarray, int]:
     try:
         data = path.read_bytes()
     except OSError as exc:
-        raise InputError(f"cannot read the map image: {exc}", path) from exc
+        raise InputError(f"cannot read the map image: {read_problem(exc)}", path) from None
     magic, width, height, maxval, offset = _pgm_header(data, path)
     if magic == b"P5":
         pixels = _p5_pixels(data[offset:], width * height, maxval, path)

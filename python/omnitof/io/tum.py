@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from omnitof.errors import InputError
+from omnitof.errors import InputError, read_problem
 from omnitof.io.text import parse_float_row
 from omnitof.geometry import quaternion_to_yaw, yaw_to_quaternion
 from omnitof.io.atomic import atomic_write
@@ -108,7 +108,7 @@ def _read_lines(path: str | Path) -> list[str]:
     try:
         return Path(path).read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read the TUM trajectory: {exc}", path) from exc
+        raise InputError(f"cannot read the TUM trajectory: {read_problem(exc)}", path) from None
 
 
 def _parse_row(text: str, path: str | Path, number: int) -> list[float]:

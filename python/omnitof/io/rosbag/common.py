@@ -39,7 +39,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from omnitof.errors import InputError, OmnitofError, OmnitofWarning, load_yaml, yaml_problem
+from omnitof.errors import InputError, OmnitofError, OmnitofWarning, load_yaml, read_problem, yaml_problem
 from omnitof.geometry import quaternion_to_yaw, yaw_to_quaternion
 from omnitof.interrupts import deferred_signals
 from omnitof.io.atomic import fsync_dir, temporary_folder
@@ -387,7 +387,7 @@ def _read_sidecar(path: Path) -> dict | None:
         problem, line = yaml_problem(err)
         raise InputError(f"the bag's sidecar is {problem}", sidecar, line) from None
     except (OSError, UnicodeDecodeError) as err:
-        raise InputError(f"cannot read the bag's sidecar: {err}", sidecar) from None
+        raise InputError(f"cannot read the bag's sidecar: {read_problem(err)}", sidecar) from None
     if data is None:
         return {}
     if not isinstance(data, dict):
