@@ -307,6 +307,11 @@ def test_a_complete_run_of_another_configuration_is_not_taken_for_this_one(grid_
     ("inputs: [{name: a, log: LOG}]\nmetrics: [floorplan]", "metrics: floorplan needs a world input"),
     ("inputs: [{name: a, log: LOG}]\nmetrics: [speed]", "metrics[0]"),
     ("inputs: [{name: a, log: LOG}]\nthreads: 0", "threads: Input should be greater than or equal to 1"),
+    ("inputs: [{name: a, log: LOG}, {name: b, log: LOG}]\ngrid: {filter.particles: [1, 2, 3, 4, 5, 6, 7, 8, 9, 10], "
+     "map.resolution: [0.01, 0.02, 0.03, 0.04, 0.05, 0.06, 0.07, 0.08, 0.09, 0.1], "
+     "motion.alpha1: [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]}\nseeds: [0, 1, 2, 3, 4, 5]",
+     "12000 runs (2 inputs × 1 presets × 10 grid.filter.particles × 10 grid.map.resolution × "
+     "10 grid.motion.alpha1 × 6 seeds); an experiment holds at most 10000"),
     ("- just a list", "an experiment is a mapping"),
     ("inputs: [{name: a, log: LOG", "not valid YAML"),
 ])
@@ -317,6 +322,23 @@ def test_a_malformed_experiment_is_one_line_naming_the_field(data, tmp_path, cap
     assert message in err and str(path) in err, err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
     assert not (tmp_path / "out").exists()
+
+
+def test_an_experiment_stopped_while_planning_says_nothing_was_made(data, tmp_path, monkeypatch, capsys):
+    # It said "the runs finished so far are in DIR" of a DIR that was never made.
+    import omnitof.bench.runner as runner
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(runner, "run_experiment", stopped)
+    path = _experiment(tmp_path, "stop", f"inputs: [{{name: a, log: {data['first']}}}]\n")
+    assert main(["bench", str(path), "--out", str(tmp_path / "out")]) == 130
+    err = capsys.readouterr().err
+    assert f"interrupted before {tmp_path / 'out'} was made" in err and "finished so far" not in err
+    (tmp_path / "out" / "runs").mkdir(parents=True)
+    assert main(["bench", str(path), "--out", str(tmp_path / "out")]) == 130
+    assert "the runs finished so far are in" in capsys.readouterr().err
 
 
 def test_the_plan_and_the_command_of_a_run(data, tmp_path):

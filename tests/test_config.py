@@ -261,3 +261,13 @@ def test_threads_beyond_the_cores_are_the_cores_with_a_warning():
         for threads in (0, cores):
             fits = cfg.model_copy(update={"filter": cfg.filter.model_copy(update={"threads": threads})})
             assert within_cores(fits) is fits
+
+
+def test_the_configuration_text_is_pyyamls_own_for_every_preset():
+    # to_yaml uses libyaml's emitter for speed; a resumed `bench` compares this text's digest.
+    import yaml
+
+    for name in preset_names():
+        cfg = load_config(preset=name)
+        assert cfg.to_yaml() == yaml.safe_dump(cfg.model_dump(), sort_keys=False)
+        assert SlamConfig.model_validate(yaml.safe_load(cfg.to_yaml())) == cfg

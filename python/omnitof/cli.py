@@ -226,8 +226,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
         outcome = run_experiment(experiment, args.out, workers=args.workers, scheduler=args.scheduler,
                                  progress=not args.quiet)
     except KeyboardInterrupt:
-        print(f"interrupted: the runs finished so far are in {args.out}; the same command runs the rest",
-              file=sys.stderr)
+        if (Path(args.out) / "runs").is_dir():
+            print(f"interrupted: the runs finished so far are in {args.out}; the same command runs the rest",
+                  file=sys.stderr)
+        else:  # stopped while planning: DIR was never made
+            print(f"interrupted before {args.out} was made; the same command starts again", file=sys.stderr)
         raise
     table = write_tables(args.out)
     failed = sum(r["status"] != "ok" for r in table.rows)

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import itertools
+import math
 import os
 import re
 from dataclasses import dataclass, field
@@ -39,6 +40,8 @@ from omnitof.settings_model import SettingsModel
 from omnitof.errors import ConfigError, OmnitofError, load_yaml, yaml_problem
 
 METRICS = ("relations", "trajectory", "floorplan", "table1")
+# Runs of one experiment: planning takes about 1 ms a run, a run seconds to hours.
+MAX_RUNS = 10_000
 # A run's folder name is built from these; anything else in a value becomes "_".
 _SAFE = re.compile(r"[^A-Za-z0-9_.+-]")
 _NAME = r"^[A-Za-z0-9][A-Za-z0-9_.-]*$"
@@ -356,6 +359,7 @@ def plan_runs(exp: Experiment) -> list[RunSpec]:
     varying fastest), seeds. Each run's configuration is built here, so that an invalid
     setting is refused, naming it, before anything runs."""
     spec = exp.spec
+    _check_run_count(exp)
     metrics = metrics_of(exp)
     keys = list(spec.grid)
     points = [dict(zip(keys, values)) for values in itertools.product(*(spec.grid[k] for k in keys))]
@@ -376,6 +380,19 @@ def plan_runs(exp: Experiment) -> list[RunSpec]:
                                         seed=seed, settings=settings, threads=spec.threads, metrics=metrics,
                                         config_digest=digests[key]))
     return runs
+
+
+def _check_run_count(exp: Experiment) -> None:
+    """Refuse an experiment of more than MAX_RUNS runs before planning it: a grid of 10^6 points
+    planned silently for many minutes, for runs that would take years."""
+    spec = exp.spec
+    factors = [("inputs", len(spec.inputs)), ("presets", len(spec.presets or [None])),
+               *((f"grid.{k}", len(v)) for k, v in spec.grid.items()), ("seeds", len(spec.seeds))]
+    count = math.prod(n for _, n in factors)
+    if count > MAX_RUNS:
+        product = " × ".join(f"{n} {name}" for name, n in factors)
+        raise ExperimentError(f"{exp.source}: {count} runs ({product}); an experiment holds at most {MAX_RUNS}: "
+                              "split it into several, or grid fewer values")
 
 
 def _config_digest(exp: Experiment, preset: str, settings: dict[str, Any], seed: int, point: dict) -> str:
