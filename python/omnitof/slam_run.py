@@ -167,6 +167,7 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
     from omnitof.io.scans import read_scans
     from omnitof.results import write_results
     from omnitof.slam import check_limits, run_slam
+    from omnitof.slam.thinning import thin_dense_scans
 
     three_d = tof and cfg.filter3d.enabled
     if tof:
@@ -197,6 +198,9 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
         from omnitof.eval.relations import check_relations_match
 
         check_relations_match(relations, scans.timestamps)
+    scans, thinned = thin_dense_scans(scans, cfg)
+    if thinned is not None:
+        extra["input"]["beams_thinned"] = thinned
     check_limits(scans, cfg)
     # Laser logs are stamped when the reading arrives, so their delay is estimated by default.
     given = request.scan_delay is not None

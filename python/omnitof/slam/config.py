@@ -196,6 +196,15 @@ class MapConfig(_Section):
     )
     max_range: float = Field(20.0, gt=0, description="readings beyond this (m) clear free space only")
     clear_no_echo: bool = Field(False, description="let no-echo beams clear free space up to max_range")
+    max_beams: int = Field(
+        8192, ge=1, le=100_000_000,
+        description="scans with more beams are thinned before the filter: one beam per cell of half the "
+        "resolution over their end points, then evenly to this many (omnitof.slam.thinning)",
+    )
+    thin_beams: Literal["dense", "always", "off"] = Field(
+        "dense", description="which scans are thinned: those with more than max_beams beams (dense), every scan "
+        "to one beam per end-point cell of half the resolution (always), or none (off)",
+    )
 
     @model_validator(mode="after")
     def _threshold_within_the_clamp(self) -> "MapConfig":

@@ -25,6 +25,7 @@ from omnitof.slam.limits import MemoryWatch, check_limits, within_cores
 from omnitof.slam.config import SlamConfig
 from omnitof.slam.final_match import final_match, grid_along
 from omnitof.slam.moving import drop_moving
+from omnitof.slam.thinning import thin_dense_scans
 from omnitof.geometry import compose, relative
 from omnitof.types import OccupancyMap, ScanSequence, Trajectory
 
@@ -82,14 +83,17 @@ def fill_trajectory(odometry: np.ndarray, integrated: np.ndarray, corrected: np.
 DRIVER_FILTER_FIELDS = frozenset({
     "linear_update", "angular_update_deg", "match_between", "final_match_passes", "moving_lookback", "moving_margin",
 })
+# The map section's fields the driver applies before the filter (omnitof.slam.thinning).
+DRIVER_MAP_FIELDS = frozenset({"max_beams", "thin_beams"})
 
 
 def core_sections(cfg: SlamConfig) -> dict:
     """The configuration's sections as the core's filter takes them: every section but the
     back end's, the 3D filter's and the scan extraction's, less the fields this driver uses itself (which scans to
-    integrate, the poses of the others)."""
+    integrate, the poses of the others, the thinning of dense scans)."""
     return cfg.model_dump(
-        exclude={"filter": set(DRIVER_FILTER_FIELDS), "backend": True, "filter3d": True, "scan": True}
+        exclude={"filter": set(DRIVER_FILTER_FIELDS), "map": set(DRIVER_MAP_FIELDS), "backend": True,
+                 "filter3d": True, "scan": True}
     )
 
 
@@ -167,6 +171,7 @@ def run_slam(
             that ran out all the same.
     """
     cfg = within_cores(cfg)
+    scans, _ = thin_dense_scans(scans, cfg)  # slam_run has thinned them already, and says so in its summary
     check_limits(scans, cfg)
     offset = run_offset(scans.odometry, cfg.map.resolution)  # odometry far out (slam.anchor)
     try:

@@ -25,7 +25,7 @@ import numpy as np
 from omnitof import _core
 from omnitof.errors import InputError, ResourceError
 from omnitof.slam.config import SlamConfig
-from omnitof.slam.driver import DRIVER_FILTER_FIELDS, SlamResult, fill_trajectory, in_odometry_frame
+from omnitof.slam.driver import DRIVER_FILTER_FIELDS, DRIVER_MAP_FIELDS, SlamResult, fill_trajectory, in_odometry_frame
 from omnitof.slam.anchor import moved, voxel_offset
 from omnitof.slam.limits import MemoryWatch, within_cores
 from omnitof.types import OccupancyMap, ScanSequence, Trajectory
@@ -47,7 +47,7 @@ def core_sections_3d(cfg: SlamConfig) -> dict:
     what this driver uses itself)."""
     return cfg.model_dump(
         include={"filter", "motion", "sensor_model", "likelihood_field", "scan_matcher", "map", "filter3d"},
-        exclude={"filter": set(DRIVER_FILTER_FIELDS),
+        exclude={"filter": set(DRIVER_FILTER_FIELDS), "map": set(DRIVER_MAP_FIELDS),
                  "filter3d": {"enabled", "pixel_stride", "project_z_min", "project_z_max"}},
     )
 

@@ -1,0 +1,131 @@
+"""Scans denser than the map, thinned before the filter (omnitof.slam.thinning)."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from omnitof.eval.floorplan import wall_agreement
+from omnitof.eval.trajectory import absolute_trajectory_error
+from omnitof.sim.laser2d import beam_angles, corridor_loop_world, simulate_scans
+from omnitof.slam import run_slam
+from omnitof.slam.config import load_config
+from omnitof.slam.thinning import DenseScanWarning, thin_dense_scans
+from omnitof.types import ScanSequence
+
+
+def _room_scans(beams: int, scans: int = 3, seed: int = 0) -> ScanSequence:
+    """Scans of the corridor loop's world from a few poses, `beams` beams over 360°, remissions
+    the beam index (to follow each beam)."""
+    world = corridor_loop_world()
+    poses = np.array([[1.0 + 0.2 * k, 1.0, 0.1 * k] for k in range(scans)])
+    angles = beam_angles(beams, 360.0)
+    ranges = simulate_scans(world, poses, angles, max_range=8.0, range_noise=0.0, seed=seed)
+    index = np.tile(np.arange(beams, dtype=np.float32), (scans, 1))
+    return ScanSequence(timestamps=np.arange(scans, dtype=float), ranges=ranges, angles=angles,
+                        odometry=poses, max_range=8.0, remissions=index, source="dense")
+
+
+def _config(max_beams: int, resolution: float = 0.05):
+    return load_config(preset="sim2d", overrides={"map": {"max_beams": max_beams, "resolution": resolution}})
+
+
+def _cells(angles: np.ndarray, ranges: np.ndarray, cell: float, reach: float) -> set[tuple[int, int]]:
+    """End-point cells, one beam at a time (the independent computation)."""
+    out = set()
+    for a, r in zip(angles, ranges):
+        length = min(float(r), reach)
+        out.add((math.floor(length * math.cos(a) / cell), math.floor(length * math.sin(a) / cell)))
+    return out
+
+
+def test_scans_within_the_limit_are_left_whole():
+    scans = _room_scans(720)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        same, record = thin_dense_scans(scans, _config(720))
+    assert same is scans and record is None
+
+
+def test_always_thins_light_scans_quietly_and_off_leaves_dense_ones():
+    light, dense = _room_scans(3600), _room_scans(30_000, scans=1)
+    always = load_config(preset="sim2d", overrides={"map": {"thin_beams": "always"}})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # asked for: no warning
+        thin, record = thin_dense_scans(light, always)
+        assert thin_dense_scans(dense, load_config(overrides={"map": {"thin_beams": "off"}})) == (dense, None)
+    assert record["rule"] == "always" and record["scans"] == 3
+    reach = min(always.map.max_range, light.max_range)
+    for i in range(3):  # 3600 beams over 360°: 1.7 cm apart at 1 m, in one 2.5 cm cell each pair
+        assert thin.beam_counts[i] == len(_cells(light.angles, light.ranges[i], 0.025, reach)) < 3600
+
+
+def test_a_dense_scan_keeps_one_beam_of_its_own_per_end_point_cell():
+    scans = _room_scans(30_000)
+    cfg = _config(30_000 - 1)
+    with pytest.warns(DenseScanWarning, match=r"dense: 3 scans have more than map.max_beams 29999 beams"):
+        thin, record = thin_dense_scans(scans, cfg)
+    assert record["scans"] == 3 and record["median_beams_before"] == 30_000
+    reach = min(cfg.map.max_range, scans.max_range)
+    for i in range(len(scans)):
+        kept = thin.remissions[i, : thin.beam_counts[i]].astype(int)  # the original beam indices
+        assert np.all(np.diff(kept) > 0)  # in the scan's own order, none twice
+        assert np.array_equal(thin.scan_angles(i), scans.angles[kept])
+        assert np.array_equal(thin.scan_ranges(i), scans.ranges[i, kept])
+        every = _cells(scans.angles, scans.ranges[i], 0.025, reach)
+        assert _cells(thin.scan_angles(i), thin.scan_ranges(i), 0.025, reach) == every
+        assert len(kept) == len(every) < 30_000 / 3  # one beam per cell: far fewer than the beams
+
+
+def test_beyond_the_limit_the_cells_are_kept_evenly():
+    scans = _room_scans(30_000, scans=1)
+    with pytest.warns(DenseScanWarning, match="and then evenly to 500"):
+        thin, record = thin_dense_scans(scans, _config(500))
+    assert thin.beam_counts[0] == 500 and record["median_beams_after"] == 500
+    gaps = np.diff(np.sort(np.mod(thin.scan_angles(0), 2 * np.pi)))
+    assert gaps.max() < 4 * (2 * np.pi / 500)  # spread over the whole turn, not bunched
+
+
+def test_light_scans_beside_dense_ones_are_kept_whole():
+    dense, light = _room_scans(20_000, scans=1), _room_scans(300, scans=1)
+    width = 20_000
+    angles = np.full((2, width), np.nan)
+    ranges = np.full((2, width), np.inf, dtype=np.float32)
+    angles[0], ranges[0] = dense.angles, dense.ranges[0]
+    angles[1, :300], ranges[1, :300] = light.angles, light.ranges[0]
+    mixed = ScanSequence(timestamps=np.array([0.0, 1.0]), ranges=ranges, angles=angles,
+                         odometry=np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0]]), max_range=8.0,
+                         beam_counts=np.array([20_000, 300]))
+    with pytest.warns(DenseScanWarning, match="1 scans have more than"):
+        thin, _ = thin_dense_scans(mixed, _config(1000))
+    assert thin.beam_counts[0] == 1000
+    assert np.array_equal(thin.scan_angles(1), light.angles)
+    assert np.array_equal(thin.scan_ranges(1), light.ranges[0])
+
+
+def test_slam_on_thinned_dense_scans_follows_the_truth_better_than_on_all_beams(corridor_loop):
+    # The loop's first 250 scans re-taken with 20 001 beams over 180° at the true poses. Thinned
+    # (about 1200 beams left), the filter follows the truth and maps the walls; with every beam
+    # it does worse (each wall cell gets hundreds of updates a scan; BENCHMARKS.md, "Scans
+    # denser than the map"), and takes five times as long.
+    part = corridor_loop.slice(0, 250)
+    world = corridor_loop_world()
+    angles = beam_angles(20_001, 180.0)
+    ranges = simulate_scans(world, part.ground_truth, angles, max_range=8.0, seed=3)
+    dense = ScanSequence(timestamps=part.timestamps, ranges=ranges, angles=angles,
+                         odometry=part.odometry, max_range=8.0, ground_truth=part.ground_truth)
+    runs = {}
+    for mode in ("dense", "off"):
+        cfg = load_config(preset="sim2d", overrides={"filter": {"particles": 10}, "map": {"thin_beams": mode}})
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            result = run_slam(dense, cfg)
+        assert any(isinstance(w.message, DenseScanWarning) for w in caught) == (mode == "dense")
+        error = absolute_trajectory_error(result.trajectory.poses, part.ground_truth).mean
+        runs[mode] = error, wall_agreement(result.map, world.distance_to_walls, tolerance=0.1).near_fraction
+    (error, walls), (error_all, walls_all) = runs["dense"], runs["off"]
+    assert error < 0.15 and error < error_all
+    assert walls > 0.55 and walls > walls_all
