@@ -1,6 +1,7 @@
 """Scans denser than the map: what thinning them does to the filter (`map.thin_beams`).
 
     python benchmarks/beam_thinning.py [--seeds 0 1 2] [--scans N] [--presets sim2d laser180-scanmatch]
+                                       [--beams 181 1081 20001] [--modes dense always off]
 
 The simulated corridor loop (omnitof.sim.laser2d, seed 0: its odometry and ground truth)
 scanned again at the true poses by lasers of 181 beams over 180° (the loop's own), 1081 over
@@ -37,6 +38,8 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--scans", type=int, default=None, help="the loop's first N scans (default: all)")
     parser.add_argument("--presets", nargs="+", default=["sim2d", "laser180-scanmatch"])
+    parser.add_argument("--beams", type=int, nargs="+", default=[b for b, _ in LASERS], help="which lasers")
+    parser.add_argument("--modes", nargs="+", default=["dense", "always", "off"], help="which thin_beams")
     args = parser.parse_args()
     loop = make_loop_dataset(seed=0)
     if args.scans is not None:
@@ -47,12 +50,12 @@ def main() -> None:
     print("| preset | laser | thin_beams | beams used (median) | ATE mean per seed (m) | walls within 10 cm per seed | s per run (median) |")
     print("|---|---|---|---|---|---|---|")
     for preset in args.presets:
-        for beams, fov in LASERS:
+        for beams, fov in (laser for laser in LASERS if laser[0] in args.beams):
             angles = beam_angles(beams, fov)
             ranges = simulate_scans(world, loop.ground_truth, angles, max_range=8.0, range_noise=0.01, seed=3)
             scans = ScanSequence(timestamps=loop.timestamps, ranges=ranges, angles=angles, odometry=loop.odometry,
                                  max_range=8.0, ground_truth=loop.ground_truth, source=f"{beams} beams")
-            for mode in ("dense", "always", "off") if beams > 8192 else ("dense", "always"):
+            for mode in (m for m in args.modes if beams > 8192 or m != "off"):
                 errors, walls, seconds = [], [], []
                 for seed in args.seeds:
                     cfg = load_config(preset=preset, overrides={"filter": {"seed": seed}, "map": {"thin_beams": mode}})

@@ -310,7 +310,7 @@ def test_a_complete_run_of_another_configuration_is_not_taken_for_this_one(grid_
     ("inputs: [{name: a, log: LOG}, {name: b, log: LOG}]\ngrid: {filter.particles: [1, 2, 3, 4, 5, 6, 7, 8, 9, 10], "
      "map.resolution: [0.01, 0.02, 0.03, 0.04, 0.05, 0.06, 0.07, 0.08, 0.09, 0.1], "
      "motion.alpha1: [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]}\nseeds: [0, 1, 2, 3, 4, 5]",
-     "12000 runs (2 inputs × 1 presets × 10 grid.filter.particles × 10 grid.map.resolution × "
+     "12000 runs (2 inputs × 1 preset × 10 grid.filter.particles × 10 grid.map.resolution × "
      "10 grid.motion.alpha1 × 6 seeds); an experiment holds at most 10000"),
     ("- just a list", "an experiment is a mapping"),
     ("inputs: [{name: a, log: LOG", "not valid YAML"),

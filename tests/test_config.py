@@ -243,6 +243,7 @@ def test_a_key_given_twice_is_refused_with_its_line(tmp_path):
 
 
 
+@pytest.mark.skipif(not hasattr(__import__("os"), "sched_getaffinity"), reason="CPU affinity is Linux's")
 def test_threads_beyond_the_cores_are_the_cores_with_a_warning():
     # 1024 threads on 2 cores made a 3 s run take 47 s; the map does not depend on the count.
     import os

@@ -75,9 +75,12 @@ def test_a_dense_scan_keeps_one_beam_of_its_own_per_end_point_cell():
         assert np.all(np.diff(kept) > 0)  # in the scan's own order, none twice
         assert np.array_equal(thin.scan_angles(i), scans.angles[kept])
         assert np.array_equal(thin.scan_ranges(i), scans.ranges[i, kept])
-        every = _cells(scans.angles, scans.ranges[i], 0.025, reach)
-        assert _cells(thin.scan_angles(i), thin.scan_ranges(i), 0.025, reach) == every
-        assert len(kept) == len(every) < 30_000 / 3  # one beam per cell: far fewer than the beams
+        for group in (np.isfinite, np.isinf):  # echoes and no-echo beams apart
+            every = scans.ranges[i][group(scans.ranges[i])], scans.angles[group(scans.ranges[i])]
+            mine = thin.scan_ranges(i)[group(thin.scan_ranges(i))], thin.scan_angles(i)[group(thin.scan_ranges(i))]
+            assert _cells(mine[1], mine[0], 0.025, reach) == _cells(every[1], every[0], 0.025, reach)
+            assert len(mine[0]) == len(_cells(every[1], every[0], 0.025, reach))  # one beam per cell
+        assert len(kept) < 30_000 / 3
 
 
 def test_beyond_the_limit_the_cells_are_kept_evenly():
@@ -87,6 +90,27 @@ def test_beyond_the_limit_the_cells_are_kept_evenly():
     assert thin.beam_counts[0] == 500 and record["median_beams_after"] == 500
     gaps = np.diff(np.sort(np.mod(thin.scan_angles(0), 2 * np.pi)))
     assert gaps.max() < 4 * (2 * np.pi / 500)  # spread over the whole turn, not bunched
+
+
+def test_beams_without_an_echo_do_not_crowd_out_those_with_one():
+    # Half the beams read nothing (+inf, NaN, 0): they mark no map (map.clear_no_echo is off),
+    # so the budget goes to the echoes first.
+    scans = _room_scans(20_000, scans=1)
+    ranges = scans.ranges.copy()
+    ranges[0, 1::2] = np.array([np.inf, np.nan, 0.0, -1.0], dtype=np.float32)[np.arange(10_000) % 4]
+    silent = ScanSequence(timestamps=scans.timestamps, ranges=ranges, angles=scans.angles,
+                          odometry=scans.odometry, max_range=8.0)
+    cfg = _config(2000)
+    echo = np.isfinite(ranges[0]) & (ranges[0] > 0)
+    echo_cells = _cells(scans.angles[echo], ranges[0, echo], 0.025, min(cfg.map.max_range, 8.0))
+    assert 0 < len(echo_cells) < 2000 < len(_cells(scans.angles, np.where(echo, ranges[0], np.inf), 0.025, 8.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # NaN ranges make no numpy warning
+        with pytest.warns(DenseScanWarning, match="a scan has more than map.max_beams 2000"):
+            thin, _ = thin_dense_scans(silent, cfg)
+    kept = thin.scan_ranges(0)
+    echoes = np.isfinite(kept) & (kept > 0)
+    assert thin.beam_counts[0] == 2000 and echoes.sum() == len(echo_cells)
 
 
 def test_light_scans_beside_dense_ones_are_kept_whole():
@@ -99,7 +123,7 @@ def test_light_scans_beside_dense_ones_are_kept_whole():
     mixed = ScanSequence(timestamps=np.array([0.0, 1.0]), ranges=ranges, angles=angles,
                          odometry=np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0]]), max_range=8.0,
                          beam_counts=np.array([20_000, 300]))
-    with pytest.warns(DenseScanWarning, match="1 scans have more than"):
+    with pytest.warns(DenseScanWarning, match="a scan has more than"):
         thin, _ = thin_dense_scans(mixed, _config(1000))
     assert thin.beam_counts[0] == 1000
     assert np.array_equal(thin.scan_angles(1), light.angles)
@@ -129,3 +153,22 @@ def test_slam_on_thinned_dense_scans_follows_the_truth_better_than_on_all_beams(
     (error, walls), (error_all, walls_all) = runs["dense"], runs["off"]
     assert error < 0.15 and error < error_all
     assert walls > 0.55 and walls > walls_all
+
+
+def test_omnitof_slam_says_it_thinned_and_records_it(tmp_path):
+    import yaml
+
+    from omnitof.cli import main
+    from omnitof.io.carmen import write_carmen
+
+    scans = _room_scans(9000, scans=6)
+    log = tmp_path / "dense.clf"
+    write_carmen(log, scans)
+    out = tmp_path / "run"
+    with pytest.warns(DenseScanWarning, match="6 scans have more than map.max_beams 8192 beams .up to 9000.") as caught:
+        assert main(["slam", str(log), "--out", str(out), "--particles", "3", "--scan-delay", "0", "--quiet"]) == 0
+    assert sum(isinstance(w.message, DenseScanWarning) for w in caught) == 1  # thinned once, said once
+    record = yaml.safe_load((out / "summary.yaml").read_text())["input"]["beams_thinned"]
+    assert record["rule"] == "dense" and record["scans"] == 6 and record["median_beams_before"] == 9000
+    assert record["median_beams_after"] < 9000
+    assert yaml.safe_load((out / "config.yaml").read_text())["map"]["thin_beams"] == "dense"  # as asked

@@ -199,8 +199,10 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
 
         check_relations_match(relations, scans.timestamps)
     scans, thinned = thin_dense_scans(scans, cfg)
+    run_cfg = cfg  # what the filter is given; config.yaml records `cfg`
     if thinned is not None:
         extra["input"]["beams_thinned"] = thinned
+        run_cfg = cfg.model_copy(update={"map": cfg.map.model_copy(update={"thin_beams": "off"})})  # done once
     check_limits(scans, cfg)
     # Laser logs are stamped when the reading arrives, so their delay is estimated by default.
     given = request.scan_delay is not None
@@ -209,10 +211,10 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
         scans, extra["input"]["scan_delay"] = _retimed(scans, delay, given=given, echo=echo)
     voxel_paths: dict[str, Path] = {}
     if three_d:
-        result, voxel_paths = _run_3d(request, cfg, scans, tof_data, out, extra, bar)
+        result, voxel_paths = _run_3d(request, run_cfg, scans, tof_data, out, extra, bar)
     else:
         with bar(len(scans), "slam", "scan") as b:
-            result = run_slam(scans, cfg, progress=_pausing(b.update, "slam", len(scans) // 2))
+            result = run_slam(scans, run_cfg, progress=_pausing(b.update, "slam", len(scans) // 2))
     rel = None
     if relations is not None:
         from omnitof.eval.relations import evaluate_relations

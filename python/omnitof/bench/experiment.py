@@ -386,11 +386,12 @@ def _check_run_count(exp: Experiment) -> None:
     """Refuse an experiment of more than MAX_RUNS runs before planning it: a grid of 10^6 points
     planned silently for many minutes, for runs that would take years."""
     spec = exp.spec
-    factors = [("inputs", len(spec.inputs)), ("presets", len(spec.presets or [None])),
-               *((f"grid.{k}", len(v)) for k, v in spec.grid.items()), ("seeds", len(spec.seeds))]
-    count = math.prod(n for _, n in factors)
+    factors = [(len(spec.inputs), "input", "inputs"), (len(spec.presets or [None]), "preset", "presets"),
+               *((len(v), f"grid.{k}", f"grid.{k}") for k, v in spec.grid.items()),
+               (len(spec.seeds), "seed", "seeds")]
+    count = math.prod(n for n, _, _ in factors)
     if count > MAX_RUNS:
-        product = " × ".join(f"{n} {name}" for name, n in factors)
+        product = " × ".join(f"{n} {one if n == 1 else many}" for n, one, many in factors)
         raise ExperimentError(f"{exp.source}: {count} runs ({product}); an experiment holds at most {MAX_RUNS}: "
                               "split it into several, or grid fewer values")
 

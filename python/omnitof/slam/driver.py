@@ -10,7 +10,6 @@ end the optimised graph's, whose poses also build the map.
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -21,7 +20,7 @@ from omnitof import _core
 from omnitof.errors import InputError, ResourceError
 from omnitof.slam.anchor import moved, moved_back, run_offset
 from omnitof.slam.backend import PoseGraphBackend
-from omnitof.slam.limits import MemoryWatch, check_limits, within_cores
+from omnitof.slam.limits import MemoryWatch, check_limits, usable_cores, within_cores
 from omnitof.slam.config import SlamConfig
 from omnitof.slam.final_match import final_match, grid_along
 from omnitof.slam.moving import drop_moving
@@ -215,7 +214,7 @@ def _run(scans: ScanSequence, cfg: SlamConfig, progress: Callable[[int], None] |
     pf = _make_filter(scans, cfg)
     backend = None
     if cfg.backend.enabled:
-        threads = cfg.filter.threads or (os.cpu_count() or 1)
+        threads = cfg.filter.threads or usable_cores()
         backend = PoseGraphBackend(cfg.backend, cfg.map, cfg.likelihood_field.sigma, scans, threads)
     prev = scans.odometry[integrated[0]]
     done = 0

@@ -7,10 +7,11 @@ scans took 110 s per scan with 30 particles). Most of those beams end in the sam
 as their neighbours and add nothing the map can hold.
 
 A scan with more than `map.max_beams` beams keeps one beam per cell of a grid of half the map
-resolution laid over its end points in the sensor frame (the first beam, in angle order, of
-each cell; a no-echo beam's end point taken at the distance it clears, min(map.max_range,
+resolution laid over its end points in the sensor frame (the first beam of each cell, in the
+scan's own order; a no-echo beam's end point taken at the distance it clears, min(map.max_range,
 the sensor's range)), as Cartographer's voxel filter does before insertion (Hess et al.,
-ICRA 2016, sec. IV). If more than `map.max_beams` remain, every n-th of them is kept, evenly.
+ICRA 2016, sec. IV). If more than `map.max_beams` remain, that many are kept, evenly spread,
+the beams with an echo first (the others mark the map only with map.clear_no_echo).
 Scans at or under the limit are left whole, so a log of ordinary scans runs as before, bit for
 bit. Kept beams keep their own angle and range; the thinned log has per-scan geometry
 (`ScanSequence.beam_counts`).
@@ -42,8 +43,14 @@ def thin_dense_scans(scans: ScanSequence, cfg: SlamConfig) -> tuple[ScanSequence
     cell = cfg.map.resolution / 2
     reach = min(cfg.map.max_range, scans.max_range)
     thin = counts > limit if mode == "dense" else np.ones(len(scans), dtype=bool)
-    kept = [_thinned(scans.scan_angles(i), scans.scan_ranges(i), cell, reach, limit) if thin[i]
-            else np.arange(counts[i]) for i in range(len(scans))]
+    kept, spread = [], False
+    for i in range(len(scans)):
+        if not thin[i]:
+            kept.append(np.arange(counts[i]))
+            continue
+        beams, cells = _thinned(scans.scan_angles(i), scans.scan_ranges(i), cell, reach, limit)
+        kept.append(beams)
+        spread |= cells > limit
     angles = pad_rows([scans.scan_angles(i)[k] for i, k in enumerate(kept)], np.nan, np.float64)
     ranges = pad_rows([scans.scan_ranges(i)[k] for i, k in enumerate(kept)], np.inf, np.float32)
     remissions = None
@@ -56,9 +63,10 @@ def thin_dense_scans(scans: ScanSequence, cfg: SlamConfig) -> tuple[ScanSequence
               "median_beams_after": int(np.median(new_counts[thin]))}
     dense = counts > limit
     if dense.any():  # asked for with `always`, a surprise otherwise
-        evenly = f" and then evenly to {limit}" if new_counts[dense].max() >= limit else ""
+        evenly = f" and then evenly to {limit}" if spread else ""
+        many = f"{int(dense.sum())} scans have" if dense.sum() > 1 else "a scan has"
         warnings.warn(DenseScanWarning(
-            f"{scans.source or 'the scans'}: {int(dense.sum())} scans have more than map.max_beams {limit} beams "
+            f"{scans.source or 'the scans'}: {many} more than map.max_beams {limit} beams "
             f"(up to {int(counts.max())}); each was thinned to one beam per {cell:g} m cell of its end points"
             f"{evenly}: a median {int(np.median(counts[dense]))} beams became {int(np.median(new_counts[dense]))}"
         ))
@@ -78,14 +86,34 @@ def thin_dense_scans(scans: ScanSequence, cfg: SlamConfig) -> tuple[ScanSequence
 _KEY_LIMIT = 2**30
 
 
-def _thinned(angles: np.ndarray, ranges: np.ndarray, cell: float, reach: float, limit: int) -> np.ndarray:
-    """Indices (increasing) of the beams one scan keeps: the first of each end-point cell, then
-    at most `limit` of those, evenly spaced."""
-    length = np.minimum(ranges.astype(np.float64), reach)  # no echo (+inf): the distance it clears
+def _thinned(angles: np.ndarray, ranges: np.ndarray, cell: float, reach: float,
+             limit: int) -> tuple[np.ndarray, int]:
+    """The beams one scan keeps (indices, increasing) and how many end-point cells it has: the
+    first beam of each cell, echoes before beams without one (no echo, NaN or not positive: they
+    mark the map only with map.clear_no_echo, up to `reach`, where their end point is taken);
+    where there are more than `limit` cells, `limit` of them, evenly spaced, those of echoes
+    first."""
+    r = ranges.astype(np.float64)
+    echo = np.isfinite(r) & (r > 0)
+    length = np.where(echo, np.minimum(r, reach), reach)
     kx, ky = (np.clip(np.floor(length * f(angles) / cell), -_KEY_LIMIT, _KEY_LIMIT).astype(np.int64)
               for f in (np.cos, np.sin))
-    _, first = np.unique((kx << 32) + ky, return_index=True)
-    first.sort()
-    if len(first) > limit:
-        first = first[np.linspace(0, len(first) - 1, limit).round().astype(np.int64)]
-    return first
+    keys = (kx << 32) + ky
+    echoes, silent = (_first_per_cell(keys, np.flatnonzero(group)) for group in (echo, ~echo))
+    cells = len(echoes) + len(silent)
+    if len(echoes) >= limit:
+        return _evenly(echoes, limit), cells
+    return np.sort(np.concatenate([echoes, _evenly(silent, limit - len(echoes))])), cells
+
+
+def _first_per_cell(keys: np.ndarray, beams: np.ndarray) -> np.ndarray:
+    """Of `beams` (increasing indices), the first in each cell of `keys`, increasing."""
+    _, first = np.unique(keys[beams], return_index=True)
+    return beams[np.sort(first)]
+
+
+def _evenly(beams: np.ndarray, n: int) -> np.ndarray:
+    """At most `n` of `beams`, evenly spaced over them."""
+    if len(beams) <= n:
+        return beams
+    return beams[np.linspace(0, len(beams) - 1, n).round().astype(np.int64)] if n > 0 else beams[:0]
