@@ -79,6 +79,7 @@ class OccupancyGrid:
         max_range: float,
         clear_no_echo: bool = False,
         sensor_pose: _F64 | None = None,
+        once_per_scan: bool = False,
     ) -> None: ...
     def to_dense(self) -> tuple[_F32, int, int]: ...
     def match_scan(
@@ -131,6 +132,7 @@ class Submap:
         max_range: float,
         *,
         clear_no_echo: bool = False,
+        once_per_scan: bool = False,
         unknown_probability: float = ...,
         depth: int = ...,
         spread_sigma: float = 0.0,

@@ -187,7 +187,7 @@ mod tests {
         let mut g = TiledGrid::new(0.05);
         let truth = [1.5, 4.0, 0.3];
         for pose in [[3.0, 1.2, -0.2], truth] {
-            integrate_scan(&mut g, &lm, &geom, pose, &room_scan(geom.sensor_pose(pose), &angles), 20.0, false).unwrap();
+            integrate_scan(&mut g, &lm, &geom, pose, &room_scan(geom.sensor_pose(pose), &angles), 20.0, false, false).unwrap();
         }
         // The scan the robot takes a little later, from a pose its odometry puts 0.7 m and 9° off.
         let real = [1.8, 3.7, 0.45];

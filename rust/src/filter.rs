@@ -106,6 +106,8 @@ pub struct FilterParams {
     /// Readings beyond this (metres) update free space only.
     pub map_max_range: f64,
     pub clear_no_echo: bool,
+    /// Each cell updated at most once per scan (`integrate_scan`), else once per beam.
+    pub once_per_scan: bool,
     /// Resample when Neff < resample_threshold · N.
     pub resample_threshold: f64,
 }
@@ -245,7 +247,7 @@ impl ParticleFilter {
     /// Every particle at `pose` with the first scan written into one shared map.
     fn initial_particles(p: &FilterParams, geom: &ScanGeometry, pose: [f64; 3], ranges: &[f32], scan: u64) -> Result<Vec<Particle>, GridError> {
         let mut map = TiledGrid::new(p.resolution);
-        integrate_scan(&mut map, &p.log_odds, geom, pose, ranges, p.map_max_range, p.clear_no_echo)?;
+        integrate_scan(&mut map, &p.log_odds, geom, pose, ranges, p.map_max_range, p.clear_no_echo, p.once_per_scan)?;
         let root = Arc::new(TrajectoryNode { pose, scan, parent: None });
         copies(&Particle { pose, log_weight: 0.0, map, trajectory: root }, p.n_particles)
     }
@@ -308,7 +310,7 @@ impl ParticleFilter {
                     };
                     part.pose = pose;
                     part.trajectory = Arc::new(TrajectoryNode { pose, scan, parent: Some(part.trajectory.clone()) });
-                    integrate_scan(&mut part.map, &p.log_odds, &geom, pose, ranges, p.map_max_range, p.clear_no_echo)?;
+                    integrate_scan(&mut part.map, &p.log_odds, &geom, pose, ranges, p.map_max_range, p.clear_no_echo, p.once_per_scan)?;
                     Ok(fell_back as usize)
                 })
                 .collect()

@@ -263,6 +263,7 @@ config_section! {
         occupied_threshold: f32,
         max_range: f64,
         clear_no_echo: bool,
+        once_per_scan: bool,
     }
 }
 
@@ -341,6 +342,7 @@ fn filter_params(
         resolution: g.resolution,
         map_max_range: g.max_range.min(scan_max_range),
         clear_no_echo: g.clear_no_echo,
+        once_per_scan: g.once_per_scan,
         resample_threshold: f.resample_threshold,
     })
 }
@@ -582,7 +584,7 @@ impl PyOccupancyGrid {
         Ok(PyOccupancyGrid { grid: TiledGrid::new(resolution), model: LogOddsModel { l_occ, l_free, l_min, l_max } })
     }
 
-    #[pyo3(signature = (robot_pose, angles, ranges, max_range, clear_no_echo=false, sensor_pose=None))]
+    #[pyo3(signature = (robot_pose, angles, ranges, max_range, clear_no_echo=false, sensor_pose=None, once_per_scan=false))]
     fn integrate(
         &mut self,
         robot_pose: PyReadonlyArray1<f64>,
@@ -591,11 +593,13 @@ impl PyOccupancyGrid {
         max_range: f64,
         clear_no_echo: bool,
         sensor_pose: Option<PyReadonlyArray1<f64>>,
+        once_per_scan: bool,
     ) -> PyResult<()> {
         let robot = pose3(robot_pose.as_slice()?, "robot_pose")?;
         let (angles, ranges) = (angles.as_slice()?, ranges.as_slice()?);
         let geom = scan_geometry(angles, ranges, sensor_pose)?;
-        integrate_scan(&mut self.grid, &self.model, &geom, robot, ranges, max_range, clear_no_echo).map_err(grid_error)
+        integrate_scan(&mut self.grid, &self.model, &geom, robot, ranges, max_range, clear_no_echo, once_per_scan)
+            .map_err(grid_error)
     }
 
     /// (log-odds (rows, cols) with NaN = unknown, ix0, iy0): cell (r, c) is (ix0 + c, iy0 + r).

@@ -70,6 +70,8 @@ pub struct SubmapParams {
     pub max_range: f64,
     /// Whether a no-echo reading clears the cells up to `max_range`.
     pub clear_no_echo: bool,
+    /// Each cell updated at most once per scan (`integrate_scan`), else once per beam.
+    pub once_per_scan: bool,
     /// Probability the search gives to never-observed cells.
     pub unknown_probability: f32,
     /// Height H of the branch-and-bound tree (number of precomputed grids less one).
@@ -153,7 +155,7 @@ impl Submap {
             ));
         }
         let p = &self.params;
-        integrate_scan(&mut self.grid, &p.log_odds, geom, robot, ranges, p.max_range, p.clear_no_echo)
+        integrate_scan(&mut self.grid, &p.log_odds, geom, robot, ranges, p.max_range, p.clear_no_echo, p.once_per_scan)
             .map_err(|e| e.to_string())?;
         self.reach = Some(reach);
         self.origin.get_or_insert(robot);
@@ -897,6 +899,7 @@ mod tests {
             log_odds: MODEL,
             max_range,
             clear_no_echo: false,
+            once_per_scan: false,
             unknown_probability: DEFAULT_UNKNOWN_PROBABILITY,
             depth: DEFAULT_DEPTH,
             spread_sigma: 0.0,

@@ -52,7 +52,7 @@ struct PySubmap {
 impl PySubmap {
     #[new]
     #[pyo3(signature = (resolution, l_occ, l_free, l_min, l_max, max_range, *, clear_no_echo=false,
-        unknown_probability=DEFAULT_UNKNOWN_PROBABILITY, depth=DEFAULT_DEPTH, spread_sigma=0.0, threads=None))]
+        once_per_scan=false, unknown_probability=DEFAULT_UNKNOWN_PROBABILITY, depth=DEFAULT_DEPTH, spread_sigma=0.0, threads=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         resolution: f64,
@@ -62,6 +62,7 @@ impl PySubmap {
         l_max: f32,
         max_range: f64,
         clear_no_echo: bool,
+        once_per_scan: bool,
         unknown_probability: f32,
         depth: u32,
         spread_sigma: f64,
@@ -72,6 +73,7 @@ impl PySubmap {
             log_odds: LogOddsModel { l_occ, l_free, l_min, l_max },
             max_range,
             clear_no_echo,
+            once_per_scan,
             unknown_probability,
             depth,
             spread_sigma,

@@ -1017,7 +1017,7 @@ mod tests {
         let lm = LogOddsModel { l_occ: 0.9, l_free: -0.4, l_min: -2.0, l_max: 3.5 };
         let mut g = TiledGrid::new(0.05);
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
-        integrate_scan(&mut g, &lm, &geom, [x0, y0, 0.0], &ranges, 20.0, false).unwrap();
+        integrate_scan(&mut g, &lm, &geom, [x0, y0, 0.0], &ranges, 20.0, false, false).unwrap();
         (g, angles, ranges)
     }
 

@@ -146,6 +146,7 @@ pub fn integrate_scan(
     ranges: &[f32],
     max_range: f64,
     clear_no_echo: bool,
+    once_per_scan: bool,
 ) -> Result<(), GridError> {
     let sp = geom.sensor_pose(robot);
     let (mut x0, mut y0, mut x1, mut y1) = (sp[0], sp[1], sp[0], sp[1]);
@@ -190,6 +191,10 @@ pub fn integrate_scan(
         });
     }
     grid.ensure_covers(x0 - res, y0 - res, x1 + res, y1 + res)?;
+    if once_per_scan {
+        write_each_cell_once(grid, model, sp, geom, &beams);
+        return Ok(());
+    }
     // A beam's cells are gathered and written in runs per tile; a very long beam is flushed in
     // chunks so the buffer stays small. Cells are written in the order walked either way.
     const FLUSH_CELLS: usize = 4096;
@@ -212,6 +217,52 @@ pub fn integrate_scan(
         }
     }
     Ok(())
+}
+
+/// The scan's cells written once each (`map.once_per_scan`): l_occ where a beam ends, else
+/// l_free where any beam passes, as Cartographer's range-data inserter does; per beam, a cell
+/// that many beams of one scan cross takes many updates (BENCHMARKS.md, "Each cell once per
+/// scan"). Every cell a beam visits is gathered with whether the beam ends there; the end
+/// cells are written first, then the free ones not yet written. "Written" is a sorted list of
+/// cell keys: one scan's cells, not the map's.
+fn write_each_cell_once(
+    grid: &mut TiledGrid,
+    model: &LogOddsModel,
+    sp: [f64; 3],
+    geom: &ScanGeometry,
+    beams: &[(usize, f64, bool)],
+) {
+    let res = grid.resolution;
+    let mut visited: Vec<(i32, i32, bool)> = Vec::new();
+    for &(i, len, hit) in beams {
+        let (s, c) = (sp[2] + geom.angles[i]).sin_cos();
+        traverse([sp[0], sp[1]], [c, s], len, res, |ix, iy, _, t1| {
+            visited.push((ix, iy, hit && t1 >= len));
+            true
+        });
+        if hit {
+            grid.add_hit(sp[0] + len * c, sp[1] + len * s);
+        }
+    }
+    let key = |ix: i32, iy: i32| ((ix as i64) << 32) | (iy as u32 as i64);
+    let mut ends: Vec<i64> = visited.iter().filter(|v| v.2).map(|v| key(v.0, v.1)).collect();
+    ends.sort_unstable();
+    ends.dedup();
+    let mut frees: Vec<i64> = visited
+        .iter()
+        .filter(|v| !v.2)
+        .map(|v| key(v.0, v.1))
+        .filter(|k| ends.binary_search(k).is_err())
+        .collect();
+    frees.sort_unstable();
+    frees.dedup();
+    let cell = |k: i64, delta: f32| ((k >> 32) as i32, k as i32, delta);
+    let cells: Vec<(i32, i32, f32)> = ends
+        .iter()
+        .map(|&k| cell(k, model.l_occ))
+        .chain(frees.iter().map(|&k| cell(k, model.l_free)))
+        .collect();
+    grid.add_cells(&cells, model);
 }
 
 #[cfg(test)]
@@ -249,10 +300,10 @@ mod tests {
         let lm = LogOddsModel { l_occ: 0.9, l_free: -0.4, l_min: -2.0, l_max: 3.5 };
         let geom = ScanGeometry { angles: &[0.0, 0.1], sensor: [0.0; 3] };
         let mut g = TiledGrid::new(1e-4);
-        let err = integrate_scan(&mut g, &lm, &geom, [0.0; 3], &[5.0e4, 1.0], 1e6, false).unwrap_err();
+        let err = integrate_scan(&mut g, &lm, &geom, [0.0; 3], &[5.0e4, 1.0], 1e6, false, false).unwrap_err();
         assert!(matches!(err, GridError::NoMemory { .. }) && err.to_string().contains("one scan"), "{err}");
         assert_eq!(g.tiles().count(), 0);
-        integrate_scan(&mut g, &lm, &geom, [0.0; 3], &[0.5, 1.0], 1e6, false).unwrap();
+        integrate_scan(&mut g, &lm, &geom, [0.0; 3], &[0.5, 1.0], 1e6, false, false).unwrap();
         assert!(g.tiles().count() > 0);
     }
 
@@ -267,9 +318,33 @@ mod tests {
         let along: f64 = n as f64 * (std::f64::consts::SQRT_2 * 4.0 / (TILE as f64 * 0.01) + 2.0);
         assert!(along > MAX_SCAN_TILES);
         let mut g = TiledGrid::new(0.01);
-        integrate_scan(&mut g, &lm, &geom, [0.0; 3], &vec![4.0; n], 10.0, false).unwrap();
+        integrate_scan(&mut g, &lm, &geom, [0.0; 3], &vec![4.0; n], 10.0, false, false).unwrap();
         let tiles = g.tiles().count();
         assert!(tiles > 1500 && tiles <= 52 * 52, "{tiles}");
+    }
+
+    #[test]
+    fn once_per_scan_writes_each_cell_once_and_an_end_wins() {
+        // Beams 0 and 1 (1e-4 rad apart) end in the cell at 1.0 m, beam 2 ends at 0.52 m inside
+        // their path. Per beam: the shared end cell takes l_occ twice, the cells before 0.5 m
+        // l_free three times, beam 2's end cell l_occ + 2 l_free. Once per scan: l_occ, l_free,
+        // l_occ.
+        let lm = LogOddsModel { l_occ: 0.9, l_free: -0.4, l_min: -5.0, l_max: 5.0 };
+        let geom = ScanGeometry { angles: &[0.0, 1e-4, 2e-4], sensor: [0.0; 3] };
+        let ranges = [1.01, 1.01, 0.52];
+        let mut per_beam = TiledGrid::new(0.1);
+        integrate_scan(&mut per_beam, &lm, &geom, [0.001, 0.05, 0.0], &ranges, 10.0, false, false).unwrap();
+        let mut once = TiledGrid::new(0.1);
+        integrate_scan(&mut once, &lm, &geom, [0.001, 0.05, 0.0], &ranges, 10.0, false, true).unwrap();
+        let close = |a: f32, b: f32| (a - b).abs() < 1e-6;
+        assert!(close(per_beam.get(10, 0), 1.8) && close(once.get(10, 0), 0.9));
+        assert!(close(per_beam.get(3, 0), -1.2) && close(once.get(3, 0), -0.4));
+        assert!(close(per_beam.get(5, 0), 0.1) && close(once.get(5, 0), 0.9));
+        // The same cells are known either way, and the end points' sub-cell means are the same.
+        for ix in -1..=11 {
+            assert_eq!(per_beam.get(ix, 0).is_nan(), once.get(ix, 0).is_nan(), "cell {ix}");
+            assert_eq!(per_beam.hit_mean(ix, 0), once.hit_mean(ix, 0), "cell {ix}");
+        }
     }
 
     #[test]

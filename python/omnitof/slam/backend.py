@@ -200,7 +200,8 @@ class PoseGraphBackend:
     def _new_submap(self, first: int) -> _Submap:
         m = self.map_cfg
         grid = _core.Submap(m.resolution, m.l_occ, m.l_free, m.l_min, m.l_max, self.max_range,
-                            clear_no_echo=m.clear_no_echo, spread_sigma=self.field_sigma, threads=self.threads)
+                            clear_no_echo=m.clear_no_echo, once_per_scan=m.once_per_scan,
+                            spread_sigma=self.field_sigma, threads=self.threads)
         sub = _Submap(grid, first)
         self.submaps.append(sub)
         return sub

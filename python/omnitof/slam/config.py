@@ -196,6 +196,10 @@ class MapConfig(_Section):
     )
     max_range: float = Field(20.0, gt=0, description="readings beyond this (m) clear free space only")
     clear_no_echo: bool = Field(False, description="let no-echo beams clear free space up to max_range")
+    once_per_scan: bool = Field(
+        False, description="update each cell at most once per scan: l_occ where a beam ends, else l_free where any "
+        "passes (Cartographer's inserter); off: once per beam, the paper's eq. 8 as written",
+    )
     max_beams: int = Field(
         8192, ge=1, le=100_000_000,
         description="scans with more beams are thinned before the filter: one beam per cell of half the "

@@ -28,7 +28,7 @@ def grid_along(scans: ScanSequence, which: Sequence[int], poses: np.ndarray, m: 
     max_range = min(m.max_range, scans.max_range)
     for k, pose in zip(which, poses):
         grid.integrate(pose, scans.scan_angles(int(k)), scans.scan_ranges(int(k)), max_range,
-                       m.clear_no_echo, scans.sensor_pose)
+                       m.clear_no_echo, scans.sensor_pose, once_per_scan=m.once_per_scan)
     return grid
 
 

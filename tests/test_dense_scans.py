@@ -1,4 +1,5 @@
-"""Scans denser than the map, thinned before the filter (omnitof.slam.thinning)."""
+"""Scans denser than the map: thinned before the filter (omnitof.slam.thinning), and each map cell
+updated once per scan (map.once_per_scan)."""
 
 from __future__ import annotations
 
@@ -172,3 +173,35 @@ def test_omnitof_slam_says_it_thinned_and_records_it(tmp_path):
     assert record["rule"] == "dense" and record["scans"] == 6 and record["median_beams_before"] == 9000
     assert record["median_beams_after"] < 9000
     assert yaml.safe_load((out / "config.yaml").read_text())["map"]["thin_beams"] == "dense"  # as asked
+
+
+def test_once_per_scan_writes_each_cell_of_a_dense_scan_once():
+    # Through the binding: with once_per_scan every known cell holds l_occ or l_free exactly
+    # (one update each); per beam, cells near the sensor take one update per beam crossing them.
+    from omnitof import _core
+
+    scans = _room_scans(3600, scans=1)
+    grids = {}
+    for once in (False, True):
+        grid = _core.OccupancyGrid(0.05, 0.9, -0.4, -20.0, 20.0)
+        grid.integrate(scans.odometry[0], scans.angles, scans.ranges[0], 8.0, False, None, once_per_scan=once)
+        grids[once] = grid.to_dense()[0]
+    once, per_beam = grids[True], grids[False]
+    known = ~np.isnan(once)
+    assert np.array_equal(known, ~np.isnan(per_beam))
+    assert np.all(np.isclose(once[known], 0.9) | np.isclose(once[known], -0.4))
+    assert per_beam[known].min() < -10 * 0.4  # the cells around the sensor, crossed by many beams
+
+
+def test_once_per_scan_runs_with_the_back_end_and_changes_the_map(corridor_loop):
+    part = corridor_loop.slice(0, 300)
+    runs = {}
+    for once in (False, True):
+        cfg = load_config(preset="laser180-scanmatch",
+                          overrides={"filter": {"particles": 5}, "map": {"once_per_scan": once}})
+        assert cfg.backend.enabled
+        runs[once] = run_slam(part, cfg)
+    assert not np.array_equal(runs[True].map.log_odds, runs[False].map.log_odds)
+    for once, run in runs.items():
+        error = absolute_trajectory_error(run.trajectory.poses, part.ground_truth).mean
+        assert error < 0.3, (once, error)
