@@ -81,8 +81,8 @@ def thin_dense_scans(scans: ScanSequence, cfg: SlamConfig) -> tuple[ScanSequence
 
 
 # Cell indices are clipped to ±2^30 (no end point lies that many cells out: 2^30 half
-# millimetres are 537 km) so that a pair packs into one int64, which np.unique sorts 50 times
-# faster than rows of two.
+# millimetres are 537 km) so that a pair packs into one int64, which np.unique sorts ten times
+# faster than rows of two (0.16 against 1.7 s for a scan of two million beams).
 _KEY_LIMIT = 2**30
 
 
