@@ -2,6 +2,7 @@
 
     python benchmarks/beam_thinning.py [--seeds 0 1 2] [--scans N] [--presets sim2d laser180-scanmatch]
                                        [--beams 181 1081 20001] [--modes dense always off]
+                                       [--set SECTION.FIELD=VALUE ...]
 
 The simulated corridor loop (omnitof.sim.laser2d, seed 0: its odometry and ground truth)
 scanned again at the true poses by lasers of 181 beams over 180° (the loop's own), 1081 over
@@ -26,11 +27,16 @@ from omnitof.eval.floorplan import wall_agreement
 from omnitof.eval.trajectory import absolute_trajectory_error
 from omnitof.sim.laser2d import beam_angles, corridor_loop_world, make_loop_dataset, simulate_scans
 from omnitof.slam import run_slam
-from omnitof.slam.config import load_config
+from omnitof.slam.config import load_config, parse_setting, settings_overrides
 from omnitof.slam.thinning import thin_dense_scans
 from omnitof.types import ScanSequence
 
 LASERS = [(181, 180.0), (1081, 270.0), (20_001, 180.0)]
+
+
+def _merged(base: dict, update: dict) -> dict:
+    """`base` with `update`'s sections merged in, field by field."""
+    return {k: {**base.get(k, {}), **update.get(k, {})} for k in {*base, *update}}
 
 
 def main() -> None:
@@ -40,12 +46,15 @@ def main() -> None:
     parser.add_argument("--presets", nargs="+", default=["sim2d", "laser180-scanmatch"])
     parser.add_argument("--beams", type=int, nargs="+", default=[b for b, _ in LASERS], help="which lasers")
     parser.add_argument("--modes", nargs="+", default=["dense", "always", "off"], help="which thin_beams")
+    parser.add_argument("--set", nargs="+", default=[], metavar="SECTION.FIELD=VALUE",
+                        help="settings of every run, as omnitof slam --set (e.g. map.once_per_scan=true)")
     args = parser.parse_args()
     loop = make_loop_dataset(seed=0)
     if args.scans is not None:
         loop = loop.slice(0, args.scans)
     world = corridor_loop_world()
-    print(f"odometry: ATE mean {absolute_trajectory_error(loop.odometry, loop.ground_truth).mean:.3f} m, "
+    extra = settings_overrides(dict(parse_setting(item) for item in args.set), "--set")
+    print(f"settings: {' '.join(args.set) or 'none'}; odometry: ATE mean {absolute_trajectory_error(loop.odometry, loop.ground_truth).mean:.3f} m, "
           f"{len(loop)} scans\n")
     print("| preset | laser | thin_beams | beams used (median) | ATE mean per seed (m) | walls within 10 cm per seed | s per run (median) |")
     print("|---|---|---|---|---|---|---|")
@@ -58,7 +67,8 @@ def main() -> None:
             for mode in (m for m in args.modes if beams > 8192 or m != "off"):
                 errors, walls, seconds = [], [], []
                 for seed in args.seeds:
-                    cfg = load_config(preset=preset, overrides={"filter": {"seed": seed}, "map": {"thin_beams": mode}})
+                    cfg = load_config(preset=preset, overrides=_merged(extra, {"filter": {"seed": seed},
+                                                                               "map": {"thin_beams": mode}}))
                     with warnings.catch_warnings():
                         warnings.simplefilter("ignore")
                         used, _ = thin_dense_scans(scans, cfg)

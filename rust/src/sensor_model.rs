@@ -192,7 +192,7 @@ pub fn integrate_scan(
     }
     grid.ensure_covers(x0 - res, y0 - res, x1 + res, y1 + res)?;
     if once_per_scan {
-        write_each_cell_once(grid, model, sp, geom, &beams);
+        write_each_cell_once(grid, model, sp, geom, &beams, [x0, y0, x1, y1]);
         return Ok(());
     }
     // A beam's cells are gathered and written in runs per tile; a very long beam is flushed in
@@ -223,14 +223,16 @@ pub fn integrate_scan(
 /// l_free where any beam passes, as Cartographer's range-data inserter does; per beam, a cell
 /// that many beams of one scan cross takes many updates (BENCHMARKS.md, "Each cell once per
 /// scan"). Every cell a beam visits is gathered with whether the beam ends there; the end
-/// cells are written first, then the free ones not yet written. "Written" is a sorted list of
-/// cell keys: one scan's cells, not the map's.
+/// cells are written first, then the free ones not yet written. "Written" is a bitmap over the
+/// box of the sensor and the end points (`bounds`, plus a margin), a few kilobytes for a laser;
+/// a box too large for one (a fine grid and long beams) falls back to sorted cell keys.
 fn write_each_cell_once(
     grid: &mut TiledGrid,
     model: &LogOddsModel,
     sp: [f64; 3],
     geom: &ScanGeometry,
     beams: &[(usize, f64, bool)],
+    bounds: [f64; 4],
 ) {
     let res = grid.resolution;
     let mut visited: Vec<(i32, i32, bool)> = Vec::new();
@@ -244,26 +246,39 @@ fn write_each_cell_once(
             grid.add_hit(sp[0] + len * c, sp[1] + len * s);
         }
     }
-    let key = |ix: i32, iy: i32| ((ix as i64) << 32) | (iy as u32 as i64);
-    let mut ends: Vec<i64> = visited.iter().filter(|v| v.2).map(|v| key(v.0, v.1)).collect();
-    ends.sort_unstable();
-    ends.dedup();
-    let mut frees: Vec<i64> = visited
-        .iter()
-        .filter(|v| !v.2)
-        .map(|v| key(v.0, v.1))
-        .filter(|k| ends.binary_search(k).is_err())
-        .collect();
-    frees.sort_unstable();
-    frees.dedup();
-    let cell = |k: i64, delta: f32| ((k >> 32) as i32, k as i32, delta);
-    let cells: Vec<(i32, i32, f32)> = ends
-        .iter()
-        .map(|&k| cell(k, model.l_occ))
-        .chain(frees.iter().map(|&k| cell(k, model.l_free)))
-        .collect();
+    // Ends first, so that a cell where one beam ends and another passes is occupied.
+    let ordered = visited.iter().filter(|v| v.2).chain(visited.iter().filter(|v| !v.2));
+    let delta = |end: bool| if end { model.l_occ } else { model.l_free };
+    const MARGIN: i64 = 2;
+    let (bx0, by0) = ((bounds[0] / res).floor() as i64 - MARGIN, (bounds[1] / res).floor() as i64 - MARGIN);
+    let (w, h) = ((bounds[2] / res).floor() as i64 + MARGIN + 1 - bx0, (bounds[3] / res).floor() as i64 + MARGIN + 1 - by0);
+    let cells: Vec<(i32, i32, f32)> = if w > 0 && h > 0 && w.saturating_mul(h) <= MAX_BITMAP_CELLS {
+        let mut written = vec![0u64; ((w * h + 63) / 64) as usize];
+        ordered
+            .filter(|&&(ix, iy, _)| {
+                let (dx, dy) = (ix as i64 - bx0, iy as i64 - by0);
+                if !(0..w).contains(&dx) || !(0..h).contains(&dy) {
+                    return true; // outside the box (it cannot be, but a rounding must not panic)
+                }
+                let k = (dy * w + dx) as usize;
+                let fresh = written[k / 64] & (1 << (k % 64)) == 0;
+                written[k / 64] |= 1 << (k % 64);
+                fresh
+            })
+            .map(|&(ix, iy, end)| (ix, iy, delta(end)))
+            .collect()
+    } else {
+        let key = |ix: i32, iy: i32| ((ix as i64) << 32) | (iy as u32 as i64);
+        let mut seen: Vec<(i64, bool)> = ordered.map(|&(ix, iy, end)| (key(ix, iy), end)).collect();
+        seen.sort_by_key(|&(k, end)| (k, !end)); // stable per key: an end before a pass
+        seen.dedup_by_key(|&mut (k, _)| k);
+        seen.iter().map(|&(k, end)| ((k >> 32) as i32, k as i32, delta(end))).collect()
+    };
     grid.add_cells(&cells, model);
 }
+
+/// Cells of the largest box `write_each_cell_once` marks in a bitmap (8 MiB of bits).
+const MAX_BITMAP_CELLS: i64 = 1 << 26;
 
 #[cfg(test)]
 mod tests {
@@ -345,6 +360,36 @@ mod tests {
             assert_eq!(per_beam.get(ix, 0).is_nan(), once.get(ix, 0).is_nan(), "cell {ix}");
             assert_eq!(per_beam.hit_mean(ix, 0), once.hit_mean(ix, 0), "cell {ix}");
         }
+    }
+
+    #[test]
+    fn once_per_scan_without_a_bitmap_writes_the_same_cells() {
+        // A box too large for the bitmap takes the sorted keys instead: the same grid.
+        let lm = LogOddsModel { l_occ: 0.9, l_free: -0.4, l_min: -5.0, l_max: 5.0 };
+        let angles: Vec<f64> = (0..720).map(|k| k as f64 * std::f64::consts::TAU / 720.0).collect();
+        let ranges: Vec<f32> = (0..720).map(|k| 1.0 + 0.5 * ((k % 7) as f32)).collect();
+        let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
+        let beams: Vec<(usize, f64, bool)> = (0..720).map(|i| (i, ranges[i] as f64, true)).collect();
+        let sp = geom.sensor_pose([0.02, -0.03, 0.1]);
+        let grids: Vec<TiledGrid> = [5.0, 1e4]
+            .iter()
+            .map(|&half| {
+                let mut g = TiledGrid::new(0.05);
+                g.ensure_covers(-5.0, -5.0, 5.0, 5.0).unwrap();
+                write_each_cell_once(&mut g, &lm, sp, &geom, &beams, [-half, -half, half, half]);
+                g
+            })
+            .collect();
+        assert!((2e4 / 0.05) * (2e4 / 0.05) > MAX_BITMAP_CELLS as f64);
+        let mut known = 0;
+        for ix in -110..110 {
+            for iy in -110..110 {
+                let (a, b) = (grids[0].get(ix, iy), grids[1].get(ix, iy));
+                assert!(a == b || (a.is_nan() && b.is_nan()), "cell ({ix}, {iy}): {a} vs {b}");
+                known += usize::from(!a.is_nan());
+            }
+        }
+        assert!(known > 1000, "{known}");
     }
 
     #[test]
