@@ -176,21 +176,29 @@ def test_omnitof_slam_says_it_thinned_and_records_it(tmp_path):
 
 
 def test_once_per_scan_writes_each_cell_of_a_dense_scan_once():
-    # Through the binding: with once_per_scan every known cell holds l_occ or l_free exactly
-    # (one update each); per beam, cells near the sensor take one update per beam crossing them.
+    # Through both bindings that build maps outside the filter (the final map's grid and the back
+    # end's submaps): with once_per_scan every known cell holds l_occ or l_free exactly (one
+    # update each); per beam, cells near the sensor take one update per beam crossing them.
     from omnitof import _core
 
     scans = _room_scans(3600, scans=1)
-    grids = {}
-    for once in (False, True):
-        grid = _core.OccupancyGrid(0.05, 0.9, -0.4, -20.0, 20.0)
-        grid.integrate(scans.odometry[0], scans.angles, scans.ranges[0], 8.0, False, None, once_per_scan=once)
-        grids[once] = grid.to_dense()[0]
-    once, per_beam = grids[True], grids[False]
-    known = ~np.isnan(once)
-    assert np.array_equal(known, ~np.isnan(per_beam))
-    assert np.all(np.isclose(once[known], 0.9) | np.isclose(once[known], -0.4))
-    assert per_beam[known].min() < -10 * 0.4  # the cells around the sensor, crossed by many beams
+
+    def grid(once):
+        g = _core.OccupancyGrid(0.05, 0.9, -0.4, -20.0, 20.0)
+        g.integrate(scans.odometry[0], scans.angles, scans.ranges[0], 8.0, False, None, once_per_scan=once)
+        return g.to_dense()[0]
+
+    def submap(once):
+        m = _core.Submap(0.05, 0.9, -0.4, -20.0, 20.0, 8.0, once_per_scan=once)
+        m.insert(scans.odometry[0], scans.ranges[0], scans.angles)
+        return m.to_dense()[0]
+
+    for build in (grid, submap):
+        once, per_beam = build(True), build(False)
+        known = ~np.isnan(once)
+        assert np.array_equal(known, ~np.isnan(per_beam)), build.__name__
+        assert np.all(np.isclose(once[known], 0.9) | np.isclose(once[known], -0.4)), build.__name__
+        assert per_beam[known].min() < -10 * 0.4, build.__name__  # cells around the sensor, many beams
 
 
 def test_once_per_scan_runs_with_the_back_end_and_changes_the_map(corridor_loop):
