@@ -40,7 +40,7 @@ from typing import BinaryIO, Iterator
 import numpy as np
 
 from omnitof.errors import ConfigError, InputError, OmnitofWarning, read_problem
-from omnitof.io.text import is_decimal
+from omnitof.io.text import is_decimal, quote
 from omnitof.geometry import interpolate_poses, relative, wrap_angle
 from omnitof.types import (
     ScanSequence,
@@ -347,12 +347,12 @@ def _scan_file(ctx: _Context, laser: str) -> _RawLog:
             raw.ignored[name] += 1
         elif raw.known_messages == 0 and not ctx.skip_bad_lines:
             raise ctx.error(
-                f"not a CARMEN log: the line starts with {name[:40]!r}; expected '#' comments "
+                f"not a CARMEN log: the line starts with {quote(name)}; expected '#' comments "
                 "and messages such as PARAM, ODOM, FLASER, ROBOTLASER1",
                 number,
             )
         else:
-            ctx.reject(f"not a CARMEN message: {name[:40]!r} is not a message name", number)
+            ctx.reject(f"not a CARMEN message: {quote(name)} is not a message name", number)
     if raw.known_messages == 0:
         raise ctx.error(
             "not a CARMEN log: no PARAM, ODOM, FLASER, ROBOTLASER or RAWLASER message in it"
@@ -366,17 +366,13 @@ def _add_param(ctx: _Context, raw: _RawLog, number: int, tokens: list[str]) -> N
     if len(tokens) < 3:
         ctx.reject("PARAM needs a name and a value: PARAM name value [" + TRAILER + "]", number)
         return
-    if len(tokens) >= 6 and _is_number(tokens[-3]) and _is_number(tokens[-1]):
+    if len(tokens) >= 6 and is_decimal(tokens[-3]) and is_decimal(tokens[-1]):
         value = " ".join(tokens[2:-3])
-    elif len(tokens) == 5 and not _is_number(tokens[3]) and _is_number(tokens[4]):
+    elif len(tokens) == 5 and not is_decimal(tokens[3]) and is_decimal(tokens[4]):
         value = tokens[2]
     else:
         value = " ".join(tokens[2:])
     raw.params[tokens[1]] = (value, number)
-
-
-def _is_number(token: str) -> bool:
-    return is_decimal(token)
 
 
 # --------------------------------------------------------------------------------------------
@@ -445,9 +441,9 @@ def _floats(tokens: list[str], start: int, stop: int, layout: _Layout) -> np.nda
     except ValueError:
         pass
     for index in range(start, stop):
-        if not _is_number(tokens[index]):
+        if not is_decimal(tokens[index]):
             raise _Malformed(
-                f"{layout.describe(index)} is {tokens[index][:40]!r}, not a finite decimal number; "
+                f"{layout.describe(index)} is {quote(tokens[index])}, not a finite decimal number; "
                 f"{layout.expected}"
             )
     raise AssertionError("unreachable: some token failed to parse")
@@ -460,7 +456,7 @@ def _count(tokens: list[str], index: int, what: str, layout: _Layout, minimum: i
     token = tokens[index]
     if not (token.isascii() and token.isdigit()) or int(token) < minimum:
         raise _Malformed(
-            f"{what} is {token[:40]!r}, not a whole number >= {minimum}; {layout.expected}"
+            f"{what} is {quote(token)}, not a whole number >= {minimum}; {layout.expected}"
         )
     return int(token)
 
@@ -468,11 +464,11 @@ def _count(tokens: list[str], index: int, what: str, layout: _Layout, minimum: i
 def _timestamp(tokens: list[str], layout: _Layout) -> float:
     """The ipc timestamp; the logger timestamp is checked but not kept."""
     stamp, logger_stamp = tokens[-3], tokens[-1]
-    if not _is_number(stamp):
-        raise _Malformed(f"ipc_timestamp is {stamp[:40]!r}, not a finite decimal number; {layout.expected}")
-    if not _is_number(logger_stamp):
+    if not is_decimal(stamp):
+        raise _Malformed(f"ipc_timestamp is {quote(stamp)}, not a finite decimal number; {layout.expected}")
+    if not is_decimal(logger_stamp):
         raise _Malformed(
-            f"logger_timestamp is {logger_stamp[:40]!r}, not a finite decimal number; {layout.expected}"
+            f"logger_timestamp is {quote(logger_stamp)}, not a finite decimal number; {layout.expected}"
         )
     return float(stamp)
 
@@ -720,8 +716,8 @@ def _param_float(ctx: _Context, params: dict[str, tuple[str, int]], name: str) -
     if name not in params:
         return None
     value, line = params[name]
-    if not _is_number(value):
-        raise ctx.error(f"PARAM {name} is {value[:40]!r}, not a finite decimal number", line)
+    if not is_decimal(value):
+        raise ctx.error(f"PARAM {name} is {quote(value)}, not a finite decimal number", line)
     return float(value)
 
 

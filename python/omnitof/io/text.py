@@ -22,9 +22,14 @@ def is_decimal(token: str) -> bool:
     return _NUMBER.fullmatch(token) is not None and math.isfinite(float(token))
 
 
+def shorten(text: str) -> str:
+    """`text` cut after 40 characters, for an error message that echoes what the user wrote."""
+    return text if len(text) <= _QUOTE else text[:_QUOTE] + "..."
+
+
 def quote(text: str) -> str:
     """`text` for an error message: repr'd (control characters shown), cut after 40 characters."""
-    return repr(text if len(text) <= _QUOTE else text[:_QUOTE] + "...")
+    return repr(shorten(text))
 
 
 def parse_float_row(

@@ -25,6 +25,7 @@ from pydantic import ConfigDict, Field, ValidationError, model_validator
 
 from omnitof.settings_model import SettingsModel
 from omnitof.errors import ConfigError, load_yaml, yaml_problem
+from omnitof.io.text import shorten
 from omnitof.scan.extract import ScanSettings
 
 # libyaml's emitter where PyYAML has it (the same text, 4x faster: `omnitof bench` writes one
@@ -494,8 +495,7 @@ def _leaves(node: Any, path: list[str]) -> Iterator[tuple[str, Any]]:
 
 def _shown(value: Any) -> str:
     """A value as the user wrote it, cut after 40 characters."""
-    text = "true" if value is True else "false" if value is False else "null" if value is None else str(value)
-    return text if len(text) <= 40 else text[:40] + "..."
+    return shorten("true" if value is True else "false" if value is False else "null" if value is None else str(value))
 
 
 def settings_overrides(settings: Mapping[str, Any], source: str = "settings") -> dict[str, Any]:
