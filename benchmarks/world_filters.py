@@ -12,7 +12,7 @@ a few seeds' numbers in the last digits.)
         [--preset tof-scanmatch] [--particles 30] [--set backend.min_score=0.65 ...] \
         [--tof-errors default|all|none|LIST] [--ideal-scans [seen]] [--odometry-scale F]
         [--max-incidence DEG] [--true-rig] [--multipath-compensation auto|on|off]
-        [--multipath-max-ratio R] [--cache DIR]
+        [--multipath-max-ratio R] [--bands HEIGHT:BAND ...] [--cache DIR]
 
 The camera's systematic errors (issue 15) are those of the demo, `default` unless told; the
 cache is kept per setting. `--ideal-scans` replaces every range by the exact distance to the
@@ -27,7 +27,10 @@ as the extraction would have as its last step. `--true-rig` extracts with the tr
 the same wall-fitted distance correction as the estimate (issue 16's reference).
 `--multipath-compensation` (auto: on where the camera has multipath, as the demo) extracts with
 the compensation of omnitof.scan.multipath set up for the simulated camera (cached apart);
-`--multipath-max-ratio R` gives it that `max_ratio` (cached apart).
+`--multipath-max-ratio R` gives it that `max_ratio` (cached apart). `--bands 0.6:0.1 1.35:0.55`
+extracts one scan per height band (`ScanSettings.height`, `band`) from the same rendered frames
+and keeps, per bin, the nearest band's reading (cached apart): what a scan of more of the image
+than the slice gives the 2D filter.
 
 Prints one JSON line per run, then a Markdown table.
 """
@@ -63,16 +66,19 @@ from omnitof.slam.config import load_config
 
 
 def extracted_scans(name: str, drive: int, cache: Path, tof_errors: str = "default", *, true_rig: bool = False,
-                    compensation: str = "auto", max_ratio: float | None = None):
+                    compensation: str = "auto", max_ratio: float | None = None,
+                    bands: list[tuple[float, float]] | None = None):
     """The scans of world `name`, drive seed `drive`, with the estimated calibration, or with
     `true_rig` the true rig given the same wall-fitted distance correction (cached); with the
     multipath compensation set up for the camera where `compensation` is "on", or "auto" and the
-    camera has multipath (as `omnitof demo` does), with `max_ratio` if given."""
+    camera has multipath (as `omnitof demo` does), with `max_ratio` if given. `bands`: (height,
+    half-thickness) pairs, one scan each, the nearest band's reading per bin."""
     errors = ToFErrors.parse(tof_errors)
     tag = ("" if tof_errors == "none" else "_" + tof_errors.replace(",", "+")) + ("_truerig" if true_rig else "")
     compensate = compensation == "on" or (compensation == "auto" and errors.multipath)
     tag += "_mpcomp" if compensate else ""
     tag += f"_ratio{max_ratio:g}" if compensate and max_ratio is not None else ""
+    tag += "_bands" + "+".join(f"{h:g}:{b:g}" for h, b in bands) if bands else ""
     path = cache / f"{name}_{drive}{tag}.pkl"
     if path.exists():
         return pickle.loads(path.read_bytes())["scans"]
@@ -88,8 +94,17 @@ def extracted_scans(name: str, drive: int, cache: Path, tof_errors: str = "defau
                                              mirror_reflectivity=renderer.settings.mirror_reflectivity,
                                              enabled=compensate,
                                              **({} if max_ratio is None else {"max_ratio": max_ratio}))
-    extractor = ScanExtractor.from_calibration(calibration, multipath=multipath.model_dump())
-    scans = tof_scans(render_sequence(sequence, renderer), extractor, cloud_every=0, source=name).scans
+    if not bands:
+        extractor = ScanExtractor.from_calibration(calibration, multipath=multipath.model_dump())
+        scans = tof_scans(render_sequence(sequence, renderer), extractor, cloud_every=0, source=name).scans
+    else:
+        frames = list(render_sequence(sequence, renderer))
+        scans = None
+        for height, band in bands:
+            extractor = ScanExtractor.from_calibration(calibration, multipath=multipath.model_dump(),
+                                                       height=height, band=band)
+            layer = tof_scans(iter(frames), extractor, cloud_every=0, source=name).scans
+            scans = layer if scans is None else dataclasses.replace(scans, ranges=np.fmin(scans.ranges, layer.ranges))
     path.write_bytes(pickle.dumps({"world": name, "scans": scans}))
     return scans
 
@@ -154,15 +169,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--true-rig", action="store_true",
                         help="extract with the true rig (given the same wall-fitted distance correction) instead of "
                              "the calibration estimated from rendered targets")
+    parser.add_argument("--bands", nargs="+", default=None, metavar="HEIGHT:BAND",
+                        help="one scan per height band (m, the slice's height and half-thickness), the nearest "
+                             "band's reading per bin (default: the extraction's one slice)")
     parser.add_argument("--cache", type=Path, default=Path("results/world_scans"))
     args = parser.parse_args(argv)
+    try:
+        bands = [(float(item.split(":")[0]), float(item.split(":")[1])) for item in args.bands] if args.bands else None
+    except (ValueError, IndexError):
+        parser.error(f"--bands takes HEIGHT:BAND pairs in metres, e.g. 0.6:0.1, got {args.bands}")
 
     rows = []
     for name in args.worlds:
         world = load_world(name)
         for drive in args.drives:
             scans = extracted_scans(name, drive, args.cache, args.tof_errors, true_rig=args.true_rig,
-                                    compensation=args.multipath_compensation, max_ratio=args.multipath_max_ratio)
+                                    compensation=args.multipath_compensation, max_ratio=args.multipath_max_ratio,
+                                    bands=bands)
             if args.ideal_scans:
                 scans = ideal_scans(world, scans, only_seen=args.ideal_scans == "seen")
             if args.odometry_scale != 1.0:
@@ -182,7 +205,8 @@ def main(argv: list[str] | None = None) -> int:
                 row = {
                     "world": name, "drive": drive, "seed": seed, "preset": args.preset,
                     "particles": args.particles, "set": args.set, "ideal_scans": args.ideal_scans, "odometry_scale": args.odometry_scale,
-                    "true_rig": args.true_rig,
+                    "true_rig": args.true_rig, "bands": args.bands,
+                    "readings_median": float(np.median(np.isfinite(scans.ranges).sum(axis=1))),
                     "final_m": round(ev["trajectory"]["slam"]["final"], 3),
                     "mean_m": round(ev["trajectory"]["slam"]["mean"], 3),
                     "within_5cm_pct": round(100 * ev["floorplan"]["occupied_within_5cm"], 1),
