@@ -303,3 +303,28 @@ def test_final_match_poses_every_scan_closer_to_the_truth(corridor_loop):
     again = grid_along(scans, final.integrated, final.trajectory.poses[final.integrated], cfg.map)
     log_odds, _, _ = again.to_dense()
     assert np.array_equal(np.nan_to_num(log_odds), final.map.log_odds)
+
+
+def test_submaps_that_drop_their_search_grids_give_the_same_run(monkeypatch, wrong_turn):
+    # backend.search_grids_kept bounds the back end's memory: the least recently searched
+    # submaps drop their branch-and-bound grids and make them again when searched. The grids
+    # come back the same to the bit (rust test loop_closure_released_grids_are_made_again_the_same),
+    # so keeping one changes nothing but the memory and the time.
+    cfg_all = loop_config(True)
+    cfg_one = cfg_all.model_copy(update={"backend": cfg_all.backend.model_copy(update={"search_grids_kept": 1})})
+    kept_all = run_slam(wrong_turn, cfg_all)
+    backend = _captured_backend(monkeypatch, wrong_turn, cfg_one)
+    kept_one = run_slam(wrong_turn, cfg_one)
+    stats = kept_one.stats["backend"]
+    assert stats["submaps"] >= 4 and stats["search_grids_remade"] > 0
+    assert kept_all.stats["backend"]["search_grids_remade"] == 0
+    assert stats["closures_accepted"] == kept_all.stats["backend"]["closures_accepted"] >= 3
+    np.testing.assert_array_equal(kept_one.trajectory.poses, kept_all.trajectory.poses)
+    np.testing.assert_array_equal(kept_one.map.log_odds, kept_all.map.log_odds)
+    finished = [s for s in backend.submaps if s.grid.finished]
+    assert sum(s.grid.has_grids for s in finished) == 1
+    released = sum(s.grid.memory_bytes() for s in finished)
+    for s in finished:
+        s.grid.finish()  # every submap's grids made again: what keeping them all holds
+    assert all(s.grid.has_grids for s in finished)
+    assert released < 0.6 * sum(s.grid.memory_bytes() for s in finished)

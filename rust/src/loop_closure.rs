@@ -114,13 +114,24 @@ pub struct Submap {
     num_scans: usize,
     /// World rectangle [x0, y0, x1, y1] that every inserted scan can have touched.
     reach: Option<[f64; 4]>,
+    finished: bool,
+    /// The search grids; a finished submap may release them (`release_grids`) and make them
+    /// again when next searched: they cost about three times the grid itself.
     grids: Option<PrecomputedGrids>,
 }
 
 impl Submap {
     pub fn new(params: SubmapParams) -> Result<Self, String> {
         params.check()?;
-        Ok(Submap { params, grid: TiledGrid::new(params.resolution), origin: None, num_scans: 0, reach: None, grids: None })
+        Ok(Submap {
+            params,
+            grid: TiledGrid::new(params.resolution),
+            origin: None,
+            num_scans: 0,
+            reach: None,
+            finished: false,
+            grids: None,
+        })
     }
 
     pub fn params(&self) -> &SubmapParams {
@@ -131,7 +142,7 @@ impl Submap {
     /// on a finished submap, mismatched lengths, non-finite poses or angles, or a scan that
     /// would stretch the submap beyond a local map's size.
     pub fn insert(&mut self, robot: [f64; 3], geom: &ScanGeometry, ranges: &[f32]) -> Result<(), String> {
-        if self.grids.is_some() {
+        if self.finished {
             return Err("the submap is finished: no more scans can be inserted".into());
         }
         if geom.angles.len() != ranges.len() {
@@ -163,18 +174,28 @@ impl Submap {
         Ok(())
     }
 
-    /// Finish the submap: precompute its search grids (once; later calls return them again).
-    /// Fails only when their memory cannot be had.
+    /// Finish the submap: precompute its search grids (once; later calls return them again,
+    /// or make them anew after `release_grids`, the same to the bit). Fails only when their
+    /// memory cannot be had.
     pub fn finish(&mut self) -> Result<&PrecomputedGrids, GridError> {
         if self.grids.is_none() {
             let p = self.params;
             self.grids = Some(PrecomputedGrids::new(&self.grid, p.depth, p.unknown_probability, p.spread_sigma)?);
         }
+        self.finished = true;
         Ok(self.grids.as_ref().expect("just made"))
     }
 
     pub fn is_finished(&self) -> bool {
-        self.grids.is_some()
+        self.finished
+    }
+
+    /// Drop the search grids of a finished submap (`finish` makes them again); a submap not
+    /// yet finished keeps nothing to drop.
+    pub fn release_grids(&mut self) {
+        if self.finished {
+            self.grids = None;
+        }
     }
 
     /// The precomputed grids of a finished submap.
@@ -209,7 +230,7 @@ impl Submap {
         initial: [f64; 3],
         opts: &MatchOptions,
     ) -> Result<Option<LoopMatch>, String> {
-        let grids = self.grids.as_ref().ok_or("the submap is not finished")?;
+        let grids = self.grids.as_ref().ok_or("the submap is not finished, or its grids were released")?;
         if geom.angles.len() != ranges.len() {
             return Err(format!("{} angles for {} ranges", geom.angles.len(), ranges.len()));
         }
@@ -1046,6 +1067,31 @@ mod tests {
             }
         }
         (best > (min_sum as u64) << 32).then(|| space.decode(best))
+    }
+
+    #[test]
+    fn loop_closure_released_grids_are_made_again_the_same() {
+        let mut submap = room_submap(0.05, DEFAULT_DEPTH);
+        let angles = beams(180);
+        let geom = ScanGeometry { angles: &angles, sensor: SENSOR };
+        let truth = [3.2, 3.6, 0.4];
+        let ranges = cast(&room(), geom.sensor_pose(truth), &angles);
+        let opts = MatchOptions { linear_window: 1.0, angular_window: 0.3, min_score: 0.5, refine: true };
+        let initial = [3.6, 3.3, 0.3];
+        let before = submap.match_scan(&geom, &ranges, initial, &opts).unwrap().expect("a match");
+        let levels: Vec<Vec<u8>> = submap.grids().unwrap().levels.iter().map(|l| l.cells.clone()).collect();
+        let (full, grid_only) = (submap.memory_bytes(), submap.grid().tiles().count() * TiledGrid::tile_bytes());
+        submap.release_grids();
+        assert!(submap.is_finished() && submap.grids().is_none());
+        assert_eq!(submap.memory_bytes(), grid_only);
+        assert!(full > 2 * grid_only, "the grids cost more than the submap: {full} against {grid_only} bytes");
+        assert!(submap.match_scan(&geom, &ranges, initial, &opts).is_err(), "no grids, no search");
+        assert!(submap.insert(truth, &geom, &ranges).is_err(), "still finished");
+        submap.finish().unwrap();
+        let again: Vec<Vec<u8>> = submap.grids().unwrap().levels.iter().map(|l| l.cells.clone()).collect();
+        assert_eq!(levels, again);
+        let after = submap.match_scan(&geom, &ranges, initial, &opts).unwrap().expect("a match");
+        assert_eq!((before.pose, before.score), (after.pose, after.score));
     }
 
     #[test]

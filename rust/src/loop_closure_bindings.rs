@@ -109,6 +109,18 @@ impl PySubmap {
         .map_err(crate::grid_error)
     }
 
+    /// Drop the precomputed search grids of a finished submap to save memory; the next
+    /// `match_scan` (or `finish`) makes them again, the same to the bit.
+    fn release_grids(&mut self) {
+        self.inner.release_grids()
+    }
+
+    /// Whether the search grids are in memory (a finished submap that has not released them).
+    #[getter]
+    fn has_grids(&self) -> bool {
+        self.inner.grids().is_some()
+    }
+
     /// The widest a submap may be, in cells (a submap is local; see loop_closure.rs).
     #[staticmethod]
     fn max_side_cells() -> f64 {
@@ -157,7 +169,7 @@ impl PySubmap {
     #[pyo3(signature = (ranges, angles, initial_pose, linear_window, angular_window, min_score, sensor_pose=None, refine=true, field_sigma=None))]
     #[allow(clippy::too_many_arguments)]
     fn match_scan<'py>(
-        &self,
+        &mut self,
         py: Python<'py>,
         ranges: PyReadonlyArray1<f32>,
         angles: PyReadonlyArray1<f64>,
@@ -191,6 +203,9 @@ impl PySubmap {
         let geom = ScanGeometry { angles: &angles, sensor: sensor(sensor_pose.as_ref())? };
         let ranges: &[f32] = &ranges;
         let opts = MatchOptions { linear_window, angular_window, min_score, refine };
+        if self.inner.grids().is_none() {
+            self.finish(py)?; // released: made again
+        }
         let (inner, pool) = (&self.inner, &self.pool);
         let found = py
             .detach(|| match pool {

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -119,6 +120,9 @@ class PoseGraphBackend:
         self.estimate: list[np.ndarray] = []  # node -> best estimate (optimised or propagated)
         self.segment_start = 0  # first node of the current front-end segment
         self.submaps: list[_Submap] = []
+        # Finished submaps that hold their search grids, least recently searched first.
+        self._with_grids: OrderedDict[int, None] = OrderedDict()
+        self.grids_remade = 0
         self.closures: list[Closure] = []
         self.rejected_searches = 0
         self.searches = 0
@@ -227,6 +231,17 @@ class PoseGraphBackend:
                             self.scans.sensor_pose)
             sub.poses.append(self.frontend[j].copy())
         sub.grid.finish()
+        self._keep_grids(next(i for i in range(len(self.submaps) - 1, -1, -1) if self.submaps[i] is sub))
+
+    def _keep_grids(self, s: int) -> None:
+        """Submap s was just finished or searched: it keeps its search grids, and the least
+        recently searched beyond `search_grids_kept` drop theirs (made again, the same to the
+        bit, when next searched), so that the back end's memory stops growing with the log."""
+        self._with_grids[s] = None
+        self._with_grids.move_to_end(s)
+        while len(self._with_grids) > self.cfg.search_grids_kept:
+            old, _ = self._with_grids.popitem(last=False)
+            self.submaps[old].grid.release_grids()
 
     def _close_current_submap(self, pf: _core.ParticleFilter) -> None:
         """Finish the submap in progress (before a correction moves the front end's frame)."""
@@ -279,8 +294,10 @@ class PoseGraphBackend:
             else:
                 linear, angular, min_score = cfg.linear_window, math.radians(cfg.angular_window_deg), cfg.min_score
             self.searches += 1
+            self.grids_remade += not sub.grid.has_grids
             match = sub.grid.match_scan(ranges, angles, initial, linear, angular, min_score,
                                         sensor_pose=self.scans.sensor_pose, field_sigma=self.field_sigma)
+            self._keep_grids(s)
             if match is None:
                 self.rejected_searches += 1
                 continue
@@ -587,6 +604,8 @@ class PoseGraphBackend:
             "graduated_optimisations": self.graduated,
             "closures_readmitted": self.readmitted,
             "feedbacks": self.feedbacks,
+            "search_grids_remade": self.grids_remade,
+            "submap_bytes": sum(s.grid.memory_bytes() for s in self.submaps),
             "seconds": {k: round(v, 2) for k, v in self.seconds.items()},
         }
 
