@@ -175,8 +175,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cache", type=Path, default=Path("results/world_scans"))
     args = parser.parse_args(argv)
     try:
-        bands = [(float(item.split(":")[0]), float(item.split(":")[1])) for item in args.bands] if args.bands else None
-    except (ValueError, IndexError):
+        bands = [tuple(float(v) for v in item.split(":", 1)) for item in args.bands] if args.bands else None
+        if bands and any(len(b) != 2 for b in bands):
+            raise ValueError
+    except ValueError:
         parser.error(f"--bands takes HEIGHT:BAND pairs in metres, e.g. 0.6:0.1, got {args.bands}")
 
     rows = []

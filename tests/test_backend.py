@@ -47,7 +47,8 @@ def test_backend_repairs_a_loop_the_front_end_got_wrong(wrong_turn):
     assert len(repaired.graph["nodes"]) == len(repaired.integrated)
 
 
-def _captured_backend(monkeypatch, scans, cfg) -> PoseGraphBackend:
+def _run_capturing_backend(monkeypatch, scans, cfg):
+    """(the run's result, its PoseGraphBackend as it was when the run finished)."""
     seen = {}
     finish = PoseGraphBackend.finish
 
@@ -56,8 +57,12 @@ def _captured_backend(monkeypatch, scans, cfg) -> PoseGraphBackend:
         return finish(self, pf)
 
     monkeypatch.setattr(PoseGraphBackend, "finish", keep)
-    run_slam(scans, cfg)
-    return seen["backend"]
+    result = run_slam(scans, cfg)
+    return result, seen["backend"]
+
+
+def _captured_backend(monkeypatch, scans, cfg) -> PoseGraphBackend:
+    return _run_capturing_backend(monkeypatch, scans, cfg)[1]
 
 
 def test_a_false_closure_does_not_bend_the_map(monkeypatch, corridor_loop):
@@ -313,8 +318,7 @@ def test_submaps_that_drop_their_search_grids_give_the_same_run(monkeypatch, wro
     cfg_all = loop_config(True)
     cfg_one = cfg_all.model_copy(update={"backend": cfg_all.backend.model_copy(update={"search_grids_kept": 1})})
     kept_all = run_slam(wrong_turn, cfg_all)
-    backend = _captured_backend(monkeypatch, wrong_turn, cfg_one)
-    kept_one = run_slam(wrong_turn, cfg_one)
+    kept_one, backend = _run_capturing_backend(monkeypatch, wrong_turn, cfg_one)
     stats = kept_one.stats["backend"]
     assert stats["submaps"] >= 4 and stats["search_grids_remade"] > 0
     assert kept_all.stats["backend"]["search_grids_remade"] == 0

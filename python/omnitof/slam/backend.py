@@ -224,6 +224,7 @@ class PoseGraphBackend:
             self._build(current, pf)
 
     def _build(self, sub: _Submap, pf: _core.ParticleFilter) -> None:
+        assert sub is self.submaps[-1], "only the submap in progress is built"
         self._refresh_segment(pf)
         for j in sub.nodes:
             k = self.scan_of[j]
@@ -231,7 +232,7 @@ class PoseGraphBackend:
                             self.scans.sensor_pose)
             sub.poses.append(self.frontend[j].copy())
         sub.grid.finish()
-        self._keep_grids(next(i for i in range(len(self.submaps) - 1, -1, -1) if self.submaps[i] is sub))
+        self._keep_grids(len(self.submaps) - 1)  # only the newest submap is ever built
 
     def _keep_grids(self, s: int) -> None:
         """Submap s was just finished or searched: it keeps its search grids, and the least

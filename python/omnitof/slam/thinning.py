@@ -19,6 +19,7 @@ bit. Kept beams keep their own angle and range; the thinned log has per-scan geo
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -70,13 +71,7 @@ def thin_dense_scans(scans: ScanSequence, cfg: SlamConfig) -> tuple[ScanSequence
             f"(up to {int(counts.max())}); each was thinned to one beam per {cell:g} m cell of its end points"
             f"{evenly}: a median {int(np.median(counts[dense]))} beams became {int(np.median(new_counts[dense]))}"
         ))
-    thinned = ScanSequence(
-        timestamps=scans.timestamps, ranges=ranges, angles=angles, odometry=scans.odometry,
-        sensor_pose=scans.sensor_pose, max_range=scans.max_range, remissions=remissions,
-        ground_truth=scans.ground_truth, source=scans.source, beam_counts=new_counts,
-        max_range_rule=scans.max_range_rule, repeated_scans_dropped=scans.repeated_scans_dropped,
-        odometry_rule=scans.odometry_rule,
-    )
+    thinned = dataclasses.replace(scans, ranges=ranges, angles=angles, remissions=remissions, beam_counts=new_counts)
     return thinned, record
 
 
