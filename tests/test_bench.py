@@ -125,6 +125,10 @@ def test_a_2x2x2_grid_gives_the_table_of_the_slam_api(grid_run):
             rel = evaluate_relations(result.trajectory, read_relations(first.relations))
             assert float(r["rel_trans_m"]) == rel.trans_mean and float(r["rel_rot_deg"]) == rel.rot_mean
             assert int(r["rel_matched"]) == rel.n_matched and r["ate_mean_m"] == ""
+            groups = rel.split()
+            assert float(r["rel_nearby_trans_m"]) == groups["nearby"]["trans_mean"]
+            revisit = r.get("rel_revisit_trans_m", "")
+            assert (float(revisit) if revisit else None) == groups["revisits"]["trans_mean"]
         else:
             result = run_slam(room_scans, cfg)
             ate = absolute_trajectory_error(result.trajectory.poses, room_scans.ground_truth)

@@ -126,6 +126,42 @@ def test_statistics_match_an_independent_computation() -> None:
         assert getattr(result, f"{key}_std") == pytest.approx(statistics.stdev(values), rel=1e-9)
 
 
+def test_nearby_relations_and_revisits_are_reported_apart() -> None:
+    # Twelve poses 30 s apart: pairs one step apart are nearby, the others revisits (>= 60 s).
+    # The second half of the trajectory is shifted 1 m, as if a loop had come back beside itself,
+    # and every pose is perturbed a little.
+    gt = _ground_truth()
+    gt = Trajectory(T0 + np.arange(len(gt)) * 30.0, gt.poses)
+    rng = np.random.default_rng(3)
+    est_poses = gt.poses + rng.normal(0, [0.02, 0.02, 0.01], gt.poses.shape)
+    est_poses[6:, 0] += 1.0
+    pairs = [(0, 1), (1, 2), (4, 5), (6, 7), (9, 10), (0, 11), (2, 9), (5, 4), (3, 8)]
+    rel = _relations_of(gt, pairs)
+    result = evaluate_relations(Trajectory(gt.timestamps, est_poses), rel)
+
+    groups = result.split()
+    expected = [_independent_errors(est_poses[i], est_poses[j], rel.delta[k]) for k, (i, j) in enumerate(pairs)]
+    nearby = [e for e, (i, j) in zip(expected, pairs) if abs(i - j) == 1]
+    revisits = [e for e, (i, j) in zip(expected, pairs) if abs(i - j) > 1]
+    assert groups["nearby"]["n"] == 6 and groups["revisits"]["n"] == 3
+    assert groups["nearby"]["trans_mean"] == pytest.approx(statistics.mean(t for t, _ in nearby), rel=1e-9)
+    assert groups["nearby"]["rot_mean"] == pytest.approx(statistics.mean(r for _, r in nearby), rel=1e-9)
+    assert groups["revisits"]["trans_mean"] == pytest.approx(statistics.mean(t for t, _ in revisits), rel=1e-9)
+    # Every revisit straddles the shift and no nearby pair does: the revisits err by about a
+    # metre, the nearby relations by centimetres.
+    assert groups["revisits"]["trans_mean"] > 0.5 > 0.1 > groups["nearby"]["trans_mean"]
+    d = result.to_dict()
+    assert d["nearby"] == groups["nearby"] and d["revisits"]["n"] == 3
+    assert "revisits: 3" in result.format().splitlines()[-1]
+
+
+def test_no_revisits_leaves_the_table_as_it_was() -> None:
+    gt = _ground_truth()
+    result = evaluate_relations(gt, _relations_of(gt, PAIRS))
+    assert result.split()["revisits"] == {"n": 0, "trans_mean": None, "rot_mean": None}
+    assert len(result.format().splitlines()) == 6
+
+
 def test_unmatched_relations_are_counted() -> None:
     gt = _ground_truth()
     t = gt.timestamps

@@ -48,6 +48,9 @@ COLUMNS: list[tuple[str, str, str, str]] = [
     ("rel_rot_std_deg", "relations", "relations: its standard deviation (deg)", ".2f"),
     ("rel_matched", "relations", "relations matched", "d"),
     ("odom_rel_trans_m", "relations", "relations: mean translational error of the raw odometry (m)", ".3f"),
+    ("rel_nearby_trans_m", "relations", "relations between scans less than a minute apart: mean translational error (m)", ".3f"),
+    ("odom_rel_nearby_trans_m", "relations", "the same for the raw odometry (m)", ".3f"),
+    ("rel_revisit_trans_m", "relations", "relations between scans a minute or more apart (revisits): mean translational error (m)", ".3f"),
     ("ate_mean_m", "trajectory", "absolute trajectory error: mean (m)", ".3f"),
     ("ate_rmse_m", "trajectory", "absolute trajectory error: RMSE (m)", ".3f"),
     ("ate_final_m", "trajectory", "absolute trajectory error at the last scan (m)", ".3f"),
@@ -114,8 +117,12 @@ def _row(record: dict[str, Any], summary: dict[str, Any] | None) -> dict[str, An
     if rel:
         row.update({"rel_trans_m": rel["trans_mean"], "rel_trans_std_m": rel["trans_std"],
                     "rel_rot_deg": rel["rot_mean"], "rel_rot_std_deg": rel["rot_std"], "rel_matched": rel["n_matched"]})
+        # Summaries written before the split have neither group.
+        row["rel_nearby_trans_m"] = (rel.get("nearby") or {}).get("trans_mean")
+        row["rel_revisit_trans_m"] = (rel.get("revisits") or {}).get("trans_mean")
     if "relations_odometry" in metrics:
         row["odom_rel_trans_m"] = metrics["relations_odometry"]["trans_mean"]
+        row["odom_rel_nearby_trans_m"] = (metrics["relations_odometry"].get("nearby") or {}).get("trans_mean")
     te = summary.get("trajectory_error")
     if te:
         row.update({"ate_mean_m": te["slam"]["mean"], "ate_rmse_m": te["slam"]["rmse"],
