@@ -326,6 +326,8 @@ def test_errors_beyond_float_range_are_inf_without_numpy_warnings():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         result = evaluate_relations(est, rel)
+        both = evaluate_relations(est, Relations(rel.t1, rel.t2, np.array([[1e308, 0.0, 0.0], [-1e308, 0.0, 0.0]])))
+        assert both.split()["nearby"]["trans_mean"] == math.inf and both.to_dict()["nearby"]["n"] == 2
     assert result.trans_mean == 5e307 and result.trans_std == math.inf and result.trans2_mean == math.inf
     assert math.isnan(result.trans2_std) and result.rot_mean == 0.0
     assert list(result.trans_errors) == [1e308, 0.0]

@@ -12,7 +12,9 @@ pose at time t2 seen from the frame of the robot pose at time t1 (metres, radian
     translational error = hypot(e.x, e.y)  [m]
     rotational error    = |wrap(e.θ)|       [deg]
 
-and the result reports mean and standard deviation of these errors and of their squares.
+and the result reports mean and standard deviation of these errors and of their squares, and
+the mean errors of the relations between scans less than REVISIT_SECONDS apart and of the
+revisits apart (`RelationsResult.split`).
 
 How this matches the benchmark's own tools (read from their public sources, not copied):
 
@@ -162,11 +164,12 @@ class RelationsResult:
         out = {}
         for name, mask in (("nearby", self.gaps < REVISIT_SECONDS), ("revisits", self.gaps >= REVISIT_SECONDS)):
             n = int(mask.sum())
-            out[name] = {
-                "n": n,
-                "trans_mean": _plain(_mean(self.trans_errors[mask])) if n else None,
-                "rot_mean": _plain(_mean(self.rot_errors[mask])) if n else None,
-            }
+            with np.errstate(over="ignore"):  # errors beyond float64's range average to inf
+                out[name] = {
+                    "n": n,
+                    "trans_mean": _plain(_mean(self.trans_errors[mask])) if n else None,
+                    "rot_mean": _plain(_mean(self.rot_errors[mask])) if n else None,
+                }
         return out
 
     def format(self) -> str:
