@@ -1,0 +1,138 @@
+"""How high a *correct* loop closure scores on a log, by its benchmark relations, against false ones.
+
+`closure_scores.py` judges the back end's searches against the run's own final estimate, which
+says nothing on a log the run maps wrong (the Freiburg hospital). Here the relations are the
+judge. For a sample of relation pairs (t1, t2) it builds a submap as the back end does (the
+scans within half `backend.submap_length` of path on either side of t1, at the run's own poses,
+which are right locally even where the run drifts; the scans within 5 s of t2 are left out),
+and scores the scan at t2:
+
+- true: searched within 0.3 m and 3° of the pose the relation gives it (pose(t1) composed with
+  the relation), so the score a closure at the right place reaches;
+- false: searched in the back end's window (`backend.linear_window`, `angular_window_deg`)
+  around the pose of a submap elsewhere: more than 50 m of path away from t1 and t2, and more
+  than 10 m away in the run's estimate (a drifted estimate can still put the same place there,
+  so read the false scores' maximum with that in mind).
+
+Groups: revisits (t1 and t2 at least `REVISIT_SECONDS` apart, what the back end has to close)
+and nearby relations 10–60 s apart. The scores are the search's (mean end-point occupancy
+probability, rust/src/loop_closure.rs), with the map and back-end settings of the run's
+`config.yaml`.
+
+    omnitof slam ../shared/data/intel.clf.bz2 --out RUN
+    python benchmarks/closure_truth.py ../shared/data/intel.clf.bz2 ../shared/data/intel.relations RUN
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+import numpy as np
+
+from omnitof import _core
+from omnitof.errors import OmnitofError
+from omnitof.eval.relations import REVISIT_SECONDS, read_relations
+from omnitof.geometry import compose
+from omnitof.io.scans import read_scans
+from omnitof.io.tum import read_tum
+from omnitof.slam.config import load_config
+
+TRUE_XY, TRUE_DEG = 0.3, 3.0
+FALSE_PATH_M, FALSE_APART_M = 50.0, 10.0
+LEAVE_OUT_S = 5.0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("log")
+    parser.add_argument("relations")
+    parser.add_argument("run", help="an `omnitof slam` results folder of this log (trajectory.tum, config.yaml)")
+    parser.add_argument("--pairs", type=int, default=60, help="relations sampled per group")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the sample")
+    parser.add_argument("--bundle", type=float, default=0.0, help="match the end points of every scan within this much path (m) of t2, placed by the "
+                        "run's poses, instead of the one scan (0: the scan alone, as the back end does)")
+    args = parser.parse_args()
+    try:
+        cfg = load_config(Path(args.run) / "config.yaml")
+        scans = read_scans(args.log).scans
+        traj = read_tum(Path(args.run) / "trajectory.tum")
+        rel = read_relations(args.relations)
+    except OmnitofError as err:
+        raise SystemExit(f"error: {err}") from None
+    if len(traj.timestamps) != len(scans) or not np.allclose(traj.timestamps, scans.timestamps, atol=1e-6):
+        raise SystemExit(f"{args.run}/trajectory.tum does not hold one pose per scan of {args.log}")
+    poses, stamps = traj.poses, traj.timestamps
+    path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))])
+    forward = rel.t1 < rel.t2  # the relation's delta takes the pose at t1 to the pose at t2
+    t1, t2, delta = rel.t1[forward], rel.t2[forward], rel.delta[forward]
+    i_all, j_all = np.searchsorted(stamps, t1).clip(0, len(stamps) - 1), np.searchsorted(stamps, t2).clip(0, len(stamps) - 1)
+    exact = (np.abs(stamps[i_all] - t1) < 1e-3) & (np.abs(stamps[j_all] - t2) < 1e-3)
+
+    m, b = cfg.map, cfg.backend
+    max_range = min(m.max_range, scans.max_range)
+
+    def submap(around: int, leave_out: float) -> _core.Submap:
+        grid = _core.Submap(m.resolution, m.l_occ, m.l_free, m.l_min, m.l_max, max_range,
+                            clear_no_echo=m.clear_no_echo, once_per_scan=m.once_per_scan,
+                            spread_sigma=cfg.likelihood_field.sigma)
+        near = np.flatnonzero((np.abs(path - path[around]) <= b.submap_length / 2) & (np.abs(stamps - leave_out) > LEAVE_OUT_S))
+        for k in near:
+            grid.insert(poses[k], scans.scan_ranges(int(k)), scans.scan_angles(int(k)), sensor_pose=scans.sensor_pose)
+        grid.finish()
+        return grid
+
+    def bundle(k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Scan k's (ranges, angles), or with --bundle the end points of its neighbours too, as
+        readings of scan k's sensor (more context than one scan sees)."""
+        if args.bundle <= 0:
+            return scans.scan_ranges(k), scans.scan_angles(k)
+        here = compose(poses[k], scans.sensor_pose)
+        ranges, angles = [], []
+        for n in np.flatnonzero(np.abs(path - path[k]) <= args.bundle):
+            r, a = scans.scan_ranges(int(n)), scans.scan_angles(int(n))
+            ok = np.isfinite(r) & (r < max_range)
+            there = compose(poses[n], scans.sensor_pose)
+            dx = there[0] + r[ok] * np.cos(there[2] + a[ok]) - here[0]
+            dy = there[1] + r[ok] * np.sin(there[2] + a[ok]) - here[1]
+            ranges.append(np.hypot(dx, dy))
+            angles.append(np.arctan2(dy, dx) - here[2])
+        return np.concatenate(ranges).astype(np.float32), np.concatenate(angles)
+
+    def score(grid: _core.Submap, k: int, start: np.ndarray, xy: float, deg: float) -> float:
+        ranges, angles = bundle(k)
+        found = grid.match_scan(ranges, angles, start, xy, math.radians(deg), 1e-6,
+                                sensor_pose=scans.sensor_pose)
+        return 0.0 if found is None else float(found[1])
+
+    rng = np.random.default_rng(args.seed)
+    gap = t2 - t1
+    groups = {"revisits": exact & (gap >= REVISIT_SECONDS), "nearby, 10-60 s": exact & (gap >= 10) & (gap < REVISIT_SECONDS)}
+    print(f"{args.log}, run {args.run}; min_score {b.min_score}\n")
+    print("| relations | pairs | true: score 10 / 50 / 90 % | true ≥ min_score | false: score 50 / 90 % / max | "
+          "false ≥ min_score | true above false's 90 % |")
+    print("|---|---|---|---|---|---|---|")
+    for name, keep in groups.items():
+        idx = np.flatnonzero(keep)
+        idx = rng.choice(idx, min(args.pairs, len(idx)), replace=False) if len(idx) else idx
+        true, false = [], []
+        for q in idx:
+            i, j = int(i_all[q]), int(j_all[q])
+            true.append(score(submap(i, stamps[j]), j, compose(poses[i], delta[q]), TRUE_XY, TRUE_DEG))
+            far = (np.abs(path - path[i]) > FALSE_PATH_M) & (np.abs(path - path[j]) > FALSE_PATH_M)
+            far &= (np.hypot(*(poses[:, :2] - poses[i, :2]).T) > FALSE_APART_M) & (np.hypot(*(poses[:, :2] - poses[j, :2]).T) > FALSE_APART_M)
+            if far.any():
+                o = int(rng.choice(np.flatnonzero(far)))
+                false.append(score(submap(o, stamps[j]), j, poses[o], b.linear_window, b.angular_window_deg))
+        if not true:
+            print(f"| {name} | 0 | | | | | |")
+            continue
+        t, f = np.array(true), np.array(false) if false else np.zeros(1)
+        print(f"| {name} | {len(t)} | {np.percentile(t, 10):.2f} / {np.median(t):.2f} / {np.percentile(t, 90):.2f} "
+              f"| {np.mean(t >= b.min_score):.0%} | {np.median(f):.2f} / {np.percentile(f, 90):.2f} / {f.max():.2f} "
+              f"| {np.mean(f >= b.min_score):.0%} | {np.mean(t > np.percentile(f, 90)):.0%} |")
+
+
+if __name__ == "__main__":
+    main()
