@@ -14,8 +14,9 @@ and scores the scan at t2:
   than 10 m away in the run's estimate (a drifted estimate can still put the same place there,
   so read the false scores' maximum with that in mind).
 
-Groups: revisits (t1 and t2 at least `REVISIT_SECONDS` apart, what the back end has to close)
-and nearby relations 10–60 s apart. The scores are the search's (mean end-point occupancy
+Groups: revisits (t1 and t2 at least `REVISIT_SECONDS` apart, what the back end has to close),
+also split by whether the robot came back facing as before or the other way (a 180° laser then
+sees what the first pass had behind it), and nearby relations 10–60 s apart. The scores are the search's (mean end-point occupancy
 probability, rust/src/loop_closure.rs), with the map and back-end settings of the run's
 `config.yaml`.
 
@@ -108,7 +109,15 @@ def main() -> None:
 
     rng = np.random.default_rng(args.seed)
     gap = t2 - t1
-    groups = {"revisits": exact & (gap >= REVISIT_SECONDS), "nearby, 10-60 s": exact & (gap >= 10) & (gap < REVISIT_SECONDS)}
+    # A 180° laser that comes back facing the other way sees what the first pass had behind it.
+    turned = np.abs(delta[:, 2]) > math.pi / 2
+    revisit = exact & (gap >= REVISIT_SECONDS)
+    groups = {
+        "revisits": revisit,
+        "revisits facing as before (|Δθ| ≤ 90°)": revisit & ~turned,
+        "revisits facing the other way": revisit & turned,
+        "nearby, 10-60 s": exact & (gap >= 10) & (gap < REVISIT_SECONDS),
+    }
     print(f"{args.log}, run {args.run}; min_score {b.min_score}\n")
     print("| relations | pairs | true: score 10 / 50 / 90 % | true ≥ min_score | false: score 50 / 90 % / max | "
           "false ≥ min_score | true above false's 90 % |")
