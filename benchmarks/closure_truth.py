@@ -14,11 +14,13 @@ and scores the scan at t2:
   than 10 m away in the run's estimate (a drifted estimate can still put the same place there,
   so read the false scores' maximum with that in mind).
 
-Groups: revisits (t1 and t2 at least `REVISIT_SECONDS` apart, what the back end has to close),
-also split by whether the robot came back facing as before or the other way (a 180° laser then
-sees what the first pass had behind it), and nearby relations 10–60 s apart. The scores are the search's (mean end-point occupancy
-probability, rust/src/loop_closure.rs), with the map and back-end settings of the run's
-`config.yaml`.
+Beside the scores, the share of the true match's end points that fall in cells the submap
+observed at all (a scan that sees what the submap never held cannot score, whatever the
+threshold). Groups: revisits (t1 and t2 at least `REVISIT_SECONDS` apart, what the back end
+has to close), also split by whether the robot came back facing as before or the other way (a
+180° laser then sees what the first pass had behind it), and nearby relations 10–60 s apart.
+The scores are the search's (mean end-point occupancy probability, rust/src/loop_closure.rs),
+with the map and back-end settings of the run's `config.yaml`.
 
     omnitof slam ../shared/data/intel.clf.bz2 --out RUN
     python benchmarks/closure_truth.py ../shared/data/intel.clf.bz2 ../shared/data/intel.relations RUN
@@ -101,11 +103,25 @@ def main() -> None:
             angles.append(np.arctan2(dy, dx) - here[2])
         return np.concatenate(ranges).astype(np.float32), np.concatenate(angles)
 
-    def score(grid: _core.Submap, k: int, start: np.ndarray, xy: float, deg: float) -> float:
+    def score(grid: _core.Submap, k: int, start: np.ndarray, xy: float, deg: float) -> tuple[float, float]:
+        """(the best score in the window, the share of the end points there that fall in cells
+        the submap observed at all)."""
         ranges, angles = bundle(k)
         found = grid.match_scan(ranges, angles, start, xy, math.radians(deg), 1e-6,
                                 sensor_pose=scans.sensor_pose)
-        return 0.0 if found is None else float(found[1])
+        if found is None:
+            return 0.0, 0.0
+        log_odds, ix0, iy0 = grid.to_dense()
+        sensor = compose(np.asarray(found[0]), scans.sensor_pose)
+        ok = np.isfinite(ranges) & (ranges < max_range)
+        x = sensor[0] + ranges[ok] * np.cos(sensor[2] + angles[ok])
+        y = sensor[1] + ranges[ok] * np.sin(sensor[2] + angles[ok])
+        col = np.floor(x / m.resolution).astype(int) - ix0
+        row = np.floor(y / m.resolution).astype(int) - iy0
+        inside = (row >= 0) & (row < log_odds.shape[0]) & (col >= 0) & (col < log_odds.shape[1])
+        observed = np.zeros(len(x), dtype=bool)
+        observed[inside] = np.isfinite(log_odds[row[inside], col[inside]])
+        return float(found[1]), float(observed.mean()) if len(x) else 0.0
 
     rng = np.random.default_rng(args.seed)
     gap = t2 - t1
@@ -125,22 +141,24 @@ def main() -> None:
     for name, keep in groups.items():
         idx = np.flatnonzero(keep)
         idx = rng.choice(idx, min(args.pairs, len(idx)), replace=False) if len(idx) else idx
-        true, false = [], []
+        true, false, observed = [], [], []
         for q in idx:
             i, j = int(i_all[q]), int(j_all[q])
-            true.append(score(submap(i, stamps[j]), j, compose(poses[i], delta[q]), TRUE_XY, TRUE_DEG))
+            found, seen = score(submap(i, stamps[j]), j, compose(poses[i], delta[q]), TRUE_XY, TRUE_DEG)
+            true.append(found)
+            observed.append(seen)
             far = (np.abs(path - path[i]) > FALSE_PATH_M) & (np.abs(path - path[j]) > FALSE_PATH_M)
             far &= (np.hypot(*(poses[:, :2] - poses[i, :2]).T) > FALSE_APART_M) & (np.hypot(*(poses[:, :2] - poses[j, :2]).T) > FALSE_APART_M)
             if far.any():
                 o = int(rng.choice(np.flatnonzero(far)))
-                false.append(score(submap(o, stamps[j]), j, poses[o], b.linear_window, b.angular_window_deg))
+                false.append(score(submap(o, stamps[j]), j, poses[o], b.linear_window, b.angular_window_deg)[0])
         if not true:
-            print(f"| {name} | 0 | | | | | |")
+            print(f"| {name} | 0 | | | | | | |")
             continue
         t, f = np.array(true), np.array(false) if false else np.zeros(1)
         print(f"| {name} | {len(t)} | {np.percentile(t, 10):.2f} / {np.median(t):.2f} / {np.percentile(t, 90):.2f} "
               f"| {np.mean(t >= b.min_score):.0%} | {np.median(f):.2f} / {np.percentile(f, 90):.2f} / {f.max():.2f} "
-              f"| {np.mean(f >= b.min_score):.0%} | {np.mean(t > np.percentile(f, 90)):.0%} |")
+              f"| {np.mean(f >= b.min_score):.0%} | {np.mean(t > np.percentile(f, 90)):.0%} | {np.median(observed):.0%} |")
 
 
 if __name__ == "__main__":
