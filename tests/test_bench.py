@@ -207,25 +207,27 @@ seeds: [0, 1]
     assert "## Failed runs" in (out / "table.md").read_text()
 
 
-def test_a_killed_worker_is_replaced_and_the_experiment_completes(data, cluster, tmp_path):
+def _kill_a_worker_mid_run(data, scheduler: str, tmp_path: Path, runs: int):
+    """Run a `runs`-seed experiment on `scheduler` and SIGKILL (as the OOM killer would) the
+    worker of a run 0.5 s into its work. Returns (outcome, the killed process's pid, out)."""
     from dask.distributed import Client
 
+    seeds = ", ".join(str(k) for k in range(runs))
     path = _experiment(tmp_path, "kill", f"""
 inputs: [{{name: whole, log: {data['whole']}, relations: {data['folder']}/whole.relations, scan_delay: 0}}]
 presets: [sim2d]
 grid: {{filter.particles: [60]}}
-seeds: [0, 1, 2]
+seeds: [{seeds}]
 """)
     out = tmp_path / "out"
     done: dict = {}
     thread = threading.Thread(target=lambda: done.update(outcome=run_experiment(
-        load_experiment(path), out, scheduler=cluster.scheduler_address, progress=False, echo=lambda _: None)))
-    with Client(cluster.scheduler_address) as watcher:
+        load_experiment(path), out, scheduler=scheduler, progress=False, echo=lambda _: None)))
+    with Client(scheduler) as watcher:
         thread.start()
-        victim = None
+        victim = pid = None
         deadline = time.monotonic() + 60
         while victim is None and time.monotonic() < deadline:
-            # A run 0.5 s into its work: its worker is killed (SIGKILL, as the OOM killer would).
             busy = {w: keys for w, keys in watcher.processing().items() if any(k.startswith("run-") for k in keys)}
             if busy:
                 time.sleep(0.5)
@@ -233,9 +235,13 @@ seeds: [0, 1, 2]
                 pid = watcher.run(os.getpid, workers=[victim])[victim]
                 os.kill(pid, signal.SIGKILL)
             time.sleep(0.05)
-        thread.join(timeout=120)
+        thread.join(timeout=180)
     assert victim is not None and not thread.is_alive()
-    outcome = done["outcome"]
+    return done["outcome"], pid, out
+
+
+def test_a_killed_worker_is_replaced_and_the_experiment_completes(data, cluster, tmp_path):
+    outcome, pid, out = _kill_a_worker_mid_run(data, cluster.scheduler_address, tmp_path, 3)
     assert len(outcome.done) == 3 and not outcome.failed
     records = [yaml.safe_load((run_dir(out, r) / "bench.yaml").read_text()) for r in outcome.done]
     # Every run completed, none of them in the killed process.
@@ -249,6 +255,22 @@ seeds: [0, 1, 2]
                  "--seed", "0", "--scan-delay", "0", "--quiet"]) == 0
     ran = read_tum(run_dir(out, "whole__sim2d__filter.particles=60__seed0") / "trajectory.tum")
     assert np.array_equal(ran.poses, read_tum(again / "trajectory.tum").poses)
+
+
+def test_the_only_worker_killed_with_the_shipped_input_the_runs_are_shipped_again(data, tmp_path):
+    # One worker holds the only copy of the shipped log: killing it made the scheduler cancel
+    # every run (a CI run hit this when the module's cluster was down to one worker).
+    from dask.distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as one:
+        outcome, pid, out = _kill_a_worker_mid_run(data, one.scheduler_address, tmp_path, 2)
+    assert len(outcome.done) == 2 and not outcome.failed
+    records = [yaml.safe_load((run_dir(out, r) / "bench.yaml").read_text()) for r in outcome.done]
+    assert pid not in {r["pid"] for r in records}
+    assert all(r["status"] == "ok" for r in records)
+    for r in outcome.done:
+        summary = yaml.safe_load((run_dir(out, r) / "summary.yaml").read_text())
+        assert summary["relations"]["n_matched"] > 50 and summary["relations"]["trans_mean"] < 0.1
 
 
 def test_an_interrupted_experiment_runs_only_what_is_missing(data, cluster, tmp_path):

@@ -14,7 +14,10 @@ Failures: a mistake in an input comes back as the run's one-line error (recorded
 runs go on). Any other exception is retried once (`retries=1`), then recorded the same way. A
 worker that dies (killed, out of memory) loses only its run in flight, which the scheduler gives
 to another worker; a run that has taken `distributed.scheduler.allowed-failures` + 1 workers
-down with it (4 by default) is recorded as failed.
+down with it (4 by default) is recorded as failed. A worker that dies with the last copy of a
+shipped input (a cluster of one worker, or the others gone) makes the scheduler cancel the
+runs that need it: their input is shipped again and they are submitted again, up to `RESUBMITS`
+times each.
 """
 
 from __future__ import annotations
@@ -40,6 +43,8 @@ from omnitof.io.atomic import atomic_write
 
 # How long to wait for a running cluster to have a worker before giving up.
 WORKER_WAIT_S = 60.0
+# How often a run cancelled by the loss of its shipped input is submitted again.
+RESUBMITS = 3
 
 
 @dataclass
@@ -126,24 +131,42 @@ def _run_all(client: Any, exp: Experiment, out: Path, todo: list[RunSpec], outco
     token = uuid.uuid4().hex[:8]  # keys of this session, never those of another client
     shipped, preparing = _ship_inputs(client, exp, out, {r.input.name for r in todo}, token)
     futures: dict[Any, Any] = {future: ("prepare", name) for name, future in preparing.items()}
-    for run in todo:
+    pending = as_completed()
+
+    def submit(run: RunSpec, attempt: int) -> None:
         log, relations, calibration, world, label = _payload(run, shipped, out)
+        suffix = f"-{attempt}" if attempt else ""
         future = client.submit(run_one, run, log, relations, calibration, world, label,
-                               key=f"run-{run.id}-{token}", retries=1, pure=False)
-        futures[future] = ("run", run, label, time.time())
+                               key=f"run-{run.id}-{token}{suffix}", retries=1, pure=False)
+        futures[future] = ("run", run, label, time.time(), attempt, shipped[run.input.name])
+        pending.add(future)
+
+    for future in list(futures):
+        pending.add(future)
+    for run in todo:
+        submit(run, 0)
     bar = progress_bar(len(todo), enabled=progress, desc="runs", unit="run")
     warned: set[str] = set()
     with bar:
         for name in preparing:
             bar.write(f"simulating world input {name} on a worker; its runs follow")
-        for future in as_completed(list(futures)):
+        for future in pending:
             what = futures.pop(future)
             if what[0] == "prepare":
                 _save_prepared(out, what[1], future)
                 if future.status == "finished":
                     bar.write(f"world input {what[1]} made: {out / folders.INPUTS / what[1]}.bag")
                 continue
-            _, run, label, submitted = what
+            _, run, label, submitted, attempt, used = what
+            if future.status == "cancelled" and attempt < RESUBMITS:
+                # Its shipped input died with the last worker that held it (nothing else cancels
+                # a run here): ship the input again, once per loss, and run it again.
+                if shipped[run.input.name] is used:
+                    _reship(client, exp, out, run.input.name, token, attempt + 1, shipped, futures, pending)
+                bar.write(f"run {run.id}: its input was lost with a worker; shipped again, submitted again")
+                future.release()
+                submit(run, attempt + 1)
+                continue
             ok, line, found = collect_run(out, run, label, future, submitted)
             (outcome.done if ok else outcome.failed).append(run.id)
             for message in found:
@@ -187,6 +210,21 @@ def _ship_inputs(client: Any, exp: Experiment, out: Path, names: set[str],
                        for k in ("relations", "calibration"))
         shipped[item.name] = (log, extras, world)
     return shipped, preparing
+
+
+def _reship(client: Any, exp: Experiment, out: Path, name: str, token: str, attempt: int,
+            shipped: dict[str, tuple], futures: dict[Any, Any], pending: Any) -> None:
+    """Ship input `name` again (into `shipped`), once a worker is there to take it; a world not
+    made yet is made again (its task joins `futures` and `pending`)."""
+    try:
+        client.wait_for_workers(1, timeout=WORKER_WAIT_S)
+    except TimeoutError:
+        raise OmnitofError(f"no worker left to run on, and none joined within {WORKER_WAIT_S:.0f} s") from None
+    again, preparing = _ship_inputs(client, exp, out, {name}, f"{token}-{attempt}")
+    shipped.update(again)
+    for made_name, future in preparing.items():
+        futures[future] = ("prepare", made_name)
+        pending.add(future)
 
 
 def _scatter(client: Any, f: InputFile) -> Any:
