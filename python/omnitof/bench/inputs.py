@@ -3,8 +3,8 @@
 A recording up to `SHIP_LIMIT_BYTES` (and every relations or calibration file) is read once by
 the client and shipped as bytes: `client.scatter(..., broadcast=True)` puts one copy on every
 worker, so that a worker that dies takes no input with it (where it held the last copy, the
-runner ships it again) and a two-machine cluster needs no shared disk. Each run writes the bytes, under the file's own name, into its scratch folder on the
-worker. A larger recording, or a ROS 2 bag (a folder), goes by its path instead, which every
+runner ships it again) and a two-machine cluster needs no shared disk. Each run writes the
+bytes, under the file's own name, into its scratch folder on the worker. A larger recording, or a ROS 2 bag (a folder), goes by its path instead, which every
 worker must see (the same path on a shared file system); `transfer: ship | shared` forces either.
 
 A world to simulate is made into a recording by a task of its own (`prepare_world`): the drive's

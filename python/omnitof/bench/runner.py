@@ -131,7 +131,7 @@ def _run_all(client: Any, exp: Experiment, out: Path, todo: list[RunSpec], outco
     token = uuid.uuid4().hex[:8]  # keys of this session, never those of another client
     shipped, preparing = _ship_inputs(client, exp, out, {r.input.name for r in todo}, token)
     futures: dict[Any, Any] = {future: ("prepare", name) for name, future in preparing.items()}
-    pending = as_completed()
+    pending = as_completed(list(futures))
 
     def submit(run: RunSpec, attempt: int) -> None:
         log, relations, calibration, world, label = _payload(run, shipped, out)
@@ -141,8 +141,6 @@ def _run_all(client: Any, exp: Experiment, out: Path, todo: list[RunSpec], outco
         futures[future] = ("run", run, label, time.time(), attempt, shipped[run.input.name])
         pending.add(future)
 
-    for future in list(futures):
-        pending.add(future)
     for run in todo:
         submit(run, 0)
     bar = progress_bar(len(todo), enabled=progress, desc="runs", unit="run")
