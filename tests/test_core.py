@@ -282,3 +282,28 @@ def test_the_cores_functions_refuse_what_no_sensor_robot_or_filter_gives():
                       ({"sensor_pose": np.array([0.0, np.inf, 0.0])}, "sensor_pose")):
         with pytest.raises(ValueError, match=what):
             _core.ParticleFilter(**core_sections(SlamConfig()), **{**sensor, **bad})
+
+
+@pytest.mark.parametrize("fallback", ["prediction", "draw"])
+def test_a_scan_that_cannot_be_matched_leaves_the_particles_at_the_prediction_unless_told_to_draw(fallback):
+    from omnitof.geometry import compose, relative
+    from omnitof.slam.config import SlamConfig
+    from omnitof.slam.driver import core_sections
+
+    cfg = SlamConfig.model_validate({"filter": {"proposal": "scanmatch", "particles": 12, "seed": 3},
+                                     "scan_matcher": {"fallback": fallback}})
+    angles = np.linspace(-np.pi, np.pi, 180, endpoint=False)
+    pf = _core.ParticleFilter(**core_sections(cfg), angles=angles, sensor_pose=np.zeros(3), scan_max_range=20.0)
+    room = np.full(180, 2.0, np.float32)  # a round room 2 m in radius
+    odom0, odom1 = np.array([1.0, -2.0, 0.3]), np.array([1.4, -1.8, 0.45])
+    pf.step(odom0, odom0, room, 0)
+    start = pf.poses().copy()
+    # Every end point 12 m out, in space the map has never seen: nothing to match.
+    pf.step(odom0, odom1, np.full(180, 12.0, np.float32), 1)
+    assert pf.fallbacks == 12
+    predicted = compose(start, relative(odom0, odom1))
+    if fallback == "prediction":
+        np.testing.assert_allclose(pf.poses(), predicted, atol=1e-12)
+    else:  # drawn from the motion model around the prediction: spread, but near it
+        spread = np.abs(pf.poses() - predicted)
+        assert spread.max() > 1e-4 and spread[:, :2].max() < 0.5

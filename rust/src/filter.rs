@@ -31,6 +31,28 @@ pub enum ProposalKind {
     ScanMatch,
 }
 
+/// A particle's new pose where its scan could not be matched (`Proposal::matched` false), or with
+/// the odometry proposal. The paper's filter draws from the odometry motion model; so does the
+/// scan-matching proposal with `fallback_draw` (GMapping's way). Without it the odometry's
+/// prediction stands: a scan too poor to be matched is also too poor to tell the draws apart, so
+/// a draw would only add the motion model's generic noise to the lineage, which on a robot whose
+/// wheels are better than that noise is where the heading walks away (BENCHMARKS.md, issue 13).
+pub fn fallback_pose<R: rand::Rng>(
+    proposal: ProposalKind,
+    m: &MatcherParams,
+    motion: &OdometryMotion,
+    pose: [f64; 3],
+    odom_prev: [f64; 3],
+    odom_cur: [f64; 3],
+    rng: &mut R,
+) -> [f64; 3] {
+    if proposal == ProposalKind::ScanMatch && !m.fallback_draw {
+        compose(pose, relative(odom_prev, odom_cur))
+    } else {
+        motion.sample(pose, odom_prev, odom_cur, rng)
+    }
+}
+
 /// The observation model that weighs particles drawn from the odometry proposal.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ObservationKind {
@@ -297,7 +319,7 @@ impl ParticleFilter {
                     let pose = match drawn {
                         Some(pose) => pose,
                         None => {
-                            let pose = p.motion.sample(part.pose, odom_prev, odom_cur, &mut rng);
+                            let pose = fallback_pose(p.proposal, &p.matcher, &p.motion, part.pose, odom_prev, odom_cur, &mut rng);
                             let mean_ll = match p.observation {
                                 ObservationKind::Beam => {
                                     p.beam.scan_log_likelihood(&part.map, &geom, pose, ranges, p.beam_stride).0

@@ -31,7 +31,7 @@ use std::sync::Arc;
 
 use rayon::prelude::*;
 
-use crate::filter::{rng_for, ProposalKind, TrajectoryNode, Weighing};
+use crate::filter::{fallback_pose, rng_for, ProposalKind, TrajectoryNode, Weighing};
 use crate::grid::{GridError, LogOddsModel};
 use crate::motion::{compose, relative, OdometryMotion};
 use crate::scan_match::{climb, draw_around_mode, gauss_newton_with, motion_prior, MatcherParams, PosePrior};
@@ -545,7 +545,7 @@ impl ParticleFilter3d {
                             d.pose
                         }
                         None => {
-                            let pose = p.motion.sample(part.pose, odom_prev, odom_cur, &mut rng);
+                            let pose = fallback_pose(p.proposal, &p.matcher, &p.motion, part.pose, odom_prev, odom_cur, &mut rng);
                             part.log_weight += p.effective_rays * p.field.score(&part.map, pose, &pts).0;
                             pose
                         }
@@ -731,6 +731,7 @@ mod tests {
                 effective_beams: 9.0,
                 odometry_prior: true,
                 climb_from_sample: false,
+                fallback_draw: true,
                 search: None,
                 search_below: 0.0,
             },

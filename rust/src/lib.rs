@@ -245,6 +245,7 @@ config_section! {
         odometry_prior: bool,
         min_matched: f64,
         climb_from_sample: bool,
+        fallback: String,
         search_xy: f64,
         search_deg: f64,
         search_step_xy: f64,
@@ -282,6 +283,11 @@ fn filter_params(
         "odometry" => ProposalKind::Odometry,
         "scanmatch" => ProposalKind::ScanMatch,
         other => return Err(PyValueError::new_err(format!("filter.proposal: unknown proposal {other:?}"))),
+    };
+    let fallback_draw = match sm.fallback.as_str() {
+        "prediction" => false,
+        "draw" => true,
+        other => return Err(PyValueError::new_err(format!("scan_matcher.fallback: unknown fallback {other:?} (prediction or draw)"))),
     };
     let observation = match s.model.as_str() {
         "beam" => ObservationKind::Beam,
@@ -333,6 +339,7 @@ fn filter_params(
             effective_beams: s.effective_beams,
             odometry_prior: sm.odometry_prior,
             climb_from_sample: sm.climb_from_sample,
+            fallback_draw,
             search,
             search_below: sm.search_below,
         },
@@ -643,7 +650,7 @@ impl PyOccupancyGrid {
         let lf = LikelihoodField::new(sigma, 0.9, 0.1, max_range, window, occupied_threshold, false);
         let m = MatcherParams {
             step_xy, step_theta, refinements, gauss_newton, sample_xy: 0.01, sample_theta: 0.005,
-            min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, search: None, search_below: 0.0,
+            min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None, search_below: 0.0,
         };
         let pts = scan_match::endpoints(&geom, ranges, 1, max_range);
         let (pose, _, _) = scan_match::local_match(&scan_match::FieldView::new(&lf, &self.grid), &m, &geom, &pts, start, None);

@@ -509,6 +509,9 @@ pub struct MatcherParams {
     /// Fall back to the odometry proposal when fewer than this share of end points lie near an
     /// obstacle of the map at the mode.
     pub min_matched: f64,
+    /// Where the match falls back: draw the pose from the odometry motion model (true, as GMapping
+    /// does) or take the odometry's prediction (false; see `ScanMatcherConfig.fallback`).
+    pub fallback_draw: bool,
     /// The scan's log-likelihood is the mean over its points times this (see FilterParams).
     pub effective_beams: f64,
     /// Climb to the mode of likelihood × odometry prior (true) or of the likelihood alone.
@@ -1024,7 +1027,7 @@ mod tests {
     fn searching_matcher() -> MatcherParams {
         MatcherParams {
             step_xy: 0.05, step_theta: 0.035, refinements: 3, gauss_newton: 10, sample_xy: 0.005, sample_theta: 0.002,
-            min_matched: 0.5, effective_beams: 9.0, odometry_prior: false, climb_from_sample: false,
+            min_matched: 0.5, effective_beams: 9.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true,
             search: Some(SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians() }),
             search_below: 0.8,
         }
@@ -1070,7 +1073,7 @@ mod tests {
         let (g, angles, ranges) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
         let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, 3, 0.0, false);
-        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 0, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, search: None, search_below: 0.0 };
+        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 0, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None, search_below: 0.0 };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let view = FieldView::new(&lf, &g);
         let (pose, _) = climb(|p| objective(&view, &geom, &pts, 1.0, None, p), [2.08, 1.43, 0.03], &m);
@@ -1094,7 +1097,7 @@ mod tests {
         let (g, angles, ranges) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
         let lf = LikelihoodField::new(0.02, 0.9, 0.1, 20.0, 3, 0.0, true);
-        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 10, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, search: None, search_below: 0.0 };
+        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 10, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None, search_below: 0.0 };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let view = FieldView::new(&lf, &g);
         let (mode, _) = climb(|p| objective(&view, &geom, &pts, 1.0, None, p), [2.04, 1.46, 0.02], &m);
