@@ -238,3 +238,27 @@ def test_odometry_far_out_gives_the_same_run_moved(atrium_run):
     far_voxels = VoxelMap.of_grid(b.voxels, offset=b.offset).occupied()
     assert len(near_voxels) > 1000 and far_voxels.shape == near_voxels.shape
     assert np.abs(far_voxels - shift - near_voxels).max() < 1e-6
+
+
+@pytest.mark.parametrize("fallback", ["prediction", "draw"])
+def test_rays_that_cannot_be_matched_leave_the_particles_at_the_prediction_unless_told_to_draw(fallback):
+    from omnitof.geometry import compose, relative
+
+    cfg = _config(particles=10, proposal="scanmatch", seed=4)
+    cfg.scan_matcher.fallback = fallback
+    pf = _core.ParticleFilter3D(**core_sections_3d(cfg))
+    az, el = np.meshgrid(np.radians(np.arange(0, 360, 4)), np.radians([-20.0, -10.0, 0.0, 10.0, 20.0]))
+    dirs = np.column_stack([(np.cos(el) * np.cos(az)).ravel(), (np.cos(el) * np.sin(az)).ravel(), np.sin(el).ravel()])
+    origins = np.tile([0.0, 0.0, 0.6], (len(dirs), 1))
+    odom0, odom1 = np.array([2.0, 1.0, -0.4]), np.array([2.3, 1.1, -0.3])
+    pf.step(odom0, odom0, origins, origins + 2.0 * dirs, 0)  # a round room 2 m in radius
+    start = pf.poses().copy()
+    # Every ray ends 6 m out, in space the map has never seen: nothing to match.
+    pf.step(odom0, odom1, origins, origins + 6.0 * dirs, 1)
+    assert pf.fallbacks == 10
+    predicted = compose(start, relative(odom0, odom1))
+    if fallback == "prediction":
+        np.testing.assert_allclose(pf.poses(), predicted, atol=1e-12)
+    else:
+        spread = np.abs(pf.poses() - predicted)
+        assert spread.max() > 1e-4 and spread[:, :2].max() < 0.5

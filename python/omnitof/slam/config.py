@@ -137,12 +137,13 @@ class ScanMatcherConfig(_Section):
         0.5, ge=0, le=1,
         description="fall back to the odometry proposal when fewer end points than this share lie near an obstacle",
     )
-    fallback: Literal["prediction", "draw"] = Field(
-        "prediction",
-        description="a particle's pose where its match falls back (min_matched): the odometry's prediction, or a "
-        "draw from the motion model (as GMapping does, and as the paper's filter always does); a scan too poor "
-        "to match cannot tell the draws apart either, so drawing adds the motion model's generic noise to the "
-        "trajectory (simulated office, 30 runs: 0.132 m mean error with draw, 0.102 m with prediction)",
+    fallback: Literal["draw", "prediction"] = Field(
+        "draw",
+        description="a particle's pose where its match falls back (min_matched): a draw from the motion model (as "
+        "GMapping does, and as the paper's filter always does), or the odometry's prediction; a scan too poor to "
+        "match cannot tell the draws apart, so drawing adds the motion model's noise to the trajectory, but it "
+        "keeps the particles apart at a wheel glitch that nothing else catches: take prediction only with "
+        "climb_from_sample or the wide search (preset laser180-scanmatch)",
     )
     climb_from_sample: bool = Field(
         False,
