@@ -33,10 +33,11 @@ pub enum ProposalKind {
 
 /// A particle's new pose where its scan could not be matched (`Proposal::matched` false), or with
 /// the odometry proposal. The paper's filter draws from the odometry motion model; so does the
-/// scan-matching proposal with `fallback_draw` (GMapping's way). Without it the odometry's
-/// prediction stands: a scan too poor to be matched is also too poor to tell the draws apart, so
-/// a draw would only add the motion model's generic noise to the lineage, which on a robot whose
-/// wheels are better than that noise is where the heading walks away (BENCHMARKS.md, issue 13).
+/// scan-matching proposal with `fallback_draw` (GMapping's way, the default). Without it the
+/// odometry's prediction stands: a scan too poor to be matched is also too poor to tell the
+/// draws apart, so a draw adds the motion model's noise to the lineage, which on a robot whose
+/// wheels are better than that model walks the heading away; but the draws' spread is also what
+/// lets the particles get past a wheel glitch that no other check caught (BENCHMARKS.md, issue 13).
 pub fn fallback_pose<R: rand::Rng>(
     proposal: ProposalKind,
     m: &MatcherParams,
