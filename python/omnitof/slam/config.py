@@ -142,8 +142,8 @@ class ScanMatcherConfig(_Section):
         description="a particle's pose where its match falls back (min_matched): a draw from the motion model (as "
         "GMapping does, and as the paper's filter always does), or the odometry's prediction; a scan too poor to "
         "match cannot tell the draws apart, so drawing adds the motion model's noise to the trajectory, but it "
-        "keeps the particles apart at a wheel glitch that nothing else catches: take prediction only with "
-        "climb_from_sample or the wide search (preset laser180-scanmatch)",
+        "keeps the particles apart at a wheel glitch that nothing else catches (presets laser180-scanmatch and "
+        "tof-scanmatch take prediction; BENCHMARKS.md measures both against a glitch)",
     )
     climb_from_sample: bool = Field(
         False,
