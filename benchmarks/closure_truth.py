@@ -36,7 +36,7 @@ import numpy as np
 
 from omnitof import _core
 from omnitof.errors import OmnitofError
-from omnitof.eval.relations import REVISIT_SECONDS, read_relations
+from omnitof.eval.relations import REVISIT_SECONDS, match_times, read_relations
 from omnitof.geometry import compose
 from omnitof.io.scans import read_scans
 from omnitof.io.tum import read_tum
@@ -72,14 +72,9 @@ def main() -> None:
     # The relation's delta takes the pose at t1 to the pose at t2; the few with t1 > t2 are left out.
     forward = rel.t1 < rel.t2
     t1, t2, delta = rel.t1[forward], rel.t2[forward], rel.delta[forward]
-    # Logs may hold stamps out of order (Intel: 631): look them up in sorted order.
-    order = np.argsort(stamps, kind="stable")
-
-    def scan_at(t: np.ndarray) -> np.ndarray:
-        return order[np.searchsorted(stamps[order], t).clip(0, len(stamps) - 1)]
-
-    i_all, j_all = scan_at(t1), scan_at(t2)
-    exact = (np.abs(stamps[i_all] - t1) < 1e-3) & (np.abs(stamps[j_all] - t2) < 1e-3)
+    # match_times looks stamps up in sorted order: logs may hold them out of order (Intel: 631).
+    (i_all, exact1), (j_all, exact2) = match_times(stamps, t1, 1e-3), match_times(stamps, t2, 1e-3)
+    exact = exact1 & exact2
 
     m, b = cfg.map, cfg.backend
     max_range = min(m.max_range, scans.max_range)

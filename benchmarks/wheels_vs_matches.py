@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from omnitof import _core
-from omnitof.eval.relations import read_relations, relation_errors
+from omnitof.eval.relations import match_times, read_relations, relation_errors
 from omnitof.geometry import relative
 from omnitof.io.scans import read_scans
 from omnitof.io.tum import read_tum
@@ -41,14 +41,10 @@ STAMP_TOLERANCE_S = 0.05
 
 def nearest(stamps: np.ndarray, query: np.ndarray) -> np.ndarray:
     """Index of the nearest stamp per query; refuses a query with none within the tolerance."""
-    order = np.argsort(stamps, kind="stable")
-    s = stamps[order]
-    right = np.clip(np.searchsorted(s, query), 0, len(s) - 1)
-    left = np.clip(right - 1, 0, len(s) - 1)
-    pick = np.where(np.abs(query - s[left]) < np.abs(query - s[right]), left, right)
-    if np.any(np.abs(query - s[pick]) > STAMP_TOLERANCE_S):
+    index, ok = match_times(stamps, query, STAMP_TOLERANCE_S)
+    if not ok.all():
         raise SystemExit("relations whose stamps match no pose within 0.05 s: is RUN a run of LOG?")
-    return order[pick]
+    return index
 
 
 def errors(poses: np.ndarray, stamps: np.ndarray, rel, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -244,8 +244,8 @@ def evaluate_relations(
     """
     if time_tolerance < 0:
         raise ValueError(f"time_tolerance must be >= 0, got {time_tolerance}")
-    i1, ok1 = _match_times(traj.timestamps, relations.t1, time_tolerance)
-    i2, ok2 = _match_times(traj.timestamps, relations.t2, time_tolerance)
+    i1, ok1 = match_times(traj.timestamps, relations.t1, time_tolerance)
+    i2, ok2 = match_times(traj.timestamps, relations.t2, time_tolerance)
     matched = ok1 & ok2
     if not matched.any():
         raise InputError(_no_match_message(traj, relations, time_tolerance), source)
@@ -287,8 +287,8 @@ def check_relations_match(
     Raises:
         InputError: naming the relations file, if none has.
     """
-    _, ok1 = _match_times(timestamps, relations.t1, time_tolerance)
-    _, ok2 = _match_times(timestamps, relations.t2, time_tolerance)
+    _, ok1 = match_times(timestamps, relations.t1, time_tolerance)
+    _, ok2 = match_times(timestamps, relations.t2, time_tolerance)
     if not (ok1 & ok2).any():
         times = np.concatenate([relations.t1, relations.t2])
         scans = f"{timestamps.min():.6f}..{timestamps.max():.6f} s" if len(timestamps) else "none"
@@ -311,7 +311,7 @@ def relation_errors(
     return trans, rot
 
 
-def _match_times(
+def match_times(
     timestamps: np.ndarray, query: np.ndarray, tolerance: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per query time: (index of the nearest trajectory timestamp, whether within tolerance)."""
