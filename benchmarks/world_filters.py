@@ -11,6 +11,7 @@ a few seeds' numbers in the last digits.)
     python benchmarks/world_filters.py --worlds corridor1 office --drives 0 1 --seeds 0 1 2 \
         [--preset tof-scanmatch] [--particles 30] [--set backend.min_score=0.65 ...] \
         [--tof-errors default|all|none|LIST] [--ideal-scans [seen]] [--odometry-scale F]
+        [--odometry-jump AT DX DY DEG]
         [--max-incidence DEG] [--true-rig] [--multipath-compensation auto|on|off]
         [--multipath-max-ratio R] [--bands HEIGHT:BAND ...] [--cache DIR]
 
@@ -21,7 +22,9 @@ seen): what the filter makes of a perfect omnidirectional scanner, to tell the s
 an error from the filter's; `--ideal-scans seen` keeps the ToF scans' gaps (exact ranges only
 where they have a reading), to tell the ranges' errors from the readings' number.
 `--odometry-scale F` multiplies every odometry step's translation by F (the simulated wheels
-report 1 % too far: F = 1/1.01 takes that out, an oracle no real run has). `--max-incidence DEG`
+report 1 % too far: F = 1/1.01 takes that out, an oracle no real run has). `--odometry-jump AT
+DX DY DEG` makes the wheels glitch once, a fraction AT through the drive (what the filters must
+repair). `--max-incidence DEG`
 drops the bins seen at a grazing angle (`ScanSettings.max_incidence_deg`, omnitof.scan.grazing),
 as the extraction would have as its last step. `--true-rig` extracts with the true rig, given
 the same wall-fitted distance correction as the estimate (issue 16's reference).
@@ -133,6 +136,18 @@ def scaled_odometry(scans, factor: float):
     return dataclasses.replace(scans, odometry=np.array(poses))
 
 
+def jumped_odometry(scans, at: float, jump: tuple[float, float, float]):
+    """`scans` with odometry that jumps by `jump` (x, y in m, heading in degrees, in the robot's frame)
+    at the scan a fraction `at` through the drive and carries the jump on from there: wheels that slipped
+    or spun while the robot stood still (as tests/test_scan_match.py's `with_odometry_jump`)."""
+    k = min(len(scans) - 1, max(1, int(round(at * len(scans)))))
+    before = scans.odometry[k - 1]
+    step = np.array([jump[0], jump[1], math.radians(jump[2])])
+    odometry = scans.odometry.copy()
+    odometry[k:] = compose(compose(before, step), relative(before, scans.odometry[k:]))
+    return dataclasses.replace(scans, odometry=odometry)
+
+
 def overrides(items: list[str]) -> dict:
     out: dict = {}
     for item in items:
@@ -162,6 +177,9 @@ def main(argv: list[str] | None = None) -> int:
                              "(seen: only where the ToF scan has a reading)")
     parser.add_argument("--odometry-scale", type=float, default=1.0,
                         help="multiply each odometry step's translation by this (an oracle for the wheels' scale error)")
+    parser.add_argument("--odometry-jump", nargs=4, type=float, default=None, metavar=("AT", "DX", "DY", "DEG"),
+                        help="a wheel glitch: the odometry jumps by DX, DY (m) and DEG (degrees) in the robot's frame "
+                             "at the scan a fraction AT through the drive (e.g. 0.5 0.6 0 8)")
     parser.add_argument("--max-incidence", type=float, default=90.0,
                         help="drop the bins seen more than this far from their surface's normal (degrees; "
                              "ScanSettings.max_incidence_deg, the extraction's last step, applied to the cached "
@@ -192,6 +210,8 @@ def main(argv: list[str] | None = None) -> int:
                 scans = ideal_scans(world, scans, only_seen=args.ideal_scans == "seen")
             if args.odometry_scale != 1.0:
                 scans = scaled_odometry(scans, args.odometry_scale)
+            if args.odometry_jump:
+                scans = jumped_odometry(scans, args.odometry_jump[0], tuple(args.odometry_jump[1:]))
             if args.max_incidence < 90.0:
                 ranges = drop_grazing(scans.ranges, 2 * math.pi / scans.ranges.shape[1], math.radians(args.max_incidence))
                 scans = dataclasses.replace(scans, ranges=ranges)
@@ -207,6 +227,7 @@ def main(argv: list[str] | None = None) -> int:
                 row = {
                     "world": name, "drive": drive, "seed": seed, "preset": args.preset,
                     "particles": args.particles, "set": args.set, "ideal_scans": args.ideal_scans, "odometry_scale": args.odometry_scale,
+                    "odometry_jump": args.odometry_jump,
                     "true_rig": args.true_rig, "bands": args.bands,
                     "readings_median": float(np.median(np.isfinite(scans.ranges).sum(axis=1))),
                     "final_m": round(ev["trajectory"]["slam"]["final"], 3),

@@ -132,17 +132,20 @@ def with_odometry_jump(scans, at, jump):
                         max_range=scans.max_range, ground_truth=scans.ground_truth)
 
 
-def test_wide_search_catches_an_odometry_jump(corridor_loop):
+@pytest.mark.parametrize("distinct", [0.0, 0.2])
+def test_wide_search_catches_an_odometry_jump(corridor_loop, distinct):
     # 0.6 m and 8° of odometry that never happened, well beyond the reach of the hill climbing
     # (a few cells), as the robot drives towards the end of a corridor (scan 150): without the
     # wide search every particle is matched in the wrong place and the map ahead is drawn 0.6 m
     # off; with it, the one step is corrected and named. (Along a bare corridor no matcher
     # could see such a jump: the search only runs when the local match leaves much of the scan
-    # off the map.)
+    # off the map.) With tof-scanmatch's `search_distinct` 0.2 too: the end wall in view makes
+    # the right pose stand out (measured: between 0.2 and 0.4 here).
     scans = with_odometry_jump(corridor_loop.slice(0, 500), 150, [0.6, 0.0, np.radians(8.0)])
     plain = scanmatch_config()
     searching = scanmatch_config()
     searching.scan_matcher.search_xy = 1.0
+    searching.scan_matcher.search_distinct = distinct
     before = run_slam(scans, plain)
     after = run_slam(scans, searching)
     late = slice(160, None)
@@ -153,3 +156,16 @@ def test_wide_search_catches_an_odometry_jump(corridor_loop):
     first_after_jump = int(after.integrated[np.searchsorted(after.integrated, 150)])
     assert after.stats["odometry_corrected_scans"] == [first_after_jump]
     assert before.stats["odometry_corrected_scans"] == []
+
+
+def test_wide_search_keeps_the_odometry_where_its_pose_is_not_distinct(corridor_loop):
+    # The same jump, with `search_distinct` above what the right pose scores over the rest of the
+    # window: the search's pose is not taken, and the run is the one without the search.
+    scans = with_odometry_jump(corridor_loop.slice(0, 500), 150, [0.6, 0.0, np.radians(8.0)])
+    strict = scanmatch_config()
+    strict.scan_matcher.search_xy = 1.0
+    strict.scan_matcher.search_distinct = 0.6
+    kept = run_slam(scans, strict)
+    plain = run_slam(scans, scanmatch_config())
+    assert kept.stats["odometry_corrected_scans"] == []
+    np.testing.assert_array_equal(kept.trajectory.poses, plain.trajectory.poses)

@@ -12,6 +12,11 @@
 //! the scan, built once per search: a brute-force search with per-heading precomputed point
 //! offsets, so that one pose costs one raster read per end point. Written here because the map
 //! is the particle's own tiled grid, which no library's matcher reads.
+//!
+//! The search also says how clearly its best pose stands out from the other places of the
+//! window (`Found::distinct`): along a corridor that the scan sees too little of, every place
+//! scores alike and the best one is only the tie-break (Olson 2009 reads the same from the
+//! score surface's covariance; a second peak is what a wrong jump needs, so this compares peaks).
 
 use crate::grid::{try_vec, GridError, TiledGrid, MAX_CELL_INDEX};
 use crate::motion::wrap;
@@ -99,9 +104,25 @@ impl FieldRaster {
     }
 }
 
+/// What the wide search found.
+#[derive(Clone, Copy, Debug)]
+pub struct Found {
+    /// The best robot pose of the window.
+    pub pose: [f64; 3],
+    /// How clearly it stands out: its score minus the best score at any heading of the positions
+    /// more than `DISTINCT_STEPS` steps away from it, as a share of the scan's end points (one end
+    /// point moved from the raster's peak to its floor counts 1/n). Near 0 where another place
+    /// explains the scan as well (along a bare corridor); 1 where nothing else explains any of it.
+    pub distinct: f64,
+}
+
+/// Positions within this many search steps of the best one are its own peak's shoulder (the
+/// raster is smoothed by one step), not another place.
+pub const DISTINCT_STEPS: i32 = 3;
+
 /// The robot pose in the window around `center` whose end points `pts` (sensor frame) score best
-/// against the raster of `grid`'s likelihood field. Ties go to the pose nearest the centre.
-/// Fails when the raster cannot be made (see `FieldRaster::build`).
+/// against the raster of `grid`'s likelihood field, and how distinct it is (`Found`). Ties go to
+/// the pose nearest the centre. Fails when the raster cannot be made (see `FieldRaster::build`).
 pub fn correlative_search(
     grid: &TiledGrid,
     occupied_threshold: f32,
@@ -110,9 +131,9 @@ pub fn correlative_search(
     pts: &[[f64; 2]],
     center: [f64; 3],
     w: &SearchWindow,
-) -> Result<[f64; 3], GridError> {
+) -> Result<Found, GridError> {
     if pts.is_empty() {
-        return Ok(center);
+        return Ok(Found { pose: center, distinct: 0.0 });
     }
     let n_xy = (w.half_xy / w.step_xy).round() as i32;
     let n_th = (w.half_theta / w.step_theta).round() as i32;
@@ -137,6 +158,10 @@ pub fn correlative_search(
         center[1] + bounds[3] + margin,
     ];
     let raster = FieldRaster::build(grid, occupied_threshold, w.step_xy, floor, bounds)?;
+    let side = (2 * n_xy + 1) as usize;
+    // The best score of each position over the headings, for `Found::distinct`.
+    let mut at_position = try_vec(side * side, "the wide search's scores")?;
+    at_position.resize(side * side, f64::NEG_INFINITY);
     let mut best = (f64::NEG_INFINITY, 0, 0, 0);
     for (k, offs) in offsets.iter().enumerate() {
         let kt = k as i32 - n_th;
@@ -146,17 +171,34 @@ pub fn correlative_search(
                 let total: f32 = offs.iter().map(|o| raster.at(x + o[0], y + o[1])).sum();
                 // A hair of preference for the centre decides ties (a bare corridor).
                 let score = total as f64 - 1e-6 * (i * i + j * j + kt * kt) as f64;
+                let cell = &mut at_position[(i + n_xy) as usize * side + (j + n_xy) as usize];
+                *cell = cell.max(score);
                 if score > best.0 {
                     best = (score, i, j, kt);
                 }
             }
         }
     }
-    Ok([
-        center[0] + best.1 as f64 * w.step_xy,
-        center[1] + best.2 as f64 * w.step_xy,
-        wrap(center[2] + best.3 as f64 * w.step_theta),
-    ])
+    let mut elsewhere = f64::NEG_INFINITY;
+    for i in -n_xy..=n_xy {
+        for j in -n_xy..=n_xy {
+            if (i - best.1).abs().max((j - best.2).abs()) > DISTINCT_STEPS {
+                elsewhere = elsewhere.max(at_position[(i + n_xy) as usize * side + (j + n_xy) as usize]);
+            }
+        }
+    }
+    // One end point's whole range in the raster: from the peak, ln(N(0; 0, σ) + floor), to ln(floor).
+    let span = (1.0 / (w.step_xy * (2.0 * std::f64::consts::PI).sqrt()) + floor).ln() - floor.ln();
+    // A window no wider than the peak's shoulder holds no other place to compare with.
+    let distinct = if elsewhere.is_finite() { ((best.0 - elsewhere) / (pts.len() as f64 * span)).max(0.0) } else { 1.0 };
+    Ok(Found {
+        pose: [
+            center[0] + best.1 as f64 * w.step_xy,
+            center[1] + best.2 as f64 * w.step_xy,
+            wrap(center[2] + best.3 as f64 * w.step_theta),
+        ],
+        distinct,
+    })
 }
 
 #[cfg(test)]
@@ -195,8 +237,33 @@ mod tests {
         let pts = crate::scan_match::endpoints(&geom, &ranges, 2, 20.0);
         let predicted = [2.4, 3.4, 0.3];
         let w = SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians() };
-        let found = correlative_search(&g, 0.0, 0.1 / 20.0, &geom, &pts, predicted, &w).unwrap();
+        let searched = correlative_search(&g, 0.0, 0.1 / 20.0, &geom, &pts, predicted, &w).unwrap();
+        let found = searched.pose;
         assert!((found[0] - real[0]).abs() <= 0.06 && (found[1] - real[1]).abs() <= 0.06, "{found:?}");
         assert!(wrap(found[2] - real[2]).abs() <= 1.1f64.to_radians(), "{found:?}");
+        // No other place in the room explains the scan: most of its end points leave the walls
+        // 0.3 m or more away from the right pose.
+        assert!(searched.distinct > 0.3, "{searched:?}");
+    }
+
+    #[test]
+    fn a_place_along_a_bare_corridor_is_not_distinct() {
+        // Two parallel walls 2 m apart and 40 m long, mapped from the middle; the scan, taken
+        // 0.5 m further on, looks the same from anywhere along them (the window is 1 m each way).
+        let walls: [[f64; 4]; 2] = [[-20.0, 0.0, 20.0, 0.0], [-20.0, 2.0, 20.0, 2.0]];
+        let angles: Vec<f64> = (0..360).map(|k| (k as f64 - 180.0).to_radians()).collect();
+        let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
+        let lm = LogOddsModel { l_occ: 0.9, l_free: -0.4, l_min: -2.0, l_max: 3.5 };
+        let mut g = TiledGrid::new(0.05);
+        let mapped = [0.0, 1.0, 0.0];
+        let ranges: Vec<f32> = crate::test_support::cast_walls(&walls, mapped, &angles).iter().map(|r| r.min(8.0)).collect();
+        integrate_scan(&mut g, &lm, &geom, mapped, &ranges, 8.0, false, false).unwrap();
+        let real = [0.5, 1.0, 0.0];
+        let ranges: Vec<f32> = crate::test_support::cast_walls(&walls, real, &angles).iter().map(|r| r.min(8.0)).collect();
+        let pts = crate::scan_match::endpoints(&geom, &ranges, 1, 7.99);
+        let w = SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians() };
+        let searched = correlative_search(&g, 0.0, 0.1 / 8.0, &geom, &pts, [1.1, 1.0, 0.0], &w).unwrap();
+        assert!((searched.pose[1] - 1.0).abs() <= 0.06, "{searched:?}");
+        assert!(searched.distinct < 0.05, "{searched:?}");
     }
 }

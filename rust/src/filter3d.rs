@@ -734,6 +734,7 @@ mod tests {
                 fallback_draw: true,
                 search: None,
                 search_below: 0.0,
+                search_distinct: 0.0,
             },
             effective_rays: 9.0,
             score_rays: 600,

@@ -523,6 +523,9 @@ pub struct MatcherParams {
     pub search: Option<SearchWindow>,
     /// Search when fewer than this share of end points lie near an obstacle after the local match.
     pub search_below: f64,
+    /// Take the search's pose only where it is at least this distinct (`correlative::Found`); 0:
+    /// any pose that passes `search_below`.
+    pub search_distinct: f64,
 }
 
 /// Hill climbing of `eval` from `start` (robot pose); returns the mode and its value.
@@ -848,8 +851,13 @@ pub fn check_odometry(
         return Ok(None);
     }
     let floor = lf.z_rand / lf.max_range;
-    let start = correlative_search(grid, lf.occupied_threshold, floor, geom, pts, predicted, window)?;
-    let (found, value, matched) = local_match(&view, m, geom, pts, start, None);
+    let searched = correlative_search(grid, lf.occupied_threshold, floor, geom, pts, predicted, window)?;
+    // Where another place a few decimetres off explains the scan as well (along a corridor, the
+    // direction the scan cannot see), the best pose is the search's tie-break, not a correction.
+    if searched.distinct < m.search_distinct {
+        return Ok(None);
+    }
+    let (found, value, matched) = local_match(&view, m, geom, pts, searched.pose, None);
     // The jump must put the scan on the map as well as a good prediction does (`enough`), not
     // merely better than the local match: where people walk beside the robot or doors stand open
     // (the Freiburg hospital log), no pose explains the scan, and a pose that explains a little
@@ -1030,17 +1038,36 @@ mod tests {
             min_matched: 0.5, effective_beams: 9.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true,
             search: Some(SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians() }),
             search_below: 0.8,
+            search_distinct: 0.0,
         }
     }
 
     /// `check_odometry` in the room, the robot at (2, 1.5, 0) seeing `ranges`, after wheels
     /// that report (0.7 m, 0.3 m, 0.2 rad) it never drove.
     fn check_after_glitch(ranges: &[f32]) -> Option<[f64; 3]> {
+        check_after_glitch_with(ranges, &searching_matcher())
+    }
+
+    fn check_after_glitch_with(ranges: &[f32], m: &MatcherParams) -> Option<[f64; 3]> {
         let (g, angles, _) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
         let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, 3, 0.0, false);
         let pts = endpoints(&geom, ranges, 1, 20.0);
-        check_odometry(&lf, &searching_matcher(), &g, &geom, &pts, [2.0, 1.5, 0.0], [0.0; 3], [0.7, 0.3, 0.2]).unwrap()
+        check_odometry(&lf, m, &g, &geom, &pts, [2.0, 1.5, 0.0], [0.0; 3], [0.7, 0.3, 0.2]).unwrap()
+    }
+
+    #[test]
+    fn the_wide_search_takes_a_distinct_pose_and_only_that() {
+        // The room's glitch stands out (no other place within the window explains the scan:
+        // `correlative::Found::distinct` 0.37 here), so `search_distinct` 0.2, as
+        // tof-scanmatch sets it, still undoes it; asked for more than the room offers, the
+        // odometry stands.
+        let (_, _, ranges) = room();
+        let m = MatcherParams { search_distinct: 0.2, ..searching_matcher() };
+        let odom = check_after_glitch_with(&ranges, &m).expect("the glitch is found");
+        assert!(odom[0].abs() < 0.03 && odom[1].abs() < 0.03 && odom[2].abs() < 0.01, "{odom:?}");
+        let m = MatcherParams { search_distinct: 0.6, ..searching_matcher() };
+        assert!(check_after_glitch_with(&ranges, &m).is_none());
     }
 
     #[test]
@@ -1073,7 +1100,7 @@ mod tests {
         let (g, angles, ranges) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
         let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, 3, 0.0, false);
-        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 0, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None, search_below: 0.0 };
+        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 0, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None, search_below: 0.0, search_distinct: 0.0 };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let view = FieldView::new(&lf, &g);
         let (pose, _) = climb(|p| objective(&view, &geom, &pts, 1.0, None, p), [2.08, 1.43, 0.03], &m);
@@ -1097,7 +1124,7 @@ mod tests {
         let (g, angles, ranges) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
         let lf = LikelihoodField::new(0.02, 0.9, 0.1, 20.0, 3, 0.0, true);
-        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 10, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None, search_below: 0.0 };
+        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 10, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None, search_below: 0.0, search_distinct: 0.0 };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let view = FieldView::new(&lf, &g);
         let (mode, _) = climb(|p| objective(&view, &geom, &pts, 1.0, None, p), [2.04, 1.46, 0.02], &m);

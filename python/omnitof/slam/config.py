@@ -172,6 +172,13 @@ class ScanMatcherConfig(_Section):
         "after the local match from the odometry, and take its pose only where at least this share does "
         "(where no pose explains the scan, people beside the robot or open doors, a jump is as likely wrong)",
     )
+    search_distinct: float = Field(
+        0.0, ge=0, le=1,
+        description="take the wide search's pose only where it stands out: its score above the best of every "
+        "position more than 3 search steps from it, as a share of the scan's end points (rust/src/correlative.rs, "
+        "Found::distinct), is at least this; along a bare corridor, where the scan cannot tell one place from the "
+        "next, it is near 0 and the odometry stands; 0 = any pose that passes search_below",
+    )
 
     @model_validator(mode="after")
     def _search_is_finite_work(self) -> "ScanMatcherConfig":
