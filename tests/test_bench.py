@@ -247,6 +247,10 @@ def test_a_killed_worker_is_replaced_and_the_experiment_completes(data, cluster,
     # Every run completed, none of them in the killed process.
     assert all(run_is_complete(run_dir(out, r)) for r in outcome.done)
     assert pid not in {r["pid"] for r in records}
+    # The killed run's scratch folder (its copy of the input) was swept by the run that replaced it.
+    import tempfile
+
+    assert not list(Path(tempfile.gettempdir()).glob(f"omnitof-run-{pid}-*"))
     # ... and the same seed gives the same trajectory whichever worker ran it.
     from omnitof.io.tum import read_tum
 
@@ -431,3 +435,18 @@ def test_the_table_reads_table1_and_failures_from_the_folders(tmp_path):
     assert table.rows[0]["particle_scans_per_s"] == 300.0 and "table1_worst_cm" in table.columns
     (agg,) = aggregates(table)
     assert (agg["runs"], agg["ok"]) == (3, 2) and agg["wall_s"] == (2.0, 2.0, 2.0)
+
+
+def test_scratch_folders_of_dead_processes_are_swept_and_no_others(tmp_path):
+    from omnitof.bench.task import sweep_orphaned_scratch
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    dead = tmp_path / f"omnitof-run-{gone.pid}-abc"
+    mine = tmp_path / f"omnitof-run-{os.getpid()}-def"
+    unnamed = tmp_path / "omnitof-run-xyz"
+    for folder in (dead, mine, unnamed):
+        (folder / "in").mkdir(parents=True)
+        (folder / "in" / "log").write_bytes(b"a copy of the input")
+    assert sweep_orphaned_scratch(tmp_path) == [dead]
+    assert not dead.exists() and mine.exists() and unnamed.exists()

@@ -262,3 +262,24 @@ def test_rays_that_cannot_be_matched_leave_the_particles_at_the_prediction_unles
     else:
         spread = np.abs(pf.poses() - predicted)
         assert spread.max() > 1e-4 and spread[:, :2].max() < 0.5
+
+
+def test_settings_the_3d_filter_does_not_use_are_named(recwarn):
+    # tof-scanmatch's odometry check and back end are 2D: a 3D run with them says it runs without.
+    from omnitof.slam.filter3d import Unused3DSettingWarning
+    from omnitof.types import ScanSequence
+
+    az, el = np.meshgrid(np.radians(np.arange(0, 360, 4)), np.radians([-20.0, 0.0, 20.0]))
+    dirs = np.column_stack([(np.cos(el) * np.cos(az)).ravel(), (np.cos(el) * np.sin(az)).ravel(), np.sin(el).ravel()])
+    origins = np.tile([0.0, 0.0, 0.6], (len(dirs), 1))
+    cloud = np.hstack([origins, origins + 2.0 * dirs]).astype(np.float32)
+    scans = ScanSequence(timestamps=np.array([0.0, 1.0]), ranges=np.full((2, 4), 2.0, np.float32),
+                         angles=np.radians([0.0, 90.0, 180.0, 270.0]), odometry=np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]]),
+                         max_range=7.0)
+    run_slam3d(scans, [0, 1], [cloud, cloud], _config(particles=2))
+    assert not [w for w in recwarn if issubclass(w.category, Unused3DSettingWarning)]
+    cfg = _config(particles=2)
+    cfg.scan_matcher.search_xy = 1.0
+    cfg.backend.enabled = True
+    with pytest.warns(Unused3DSettingWarning, match=r"backend\.enabled.*scan_matcher\.search_xy 1"):
+        run_slam3d(scans, [0, 1], [cloud, cloud], cfg)

@@ -43,7 +43,9 @@ def run_one(run: RunSpec, log: InputFile, relations: InputFile | None = None,
     clock = time.perf_counter()
     notes: list[str] = []
     base = {"worker": _worker_address(), "host": socket.gethostname(), "pid": os.getpid(), "started": started}
-    with tempfile.TemporaryDirectory(prefix="omnitof-run-") as tmp, warnings.catch_warnings(record=True) as caught:
+    sweep_orphaned_scratch()
+    with tempfile.TemporaryDirectory(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-") as tmp, \
+            warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")  # the reader's warnings about the data go to the record
         inputs = Path(tmp) / "in"
         # Each file in a folder of its own: a log and its relations may share a name.
@@ -76,6 +78,37 @@ def run_one(run: RunSpec, log: InputFile, relations: InputFile | None = None,
         found = [own_names(str(w.message)) for w in caught]
     return {**base, "files": files, "metrics": metrics, "notes": notes, "warnings": found, "finished": time.time(),
             "seconds": time.perf_counter() - clock, "peak_rss_mib": _peak_mib(), "peak_rss_rule": peak_rule}
+
+
+SCRATCH_PREFIX = "omnitof-run-"
+
+
+def sweep_orphaned_scratch(folder: Path | None = None) -> list[Path]:
+    """Remove the scratch folders (inputs copied for a run, outputs before they are sent) of runs
+    whose worker process is gone: a worker killed mid-run (a bench stopped, a node lost) cannot
+    clean up after itself, and each such folder holds a copy of the run's input, which for a
+    ROS bag can be gigabytes. Folders are named after their process id; those of live processes,
+    and any not named so, are left alone. Returns the folders removed."""
+    import shutil
+
+    removed = []
+    for path in Path(folder or tempfile.gettempdir()).glob(f"{SCRATCH_PREFIX}*-*"):
+        pid = path.name[len(SCRATCH_PREFIX):].split("-", 1)[0]
+        if not pid.isdigit() or not path.is_dir() or _process_alive(int(pid)):
+            continue
+        shutil.rmtree(path, ignore_errors=True)
+        removed.append(path)
+    return removed
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process: alive, and not ours to sweep
+        return True
+    return True
 
 
 def omnitof_code() -> dict[str, str]:

@@ -16,6 +16,7 @@ frame, metres (`scan.ToFScans.clouds`).
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -23,12 +24,28 @@ from typing import Any
 import numpy as np
 
 from omnitof import _core
-from omnitof.errors import InputError, ResourceError
+from omnitof.errors import InputError, OmnitofWarning, ResourceError
 from omnitof.slam.config import SlamConfig
 from omnitof.slam.driver import DRIVER_FILTER_FIELDS, DRIVER_MAP_FIELDS, SlamResult, fill_trajectory, in_odometry_frame
 from omnitof.slam.anchor import moved, voxel_offset
 from omnitof.slam.limits import MemoryWatch, within_cores
 from omnitof.types import OccupancyMap, ScanSequence, Trajectory
+
+
+class Unused3DSettingWarning(OmnitofWarning):
+    """A setting that the 3D filter does not use was turned on."""
+
+
+def warn_unused_settings(cfg: SlamConfig) -> None:
+    """Say which of the configuration's 2D-only settings the 3D run ignores, so that a user who
+    set them (or a 2D preset that has them, as tof-scanmatch does) does not count on them."""
+    unused = []
+    if cfg.backend.enabled:
+        unused.append("backend.enabled (the pose-graph back end works on 2D submaps)")
+    if cfg.scan_matcher.search_xy > 0:
+        unused.append(f"scan_matcher.search_xy {cfg.scan_matcher.search_xy:g} (the odometry check is a 2D search)")
+    if unused:
+        warnings.warn(Unused3DSettingWarning("the 3D filter runs without " + "; ".join(unused)), stacklevel=3)
 
 
 @dataclass
@@ -92,6 +109,7 @@ def run_slam3d(
         InputError: no frames, or frames and clouds that do not pair up.
         ResourceError: memory that ran out.
     """
+    warn_unused_settings(cfg)
     cfg = within_cores(cfg)
     frames = np.asarray(frames, dtype=np.int64).reshape(-1)
     if len(frames) == 0 or frames[0] != 0 or len(frames) != len(clouds):
