@@ -250,7 +250,9 @@ def test_a_killed_worker_is_replaced_and_the_experiment_completes(data, cluster,
     # The killed run's scratch folder (its copy of the input) was swept by the run that replaced it.
     import tempfile
 
-    assert not list(Path(tempfile.gettempdir()).glob(f"omnitof-run-{pid}-*"))
+    from omnitof.bench.task import scratch_prefix
+
+    assert not list(Path(tempfile.gettempdir()).glob(f"{scratch_prefix()}{pid}-*"))
     # ... and the same seed gives the same trajectory whichever worker ran it.
     from omnitof.io.tum import read_tum
 
@@ -438,15 +440,17 @@ def test_the_table_reads_table1_and_failures_from_the_folders(tmp_path):
 
 
 def test_scratch_folders_of_dead_processes_are_swept_and_no_others(tmp_path):
-    from omnitof.bench.task import sweep_orphaned_scratch
+    from omnitof.bench.task import scratch_prefix, sweep_orphaned_scratch
 
     gone = subprocess.Popen([sys.executable, "-c", "pass"])
     gone.wait()
-    dead = tmp_path / f"omnitof-run-{gone.pid}-abc"
-    mine = tmp_path / f"omnitof-run-{os.getpid()}-def"
+    here = scratch_prefix()
+    dead = tmp_path / f"{here}{gone.pid}-abc"
+    mine = tmp_path / f"{here}{os.getpid()}-def"
+    elsewhere = tmp_path / f"omnitof-run-another-host-{gone.pid}-ghi"  # a shared temporary folder
     unnamed = tmp_path / "omnitof-run-xyz"
-    for folder in (dead, mine, unnamed):
+    for folder in (dead, mine, elsewhere, unnamed):
         (folder / "in").mkdir(parents=True)
         (folder / "in" / "log").write_bytes(b"a copy of the input")
     assert sweep_orphaned_scratch(tmp_path) == [dead]
-    assert not dead.exists() and mine.exists() and unnamed.exists()
+    assert not dead.exists() and mine.exists() and elsewhere.exists() and unnamed.exists()

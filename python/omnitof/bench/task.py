@@ -16,6 +16,7 @@ peaks at about 300 MiB), not that of an earlier run on the same worker.
 
 from __future__ import annotations
 
+import glob
 import os
 import re
 import resource
@@ -44,7 +45,7 @@ def run_one(run: RunSpec, log: InputFile, relations: InputFile | None = None,
     notes: list[str] = []
     base = {"worker": _worker_address(), "host": socket.gethostname(), "pid": os.getpid(), "started": started}
     sweep_orphaned_scratch()
-    with tempfile.TemporaryDirectory(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-") as tmp, \
+    with tempfile.TemporaryDirectory(prefix=f"{scratch_prefix()}{os.getpid()}-") as tmp, \
             warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")  # the reader's warnings about the data go to the record
         inputs = Path(tmp) / "in"
@@ -83,17 +84,26 @@ def run_one(run: RunSpec, log: InputFile, relations: InputFile | None = None,
 SCRATCH_PREFIX = "omnitof-run-"
 
 
+def scratch_prefix() -> str:
+    """The start of this machine's scratch folder names: the host as well as the process id,
+    since a temporary folder shared between machines or containers (whose process ids are not
+    ours to test) must not have its other owners' folders swept."""
+    return f"{SCRATCH_PREFIX}{socket.gethostname()}-"
+
+
 def sweep_orphaned_scratch(folder: Path | None = None) -> list[Path]:
     """Remove the scratch folders (inputs copied for a run, outputs before they are sent) of runs
     whose worker process is gone: a worker killed mid-run (a bench stopped, a node lost) cannot
     clean up after itself, and each such folder holds a copy of the run's input, which for a
-    ROS bag can be gigabytes. Folders are named after their process id; those of live processes,
-    and any not named so, are left alone. Returns the folders removed."""
+    ROS bag can be gigabytes. Only this host's folders (`scratch_prefix`) whose process is gone
+    are removed; those of live processes, of other hosts, and any not named so are left alone.
+    Returns the folders removed."""
     import shutil
 
+    prefix = scratch_prefix()
     removed = []
-    for path in Path(folder or tempfile.gettempdir()).glob(f"{SCRATCH_PREFIX}*-*"):
-        pid = path.name[len(SCRATCH_PREFIX):].split("-", 1)[0]
+    for path in Path(folder or tempfile.gettempdir()).glob(f"{glob.escape(prefix)}*-*"):
+        pid = path.name[len(prefix):].split("-", 1)[0]
         if not pid.isdigit() or not path.is_dir() or _process_alive(int(pid)):
             continue
         shutil.rmtree(path, ignore_errors=True)
