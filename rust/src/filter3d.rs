@@ -32,10 +32,12 @@ use std::sync::Arc;
 use rayon::prelude::*;
 
 use crate::filter::{fallback_pose, rng_for, ProposalKind, TrajectoryNode, Weighing};
-use crate::grid::{GridError, LogOddsModel};
+use crate::correlative::correlative_search;
+use crate::grid::{GridError, LogOddsModel, TiledGrid};
 use crate::motion::{compose, relative, OdometryMotion};
 use crate::scan_match::{climb, draw_around_mode, gauss_newton_with, motion_prior, MatcherParams, PosePrior};
-use crate::voxel::{pack, ray_voxels, sorted_difference, Block, IntegrateStats, SeenFilter, VoxelGrid, BLOCK_VOXELS, INDEX_LIMIT};
+use crate::sensor_model::ScanGeometry;
+use crate::voxel::{pack, ray_voxels, sorted_difference, unpack, Block, IntegrateStats, SeenFilter, VoxelGrid, BLOCK_SHIFT, BLOCK_VOXELS, INDEX_LIMIT};
 
 /// One 8³ block of a particle's map: log-odds (NaN = unknown) and, per voxel, the running mean
 /// of the end points that fell into it, as an offset in 1/256 of a voxel per axis (as grid.rs
@@ -299,6 +301,55 @@ impl SharedVoxels {
         self.blocks.len()
     }
 
+    /// The occupied voxels (log-odds above `threshold`) whose mean end points lie at heights
+    /// [z_min, z_max] within the world rectangle `bounds` ([x0, y0, x1, y1]), seen from above: a
+    /// 2D grid at the voxels' resolution whose cells are occupied (log-odds l_max) where any voxel
+    /// of their column is, each with the mean of those voxels' mean end points. For the odometry
+    /// check's wide search (correlative.rs searches 2D grids): every height of the frame's rays
+    /// up to the projection's top, not the 2D filter's slice, so that where the slice holds a few
+    /// readings (the office: 27 of 360 bins) the search still finds the desks, screens and upper
+    /// walls. Fails where the rectangle is beyond the grid's reach.
+    pub fn column_grid(&self, bounds: [f64; 4], z_min: f64, z_max: f64, threshold: f32) -> Result<TiledGrid, GridError> {
+        let res = self.resolution;
+        let mut grid = TiledGrid::new(res);
+        grid.ensure_covers(bounds[0], bounds[1], bounds[2], bounds[3])?;
+        let index = |v: f64| ((v / res).floor() as i64).clamp(-INDEX_LIMIT, INDEX_LIMIT - 1);
+        let (ix0, iy0, iz0) = (index(bounds[0]), index(bounds[1]), index(z_min));
+        let (ix1, iy1, iz1) = (index(bounds[2]), index(bounds[3]), index(z_max));
+        // Block by block over the rectangle's blocks (a few hundred), not over the whole map.
+        for bx in (ix0 >> BLOCK_SHIFT)..=(ix1 >> BLOCK_SHIFT) {
+            for by in (iy0 >> BLOCK_SHIFT)..=(iy1 >> BLOCK_SHIFT) {
+                for bz in (iz0 >> BLOCK_SHIFT)..=(iz1 >> BLOCK_SHIFT) {
+                    let base = [bx << BLOCK_SHIFT, by << BLOCK_SHIFT, bz << BLOCK_SHIFT];
+                    let key = pack(base);
+                    let Some(block) = self.blocks.get(&(key >> 9)) else { continue };
+                    for k in 0..BLOCK_VOXELS {
+                        // NaN (unknown) compares false.
+                        if !(block.log_odds[k] > threshold) {
+                            continue;
+                        }
+                        let i = unpack((key & !511) | k as u64);
+                        if i[0] < ix0 || i[0] > ix1 || i[1] < iy0 || i[1] > iy1 {
+                            continue;
+                        }
+                        // The height of the voxel's mean end point, as the frame's points are
+                        // chosen by theirs: the floor's voxel reaches 0.1 m, its points lie at 0.
+                        let mean = [0, 1, 2].map(|a| (i[a] as f64 + (block.offset[k][a] as f64 + 0.5) / 256.0) * res);
+                        if !(mean[2] >= z_min && mean[2] <= z_max) {
+                            continue;
+                        }
+                        let (cx, cy) = (i[0] as i32, i[1] as i32);
+                        if grid.get(cx, cy).is_nan() {
+                            grid.add(cx, cy, self.model.l_max, &self.model);
+                        }
+                        grid.add_hit(mean[0], mean[1]);
+                    }
+                }
+            }
+        }
+        Ok(grid)
+    }
+
     pub fn blocks(&self) -> impl Iterator<Item = &Arc<Block3>> {
         self.blocks.values()
     }
@@ -407,6 +458,11 @@ pub struct FilterParams3d {
     /// max_range of their origin. The floor tells nothing of (x, y, θ).
     pub score_z_min: f64,
     pub score_z_max: f64,
+    /// The odometry check (check_odometry3d) matches the end points at heights within
+    /// [check_z_min, check_z_max] (m): the obstacles of the map's 2D projection. Not the ceiling,
+    /// which fits as well a metre to either side.
+    pub check_z_min: f64,
+    pub check_z_max: f64,
     pub log_odds: LogOddsModel,
     pub resolution: f64,
     /// Rays longer than this (m) free space up to it and mark nothing.
@@ -434,6 +490,8 @@ pub struct StepInfo3d {
     pub fallbacks: usize,
     /// Rays scored for the weights.
     pub scored: usize,
+    /// Whether the odometry check replaced the step's odometry (check_odometry3d).
+    pub odometry_corrected: bool,
 }
 
 pub struct ParticleFilter3d {
@@ -481,15 +539,21 @@ impl ParticleFilter3d {
     /// The robot-frame end points a frame is weighed by (see FilterParams3d): of the rays whose
     /// end points lie in the height band and within max_range, at most score_rays, evenly spread.
     pub fn scored_points(&self, origins: &[[f64; 3]], endpoints: &[[f64; 3]]) -> Vec<[f64; 3]> {
+        self.rays_between(origins, endpoints, self.params.score_z_min, self.params.score_z_max).into_iter().map(|r| r.1).collect()
+    }
+
+    /// Of the rays (origin, end point) whose end points lie at heights [z_min, z_max] and within
+    /// max_range, at most score_rays, evenly spread.
+    fn rays_between(&self, origins: &[[f64; 3]], endpoints: &[[f64; 3]], z_min: f64, z_max: f64) -> Vec<([f64; 3], [f64; 3])> {
         let p = &self.params;
-        let candidates: Vec<[f64; 3]> = origins
+        let candidates: Vec<([f64; 3], [f64; 3])> = origins
             .iter()
             .zip(endpoints)
             .filter(|(o, e)| {
                 let d2: f64 = (0..3).map(|a| (e[a] - o[a]).powi(2)).sum();
-                e.iter().all(|v| v.is_finite()) && d2.sqrt() <= p.max_range && e[2] >= p.score_z_min && e[2] <= p.score_z_max
+                e.iter().all(|v| v.is_finite()) && d2.sqrt() <= p.max_range && e[2] >= z_min && e[2] <= z_max
             })
-            .map(|(_, e)| *e)
+            .map(|(o, e)| (*o, *e))
             .collect();
         let n = candidates.len();
         if n <= p.score_rays {
@@ -523,10 +587,18 @@ impl ParticleFilter3d {
             let root = Arc::new(TrajectoryNode { pose: odom_cur, scan, parent: None });
             let first = Particle3d { pose: odom_cur, log_weight: 0.0, map, trajectory: root };
             self.particles = vec![first; n];
-            return Ok(StepInfo3d { neff: n as f64, resampled: false, fallbacks: 0, scored: 0 });
+            return Ok(StepInfo3d { neff: n as f64, resampled: false, fallbacks: 0, scored: 0, odometry_corrected: false });
         }
         let pts = self.scored_points(origins, endpoints);
         let p = &self.params;
+        let corrected = match (p.proposal, self.particles.get(self.best), p.matcher.search.is_some()) {
+            (ProposalKind::ScanMatch, Some(best), true) => {
+                let walls = self.rays_between(origins, endpoints, p.check_z_min, p.check_z_max);
+                check_odometry3d(p, &best.map, &walls, best.pose, odom_prev, odom_cur)?
+            }
+            _ => None,
+        };
+        let odom_cur = corrected.unwrap_or(odom_cur);
         let seed = p.seed;
         let fell: Vec<Result<bool, GridError>> = self.pool.install(|| {
             self.particles
@@ -582,7 +654,13 @@ impl ParticleFilter3d {
             }
         }
         self.best = weighing.best_after();
-        Ok(StepInfo3d { neff: weighing.n_eff, resampled: weighing.ancestors.is_some(), fallbacks, scored: pts.len() })
+        Ok(StepInfo3d {
+            neff: weighing.n_eff,
+            resampled: weighing.ancestors.is_some(),
+            fallbacks,
+            scored: pts.len(),
+            odometry_corrected: corrected.is_some(),
+        })
     }
 
     fn world_rays(pose: [f64; 3], origins: &[[f64; 3]], endpoints: &[[f64; 3]]) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
@@ -635,17 +713,7 @@ fn propose3d<R: rand::Rng>(
     let prior: PosePrior = motion_prior(&p.motion, odom_prev, odom_cur, predicted);
     let target = |pose: [f64; 3]| p.effective_rays * p.field.score(map, pose, pts).0 + prior.log_prob(pose);
     let start = if m.climb_from_sample { p.motion.sample(prev_pose, odom_prev, odom_cur, rng) } else { predicted };
-    let sparse: Vec<[f64; 3]> = pts.iter().step_by(p.climb_stride.max(1)).copied().collect();
-    let climb_goal = |pose: [f64; 3]| {
-        let s = p.effective_rays * p.field.score(map, pose, &sparse).0;
-        if m.odometry_prior { s + prior.log_prob(pose) } else { s }
-    };
-    let (mode, _) = climb(climb_goal, start, m);
-    // Below the climb's last step, Gauss-Newton on all the scored rays (as the 2D matcher).
-    let (mode, _, matched) = gauss_newton_with(
-        |pose| p.field.linearise(map, pose, pts), pts.len(), p.effective_rays,
-        m.odometry_prior.then_some(&prior), mode, m.gauss_newton,
-    );
+    let (mode, _, matched) = local_match3d(p, map, pts, start, m.odometry_prior.then_some(&prior));
     if (matched as f64) < m.min_matched * pts.len() as f64 {
         return None;
     }
@@ -653,9 +721,143 @@ fn propose3d<R: rand::Rng>(
     Some(Drawn { pose, log_normaliser })
 }
 
+/// Hill climbing on every `climb_stride`-th scored ray, then Gauss-Newton on all of them, from
+/// `start` to the mode of the frame's likelihood (times `prior`, if any): (mode, objective there,
+/// end points with an occupied voxel within the window). The 3D twin of scan_match::local_match.
+fn local_match3d(
+    p: &FilterParams3d,
+    map: &SharedVoxels,
+    pts: &[[f64; 3]],
+    start: [f64; 3],
+    prior: Option<&PosePrior>,
+) -> ([f64; 3], f64, usize) {
+    let sparse: Vec<[f64; 3]> = pts.iter().step_by(p.climb_stride.max(1)).copied().collect();
+    let climb_goal = |pose: [f64; 3]| {
+        let s = p.effective_rays * p.field.score(map, pose, &sparse).0;
+        prior.map_or(s, |q| s + q.log_prob(pose))
+    };
+    let (mode, _) = climb(climb_goal, start, &p.matcher);
+    // Below the climb's last step, Gauss-Newton on all the scored rays (as the 2D matcher).
+    gauss_newton_with(|pose| p.field.linearise(map, pose, pts), pts.len(), p.effective_rays, prior, mode, p.matcher.gauss_newton)
+}
+
+/// The odometry check for the 3D filter (as scan_match::check_odometry does it in 2D), on the
+/// frame's `rays` at the heights of the map's 2D projection, in the best particle's map from its
+/// `pose`. Returns the odometry pose that would have predicted the pose found, or None where
+/// the odometry stands:
+/// 1. At the odometry's prediction, the share of the end points near an occupied voxel among
+///    those the map can judge (`explained_share`); at least `search_below`: it stands.
+/// 2. A climb without the odometry prior from there (`local_match3d`). Where that explains the
+///    frame, the particles' own climbs get there too unless their odometry prior holds them back
+///    (the climb ended more than three standard deviations of the prior away): then its pose is
+///    taken if it explains clearly more than the prediction (a tenth more of the judged points).
+/// 3. Otherwise the wide search (correlative.rs) around the prediction, in 2D: the map's occupied
+///    columns (`SharedVoxels::column_grid`) and the end points seen from above; where its pose
+///    stands out (`search_distinct`), a 3D climb from it, taken where it explains the frame and
+///    clearly more of it than the climb of step 2.
+///
+/// Why a search in 2D: the pose is planar, and the raster search is what finds a frame a metre
+/// from its prediction; the 3D climb then judges the jump on every point's height, which the
+/// projection has thrown away.
+fn check_odometry3d(
+    p: &FilterParams3d,
+    map: &SharedVoxels,
+    rays: &[([f64; 3], [f64; 3])],
+    pose: [f64; 3],
+    odom_prev: [f64; 3],
+    odom_cur: [f64; 3],
+) -> Result<Option<[f64; 3]>, GridError> {
+    let m = &p.matcher;
+    let Some(window) = m.search.as_ref() else { return Ok(None) };
+    if rays.is_empty() {
+        return Ok(None);
+    }
+    let pts: Vec<[f64; 3]> = rays.iter().map(|r| r.1).collect();
+    let pts = &pts[..];
+    let predicted = compose(pose, relative(odom_prev, odom_cur));
+    let n = pts.len() as f64;
+    let share = |at: [f64; 3]| explained_share(p, map, at, rays);
+    let at_prediction = share(predicted);
+    if at_prediction.0 >= m.search_below {
+        return Ok(None);
+    }
+    let (local, local_value, _) = local_match3d(p, map, pts, predicted, None);
+    let at_local = share(local);
+    let accept = |found: [f64; 3], value: f64, baseline: (f64, usize), baseline_value: f64| {
+        let (fs, fc) = share(found);
+        fs >= m.search_below && fc as f64 >= 0.3 * n && fs >= baseline.0 + 0.1 && value > baseline_value
+    };
+    if at_local.0 >= m.search_below {
+        // The climb alone explains the frame. Where the particles' climbs can get there too (within
+        // three standard deviations of the odometry prior), they will; where the prior holds them
+        // at the wheels' pose, the wheels slipped.
+        let prior = motion_prior(&p.motion, odom_prev, odom_cur, predicted);
+        let (dx, dy, dt) = (local[0] - predicted[0], local[1] - predicted[1], crate::motion::wrap(local[2] - predicted[2]));
+        let d2 = (dx * dx + dy * dy) / prior.var_xy + dt * dt / prior.var_theta;
+        let within_reach = !m.odometry_prior || d2 <= 9.0;
+        if within_reach || !accept(local, local_value, at_prediction, p.effective_rays * p.field.score(map, predicted, pts).0) {
+            return Ok(None);
+        }
+        return Ok(Some(compose(odom_prev, relative(pose, local))));
+    }
+    // The points lie within max_range of the mirrors, which stand within centimetres of the robot.
+    let reach = p.max_range + window.half_xy + 1.0;
+    let bounds = [predicted[0] - reach, predicted[1] - reach, predicted[0] + reach, predicted[1] + reach];
+    let grid = map.column_grid(bounds, p.check_z_min, p.check_z_max, p.field.occupied_threshold)?;
+    let flat: Vec<[f64; 2]> = pts.iter().map(|q| [q[0], q[1]]).collect();
+    let geom = ScanGeometry { angles: &[], sensor: [0.0; 3] };
+    // The 2D field's floor, as the 2D check passes it (z_rand over the range).
+    let floor = p.field.z_rand / p.max_range;
+    let searched = correlative_search(&grid, p.field.occupied_threshold, floor, &geom, &flat, predicted, window)?;
+    if searched.distinct < m.search_distinct {
+        return Ok(None);
+    }
+    let (found, value, _) = local_match3d(p, map, pts, searched.pose, None);
+    Ok(accept(found, value, at_local, local_value).then(|| compose(odom_prev, relative(pose, found))))
+}
+
+/// Of the frame's rays at `pose`, the share whose end points lie near an occupied voxel among
+/// those that the map can judge, and how many it can judge: those near an occupied voxel, those
+/// ending in a voxel it has observed (free), and those that pass through an occupied voxel on
+/// their way (the map has a wall in front of the end point). Why not the share of all end
+/// points: a robot driving on sees things the map has not, and a pose that pulls those points
+/// back onto mapped ones (a few decimetres back along its way) explains more of them than the
+/// right pose does; what contradicts a pose is an end point in space the map has seen empty, or
+/// behind a surface it has seen.
+fn explained_share(p: &FilterParams3d, map: &SharedVoxels, pose: [f64; 3], rays: &[([f64; 3], [f64; 3])]) -> (f64, usize) {
+    let res = map.resolution;
+    let threshold = p.field.occupied_threshold;
+    let voxel = |w: [f64; 3]| w.map(|v| (v / res).floor() as i64);
+    let (mut near, mut judged) = (0usize, 0usize);
+    for (o, e) in rays {
+        let (wo, we) = (to_world(pose, *o), to_world(pose, *e));
+        if map.nearest_occupied(we, threshold).is_some() {
+            near += 1;
+            judged += 1;
+            continue;
+        }
+        if !map.get(voxel(we)).is_nan() {
+            judged += 1;
+            continue;
+        }
+        // Half-voxel steps up to two voxels short of the end point (whose neighbours the test
+        // above has read).
+        let d = [0, 1, 2].map(|a| we[a] - wo[a]);
+        let length = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        let steps = ((length - 2.0 * res) / (0.5 * res)).floor().max(0.0) as usize;
+        let blocked = (1..=steps).any(|k| {
+            let t = k as f64 * 0.5 * res / length;
+            map.get(voxel([0, 1, 2].map(|a| wo[a] + t * d[a]))) > threshold
+        });
+        judged += blocked as usize;
+    }
+    (if judged == 0 { 1.0 } else { near as f64 / judged as f64 }, judged)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::correlative::SearchWindow;
 
     const MODEL: LogOddsModel = LogOddsModel { l_occ: 0.9, l_free: -0.4, l_min: -2.0, l_max: 3.5 };
     /// Robot-frame origin of every ray: the mirrors, half a metre above the floor.
@@ -740,6 +942,8 @@ mod tests {
             score_rays: 600,
             score_z_min: 0.05,
             score_z_max: 10.0,
+            check_z_min: 0.05,
+            check_z_max: 2.2,
             log_odds: MODEL,
             resolution: 0.1,
             max_range: 7.0,
@@ -871,6 +1075,110 @@ mod tests {
         for proposal in [ProposalKind::Odometry, ProposalKind::ScanMatch] {
             assert_eq!(run(1, proposal), run(2, proposal));
         }
+    }
+
+    #[test]
+    fn column_grid_sees_every_height_in_its_band_from_above() {
+        // The known room's pillar stands 1.0-1.4 x 0.5-0.9 m, floor to ceiling; the shelf at
+        // x -3.0..-2.6 only at 1.5-2.0 m. From above through 0.05-2.2 m both show, with each
+        // cell's point on a face of the box (the map's mean end points); through 0.05-1.3 m the
+        // shelf's face at x = -2.6 does not.
+        let map = known_map();
+        let bounds = [-3.5, -2.5, 3.5, 2.5];
+        let near_face = |grid: &TiledGrid, x: f64, y0: f64, y1: f64| -> usize {
+            let res = grid.resolution;
+            let mut found = 0;
+            for iy in ((y0 / res).floor() as i32)..((y1 / res).floor() as i32) {
+                for ix in ((x / res).floor() as i32 - 1)..=((x / res).floor() as i32) {
+                    if let Some(h) = grid.occupied_hit(ix, iy, 0.0) {
+                        if (h[0] - x).abs() < 0.03 {
+                            found += 1;
+                        }
+                    }
+                }
+            }
+            found
+        };
+        let all = map.column_grid(bounds, 0.05, 2.2, 0.0).unwrap();
+        let low = map.column_grid(bounds, 0.05, 1.3, 0.0).unwrap();
+        // The pillar's west face (x = 1.0) over its 0.4 m, four cells, in both.
+        assert!(near_face(&all, 1.0, 0.55, 0.85) >= 3, "{}", near_face(&all, 1.0, 0.55, 0.85));
+        assert!(near_face(&low, 1.0, 0.55, 0.85) >= 3);
+        // The shelf's face over 2 m: twenty cells, most of them seen.
+        assert!(near_face(&all, -2.6, -0.9, 0.9) >= 12, "{}", near_face(&all, -2.6, -0.9, 0.9));
+        assert_eq!(near_face(&low, -2.6, -0.9, 0.9), 0);
+        // Nothing where the room is empty at every height.
+        for (x, y) in [(0.0, 0.0), (-1.5, 1.0), (2.0, -1.2)] {
+            let (ix, iy) = ((x / 0.1f64).floor() as i32, (y / 0.1f64).floor() as i32);
+            assert!(all.occupied_hit(ix, iy, 0.0).is_none());
+        }
+    }
+
+    /// A filter that has mapped the known room from the origin, then one frame taken at
+    /// `truth` whose odometry reports `odom` instead: the particles' poses and the step's info.
+    fn after_glitch(search: bool, distinct: f64, truth: [f64; 3], odom: [f64; 3]) -> (Vec<[f64; 3]>, StepInfo3d) {
+        let mut p = params(8, 2, ProposalKind::ScanMatch);
+        if search {
+            p.matcher.search = Some(SearchWindow {
+                half_xy: 1.0,
+                half_theta: 15f64.to_radians(),
+                step_xy: 0.1,
+                step_theta: 1f64.to_radians(),
+            });
+            p.matcher.search_below = 0.8;
+            p.matcher.search_distinct = distinct;
+        }
+        let mut pf = ParticleFilter3d::new(p).unwrap();
+        let (o, e) = frame([0.0; 3], 2.0, (-180.0, 180.0));
+        for k in 0..3 {
+            pf.step([0.0; 3], [0.0; 3], &o, &e, k).unwrap();
+        }
+        let (o, e) = frame(truth, 2.0, (-180.0, 180.0));
+        let info = pf.step([0.0; 3], odom, &o, &e, 3).unwrap();
+        (pf.particles.iter().map(|q| q.pose).collect(), info)
+    }
+
+    #[test]
+    fn odometry_check_undoes_a_wheel_glitch_beyond_the_climbs_reach() {
+        // The robot moved 0.3 m and turned 0.1 rad; the wheels report 0.9 m more to the left and
+        // 14° more (a slip), beyond the reach of the hill climbing, which from there ends 0.3 m
+        // off (in this room a climb without the prior undoes smaller slips by itself).
+        let truth = [0.3, 0.0, 0.1];
+        let odom = compose(truth, [0.2, 0.9, 14f64.to_radians()]);
+        let off = |poses: &[[f64; 3]]| {
+            poses.iter().map(|q| ((q[0] - truth[0]).hypot(q[1] - truth[1]), (q[2] - truth[2]).abs())).fold((0.0f64, 0.0f64), |a, b| (a.0.max(b.0), a.1.max(b.1)))
+        };
+        let (plain, info) = after_glitch(false, 0.0, truth, odom);
+        assert!(!info.odometry_corrected);
+        assert!(off(&plain).0 > 0.2, "without the check the glitch stays: {:?}", off(&plain));
+        let (checked, info) = after_glitch(true, 0.0, truth, odom);
+        assert!(info.odometry_corrected);
+        let (d, dth) = off(&checked);
+        assert!(d < 0.05 && dth < 1f64.to_radians(), "{d} m, {dth} rad");
+        // A gate above what this room's search stands out by keeps the odometry, as without the check.
+        let (gated, info) = after_glitch(true, 0.99, truth, odom);
+        assert!(!info.odometry_corrected);
+        assert_eq!(gated, plain);
+        // Odometry that is right is left alone, and the particles end as without the check.
+        let (unchecked, _) = after_glitch(false, 0.0, truth, truth);
+        let (checked, info) = after_glitch(true, 0.0, truth, truth);
+        assert!(!info.odometry_corrected);
+        assert_eq!(checked, unchecked);
+    }
+
+    #[test]
+    fn odometry_check_takes_a_climb_that_the_odometry_prior_would_hold_back() {
+        // A slip of 0.6 m and 8°: from the wheels' pose a climb without the odometry prior finds
+        // the room again, but the particles climb with the prior and stay near the wheels' pose.
+        // The check takes the climb's pose (whatever the search's gate: no search runs).
+        let truth = [0.3, 0.0, 0.1];
+        let odom = compose(truth, [0.6, 0.0, 8f64.to_radians()]);
+        let worst = |poses: &[[f64; 3]]| poses.iter().map(|q| (q[0] - truth[0]).hypot(q[1] - truth[1])).fold(0.0f64, f64::max);
+        let (plain, info) = after_glitch(false, 0.0, truth, odom);
+        assert!(!info.odometry_corrected && worst(&plain) > 0.2, "{}", worst(&plain));
+        let (checked, info) = after_glitch(true, 0.99, truth, odom);
+        assert!(info.odometry_corrected);
+        assert!(worst(&checked) < 0.05, "{}", worst(&checked));
     }
 
     #[test]

@@ -19,7 +19,8 @@ use crate::{
 };
 
 /// The `filter3d` section (python/omnitof/slam/config.py, Filter3DConfig), less `enabled` and
-/// `pixel_stride`, which the driver uses.
+/// `pixel_stride`, which the driver uses. `project_z_min`/`project_z_max` (the heights of the map's
+/// 2D projection) are also the heights the odometry check matches (filter3d.rs, check_odometry3d).
 struct Filter3dSection {
     resolution: f64,
     max_range: f64,
@@ -33,11 +34,13 @@ struct Filter3dSection {
     free_stride: usize,
     climb_stride: usize,
     min_matched: f64,
+    project_z_min: f64,
+    project_z_max: f64,
 }
 
-const FILTER3D_FIELDS: [&str; 12] = [
+const FILTER3D_FIELDS: [&str; 14] = [
     "resolution", "max_range", "sigma", "z_hit", "z_rand", "effective_rays", "score_rays", "score_z_min", "score_z_max",
-    "free_stride", "climb_stride", "min_matched",
+    "free_stride", "climb_stride", "min_matched", "project_z_min", "project_z_max",
 ];
 
 impl<'a, 'py> FromPyObject<'a, 'py> for Filter3dSection {
@@ -59,6 +62,8 @@ impl<'a, 'py> FromPyObject<'a, 'py> for Filter3dSection {
             free_stride: section_field::<usize>(&d, "filter3d", "free_stride")?,
             climb_stride: section_field::<usize>(&d, "filter3d", "climb_stride")?,
             min_matched: f("min_matched")?,
+            project_z_min: f("project_z_min")?,
+            project_z_max: f("project_z_max")?,
         })
     }
 }
@@ -113,6 +118,8 @@ impl PyParticleFilter3D {
             score_rays: f3.score_rays,
             score_z_min: f3.score_z_min,
             score_z_max: f3.score_z_max,
+            check_z_min: f3.project_z_min,
+            check_z_max: f3.project_z_max,
             log_odds: base.log_odds,
             resolution: f3.resolution,
             max_range: f3.max_range,
@@ -125,7 +132,8 @@ impl PyParticleFilter3D {
 
     /// Integrate one frame: its rays in the robot frame (origins on the mirrors (N, 3), end
     /// points (N, 3)) at odometry `odom_cur`, the odometry having moved from `odom_prev`.
-    /// Returns (Neff before any resampling, whether it resampled, scan-match fallbacks, rays scored).
+    /// Returns (Neff before any resampling, whether it resampled, scan-match fallbacks, rays scored,
+    /// whether the odometry check replaced the step's odometry).
     fn step(
         &mut self,
         py: Python<'_>,
@@ -134,7 +142,7 @@ impl PyParticleFilter3D {
         origins: PyReadonlyArray2<f64>,
         endpoints: PyReadonlyArray2<f64>,
         scan: u64,
-    ) -> PyResult<(f64, bool, usize, usize)> {
+    ) -> PyResult<(f64, bool, usize, usize, bool)> {
         let prev = pose3(odom_prev.as_slice()?, "odom_prev")?;
         let cur = pose3(odom_cur.as_slice()?, "odom_cur")?;
         if !prev.iter().chain(&cur).all(|v| v.is_finite()) {
@@ -148,7 +156,7 @@ impl PyParticleFilter3D {
         }
         let inner = &mut self.inner;
         let info = py.detach(|| inner.step(prev, cur, &o, &e, scan)).map_err(crate::grid_error)?;
-        Ok((info.neff, info.resampled, info.fallbacks, info.scored))
+        Ok((info.neff, info.resampled, info.fallbacks, info.scored, info.odometry_corrected))
     }
 
     /// Mean log-likelihood (the 3D likelihood field) of end points (N, 3, robot frame) at each

@@ -157,7 +157,8 @@ class ScanMatcherConfig(_Section):
         description="check the odometry before each step with a wide correlative search of this half-width (m) "
         "on the best particle's map, and replace the step's odometry increment by the match found where "
         "it explains clearly more of the scan; catches wheel odometry glitches larger than the hill "
-        "climbing can undo; 0 = off",
+        "climbing can undo; the 3D filter searches its map's occupied columns between filter3d.project_z_min "
+        "and project_z_max and judges the result in 3D; 0 = off",
     )
     search_deg: float = Field(15.0, ge=0, le=180, description="half-width of the wide search in heading (deg)")
     search_step_xy: float = Field(
@@ -375,7 +376,11 @@ class Filter3DConfig(_Section):
     )
     score_z_min: float = Field(0.1, ge=-100, le=100, description="score end points at this height (m) or above: the floor tells nothing of the pose")
     score_z_max: float = Field(100.0, ge=-100, le=1000, description="... and at this height (m) or below")
-    project_z_min: float = Field(0.1, ge=-100, le=100, description="2D projection (map.pgm): voxels from this height (m) ...")
+    project_z_min: float = Field(
+        0.1, ge=-100, le=100,
+        description="2D projection (map.pgm), and the rays the odometry check (scan_matcher.search_xy) matches: "
+        "voxels and end points from this height (m) ...",
+    )
     project_z_max: float = Field(2.0, ge=-100, le=1000, description="... up to this height (m)")
 
     @model_validator(mode="after")

@@ -39,13 +39,9 @@ class Unused3DSettingWarning(OmnitofWarning):
 def warn_unused_settings(cfg: SlamConfig) -> None:
     """Say which of the configuration's 2D-only settings the 3D run ignores, so that a user who
     set them (or a 2D preset that has them, as tof-scanmatch does) does not count on them."""
-    unused = []
     if cfg.backend.enabled:
-        unused.append("backend.enabled (the pose-graph back end works on 2D submaps)")
-    if cfg.scan_matcher.search_xy > 0:
-        unused.append(f"scan_matcher.search_xy {cfg.scan_matcher.search_xy:g} (the odometry check is a 2D search)")
-    if unused:
-        warnings.warn(Unused3DSettingWarning("the 3D filter runs without " + "; ".join(unused)), stacklevel=3)
+        warnings.warn(Unused3DSettingWarning(
+            "the 3D filter runs without backend.enabled (the pose-graph back end works on 2D submaps)"), stacklevel=3)
 
 
 @dataclass
@@ -65,7 +61,7 @@ def core_sections_3d(cfg: SlamConfig) -> dict:
     return cfg.model_dump(
         include={"filter", "motion", "sensor_model", "likelihood_field", "scan_matcher", "map", "filter3d"},
         exclude={"filter": set(DRIVER_FILTER_FIELDS), "map": set(DRIVER_MAP_FIELDS),
-                 "filter3d": {"enabled", "pixel_stride", "project_z_min", "project_z_max"}},
+                 "filter3d": {"enabled", "pixel_stride"}},
     )
 
 
@@ -140,13 +136,17 @@ def _run(scans: ScanSequence, frames: np.ndarray, clouds: Sequence[np.ndarray], 
     cpu_start = time.process_time()
     done = 0
     scored = 0
+    corrected_scans: list[int] = []
     memory = MemoryWatch("the 3D filter", f"choose fewer than filter.particles {cfg.filter.particles} or a coarser "
                                           f"filter3d.resolution than {cfg.filter3d.resolution:g} m")
     for step, (k, cloud) in enumerate(zip(frames, clouds), start=1):
         c = np.asarray(cloud, dtype=np.float64).reshape(-1, 6)
         cur = scans.odometry[k]
         t0 = time.perf_counter()
-        scored += pf.step(prev, cur, np.ascontiguousarray(c[:, :3]), np.ascontiguousarray(c[:, 3:]), int(k))[3]
+        info = pf.step(prev, cur, np.ascontiguousarray(c[:, :3]), np.ascontiguousarray(c[:, 3:]), int(k))
+        scored += info[3]
+        if info[4]:
+            corrected_scans.append(int(k))
         seconds.append(time.perf_counter() - t0)
         prev = cur
         memory.check(step, len(frames))
@@ -171,6 +171,7 @@ def _run(scans: ScanSequence, frames: np.ndarray, clouds: Sequence[np.ndarray], 
         "resamplings": int(pf.resamplings),
         "proposal": cfg.filter.proposal,
         "scanmatch_fallbacks": int(pf.fallbacks),
+        "odometry_corrected_scans": corrected_scans,
         "seconds": time.perf_counter() - start,
         "seconds_per_integrated_frame": {"median": float(np.median(seconds[1:] or seconds)),
                                          "max": float(np.max(seconds))},
