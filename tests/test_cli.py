@@ -314,6 +314,19 @@ def test_a_log_where_no_beam_echoes_is_one_clear_error(tmp_path, short_log, caps
     assert not out.exists()
 
 
+def test_the_summary_line_names_the_scans_whose_odometry_the_check_replaced():
+    from omnitof.cli import _summary_line
+
+    stats = {"scans": 900, "integrated": 80, "seconds": 12.34, "particles": 30, "resamplings": 7}
+    plain = _summary_line({**stats, "odometry_corrected_scans": []})
+    assert plain == "scans 900 (integrated 80), time 12.3 s, particles 30, resamplings 7"
+    assert _summary_line(stats) == plain  # a run without the check has no such entry
+    one = _summary_line({**stats, "odometry_corrected_scans": [562]})
+    assert one == plain + "; odometry replaced by the odometry check at 1 scan(s): 562"
+    many = _summary_line({**stats, "odometry_corrected_scans": list(range(100, 107))})
+    assert many.endswith("at 7 scan(s): 100, 101, 102, 103, 104, ...")
+
+
 def test_only_omnitofs_own_warnings_read_as_omnitof_warnings():
     from omnitof.cli import _format_warning
     from omnitof.io.carmen import CarmenWarning

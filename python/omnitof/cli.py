@@ -41,11 +41,17 @@ def _bar_factory(args: argparse.Namespace):
 
 
 def _summary_line(stats: dict) -> str:
-    return (
+    line = (
         f"scans {stats['scans']} (integrated {stats['integrated']}), "
         f"time {stats['seconds']:.1f} s, particles {stats['particles']}, "
         f"resamplings {stats['resamplings']}"
     )
+    # A wheel glitch that the odometry check repaired is worth a look at the robot's wheels.
+    corrected = stats.get("odometry_corrected_scans") or []
+    if corrected:
+        shown = ", ".join(str(k) for k in corrected[:5]) + (", ..." if len(corrected) > 5 else "")
+        line += f"; odometry replaced by the odometry check at {len(corrected)} scan(s): {shown}"
+    return line
 
 
 def cmd_slam(args: argparse.Namespace) -> int:
