@@ -37,7 +37,7 @@ use crate::grid::{GridError, LogOddsModel, TiledGrid};
 use crate::motion::{compose, relative, OdometryMotion};
 use crate::scan_match::{climb, draw_around_mode, gauss_newton_with, motion_prior, MatcherParams, PosePrior};
 use crate::sensor_model::ScanGeometry;
-use crate::voxel::{pack, ray_voxels, sorted_difference, unpack, Block, IntegrateStats, SeenFilter, VoxelGrid, BLOCK_SHIFT, BLOCK_VOXELS, INDEX_LIMIT};
+use crate::voxel::{pack, ray_voxels, sorted_difference, traverse, unpack, Block, IntegrateStats, SeenFilter, VoxelGrid, BLOCK_SHIFT, BLOCK_VOXELS, INDEX_LIMIT};
 
 /// One 8³ block of a particle's map: log-odds (NaN = unknown) and, per voxel, the running mean
 /// of the end points that fell into it, as an offset in 1/256 of a voxel per axis (as grid.rs
@@ -792,9 +792,7 @@ fn check_odometry3d(
         // three standard deviations of the odometry prior), they will; where the prior holds them
         // at the wheels' pose, the wheels slipped.
         let prior = motion_prior(&p.motion, odom_prev, odom_cur, predicted);
-        let (dx, dy, dt) = (local[0] - predicted[0], local[1] - predicted[1], crate::motion::wrap(local[2] - predicted[2]));
-        let d2 = (dx * dx + dy * dy) / prior.var_xy + dt * dt / prior.var_theta;
-        let within_reach = !m.odometry_prior || d2 <= 9.0;
+        let within_reach = !m.odometry_prior || prior.mahalanobis2(local) <= 9.0;
         if within_reach || !accept(local, local_value, at_prediction, p.effective_rays * p.field.score(map, predicted, pts).0) {
             return Ok(None);
         }
@@ -840,15 +838,18 @@ fn explained_share(p: &FilterParams3d, map: &SharedVoxels, pose: [f64; 3], rays:
             judged += 1;
             continue;
         }
-        // Half-voxel steps up to two voxels short of the end point (whose neighbours the test
-        // above has read).
+        // The voxels the ray passes up to two voxels short of its end point (whose neighbours
+        // the test above has read).
         let d = [0, 1, 2].map(|a| we[a] - wo[a]);
         let length = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-        let steps = ((length - 2.0 * res) / (0.5 * res)).floor().max(0.0) as usize;
-        let blocked = (1..=steps).any(|k| {
-            let t = k as f64 * 0.5 * res / length;
-            map.get(voxel([0, 1, 2].map(|a| wo[a] + t * d[a]))) > threshold
-        });
+        let reach = length - 2.0 * res;
+        let mut blocked = false;
+        if reach > 0.0 {
+            traverse(wo, d.map(|v| v / length), reach, res, |i, _, _| {
+                blocked = map.get(i) > threshold;
+                !blocked
+            });
+        }
         judged += blocked as usize;
     }
     (if judged == 0 { 1.0 } else { near as f64 / judged as f64 }, judged)

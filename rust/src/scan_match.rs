@@ -588,9 +588,14 @@ impl PosePrior {
     }
 
     pub fn log_prob(&self, pose: [f64; 3]) -> f64 {
+        -0.5 * (self.mahalanobis2(pose) + 2.0 * self.var_xy.ln() + self.var_theta.ln())
+    }
+
+    /// The squared Mahalanobis distance of `pose` from the mean.
+    pub fn mahalanobis2(&self, pose: [f64; 3]) -> f64 {
         let (dx, dy) = (pose[0] - self.mean[0], pose[1] - self.mean[1]);
         let dt = wrap(pose[2] - self.mean[2]);
-        -0.5 * ((dx * dx + dy * dy) / self.var_xy + dt * dt / self.var_theta + 2.0 * self.var_xy.ln() + self.var_theta.ln())
+        (dx * dx + dy * dy) / self.var_xy + dt * dt / self.var_theta
     }
 }
 
