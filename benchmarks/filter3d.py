@@ -5,11 +5,13 @@ For each world and drive seed: the drive is rendered (sub_rays 1) and, with --ca
 estimated (the default), the rig is calibrated from rendered targets of the same seed
 (`calibration.simulated.calibrate_from_simulation`, as the demo does); the 2D scans and the rays
 of the frames to integrate (every `filter3d.pixel_stride`-th mirror pixel) are extracted once.
-Then, per run (PROPOSAL:PARTICLES), both filters run on the same data with preset tof3d (the 2D
-filter ignores the filter3d section; no pose-graph back end):
+Then, per run (PROPOSAL:PARTICLES), both filters run on the same data, the 3D one with preset
+tof3d and the 2D one with --preset-2d (tof-scanmatch; tables before 2026-12-06 gave it tof3d's 2D
+sections), without the pose-graph back end unless told:
 
 - trajectory error (mean, final) to the truth of each, and the mean/max distance between them
-  (with --backend-2d the 2D filter runs with the pose-graph back end, as tof-scanmatch ships);
+  (with --backend-2d the 2D filter runs with the pose-graph back end, as tof-scanmatch ships;
+  with --backend-3d the 3D filter, as tof3d ships);
 - map quality: 3D, the share of occupied voxel centres within 0.1 m of a true surface
   (`map3d.surface_distance`); 2D, the share of occupied cells within 0.1 m of a wall at the
   slice height (`eval.floorplan.wall_agreement`);
@@ -20,7 +22,7 @@ filter ignores the filter3d section; no pose-graph back end):
 
 Usage:
     python benchmarks/filter3d.py [--world office] [--seeds 0 1 2] [--runs scanmatch:30 odometry:30]
-        [--calibration estimated|true] [--max-frames N]
+        [--calibration estimated|true] [--max-frames N] [--preset-2d tof-scanmatch] [--backend-2d] [--backend-3d]
 
 Worlds: a bundled one by name, or `atrium` (benchmarks/atrium.yaml: a 26 m × 22 m hall, every
 wall beyond 7 m of the path at slice height, galleries from 1.0 m to 2.2 m high around it).
@@ -113,11 +115,14 @@ def prepare(world_name: str, seed: int, calibration: str, cfg, max_frames: int |
     return world, data, cal_report
 
 
-def one_run(world, data, cfg, backend_2d: bool = False) -> dict:
+def one_run(world, data, cfg, cfg2, backend_2d: bool = False, backend_3d: bool = False) -> dict:
+    """Both filters on `data`: the 3D one with `cfg`, the 2D one with `cfg2`."""
     scans = data.scans
     truth = scans.ground_truth
-    cfg2 = cfg.model_copy(deep=True)
-    cfg2.backend.enabled = backend_2d  # the 3D filter has no back end
+    cfg2 = cfg2.model_copy(deep=True)
+    cfg2.backend.enabled = backend_2d
+    cfg = cfg.model_copy(deep=True)
+    cfg.backend.enabled = backend_3d
     t0 = time.perf_counter()
     flat = run_slam(scans, cfg2)
     seconds_2d = time.perf_counter() - t0
@@ -163,6 +168,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE")
     parser.add_argument("--backend-2d", action="store_true",
                         help="the 2D filter with the pose-graph back end (tof-scanmatch as shipped)")
+    parser.add_argument("--preset-2d", default="tof-scanmatch",
+                        help="the 2D filter's preset (the run's proposal, particles, seed and threads, and --set, "
+                        "over it); tables before 2026-12-06 ran it with tof3d's")
+    parser.add_argument("--backend-3d", action="store_true",
+                        help="the 3D filter with the pose-graph back end (tof3d as shipped since 2026-12-06)")
     args = parser.parse_args(argv)
     from omnitof.slam.config import parse_setting, settings_overrides
 
@@ -186,7 +196,10 @@ def main(argv: list[str] | None = None) -> int:
             cfg.filter.particles = int(particles)
             cfg.filter.seed = seed
             cfg.filter.threads = args.threads
-            r = one_run(world, data, cfg, args.backend_2d)
+            cfg2 = load_config(preset=args.preset_2d, overrides=overrides)
+            cfg2.filter.proposal, cfg2.filter.particles = proposal, int(particles)
+            cfg2.filter.seed, cfg2.filter.threads = seed, args.threads
+            r = one_run(world, data, cfg, cfg2, args.backend_2d, args.backend_3d)
             d = r["diff"]
             print(f"| {args.world} | {seed} | {proposal} | {particles} | {len(data.scans)} ({r['integrated']}) "
                   f"| {r['rays']:.0f} | {r['odo_mean']:.3f} | {r['err2_mean']:.3f} ({r['err2_final']:.3f}) "

@@ -57,6 +57,10 @@ def _summary_line(stats: dict) -> str:
 def cmd_slam(args: argparse.Namespace) -> int:
     from omnitof.slam_run import SlamRequest, default_preset, slam_to_folder
 
+    cfg_2d = None
+    if args.filter == "3d" and args.compare_2d:
+        # The 2D filter beside the 3D one runs as `omnitof slam` without --filter 3d would.
+        cfg_2d = _config_from_args(args, default_preset=default_preset(args.log, args.tof_topics))
     if args.filter == "3d":
         args.set = [*(args.set or []), "filter3d.enabled=true"]
     preset = "tof3d" if args.filter == "3d" else default_preset(args.log, args.tof_topics)
@@ -68,7 +72,7 @@ def cmd_slam(args: argparse.Namespace) -> int:
         multipath_compensation=args.multipath_compensation,
         tof_topics=args.tof_topics, tof_depth=args.tof_distance == "depth",
     )
-    run = slam_to_folder(request, cfg, args.out, bar=_bar_factory(args))
+    run = slam_to_folder(request, cfg, args.out, cfg_2d=cfg_2d, bar=_bar_factory(args))
     print(_summary_line(run.result.stats))
     if run.relations is not None:
         print(run.relations.format())
@@ -388,7 +392,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ToF bags: 3d runs the paper's 3D variant (voxel maps per particle, every mirror pixel; "
                    "default preset tof3d) and writes map3d.ply/png, map.pgm as its projection")
     p.add_argument("--compare-2d", action="store_true",
-                   help="with --filter 3d: also run the 2D filter and record the trajectories' difference")
+                   help="with --filter 3d: also run the 2D filter (as omnitof slam without --filter 3d would: its "
+                   "default preset, or --preset/--config/--set as given) and record the trajectories' difference")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_slam)
 

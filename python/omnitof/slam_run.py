@@ -41,7 +41,8 @@ class SlamRequest:
         (an `io.rosbag.ToFTopics`; default the simulator's topics), tof_depth (the distance
         images hold depth z, not the radial distance): ToF bags only.
     compare_2d: with the 3D filter (`filter3d.enabled`), also run the 2D filter on the same
-        scans and record how far the two trajectories lie apart (trajectory_2d.tum, summary).
+        scans and record how far the two trajectories lie apart (trajectory_2d.tum, summary);
+        its configuration is `slam_to_folder`'s `cfg_2d`.
     label: the input's path as summary.yaml records it (default `log`): `omnitof bench` runs on
         a worker's copy of the file and records the path the experiment gave.
     """
@@ -124,11 +125,12 @@ def slam_config(
                        options={"filter": named} if named else None)
 
 
-def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *,
+def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *, cfg_2d: SlamConfig | None = None,
                    bar: BarFactory = no_bar, echo: Callable[[str], None] = print) -> SlamRun:
     """Run SLAM on `request.log` with `cfg` and write the results folder `out`
-    (omnitof.results; summary.yaml is written last). `echo` prints what the run decided (the
-    scan delay)."""
+    (omnitof.results; summary.yaml is written last). `cfg_2d`: with the 3D filter and
+    request.compare_2d, the 2D filter's configuration (default `cfg`). `echo` prints what the
+    run decided (the scan delay)."""
     from omnitof.interrupts import pause_point
     from omnitof.results import results_folder
 
@@ -155,14 +157,14 @@ def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *,
     # folder replaces `out` only when everything is written (omnitof.results).
     with results_folder(out) as folder:
         pause_point("start")
-        run = _run_into(request, cfg, folder, log, label, tof, relations, bar, echo)
+        run = _run_into(request, cfg, folder, log, label, tof, relations, bar, echo, cfg_2d)
     # The files now lie in `out`, which the new folder became.
     run.paths = {name: Path(out) / Path(path).relative_to(folder) for name, path in run.paths.items()}
     return run
 
 
 def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label: str, tof: bool,
-              relations: Any, bar: BarFactory, echo: Callable[[str], None]) -> SlamRun:
+              relations: Any, bar: BarFactory, echo: Callable[[str], None], cfg_2d: SlamConfig | None) -> SlamRun:
     """`slam_to_folder`'s work, writing into the new folder `out`."""
     from omnitof.io.scans import read_scans
     from omnitof.results import write_results
@@ -211,7 +213,7 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
         scans, extra["input"]["scan_delay"] = _retimed(scans, delay, given=given, echo=echo)
     voxel_paths: dict[str, Path] = {}
     if three_d:
-        result, voxel_paths = _run_3d(request, run_cfg, scans, tof_data, out, extra, bar)
+        result, voxel_paths = _run_3d(request, run_cfg, scans, tof_data, out, extra, bar, cfg_2d or run_cfg)
     else:
         with bar(len(scans), "slam", "scan") as b:
             result = run_slam(scans, run_cfg, progress=_pausing(b.update, "slam", len(scans) // 2))
@@ -240,11 +242,11 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
 
 
 def _run_3d(request: SlamRequest, cfg: SlamConfig, scans: ScanSequence, tof_data: Any, out: Path,
-            extra: dict[str, Any], bar: BarFactory) -> tuple[Any, dict[str, Path]]:
+            extra: dict[str, Any], bar: BarFactory, cfg_2d: SlamConfig) -> tuple[Any, dict[str, Path]]:
     """The 3D filter's run (omnitof.slam.filter3d) on the rays kept while reading: its
     SlamResult (map: the voxel map's projection onto the floor), the voxel map's files
     (map3d.ply, map3d.png) and, with request.compare_2d, the 2D filter's trajectory on the same
-    scans (trajectory_2d.tum) and the difference in `extra`."""
+    scans with `cfg_2d` (trajectory_2d.tum) and the difference in `extra`."""
     from omnitof.io.tum import write_tum
     from omnitof.map3d import VoxelMap
     from omnitof.results import write_voxel_outputs
@@ -260,7 +262,7 @@ def _run_3d(request: SlamRequest, cfg: SlamConfig, scans: ScanSequence, tof_data
                                 title="3D filter: occupied voxels of the best particle")
     if request.compare_2d:
         with bar(len(scans), "slam 2d", "scan") as b:
-            flat = run_slam(scans, cfg, progress=b.update)
+            flat = run_slam(scans, cfg_2d, progress=b.update)
         paths["trajectory_2d"] = out / "trajectory_2d.tum"
         write_tum(paths["trajectory_2d"], flat.trajectory, sort=True)
         extra["filter2d"] = {

@@ -580,13 +580,7 @@ impl ParticleFilter3d {
         self.steps += 1;
         let n = self.params.n_particles;
         if self.particles.is_empty() {
-            // Resolution and model were checked by `new`.
-            let mut map = SharedVoxels { resolution: self.params.resolution, model: self.params.log_odds, blocks: Blocks::default() };
-            let (wo, we) = Self::world_rays(odom_cur, origins, endpoints);
-            map.integrate(&wo, &we, self.params.max_range, self.params.free_stride)?;
-            let root = Arc::new(TrajectoryNode { pose: odom_cur, scan, parent: None });
-            let first = Particle3d { pose: odom_cur, log_weight: 0.0, map, trajectory: root };
-            self.particles = vec![first; n];
+            self.reset(odom_cur, scan, &[(odom_cur, origins, endpoints)])?;
             return Ok(StepInfo3d { neff: n as f64, resampled: false, fallbacks: 0, scored: 0, odometry_corrected: false });
         }
         let pts = self.scored_points(origins, endpoints);
@@ -661,6 +655,26 @@ impl ParticleFilter3d {
             scored: pts.len(),
             odometry_corrected: corrected.is_some(),
         })
+    }
+
+    /// Restart every particle at `pose`, its trajectory beginning at `scan`, with one map
+    /// shared by all: `frames` (pose, robot-frame origins, end points) written in order, as
+    /// `step` writes a frame. The first frame starts the run this way; the pose-graph back end
+    /// (python/omnitof/slam/backend.py) restarts the filter this way at a correction, with
+    /// every integrated frame at its optimised pose. Fails (GridError::NoMemory), the filter
+    /// as it was, where the map cannot be had.
+    pub fn reset(&mut self, pose: [f64; 3], scan: u64, frames: &[([f64; 3], &[[f64; 3]], &[[f64; 3]])]) -> Result<(), GridError> {
+        // Resolution and model were checked by `new`.
+        let mut map = SharedVoxels { resolution: self.params.resolution, model: self.params.log_odds, blocks: Blocks::default() };
+        for (at, origins, endpoints) in frames {
+            let (wo, we) = Self::world_rays(*at, origins, endpoints);
+            map.integrate(&wo, &we, self.params.max_range, self.params.free_stride)?;
+        }
+        let root = Arc::new(TrajectoryNode { pose, scan, parent: None });
+        let first = Particle3d { pose, log_weight: 0.0, map, trajectory: root };
+        self.particles = vec![first; self.params.n_particles];
+        self.best = 0;
+        Ok(())
     }
 
     fn world_rays(pose: [f64; 3], origins: &[[f64; 3]], endpoints: &[[f64; 3]]) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
@@ -1076,6 +1090,46 @@ mod tests {
         for proposal in [ProposalKind::Odometry, ProposalKind::ScanMatch] {
             assert_eq!(run(1, proposal), run(2, proposal));
         }
+    }
+
+    #[test]
+    fn reset_restarts_every_particle_on_one_map_of_the_frames_at_their_new_poses() {
+        // Two frames taken at `taken`, written at the poses a pose graph moved them to: the
+        // map is the one the frames' world rays make, shared by all particles (one map's
+        // blocks), each particle at the restart pose with a one-node trajectory.
+        let mut pf = ParticleFilter3d::new(params(8, 2, ProposalKind::ScanMatch)).unwrap();
+        let taken = [[0.0, 0.0, 0.0], [0.5, 0.1, 0.2]];
+        let moved = [[0.05, -0.02, 0.01], [0.52, 0.15, 0.23]];
+        let frames: Vec<_> = taken.iter().map(|t| frame(*t, 3.0, (-180.0, 180.0))).collect();
+        for (k, (t, (o, e))) in taken.iter().zip(&frames).enumerate() {
+            pf.step(taken[k.saturating_sub(1)], *t, o, e, k as u64).unwrap();
+        }
+        let args: Vec<([f64; 3], &[[f64; 3]], &[[f64; 3]])> =
+            moved.iter().zip(&frames).map(|(m, (o, e))| (*m, o.as_slice(), e.as_slice())).collect();
+        pf.reset(moved[1], 7, &args).unwrap();
+        let mut expected = SharedVoxels::new(0.1, MODEL).unwrap();
+        for (m, (o, e)) in moved.iter().zip(&frames) {
+            let (wo, we) = ParticleFilter3d::world_rays(*m, o, e);
+            expected.integrate(&wo, &we, 7.0, 2).unwrap();
+        }
+        let cells = |v: &SharedVoxels| -> Vec<([i64; 3], u32)> {
+            let mut c: Vec<_> = v.to_voxel_grid().observed().into_iter().map(|(i, l)| (i, l.to_bits())).collect();
+            c.sort();
+            c
+        };
+        assert_eq!(cells(&pf.particles[0].map), cells(&expected));
+        assert_eq!(pf.block_counts(), (expected.block_count(), 8 * expected.block_count()));
+        for q in &pf.particles {
+            assert_eq!(q.pose, moved[1]);
+            assert_eq!(q.trajectory.lineage(), vec![(7, moved[1])]);
+        }
+        // The filter goes on from there: the next frame, taken 0.2 m on from the restart pose,
+        // is matched on the rebuilt map.
+        let next = [moved[1][0] + 0.2, moved[1][1], moved[1][2]];
+        let (o, e) = frame(next, 3.0, (-180.0, 180.0));
+        pf.step(taken[1], [taken[1][0] + 0.23, taken[1][1], taken[1][2]], &o, &e, 8).unwrap();
+        let best = pf.best().unwrap().pose;
+        assert!((best[0] - next[0]).hypot(best[1] - next[1]) < 0.03, "best {best:?}, truth {next:?}");
     }
 
     #[test]

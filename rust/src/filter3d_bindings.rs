@@ -177,6 +177,50 @@ impl PyParticleFilter3D {
         Ok((PyArray1::from_vec(py, ll), PyArray1::from_vec(py, n)))
     }
 
+    /// Restart every particle at `pose`, its trajectory beginning at frame `scan`, on one map
+    /// of the frames `origins[k]`, `endpoints[k]` (robot frame, (N, 3) each) written at
+    /// `poses[k]` ((K, 3)) in order: the pose-graph back end's correction fed back
+    /// (python/omnitof/slam/backend.py).
+    fn reset(
+        &mut self,
+        py: Python<'_>,
+        pose: PyReadonlyArray1<f64>,
+        scan: u64,
+        poses: PyReadonlyArray2<f64>,
+        origins: Vec<PyReadonlyArray2<f64>>,
+        endpoints: Vec<PyReadonlyArray2<f64>>,
+    ) -> PyResult<()> {
+        let pose = pose3(pose.as_slice()?, "pose")?;
+        let at = rays(&poses, "poses", f64::INFINITY)?;
+        if !pose.iter().chain(at.iter().flatten()).all(|v| v.is_finite()) {
+            return Err(PyValueError::new_err("poses must be finite"));
+        }
+        if origins.len() != at.len() || endpoints.len() != at.len() {
+            return Err(PyValueError::new_err(format!(
+                "{} poses, {} origin arrays and {} end-point arrays: one of each per frame",
+                at.len(),
+                origins.len(),
+                endpoints.len()
+            )));
+        }
+        let res = self.inner.params.resolution;
+        let mut frames = Vec::with_capacity(at.len());
+        for (k, (o, e)) in origins.iter().zip(&endpoints).enumerate() {
+            let (o, e) = (rays(o, "origins", res)?, rays(e, "endpoints", res)?);
+            if o.len() != e.len() {
+                return Err(PyValueError::new_err(format!("frame {k}: {} origins for {} end points", o.len(), e.len())));
+            }
+            frames.push((at[k], o, e));
+        }
+        let inner = &mut self.inner;
+        py.detach(|| {
+            let views: Vec<([f64; 3], &[[f64; 3]], &[[f64; 3]])> =
+                frames.iter().map(|(p, o, e)| (*p, o.as_slice(), e.as_slice())).collect();
+            inner.reset(pose, scan, &views)
+        })
+        .map_err(crate::grid_error)
+    }
+
     /// The best particle's pose; None before the first frame.
     fn best_pose<'py>(&self, py: Python<'py>) -> Option<Bound<'py, PyArray1<f64>>> {
         self.inner.best().map(|b| PyArray1::from_vec(py, b.pose.to_vec()))
@@ -184,19 +228,7 @@ impl PyParticleFilter3D {
 
     /// (frame indices, poses (K, 3)) of the best particle's trajectory, oldest first.
     fn best_trajectory<'py>(&self, py: Python<'py>) -> (Bound<'py, PyArray1<u64>>, Bound<'py, PyArray2<f64>>) {
-        let traj: Vec<(u64, [f64; 3])> = match self.inner.best() {
-            Some(b) => {
-                let mut out = Vec::new();
-                let mut node = Some(&b.trajectory);
-                while let Some(n) = node {
-                    out.push((n.scan, n.pose));
-                    node = n.parent.as_ref();
-                }
-                out.reverse();
-                out
-            }
-            None => Vec::new(),
-        };
+        let traj = self.inner.best().map(|b| b.trajectory.lineage()).unwrap_or_default();
         let idx: Vec<u64> = traj.iter().map(|t| t.0).collect();
         let poses: Vec<[f64; 3]> = traj.iter().map(|t| t.1).collect();
         (PyArray1::from_vec(py, idx), rows3(py, &poses))

@@ -1,8 +1,9 @@
 """The pose-graph back end behind the particle filter: submaps, loop closures, optimisation, and
 the correction fed back to the filter.
 
-The filter (either proposal) stays the front end: it integrates scans and, at each integrated
-scan, its best particle gives a pose. Behind it, as in Cartographer (Hess, Kohler, Rapp, Andor,
+The filter (either proposal; the 2D one or the 3D one) stays the front end: it integrates scans
+and, at each integrated scan, its best particle gives a pose. The submaps and closures use the 2D
+scans of the integrated scans in either case (a ToF bag has both). Behind it, as in Cartographer (Hess, Kohler, Rapp, Andor,
 "Real-Time Loop Closure in 2D LIDAR SLAM", ICRA 2016):
 
 - **Nodes** are the integrated scans. **Front-end edges** join consecutive nodes with the
@@ -32,7 +33,8 @@ scan, its best particle gives a pose. Behind it, as in Cartographer (Hess, Kohle
   `optimize_every` nodes), and a repaired map exists while the run goes on.
 - **Feedback**: where the optimum moves the newest node by more than `feedback_xy` /
   `feedback_deg`, every particle restarts at the optimised pose with a map rebuilt from all
-  nodes at their optimised poses (`ParticleFilter.reset`). The front end's trajectory then
+  nodes at their optimised poses (`ParticleFilter.reset`; the 3D filter's voxel map is
+  rebuilt from every node's rays, `omnitof.slam.filter3d.FrontEnd3D`). The front end's trajectory then
   begins anew at that node (a new *segment*); the edges of the segment before are kept as
   they were, and the submap in progress is closed, since its scans were placed in the frame
   before the correction.
@@ -48,6 +50,7 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import Protocol, Union
 
 import gtsam
 import numpy as np
@@ -66,6 +69,21 @@ GNC_INNER_ITERATIONS = 10
 GNC_MIN_DISAGREEING = 2
 CHI2_PROBABILITY = 0.99
 CHI2_3DOF_99 = 11.345  # the CHI2_PROBABILITY quantile of chi-square with 3 degrees of freedom
+
+
+class FrontEnd(Protocol):
+    """A front end other than the 2D filter (the 3D one: omnitof.slam.filter3d.FrontEnd3D): its
+    best particle's pose and lineage, and a restart at a corrected pose on a map that it
+    rebuilds along the nodes' optimised poses."""
+
+    def best_pose(self) -> np.ndarray | None: ...
+
+    def best_trajectory(self) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def reset_along(self, pose: np.ndarray, scan: int, node_scans: list[int], node_poses: list[np.ndarray]) -> None: ...
+
+
+Front = Union[_core.ParticleFilter, FrontEnd]
 
 
 @dataclass
@@ -139,7 +157,7 @@ class PoseGraphBackend:
 
     # --- the run ----------------------------------------------------------------------------
 
-    def add_node(self, scan: int, pf: _core.ParticleFilter) -> None:
+    def add_node(self, scan: int, pf: Front) -> None:
         """Take the filter's state after integrating scan `scan`: add the node, insert it into the
         current submap, search loop closures, optimise and feed back where it pays."""
         pose = np.asarray(pf.best_pose(), dtype=np.float64)
@@ -188,7 +206,7 @@ class PoseGraphBackend:
         self.seconds[what] += now - since
         return now
 
-    def finish(self, pf: _core.ParticleFilter) -> np.ndarray:
+    def finish(self, pf: Front) -> np.ndarray:
         """The optimised pose of every node (K, 3), after a last optimisation."""
         if not self.scan_of:
             return np.zeros((0, 3))
@@ -210,7 +228,7 @@ class PoseGraphBackend:
         self.submaps.append(sub)
         return sub
 
-    def _insert(self, j: int, pose: np.ndarray, pf: _core.ParticleFilter) -> None:
+    def _insert(self, j: int, pose: np.ndarray, pf: Front) -> None:
         """Count node j into the submap in progress; once it is `submap_length` long, build and
         finish it. It is built only then, from the best particle's lineage as it is then: the
         front end may still have revised the poses of its first nodes after they came in."""
@@ -223,7 +241,7 @@ class PoseGraphBackend:
         if current.length >= self.cfg.submap_length:
             self._build(current, pf)
 
-    def _build(self, sub: _Submap, pf: _core.ParticleFilter) -> None:
+    def _build(self, sub: _Submap, pf: Front) -> None:
         assert sub is self.submaps[-1], "only the submap in progress is built"
         self._refresh_segment(pf)
         for j in sub.nodes:
@@ -244,7 +262,7 @@ class PoseGraphBackend:
             old, _ = self._with_grids.popitem(last=False)
             self.submaps[old].grid.release_grids()
 
-    def _close_current_submap(self, pf: _core.ParticleFilter) -> None:
+    def _close_current_submap(self, pf: Front) -> None:
         """Finish the submap in progress (before a correction moves the front end's frame)."""
         if self.submaps and not self.submaps[-1].grid.finished:
             self._build(self.submaps[-1], pf)
@@ -312,7 +330,7 @@ class PoseGraphBackend:
 
     # --- the graph --------------------------------------------------------------------------
 
-    def _refresh_segment(self, pf: _core.ParticleFilter) -> None:
+    def _refresh_segment(self, pf: Front) -> None:
         """Front-end poses and edges of the current segment from the best particle's lineage,
         which is consistent with itself (the best particle may have changed since a node was
         added)."""
@@ -573,13 +591,16 @@ class PoseGraphBackend:
 
     # --- feedback ---------------------------------------------------------------------------
 
-    def _feed_back(self, j: int, pf: _core.ParticleFilter) -> None:
+    def _feed_back(self, j: int, pf: Front) -> None:
         corrected = self.estimate[j]
         d = relative(self.frontend[j], corrected)
         if math.hypot(d[0], d[1]) < self.cfg.feedback_xy and abs(d[2]) < math.radians(self.cfg.feedback_deg):
             return
         self._close_current_submap(pf)
-        pf.reset(corrected, self.scan_of[j], self.build_grid())
+        if isinstance(pf, _core.ParticleFilter):
+            pf.reset(corrected, self.scan_of[j], self.build_grid())
+        else:  # the 3D filter (omnitof.slam.filter3d.FrontEnd3D) rebuilds its voxels itself
+            pf.reset_along(corrected, self.scan_of[j], self.scan_of, self.estimate)
         self.feedbacks += 1
         self.frontend[j] = corrected.copy()
         self.segment_start = j
@@ -609,6 +630,14 @@ class PoseGraphBackend:
             "submap_bytes": sum(s.grid.memory_bytes() for s in self.submaps),
             "seconds": {k: round(v, 2) for k, v in self.seconds.items()},
         }
+
+    def graph(self, nodes: np.ndarray) -> dict:
+        """SlamResult.graph: the nodes' poses `nodes` (K, 3) and the closures kept and rejected
+        as (anchor, node) pairs."""
+        def pairs(kept: bool) -> np.ndarray:
+            edges = [[c.anchor, c.node] for c in self.closures if bool(c.accepted) == kept]
+            return np.array(edges, dtype=np.int64).reshape(-1, 2)
+        return {"nodes": nodes, "closures": pairs(True), "rejected": pairs(False)}
 
     def closure_table(self) -> list[dict]:
         """Every closure found, for summary.yaml: scans, score, whether it was kept."""

@@ -250,11 +250,7 @@ def _run(scans: ScanSequence, cfg: SlamConfig, progress: Callable[[int], None] |
         corrected = backend.finish(pf)
         grid = backend.build_grid()
         log_odds, ix0, iy0 = grid.to_dense()
-        graph = {
-            "nodes": corrected,
-            "closures": np.array([[c.anchor, c.node] for c in backend.closures if c.accepted], dtype=np.int64).reshape(-1, 2),
-            "rejected": np.array([[c.anchor, c.node] for c in backend.closures if not c.accepted], dtype=np.int64).reshape(-1, 2),
-        }
+        graph = backend.graph(corrected)
     if between is None:
         poses = fill_trajectory(scans.odometry, integrated, corrected)
     else:

@@ -9,6 +9,12 @@ keyframes of `driver.select_scans`'s rule, kept while reading: `scan.tof_input`)
 scan a pose (the last integrated pose composed with the odometry since), and projects the best
 particle's voxels onto the floor as the run's 2D map (map.pgm).
 
+With `backend.enabled` the pose-graph back end (omnitof.slam.backend) runs behind it as behind
+the 2D filter: its nodes are the integrated frames, its submaps and loop closures come from the
+frames' 2D scans, a correction restarts the particles on voxels rebuilt from every frame's rays
+at the optimised poses (`FrontEnd3D`), and the voxel map written at the end is rebuilt the same
+way along the final optimised poses.
+
 Clouds: (M, 6) float32 per integrated frame, ray origin on the mirror and end point, robot
 frame, metres (`scan.ToFScans.clouds`).
 """
@@ -16,7 +22,6 @@ frame, metres (`scan.ToFScans.clouds`).
 from __future__ import annotations
 
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -24,24 +29,36 @@ from typing import Any
 import numpy as np
 
 from omnitof import _core
-from omnitof.errors import InputError, OmnitofWarning, ResourceError
+from omnitof.errors import InputError, ResourceError
 from omnitof.slam.config import SlamConfig
 from omnitof.slam.driver import DRIVER_FILTER_FIELDS, DRIVER_MAP_FIELDS, SlamResult, fill_trajectory, in_odometry_frame
 from omnitof.slam.anchor import moved, voxel_offset
-from omnitof.slam.limits import MemoryWatch, within_cores
+from omnitof.slam.backend import PoseGraphBackend
+from omnitof.slam.limits import MemoryWatch, usable_cores, within_cores
 from omnitof.types import OccupancyMap, ScanSequence, Trajectory
 
 
-class Unused3DSettingWarning(OmnitofWarning):
-    """A setting that the 3D filter does not use was turned on."""
+class FrontEnd3D:
+    """The 3D filter in front of the pose-graph back end (omnitof.slam.backend): the best
+    particle's pose and lineage, and, where the graph corrects the newest node, a restart of
+    every particle at the corrected pose on a voxel map rebuilt from the integrated frames'
+    rays at the nodes' optimised poses (`_core.ParticleFilter3D.reset`)."""
 
+    def __init__(self, pf: "_core.ParticleFilter3D", clouds: dict[int, np.ndarray]):
+        self.pf = pf
+        self.clouds = clouds  # scan index -> (M, 6) rays of that integrated frame
 
-def warn_unused_settings(cfg: SlamConfig) -> None:
-    """Say which of the configuration's 2D-only settings the 3D run ignores, so that a user who
-    set them (or a 2D preset that has them, as tof-scanmatch does) does not count on them."""
-    if cfg.backend.enabled:
-        warnings.warn(Unused3DSettingWarning(
-            "the 3D filter runs without backend.enabled (the pose-graph back end works on 2D submaps)"), stacklevel=3)
+    def best_pose(self) -> np.ndarray | None:
+        return self.pf.best_pose()
+
+    def best_trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.pf.best_trajectory()
+
+    def reset_along(self, pose: np.ndarray, scan: int, node_scans: Sequence[int],
+                    node_poses: Sequence[np.ndarray]) -> None:
+        rays = [np.asarray(self.clouds[int(k)], dtype=np.float64).reshape(-1, 6) for k in node_scans]
+        self.pf.reset(np.asarray(pose, dtype=np.float64), int(scan), np.asarray(node_poses, dtype=np.float64).reshape(-1, 3),
+                      [np.ascontiguousarray(r[:, :3]) for r in rays], [np.ascontiguousarray(r[:, 3:]) for r in rays])
 
 
 @dataclass
@@ -105,7 +122,6 @@ def run_slam3d(
         InputError: no frames, or frames and clouds that do not pair up.
         ResourceError: memory that ran out.
     """
-    warn_unused_settings(cfg)
     cfg = within_cores(cfg)
     frames = np.asarray(frames, dtype=np.int64).reshape(-1)
     if len(frames) == 0 or frames[0] != 0 or len(frames) != len(clouds):
@@ -131,6 +147,11 @@ def _run(scans: ScanSequence, frames: np.ndarray, clouds: Sequence[np.ndarray], 
          progress: Callable[[int], None] | None) -> Slam3DResult:
     start = time.perf_counter()
     pf = make_filter3d(cfg)
+    front = FrontEnd3D(pf, {int(k): c for k, c in zip(frames, clouds)})
+    backend = None
+    if cfg.backend.enabled:
+        backend = PoseGraphBackend(cfg.backend, cfg.map, cfg.likelihood_field.sigma, scans,
+                                   cfg.filter.threads or usable_cores())
     prev = scans.odometry[frames[0]]
     seconds: list[float] = []
     cpu_start = time.process_time()
@@ -147,6 +168,8 @@ def _run(scans: ScanSequence, frames: np.ndarray, clouds: Sequence[np.ndarray], 
         scored += info[3]
         if info[4]:
             corrected_scans.append(int(k))
+        if backend is not None:
+            backend.add_node(int(k), front)
         seconds.append(time.perf_counter() - t0)
         prev = cur
         memory.check(step, len(frames))
@@ -156,7 +179,14 @@ def _run(scans: ScanSequence, frames: np.ndarray, clouds: Sequence[np.ndarray], 
     cpu = time.process_time() - cpu_start
     if progress is not None and done < len(scans):
         progress(len(scans) - done)
-    scan_idx, corrected = pf.best_trajectory()
+    graph = None
+    if backend is None:
+        corrected = pf.best_trajectory()[1]
+    else:
+        # The map written is the one along the optimised poses: every frame's rays at its node.
+        corrected = backend.finish(front)
+        front.reset_along(corrected[-1], int(frames[-1]), frames.tolist(), list(corrected))
+        graph = backend.graph(corrected)
     poses = fill_trajectory(scans.odometry, frames, corrected)
     voxels = pf.map()
     indices, log_odds = voxels.observed()
@@ -185,6 +215,9 @@ def _run(scans: ScanSequence, frames: np.ndarray, clouds: Sequence[np.ndarray], 
         "voxel_bytes": int(distinct * _core.ParticleFilter3D.block_bytes()),
         "voxels_observed": int(voxels.voxel_count()),
     }
+    if backend is not None:
+        stats["backend"] = backend.stats()
+        stats["loop_closures"] = backend.closure_table()
     if not occupancy.known.any():
         raise InputError("no ray of any frame left a mark in the 3D map (nothing within filter3d.max_range)",
                          scans.source or None)
@@ -194,6 +227,7 @@ def _run(scans: ScanSequence, frames: np.ndarray, clouds: Sequence[np.ndarray], 
         integrated=frames,
         map=occupancy,
         stats=stats,
+        graph=graph,
     )
     return Slam3DResult(result, voxels, seconds)
 
