@@ -580,7 +580,9 @@ impl ParticleFilter3d {
         self.steps += 1;
         let n = self.params.n_particles;
         if self.particles.is_empty() {
-            self.reset(odom_cur, scan, &[(odom_cur, origins, endpoints)])?;
+            let mut map = self.empty_map();
+            self.integrate_frame(&mut map, odom_cur, origins, endpoints)?;
+            self.reset(odom_cur, scan, map);
             return Ok(StepInfo3d { neff: n as f64, resampled: false, fallbacks: 0, scored: 0, odometry_corrected: false });
         }
         let pts = self.scored_points(origins, endpoints);
@@ -657,24 +659,28 @@ impl ParticleFilter3d {
         })
     }
 
-    /// Restart every particle at `pose`, its trajectory beginning at `scan`, with one map
-    /// shared by all: `frames` (pose, robot-frame origins, end points) written in order, as
-    /// `step` writes a frame. The first frame starts the run this way; the pose-graph back end
-    /// (python/omnitof/slam/backend.py) restarts the filter this way at a correction, with
-    /// every integrated frame at its optimised pose. Fails (GridError::NoMemory), the filter
-    /// as it was, where the map cannot be had.
-    pub fn reset(&mut self, pose: [f64; 3], scan: u64, frames: &[([f64; 3], &[[f64; 3]], &[[f64; 3]])]) -> Result<(), GridError> {
+    /// An empty map of the filter's resolution and log-odds model.
+    pub fn empty_map(&self) -> SharedVoxels {
         // Resolution and model were checked by `new`.
-        let mut map = SharedVoxels { resolution: self.params.resolution, model: self.params.log_odds, blocks: Blocks::default() };
-        for (at, origins, endpoints) in frames {
-            let (wo, we) = Self::world_rays(*at, origins, endpoints);
-            map.integrate(&wo, &we, self.params.max_range, self.params.free_stride)?;
-        }
+        SharedVoxels { resolution: self.params.resolution, model: self.params.log_odds, blocks: Blocks::default() }
+    }
+
+    /// Write one frame of rays (robot frame) taken at `pose` into `map`, as `step` writes a
+    /// frame into each particle's map.
+    pub fn integrate_frame(&self, map: &mut SharedVoxels, pose: [f64; 3], origins: &[[f64; 3]], endpoints: &[[f64; 3]]) -> Result<(), GridError> {
+        let (wo, we) = Self::world_rays(pose, origins, endpoints);
+        map.integrate(&wo, &we, self.params.max_range, self.params.free_stride).map(|_| ())
+    }
+
+    /// Restart every particle at `pose`, its trajectory beginning at `scan`, all sharing `map`.
+    /// The first frame starts the run this way; the pose-graph back end
+    /// (python/omnitof/slam/backend.py) restarts the filter this way at a correction, on a map
+    /// of every integrated frame written at its optimised pose (`integrate_frame`).
+    pub fn reset(&mut self, pose: [f64; 3], scan: u64, map: SharedVoxels) {
         let root = Arc::new(TrajectoryNode { pose, scan, parent: None });
         let first = Particle3d { pose, log_weight: 0.0, map, trajectory: root };
         self.particles = vec![first; self.params.n_particles];
         self.best = 0;
-        Ok(())
     }
 
     fn world_rays(pose: [f64; 3], origins: &[[f64; 3]], endpoints: &[[f64; 3]]) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
@@ -1104,9 +1110,11 @@ mod tests {
         for (k, (t, (o, e))) in taken.iter().zip(&frames).enumerate() {
             pf.step(taken[k.saturating_sub(1)], *t, o, e, k as u64).unwrap();
         }
-        let args: Vec<([f64; 3], &[[f64; 3]], &[[f64; 3]])> =
-            moved.iter().zip(&frames).map(|(m, (o, e))| (*m, o.as_slice(), e.as_slice())).collect();
-        pf.reset(moved[1], 7, &args).unwrap();
+        let mut map = pf.empty_map();
+        for (m, (o, e)) in moved.iter().zip(&frames) {
+            pf.integrate_frame(&mut map, *m, o, e).unwrap();
+        }
+        pf.reset(moved[1], 7, map);
         let mut expected = SharedVoxels::new(0.1, MODEL).unwrap();
         for (m, (o, e)) in moved.iter().zip(&frames) {
             let (wo, we) = ParticleFilter3d::world_rays(*m, o, e);

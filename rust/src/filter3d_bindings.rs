@@ -178,47 +178,47 @@ impl PyParticleFilter3D {
     }
 
     /// Restart every particle at `pose`, its trajectory beginning at frame `scan`, on one map
-    /// of the frames `origins[k]`, `endpoints[k]` (robot frame, (N, 3) each) written at
-    /// `poses[k]` ((K, 3)) in order: the pose-graph back end's correction fed back
-    /// (python/omnitof/slam/backend.py).
+    /// of the frames `clouds[k]` ((M, 6) float32: origin, end point, robot frame, as
+    /// `scan.ToFScans.clouds`) written at `poses[k]` ((K, 3)) in order: the pose-graph back
+    /// end's correction fed back (python/omnitof/slam/backend.py). One frame is converted at a
+    /// time, so that a long run's rays are not copied whole.
     fn reset(
         &mut self,
         py: Python<'_>,
         pose: PyReadonlyArray1<f64>,
         scan: u64,
         poses: PyReadonlyArray2<f64>,
-        origins: Vec<PyReadonlyArray2<f64>>,
-        endpoints: Vec<PyReadonlyArray2<f64>>,
+        clouds: Vec<PyReadonlyArray2<f32>>,
     ) -> PyResult<()> {
         let pose = pose3(pose.as_slice()?, "pose")?;
         let at = rays(&poses, "poses", f64::INFINITY)?;
         if !pose.iter().chain(at.iter().flatten()).all(|v| v.is_finite()) {
             return Err(PyValueError::new_err("poses must be finite"));
         }
-        if origins.len() != at.len() || endpoints.len() != at.len() {
-            return Err(PyValueError::new_err(format!(
-                "{} poses, {} origin arrays and {} end-point arrays: one of each per frame",
-                at.len(),
-                origins.len(),
-                endpoints.len()
-            )));
+        if clouds.len() != at.len() {
+            return Err(PyValueError::new_err(format!("{} poses for {} clouds: one pose per frame", at.len(), clouds.len())));
         }
-        let res = self.inner.params.resolution;
-        let mut frames = Vec::with_capacity(at.len());
-        for (k, (o, e)) in origins.iter().zip(&endpoints).enumerate() {
-            let (o, e) = (rays(o, "origins", res)?, rays(e, "endpoints", res)?);
-            if o.len() != e.len() {
-                return Err(PyValueError::new_err(format!("frame {k}: {} origins for {} end points", o.len(), e.len())));
+        let limit = 0.5 * (INDEX_LIMIT as f64) * self.inner.params.resolution;
+        let mut map = self.inner.empty_map();
+        for (k, cloud) in clouds.iter().enumerate() {
+            if cloud.shape()[1] != 6 {
+                return Err(PyValueError::new_err(format!("cloud {k} must have shape (M, 6), got {:?}", cloud.shape())));
             }
-            frames.push((at[k], o, e));
+            let (mut o, mut e) = (Vec::new(), Vec::new());
+            for r in cloud.as_slice()?.chunks_exact(6) {
+                let r: [f64; 6] = std::array::from_fn(|i| r[i] as f64);
+                if !r.iter().all(|v| v.is_finite() && v.abs() < limit) {
+                    return Err(PyValueError::new_err(format!("cloud {k}: {r:?} is not a finite ray within ±{limit} m")));
+                }
+                o.push([r[0], r[1], r[2]]);
+                e.push([r[3], r[4], r[5]]);
+            }
+            let inner = &self.inner;
+            let frame_pose = at[k];
+            py.detach(|| inner.integrate_frame(&mut map, frame_pose, &o, &e)).map_err(crate::grid_error)?;
         }
-        let inner = &mut self.inner;
-        py.detach(|| {
-            let views: Vec<([f64; 3], &[[f64; 3]], &[[f64; 3]])> =
-                frames.iter().map(|(p, o, e)| (*p, o.as_slice(), e.as_slice())).collect();
-            inner.reset(pose, scan, &views)
-        })
-        .map_err(crate::grid_error)
+        self.inner.reset(pose, scan, map);
+        Ok(())
     }
 
     /// The best particle's pose; None before the first frame.

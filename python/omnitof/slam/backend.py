@@ -3,8 +3,8 @@ the correction fed back to the filter.
 
 The filter (either proposal; the 2D one or the 3D one) stays the front end: it integrates scans
 and, at each integrated scan, its best particle gives a pose. The submaps and closures use the 2D
-scans of the integrated scans in either case (a ToF bag has both). Behind it, as in Cartographer (Hess, Kohler, Rapp, Andor,
-"Real-Time Loop Closure in 2D LIDAR SLAM", ICRA 2016):
+scans of the integrated scans in either case (a ToF bag has both). Behind it, as in Cartographer
+(Hess, Kohler, Rapp, Andor, "Real-Time Loop Closure in 2D LIDAR SLAM", ICRA 2016):
 
 - **Nodes** are the integrated scans. **Front-end edges** join consecutive nodes with the
   relative motion of the best particle's trajectory (one lineage, so the edges agree with each
@@ -33,11 +33,11 @@ scans of the integrated scans in either case (a ToF bag has both). Behind it, as
   `optimize_every` nodes), and a repaired map exists while the run goes on.
 - **Feedback**: where the optimum moves the newest node by more than `feedback_xy` /
   `feedback_deg`, every particle restarts at the optimised pose with a map rebuilt from all
-  nodes at their optimised poses (`ParticleFilter.reset`; the 3D filter's voxel map is
-  rebuilt from every node's rays, `omnitof.slam.filter3d.FrontEnd3D`). The front end's trajectory then
-  begins anew at that node (a new *segment*); the edges of the segment before are kept as
-  they were, and the submap in progress is closed, since its scans were placed in the frame
-  before the correction.
+  nodes at their optimised poses (`ParticleFilter.reset`; the 3D filter's voxel map is rebuilt
+  from every node's rays, `omnitof.slam.filter3d.FrontEnd3D`). The front end's trajectory then
+  begins anew at that node (a new *segment*); the edges of the segment before are kept as they
+  were, and the submap in progress is closed, since its scans were placed in the frame before
+  the correction.
 
 Everything is deterministic: the search and the core are bit-identical for any thread count,
 and the graph is optimised in node order on one thread.

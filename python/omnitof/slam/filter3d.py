@@ -56,9 +56,9 @@ class FrontEnd3D:
 
     def reset_along(self, pose: np.ndarray, scan: int, node_scans: Sequence[int],
                     node_poses: Sequence[np.ndarray]) -> None:
-        rays = [np.asarray(self.clouds[int(k)], dtype=np.float64).reshape(-1, 6) for k in node_scans]
-        self.pf.reset(np.asarray(pose, dtype=np.float64), int(scan), np.asarray(node_poses, dtype=np.float64).reshape(-1, 3),
-                      [np.ascontiguousarray(r[:, :3]) for r in rays], [np.ascontiguousarray(r[:, 3:]) for r in rays])
+        clouds = [np.ascontiguousarray(self.clouds[int(k)], dtype=np.float32).reshape(-1, 6) for k in node_scans]
+        self.pf.reset(np.asarray(pose, dtype=np.float64), int(scan),
+                      np.asarray(node_poses, dtype=np.float64).reshape(-1, 3), clouds)
 
 
 @dataclass
@@ -179,6 +179,7 @@ def _run(scans: ScanSequence, frames: np.ndarray, clouds: Sequence[np.ndarray], 
     cpu = time.process_time() - cpu_start
     if progress is not None and done < len(scans):
         progress(len(scans) - done)
+    distinct, refs = pf.block_counts()  # the particles' maps, before a rebuild shares one
     graph = None
     if backend is None:
         corrected = pf.best_trajectory()[1]
@@ -192,7 +193,6 @@ def _run(scans: ScanSequence, frames: np.ndarray, clouds: Sequence[np.ndarray], 
     indices, log_odds = voxels.observed()
     f3 = cfg.filter3d
     occupancy = project_to_floor(indices, log_odds, voxels.resolution, f3.project_z_min, f3.project_z_max)
-    distinct, refs = pf.block_counts()
     stats = {
         "filter": "3d",
         "scans": len(scans),
