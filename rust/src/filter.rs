@@ -179,7 +179,7 @@ const BETWEEN_GAUSS_NEWTON: u32 = 6;
 /// next stretch of the walls the first one saw is "unexplained" there for want of map, and the
 /// wide search fitted its few end points onto the stretches already mapped (the office's first
 /// frames: about ten readings each, a 0.3-0.4 m false jump at the second integrated scan that
-/// the whole run kept, in 4 of 6 drives of benchmarks/filter3d.py's rendering). A glitch at the
+/// the whole run kept, in 5 of 6 drives of benchmarks/filter3d.py's rendering). A glitch at the
 /// second scan is not caught (nor was it before, on the simulated corridor loop); one at the
 /// fifth still is.
 const CHECK_FROM_STEP: u64 = 2;
