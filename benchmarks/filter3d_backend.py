@@ -25,23 +25,14 @@ from datetime import date
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from filter3d_glitch import prepared  # noqa: E402  (benchmarks/filter3d_glitch.py)
+from world_filters import overrides  # noqa: E402  (benchmarks/world_filters.py: --set items)
 
 from omnitof.eval.trajectory import absolute_trajectory_error  # noqa: E402
 from omnitof.slam.config import load_config  # noqa: E402
 from omnitof.slam.filter3d import run_slam3d  # noqa: E402
-
-
-def overrides(items: list[str]) -> dict:
-    out: dict = {}
-    for item in items:
-        key, value = item.split("=", 1)
-        section, name = key.split(".", 1)
-        out.setdefault(section, {})[name] = yaml.safe_load(value)
-    return out
 
 
 def main(argv: list[str] | None = None) -> int:
