@@ -89,4 +89,7 @@ def pause_point(name: str) -> None:
         return
     print(f"omnitof: paused at {name} ({PAUSE_VARIABLE})", file=sys.stderr, flush=True)
     while True:
-        time.sleep(3600)  # a signal whose handler raises ends the sleep with its exception
+        # Short sleeps: a signal the kernel hands to another thread (the core's workers) does not
+        # interrupt this one's sleep, and Python runs the handler (which raises) only when the
+        # main thread next looks; a long sleep could then outlast the test's guard.
+        time.sleep(0.05)
