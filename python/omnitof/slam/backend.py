@@ -33,8 +33,8 @@ scans of the integrated scans in either case (a ToF bag has both). Behind it, as
   `optimize_every` nodes), and a repaired map exists while the run goes on.
 - **Feedback**: where the optimum moves the newest node by more than `feedback_xy` /
   `feedback_deg`, every particle restarts at the optimised pose with a map rebuilt from all
-  nodes at their optimised poses (`ParticleFilter.reset`; the 3D filter's voxel map is rebuilt
-  from every node's rays, `omnitof.slam.filter3d.FrontEnd3D`). The front end's trajectory then
+  nodes at their optimised poses (`FrontEnd2D`; the 3D filter's voxel map is rebuilt from
+  every node's rays, `omnitof.slam.filter3d.FrontEnd3D`). The front end's trajectory then
   begins anew at that node (a new *segment*); the edges of the segment before are kept as they
   were, and the submap in progress is closed, since its scans were placed in the frame before
   the correction.
@@ -50,7 +50,7 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Protocol, Union
+from typing import Protocol
 
 import gtsam
 import numpy as np
@@ -72,9 +72,9 @@ CHI2_3DOF_99 = 11.345  # the CHI2_PROBABILITY quantile of chi-square with 3 degr
 
 
 class FrontEnd(Protocol):
-    """A front end other than the 2D filter (the 3D one: omnitof.slam.filter3d.FrontEnd3D): its
-    best particle's pose and lineage, and a restart at a corrected pose on a map that it
-    rebuilds along the nodes' optimised poses."""
+    """The filter in front of the back end: its best particle's pose and lineage, and a restart
+    of every particle at a corrected pose on a map rebuilt along the nodes' optimised poses
+    (`FrontEnd2D` here, `omnitof.slam.filter3d.FrontEnd3D` for the 3D filter)."""
 
     def best_pose(self) -> np.ndarray | None: ...
 
@@ -83,7 +83,21 @@ class FrontEnd(Protocol):
     def reset_along(self, pose: np.ndarray, scan: int, node_scans: list[int], node_poses: list[np.ndarray]) -> None: ...
 
 
-Front = Union[_core.ParticleFilter, FrontEnd]
+class FrontEnd2D:
+    """The 2D filter as the back end's front end: it restarts on a grid of every node's scan at
+    its optimised pose (`ParticleFilter.reset`)."""
+
+    def __init__(self, pf: _core.ParticleFilter, scans: ScanSequence, map_cfg: MapConfig):
+        self.pf, self.scans, self.map_cfg = pf, scans, map_cfg
+
+    def best_pose(self) -> np.ndarray | None:
+        return self.pf.best_pose()
+
+    def best_trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.pf.best_trajectory()
+
+    def reset_along(self, pose: np.ndarray, scan: int, node_scans: list[int], node_poses: list[np.ndarray]) -> None:
+        self.pf.reset(pose, scan, grid_along(self.scans, node_scans, np.asarray(node_poses), self.map_cfg))
 
 
 @dataclass
@@ -157,7 +171,7 @@ class PoseGraphBackend:
 
     # --- the run ----------------------------------------------------------------------------
 
-    def add_node(self, scan: int, pf: Front) -> None:
+    def add_node(self, scan: int, pf: FrontEnd) -> None:
         """Take the filter's state after integrating scan `scan`: add the node, insert it into the
         current submap, search loop closures, optimise and feed back where it pays."""
         pose = np.asarray(pf.best_pose(), dtype=np.float64)
@@ -206,7 +220,7 @@ class PoseGraphBackend:
         self.seconds[what] += now - since
         return now
 
-    def finish(self, pf: Front) -> np.ndarray:
+    def finish(self, pf: FrontEnd) -> np.ndarray:
         """The optimised pose of every node (K, 3), after a last optimisation."""
         if not self.scan_of:
             return np.zeros((0, 3))
@@ -228,7 +242,7 @@ class PoseGraphBackend:
         self.submaps.append(sub)
         return sub
 
-    def _insert(self, j: int, pose: np.ndarray, pf: Front) -> None:
+    def _insert(self, j: int, pose: np.ndarray, pf: FrontEnd) -> None:
         """Count node j into the submap in progress; once it is `submap_length` long, build and
         finish it. It is built only then, from the best particle's lineage as it is then: the
         front end may still have revised the poses of its first nodes after they came in."""
@@ -241,7 +255,7 @@ class PoseGraphBackend:
         if current.length >= self.cfg.submap_length:
             self._build(current, pf)
 
-    def _build(self, sub: _Submap, pf: Front) -> None:
+    def _build(self, sub: _Submap, pf: FrontEnd) -> None:
         assert sub is self.submaps[-1], "only the submap in progress is built"
         self._refresh_segment(pf)
         for j in sub.nodes:
@@ -262,7 +276,7 @@ class PoseGraphBackend:
             old, _ = self._with_grids.popitem(last=False)
             self.submaps[old].grid.release_grids()
 
-    def _close_current_submap(self, pf: Front) -> None:
+    def _close_current_submap(self, pf: FrontEnd) -> None:
         """Finish the submap in progress (before a correction moves the front end's frame)."""
         if self.submaps and not self.submaps[-1].grid.finished:
             self._build(self.submaps[-1], pf)
@@ -330,7 +344,7 @@ class PoseGraphBackend:
 
     # --- the graph --------------------------------------------------------------------------
 
-    def _refresh_segment(self, pf: Front) -> None:
+    def _refresh_segment(self, pf: FrontEnd) -> None:
         """Front-end poses and edges of the current segment from the best particle's lineage,
         which is consistent with itself (the best particle may have changed since a node was
         added)."""
@@ -591,16 +605,13 @@ class PoseGraphBackend:
 
     # --- feedback ---------------------------------------------------------------------------
 
-    def _feed_back(self, j: int, pf: Front) -> None:
+    def _feed_back(self, j: int, pf: FrontEnd) -> None:
         corrected = self.estimate[j]
         d = relative(self.frontend[j], corrected)
         if math.hypot(d[0], d[1]) < self.cfg.feedback_xy and abs(d[2]) < math.radians(self.cfg.feedback_deg):
             return
         self._close_current_submap(pf)
-        if isinstance(pf, _core.ParticleFilter):
-            pf.reset(corrected, self.scan_of[j], self.build_grid())
-        else:  # the 3D filter (omnitof.slam.filter3d.FrontEnd3D) rebuilds its voxels itself
-            pf.reset_along(corrected, self.scan_of[j], self.scan_of, self.estimate)
+        pf.reset_along(corrected, self.scan_of[j], self.scan_of, self.estimate)
         self.feedbacks += 1
         self.frontend[j] = corrected.copy()
         self.segment_start = j

@@ -19,7 +19,7 @@ import numpy as np
 from omnitof import _core
 from omnitof.errors import InputError, ResourceError
 from omnitof.slam.anchor import moved, moved_back, run_offset
-from omnitof.slam.backend import PoseGraphBackend
+from omnitof.slam.backend import FrontEnd2D, PoseGraphBackend
 from omnitof.slam.limits import MemoryWatch, check_limits, usable_cores, within_cores
 from omnitof.slam.config import SlamConfig
 from omnitof.slam.final_match import final_match, grid_along
@@ -216,6 +216,7 @@ def _run(scans: ScanSequence, cfg: SlamConfig, progress: Callable[[int], None] |
     if cfg.backend.enabled:
         threads = cfg.filter.threads or usable_cores()
         backend = PoseGraphBackend(cfg.backend, cfg.map, cfg.likelihood_field.sigma, scans, threads)
+        front = FrontEnd2D(pf, scans, cfg.map)
     prev = scans.odometry[integrated[0]]
     done = 0
     corrected_scans = []
@@ -231,7 +232,7 @@ def _run(scans: ScanSequence, cfg: SlamConfig, progress: Callable[[int], None] |
             corrected_scans.append(int(k))
         prev = cur
         if backend is not None:
-            backend.add_node(int(k), pf)
+            backend.add_node(int(k), front)
         memory.check(step, len(integrated))
         if progress is not None:
             progress(int(k) + 1 - done)
@@ -247,7 +248,7 @@ def _run(scans: ScanSequence, cfg: SlamConfig, progress: Callable[[int], None] |
         assert np.array_equal(scan_idx, integrated)
         log_odds, ix0, iy0 = pf.best_map()
     else:
-        corrected = backend.finish(pf)
+        corrected = backend.finish(front)
         grid = backend.build_grid()
         log_odds, ix0, iy0 = grid.to_dense()
         graph = backend.graph(corrected)
