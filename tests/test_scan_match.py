@@ -182,13 +182,16 @@ def test_wide_search_waits_for_a_map_of_more_than_one_scan(drive):
     assert err.max() < 0.1, err.max()  # measured 0.04 / 0.02 m (0.31 / 0.30 m with the jump)
 
 
-def test_wide_search_keeps_the_odometry_where_its_pose_is_not_distinct(corridor_loop):
+@pytest.mark.parametrize("gate, value", [("search_distinct", 0.6), ("search_min_points", 10_000)])
+def test_wide_search_keeps_the_odometry_where_its_gate_says_so(corridor_loop, gate, value):
     # The same jump, with `search_distinct` above what the right pose scores over the rest of the
-    # window: the search's pose is not taken, and the run is the one without the search.
+    # window, or `search_min_points` above the end points any scan holds (the Rust tests show why
+    # a scan of one reading must not be searched): the search's pose is not taken, and the run is
+    # the one without the search.
     scans = with_odometry_jump(corridor_loop.slice(0, 500), 150, [0.6, 0.0, np.radians(8.0)])
     strict = scanmatch_config()
     strict.scan_matcher.search_xy = 1.0
-    strict.scan_matcher.search_distinct = 0.6
+    setattr(strict.scan_matcher, gate, value)
     kept = run_slam(scans, strict)
     plain = run_slam(scans, scanmatch_config())
     assert kept.stats["odometry_corrected_scans"] == []

@@ -789,7 +789,8 @@ fn check_odometry3d(
 ) -> Result<Option<[f64; 3]>, GridError> {
     let m = &p.matcher;
     let Some(window) = m.search.as_ref() else { return Ok(None) };
-    if rays.is_empty() {
+    // As in 2D (scan_match::check_odometry): too few points to tell one place from another.
+    if rays.is_empty() || rays.len() < m.search_min_points {
         return Ok(None);
     }
     let pts: Vec<[f64; 3]> = rays.iter().map(|r| r.1).collect();
@@ -958,6 +959,7 @@ mod tests {
                 search: None,
                 search_below: 0.0,
                 search_distinct: 0.0,
+                search_min_points: 0,
             },
             effective_rays: 9.0,
             score_rays: 600,

@@ -245,6 +245,7 @@ fn field_match(sub: &Submap, geom: &ScanGeometry, ranges: &[f32], start: [f64; 3
         min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None,
         search_below: 0.0,
         search_distinct: 0.0,
+        search_min_points: 0,
     };
     let pts = scan_match::endpoints(geom, ranges, 1, max_range);
     if pts.is_empty() {

@@ -180,6 +180,13 @@ class ScanMatcherConfig(_Section):
         "Found::distinct), is at least this; along a bare corridor, where the scan cannot tell one place from the "
         "next, it is near 0 and the odometry stands; 0 = any pose that passes search_below",
     )
+    search_min_points: int = Field(
+        20, ge=0, le=100_000,
+        description="run the wide search only on scans of at least this many end points (after "
+        "sensor_model.beam_stride; for the 3D filter, rays at the check's heights): on fewer, one end point "
+        "is a twentieth or more of every share the check judges by, and a few points fit some wall within "
+        "a metre by chance (a ToF scan of one reading in a bare corridor jumped the office 1 m); 0 = any",
+    )
 
     @model_validator(mode="after")
     def _search_is_finite_work(self) -> "ScanMatcherConfig":
