@@ -11,7 +11,8 @@ the truth.
 
 Usage:
     python benchmarks/filter3d_glitch.py --world office --drives 3 4 5 --seeds 0 1 2 \\
-        [--odometry-jump 0.5 0.6 0 8] [--particles 30] [--cache results/filter3d_glitch]
+        [--odometry-jump 0.5 0.6 0 8] [--particles 30] [--cache results/filter3d_glitch] \\
+        [--set SECTION.FIELD=VALUE ...]
 
 Prints one JSON line per run, then a Markdown table for BENCHMARKS.md ("A wheel glitch in the
 3D filter").
@@ -34,6 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from filter3d import prepare  # noqa: E402  (benchmarks/filter3d.py)
+from world_filters import overrides as parse_set  # noqa: E402  (benchmarks/world_filters.py)
 
 from omnitof.eval.trajectory import absolute_trajectory_error  # noqa: E402
 from omnitof.geometry import compose, relative  # noqa: E402
@@ -73,6 +75,9 @@ def main(argv: list[str] | None = None) -> int:
                         metavar=("AT", "DX", "DY", "DEG"))
     parser.add_argument("--particles", type=int, default=30)
     parser.add_argument("--cache", type=Path, default=Path("results/filter3d_glitch"))
+    parser.add_argument("--set", nargs="*", default=[], metavar="SECTION.FIELD=VALUE",
+                        help="over tof3d in every run (e.g. scan_matcher.search_below=0.8, as before "
+                        "2026-12-06); the runs without the check still set search_xy 0")
     args = parser.parse_args(argv)
     at, jump = args.odometry_jump[0], tuple(args.odometry_jump[1:])
     print(f"# {date.today()} · {os.cpu_count()} cores · load {os.getloadavg()[0]:.1f} at start")
@@ -84,9 +89,10 @@ def main(argv: list[str] | None = None) -> int:
         for seed in args.seeds:
             for inputs, name in ((scans, "clean"), (bad, "glitch")):
                 for check in (False, True):
-                    overrides = {"filter": {"seed": seed, "particles": args.particles}}
+                    overrides = parse_set(args.set)
+                    overrides.setdefault("filter", {}).update(seed=seed, particles=args.particles)
                     if not check:
-                        overrides["scan_matcher"] = {"search_xy": 0.0}
+                        overrides.setdefault("scan_matcher", {})["search_xy"] = 0.0
                     cfg = load_config(preset="tof3d", overrides=overrides)
                     start = time.perf_counter()
                     result = run_slam3d(inputs, frames, clouds, cfg).result
