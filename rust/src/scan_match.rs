@@ -841,9 +841,9 @@ pub fn check_odometry(
     odom_cur: [f64; 3],
 ) -> Result<Option<[f64; 3]>, GridError> {
     let Some(window) = m.search.as_ref() else { return Ok(None) };
-    // On a handful of end points every share is coarse (one point is 1/n of `search_distinct`),
-    // and somewhere in a metre's window a few points fit walls by chance: the office's scan of
-    // one reading in a bare corridor "stood out" with distinct 1 and jumped the run a metre.
+    // On a handful of end points every share the check reads is coarse (one point is 1/n of it),
+    // and somewhere in a metre's window a few points fit walls by chance: a simulated office
+    // scan of one reading in a bare corridor passed `search_distinct` and jumped the run a metre.
     if pts.is_empty() || pts.len() < m.search_min_points {
         return Ok(None);
     }
