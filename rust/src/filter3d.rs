@@ -806,7 +806,7 @@ fn check_odometry3d(
     let at_local = share(local);
     let accept = |found: [f64; 3], value: f64, baseline: (f64, usize), baseline_value: f64| {
         let (fs, fc) = share(found);
-        fs >= m.search_below && fc as f64 >= 0.3 * n && fs >= baseline.0 + 0.1 && value > baseline_value
+        fs >= m.search_accept && fc as f64 >= 0.3 * n && fs >= baseline.0 + 0.1 && value > baseline_value
     };
     if at_local.0 >= m.search_below {
         // The climb alone explains the frame. Where the particles' climbs can get there too (within
@@ -958,6 +958,7 @@ mod tests {
                 fallback_draw: true,
                 search: None,
                 search_below: 0.0,
+                search_accept: 0.0,
                 search_distinct: 0.0,
                 search_min_points: 0,
             },
@@ -1191,6 +1192,7 @@ mod tests {
                 step_theta: 1f64.to_radians(),
             });
             p.matcher.search_below = 0.8;
+            p.matcher.search_accept = 0.8;
             p.matcher.search_distinct = distinct;
         }
         let mut pf = ParticleFilter3d::new(p).unwrap();

@@ -251,6 +251,7 @@ config_section! {
         search_step_xy: f64,
         search_step_deg: f64,
         search_below: f64,
+        search_accept: Option<f64>,
         search_distinct: f64,
         search_min_points: usize,
     }
@@ -344,6 +345,7 @@ fn filter_params(
             fallback_draw,
             search,
             search_below: sm.search_below,
+            search_accept: sm.search_accept.unwrap_or(sm.search_below),
             search_distinct: sm.search_distinct,
             search_min_points: sm.search_min_points,
         },
@@ -654,7 +656,7 @@ impl PyOccupancyGrid {
         let lf = LikelihoodField::new(sigma, 0.9, 0.1, max_range, window, occupied_threshold, false);
         let m = MatcherParams {
             step_xy, step_theta, refinements, gauss_newton, sample_xy: 0.01, sample_theta: 0.005,
-            min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None, search_below: 0.0, search_distinct: 0.0, search_min_points: 0,
+            min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None, search_below: 0.0, search_accept: 0.0, search_distinct: 0.0, search_min_points: 0,
         };
         let pts = scan_match::endpoints(&geom, ranges, 1, max_range);
         let (pose, _, _) = scan_match::local_match(&scan_match::FieldView::new(&lf, &self.grid), &m, &geom, &pts, start, None);

@@ -244,6 +244,7 @@ fn field_match(sub: &Submap, geom: &ScanGeometry, ranges: &[f32], start: [f64; 3
         step_xy: 0.01, step_theta: 0.005, refinements: 2, gauss_newton: 10, sample_xy: 0.005, sample_theta: 0.002,
         min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None,
         search_below: 0.0,
+        search_accept: 0.0,
         search_distinct: 0.0,
         search_min_points: 0,
     };

@@ -523,6 +523,9 @@ pub struct MatcherParams {
     pub search: Option<SearchWindow>,
     /// Search when fewer than this share of end points lie near an obstacle after the local match.
     pub search_below: f64,
+    /// Take the search's pose only where at least this share of end points lie near an obstacle
+    /// (the configuration's `search_accept`, `search_below` where unset).
+    pub search_accept: f64,
     /// Take the search's pose only where it is at least this distinct (`correlative::Found`); 0:
     /// any pose that passes `search_below`.
     pub search_distinct: f64,
@@ -868,11 +871,11 @@ pub fn check_odometry(
         return Ok(None);
     }
     let (found, value, matched) = local_match(&view, m, geom, pts, searched.pose, None);
-    // The jump must put the scan on the map as well as a good prediction does (`enough`), not
+    // The jump must put the scan on the map (`search_accept` of it, as a good prediction does), not
     // merely better than the local match: where people walk beside the robot or doors stand open
     // (the Freiburg hospital log), no pose explains the scan, and a pose that explains a little
     // more of it is as likely wrong, a metre and 20 degrees away.
-    let better = enough(matched) && matched as f64 >= local_matched as f64 + 0.1 * n && value > local_value;
+    let better = matched as f64 >= m.search_accept * n && matched as f64 >= local_matched as f64 + 0.1 * n && value > local_value;
     Ok(better.then(|| compose(odom_prev, relative(pose, found))))
 }
 
@@ -1048,6 +1051,7 @@ mod tests {
             min_matched: 0.5, effective_beams: 9.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true,
             search: Some(SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians() }),
             search_below: 0.8,
+            search_accept: 0.8,
             search_distinct: 0.0,
             search_min_points: 0,
         }
@@ -1144,7 +1148,7 @@ mod tests {
         let (g, angles, ranges) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
         let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, 3, 0.0, false);
-        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 0, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None, search_below: 0.0, search_distinct: 0.0, search_min_points: 0 };
+        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 0, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None, search_below: 0.0, search_accept: 0.0, search_distinct: 0.0, search_min_points: 0 };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let view = FieldView::new(&lf, &g);
         let (pose, _) = climb(|p| objective(&view, &geom, &pts, 1.0, None, p), [2.08, 1.43, 0.03], &m);
@@ -1168,7 +1172,7 @@ mod tests {
         let (g, angles, ranges) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
         let lf = LikelihoodField::new(0.02, 0.9, 0.1, 20.0, 3, 0.0, true);
-        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 10, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None, search_below: 0.0, search_distinct: 0.0, search_min_points: 0 };
+        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 10, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None, search_below: 0.0, search_accept: 0.0, search_distinct: 0.0, search_min_points: 0 };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let view = FieldView::new(&lf, &g);
         let (mode, _) = climb(|p| objective(&view, &geom, &pts, 1.0, None, p), [2.04, 1.46, 0.02], &m);
