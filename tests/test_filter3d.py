@@ -220,6 +220,38 @@ def test_the_odometry_check_undoes_a_wheel_glitch_and_leaves_a_clean_drive_alone
     np.testing.assert_array_equal(clean.trajectory.poses, run(scans, 0.0)[0].trajectory.poses)
 
 
+def _drive_with_glitch(world_name: str, start: int, stop: int, at: int, jump: tuple[float, float, float]):
+    """tof3d without the back end (cfg), frames start..stop of the world's drive 0 rendered with the
+    true rig (data), the same scans with the wheels glitching by `jump` (x, y m, heading degrees,
+    robot frame) from frame `at` on, and the truth seen from the run's first odometry pose."""
+    from omnitof.geometry import compose, relative
+
+    world = load_world(world_name)
+    renderer = Renderer(world, settings=RenderSettings(seed=0, sub_rays=1))
+    cfg = load_config(preset="tof3d")
+    cfg.backend.enabled = False
+    keyframes = (cfg.filter.linear_update, math.radians(cfg.filter.angular_update_deg))
+    data = tof_scans(render_sequence(make_sequence(world, seed=0), renderer, start=start, stop=stop),
+                     ScanExtractor.from_rig(renderer.rig), cloud_keyframes=keyframes,
+                     cloud_pixel_stride=cfg.filter3d.pixel_stride)
+    scans, k = data.scans, at - start
+    odometry = scans.odometry.copy()
+    odometry[k:] = compose(compose(scans.odometry[k - 1], np.array([jump[0], jump[1], math.radians(jump[2])])),
+                           relative(scans.odometry[k - 1], scans.odometry[k:]))
+    truth = compose(scans.odometry[0], relative(scans.ground_truth[0], scans.ground_truth))
+    first_after = int(data.cloud_frames[np.searchsorted(data.cloud_frames, k)]) + start
+    return cfg, data, dataclasses.replace(scans, odometry=odometry), truth, first_after
+
+
+def _run_with(cfg, data, inputs, truth, **scan_matcher):
+    """One tof3d run on `inputs` with these scan_matcher settings: (result, its error to `truth`)."""
+    c = cfg.model_copy(deep=True)
+    for name, value in scan_matcher.items():
+        setattr(c.scan_matcher, name, value)
+    result = run_slam3d(inputs, data.cloud_frames, data.clouds, c).result
+    return result, absolute_trajectory_error(result.trajectory.poses, truth)
+
+
 def test_the_odometry_check_catches_a_wheel_glitch_where_a_corridor_turns():
     # Corridor1, drive 0, frames 1380-1640, where the robot leaves a corridor at a corner; the
     # wheels report 0.6 m and 8 degrees more than the robot drove at frame 1486. Most of a frame's
@@ -228,44 +260,20 @@ def test_the_odometry_check_catches_a_wheel_glitch_where_a_corridor_turns():
     # scan_matcher.search_below 0.8 the check let the glitch pass and the rest of the drive was
     # mapped turned (every corridor glitch unrepaired, 2-7 m off at the loop's end); tof3d's
     # 0.9 searches there and takes it back. A clean drive is left alone by either.
-    from omnitof.geometry import compose, relative
-
-    world = load_world("corridor1")
-    renderer = Renderer(world, settings=RenderSettings(seed=0, sub_rays=1))
-    cfg = load_config(preset="tof3d")
-    cfg.backend.enabled = False
-    keyframes = (cfg.filter.linear_update, math.radians(cfg.filter.angular_update_deg))
-    first, at = 1380, 1486
-    data = tof_scans(render_sequence(make_sequence(world, seed=0), renderer, start=first, stop=1640),
-                     ScanExtractor.from_rig(renderer.rig), cloud_keyframes=keyframes,
-                     cloud_pixel_stride=cfg.filter3d.pixel_stride)
-    scans = data.scans
-    k = at - first
-    odometry = scans.odometry.copy()
-    odometry[k:] = compose(compose(scans.odometry[k - 1], np.array([0.6, 0.0, math.radians(8.0)])),
-                           relative(scans.odometry[k - 1], scans.odometry[k:]))
-    glitched = dataclasses.replace(scans, odometry=odometry)
-    # The run starts at the first odometry pose: the truth seen from there.
-    truth = compose(scans.odometry[0], relative(scans.ground_truth[0], scans.ground_truth))
-
-    def run(inputs, below):
-        c = cfg.model_copy(deep=True)
-        c.scan_matcher.search_below = below
-        result = run_slam3d(inputs, data.cloud_frames, data.clouds, c).result
-        return result, absolute_trajectory_error(result.trajectory.poses, truth)
-
+    first = 1380
+    cfg, data, glitched, truth, after = _drive_with_glitch("corridor1", first, 1640, 1486, (0.6, 0.0, 8.0))
     assert cfg.scan_matcher.search_below == 0.9
-    missed, missed_err = run(glitched, 0.8)
-    caught, caught_err = run(glitched, 0.9)
-    clean, clean_err = run(scans, 0.9)
+    missed, missed_err = _run_with(cfg, data, glitched, truth, search_below=0.8)
+    caught, caught_err = _run_with(cfg, data, glitched, truth, search_below=0.9)
+    clean, clean_err = _run_with(cfg, data, data.scans, truth, search_below=0.9)
     assert missed.stats["odometry_corrected_scans"] == []
-    assert caught.stats["odometry_corrected_scans"] == [int(data.cloud_frames[np.searchsorted(data.cloud_frames, k)])]
+    assert caught.stats["odometry_corrected_scans"] == [after - first]
     assert clean.stats["odometry_corrected_scans"] == []
-    np.testing.assert_array_equal(clean.trajectory.poses, run(scans, 0.8)[0].trajectory.poses)
+    np.testing.assert_array_equal(clean.trajectory.poses,
+                                  _run_with(cfg, data, data.scans, truth, search_below=0.8)[0].trajectory.poses)
     # Measured: mean (final) 0.427 (0.939) m missed, 0.039 (0.098) caught, 0.039 (0.100) clean.
     assert missed_err.final > 0.5 and missed_err.mean > 0.2, missed_err
     assert caught_err.mean < clean_err.mean + 0.02 and caught_err.final < clean_err.final + 0.05, (caught_err, clean_err)
-
 
 
 def test_the_check_takes_a_pose_that_explains_less_than_its_trigger():
@@ -273,41 +281,20 @@ def test_the_check_takes_a_pose_that_explains_less_than_its_trigger():
     # -12 degrees that the robot never drove. tof3d searches below 0.9 of the judged end points
     # (scan_matcher.search_below, for the corridors above), but the pose the search finds at the
     # first frame after the glitch explains between 0.8 and 0.9 of them: with that one bar for
-    # both (search_accept unset) the glitch was taken back only two frames later, and the map
+    # both (search_accept unset) the glitch was taken back only at a later frame, and the map
     # kept the frames between; search_accept 0.8 takes it at once. A clean drive is left alone.
-    from omnitof.geometry import compose, relative
-
-    world = load_world("room")
-    renderer = Renderer(world, settings=RenderSettings(seed=0, sub_rays=1))
-    cfg = load_config(preset="tof3d")
-    cfg.backend.enabled = False
-    keyframes = (cfg.filter.linear_update, math.radians(cfg.filter.angular_update_deg))
-    data = tof_scans(render_sequence(make_sequence(world, seed=0), renderer, stop=300),
-                     ScanExtractor.from_rig(renderer.rig), cloud_keyframes=keyframes,
-                     cloud_pixel_stride=cfg.filter3d.pixel_stride)
-    scans, at = data.scans, 129
-    odometry = scans.odometry.copy()
-    odometry[at:] = compose(compose(scans.odometry[at - 1], np.array([-0.3, 0.4, math.radians(-12.0)])),
-                            relative(scans.odometry[at - 1], scans.odometry[at:]))
-    glitched = dataclasses.replace(scans, odometry=odometry)
-
-    def run(inputs, accept):
-        c = cfg.model_copy(deep=True)
-        c.scan_matcher.search_accept = accept
-        result = run_slam3d(inputs, data.cloud_frames, data.clouds, c).result
-        return result, absolute_trajectory_error(result.trajectory.poses, scans.ground_truth)
-
+    cfg, data, glitched, truth, after = _drive_with_glitch("room", 0, 300, 129, (-0.3, 0.4, -12.0))
     assert (cfg.scan_matcher.search_below, cfg.scan_matcher.search_accept) == (0.9, 0.8)
-    first = int(data.cloud_frames[np.searchsorted(data.cloud_frames, at)])
-    at_once, at_once_err = run(glitched, 0.8)
-    late, late_err = run(glitched, None)
-    assert at_once.stats["odometry_corrected_scans"] == [first]
-    assert late.stats["odometry_corrected_scans"] and late.stats["odometry_corrected_scans"][0] > first
-    # Measured: mean error 0.032 m taken at once, 0.045 m two frames later, 0.016 m clean.
+    at_once, at_once_err = _run_with(cfg, data, glitched, truth, search_accept=0.8)
+    late, late_err = _run_with(cfg, data, glitched, truth, search_accept=None)
+    assert at_once.stats["odometry_corrected_scans"] == [after]
+    assert late.stats["odometry_corrected_scans"] and late.stats["odometry_corrected_scans"][0] > after
+    # Measured: mean error 0.032 m taken at once, 0.045 m a frame later, 0.016 m clean.
     assert at_once_err.mean < late_err.mean - 0.005, (at_once_err, late_err)
-    clean, _ = run(scans, 0.8)
+    clean, _ = _run_with(cfg, data, data.scans, truth, search_accept=0.8)
     assert clean.stats["odometry_corrected_scans"] == []
-    np.testing.assert_array_equal(clean.trajectory.poses, run(scans, None)[0].trajectory.poses)
+    np.testing.assert_array_equal(clean.trajectory.poses,
+                                  _run_with(cfg, data, data.scans, truth, search_accept=None)[0].trajectory.poses)
 
 def test_projection_takes_the_largest_log_odds_of_each_column():
     idx = np.array([[0, 0, 1], [0, 0, 5], [0, 0, 30], [2, 1, 3], [2, 1, 4]])
