@@ -587,7 +587,7 @@ impl ParticleFilter3d {
         }
         let pts = self.scored_points(origins, endpoints);
         let p = &self.params;
-        let corrected = match (p.proposal, self.particles.get(self.best), p.matcher.search.is_some()) {
+        let corrected = match (p.proposal, self.particles.get(self.best), p.matcher.check.window.is_some()) {
             (ProposalKind::ScanMatch, Some(best), true) => {
                 let walls = self.rays_between(origins, endpoints, p.check_z_min, p.check_z_max);
                 check_odometry3d(p, &best.map, &walls, best.pose, odom_prev, odom_cur)?
@@ -787,10 +787,10 @@ fn check_odometry3d(
     odom_prev: [f64; 3],
     odom_cur: [f64; 3],
 ) -> Result<Option<[f64; 3]>, GridError> {
-    let m = &p.matcher;
-    let Some(window) = m.search.as_ref() else { return Ok(None) };
+    let m = &p.matcher.check;
+    let Some(window) = m.window.as_ref() else { return Ok(None) };
     // As in 2D (scan_match::check_odometry): too few points to tell one place from another.
-    if rays.is_empty() || rays.len() < m.search_min_points {
+    if rays.is_empty() || rays.len() < m.min_points {
         return Ok(None);
     }
     let pts: Vec<[f64; 3]> = rays.iter().map(|r| r.1).collect();
@@ -799,21 +799,21 @@ fn check_odometry3d(
     let n = pts.len() as f64;
     let share = |at: [f64; 3]| explained_share(p, map, at, rays);
     let at_prediction = share(predicted);
-    if at_prediction.0 >= m.search_below {
+    if at_prediction.0 >= m.below {
         return Ok(None);
     }
     let (local, local_value, _) = local_match3d(p, map, pts, predicted, None);
     let at_local = share(local);
     let accept = |found: [f64; 3], value: f64, baseline: (f64, usize), baseline_value: f64| {
         let (fs, fc) = share(found);
-        fs >= m.search_accept && fc as f64 >= 0.3 * n && fs >= baseline.0 + 0.1 && value > baseline_value
+        fs >= m.accept && fc as f64 >= 0.3 * n && fs >= baseline.0 + 0.1 && value > baseline_value
     };
-    if at_local.0 >= m.search_below {
+    if at_local.0 >= m.below {
         // The climb alone explains the frame. Where the particles' climbs can get there too (within
         // three standard deviations of the odometry prior), they will; where the prior holds them
         // at the wheels' pose, the wheels slipped.
         let prior = motion_prior(&p.motion, odom_prev, odom_cur, predicted);
-        let within_reach = !m.odometry_prior || prior.mahalanobis2(local) <= 9.0;
+        let within_reach = !p.matcher.odometry_prior || prior.mahalanobis2(local) <= 9.0;
         if within_reach || !accept(local, local_value, at_prediction, p.effective_rays * p.field.score(map, predicted, pts).0) {
             return Ok(None);
         }
@@ -828,7 +828,7 @@ fn check_odometry3d(
     // The 2D field's floor, as the 2D check passes it (z_rand over the range).
     let floor = p.field.z_rand / p.max_range;
     let searched = correlative_search(&grid, p.field.occupied_threshold, floor, &geom, &flat, predicted, window)?;
-    if searched.distinct < m.search_distinct {
+    if searched.distinct < m.distinct {
         return Ok(None);
     }
     let (found, value, _) = local_match3d(p, map, pts, searched.pose, None);
@@ -880,6 +880,7 @@ fn explained_share(p: &FilterParams3d, map: &SharedVoxels, pose: [f64; 3], rays:
 mod tests {
     use super::*;
     use crate::correlative::SearchWindow;
+    use crate::scan_match::OdometryCheck;
 
     const MODEL: LogOddsModel = LogOddsModel { l_occ: 0.9, l_free: -0.4, l_min: -2.0, l_max: 3.5 };
     /// Robot-frame origin of every ray: the mirrors, half a metre above the floor.
@@ -956,11 +957,7 @@ mod tests {
                 odometry_prior: true,
                 climb_from_sample: false,
                 fallback_draw: true,
-                search: None,
-                search_below: 0.0,
-                search_accept: 0.0,
-                search_distinct: 0.0,
-                search_min_points: 0,
+                check: OdometryCheck::OFF,
             },
             effective_rays: 9.0,
             score_rays: 600,
@@ -1185,15 +1182,15 @@ mod tests {
     fn after_glitch(search: bool, distinct: f64, truth: [f64; 3], odom: [f64; 3]) -> (Vec<[f64; 3]>, StepInfo3d) {
         let mut p = params(8, 2, ProposalKind::ScanMatch);
         if search {
-            p.matcher.search = Some(SearchWindow {
+            p.matcher.check.window = Some(SearchWindow {
                 half_xy: 1.0,
                 half_theta: 15f64.to_radians(),
                 step_xy: 0.1,
                 step_theta: 1f64.to_radians(),
             });
-            p.matcher.search_below = 0.8;
-            p.matcher.search_accept = 0.8;
-            p.matcher.search_distinct = distinct;
+            p.matcher.check.below = 0.8;
+            p.matcher.check.accept = 0.8;
+            p.matcher.check.distinct = distinct;
         }
         let mut pf = ParticleFilter3d::new(p).unwrap();
         let (o, e) = frame([0.0; 3], 2.0, (-180.0, 180.0));

@@ -30,7 +30,7 @@ use pyo3::types::PyDict;
 
 use filter::{FilterParams, ObservationKind, ParticleFilter, ProposalKind};
 use correlative::SearchWindow;
-use scan_match::{LikelihoodField, MatcherParams};
+use scan_match::{LikelihoodField, MatcherParams, OdometryCheck};
 use grid::{GridError, LogOddsModel, TiledGrid};
 use motion::OdometryMotion;
 use sensor_model::{integrate_scan, BeamModel, ScanGeometry};
@@ -343,11 +343,13 @@ fn filter_params(
             odometry_prior: sm.odometry_prior,
             climb_from_sample: sm.climb_from_sample,
             fallback_draw,
-            search,
-            search_below: sm.search_below,
-            search_accept: sm.search_accept.unwrap_or(sm.search_below),
-            search_distinct: sm.search_distinct,
-            search_min_points: sm.search_min_points,
+            check: OdometryCheck {
+                window: search,
+                below: sm.search_below,
+                accept: sm.search_accept.unwrap_or(sm.search_below),
+                distinct: sm.search_distinct,
+                min_points: sm.search_min_points,
+            },
         },
         beam_stride: s.beam_stride,
         effective_beams: s.effective_beams,
@@ -656,7 +658,7 @@ impl PyOccupancyGrid {
         let lf = LikelihoodField::new(sigma, 0.9, 0.1, max_range, window, occupied_threshold, false);
         let m = MatcherParams {
             step_xy, step_theta, refinements, gauss_newton, sample_xy: 0.01, sample_theta: 0.005,
-            min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None, search_below: 0.0, search_accept: 0.0, search_distinct: 0.0, search_min_points: 0,
+            min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, check: OdometryCheck::OFF,
         };
         let pts = scan_match::endpoints(&geom, ranges, 1, max_range);
         let (pose, _, _) = scan_match::local_match(&scan_match::FieldView::new(&lf, &self.grid), &m, &geom, &pts, start, None);

@@ -13,7 +13,7 @@ use pyo3::prelude::*;
 
 use crate::grid::LogOddsModel;
 use crate::loop_closure::{MatchOptions, Submap, SubmapParams, DEFAULT_DEPTH, DEFAULT_UNKNOWN_PROBABILITY};
-use crate::scan_match::{self, LikelihoodField, MatcherParams};
+use crate::scan_match::{self, LikelihoodField, MatcherParams, OdometryCheck};
 use crate::sensor_model::ScanGeometry;
 
 /// The values of a 1-D array, copied only if it is not contiguous (a slice such as a[::2]).
@@ -242,11 +242,7 @@ fn field_match(sub: &Submap, geom: &ScanGeometry, ranges: &[f32], start: [f64; 3
     let lf = LikelihoodField::new(sigma, 0.9, 0.1, max_range, 3, 0.0, false);
     let m = MatcherParams {
         step_xy: 0.01, step_theta: 0.005, refinements: 2, gauss_newton: 10, sample_xy: 0.005, sample_theta: 0.002,
-        min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None,
-        search_below: 0.0,
-        search_accept: 0.0,
-        search_distinct: 0.0,
-        search_min_points: 0,
+        min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, check: OdometryCheck::OFF,
     };
     let pts = scan_match::endpoints(geom, ranges, 1, max_range);
     if pts.is_empty() {

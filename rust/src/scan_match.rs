@@ -519,18 +519,30 @@ pub struct MatcherParams {
     /// Start each particle's climb at a pose drawn from the odometry motion model (GMapping's
     /// way) instead of at the odometry prediction; see `propose`.
     pub climb_from_sample: bool,
-    /// The wide search that checks the odometry before each step (see `check_odometry`); None: off.
-    pub search: Option<SearchWindow>,
+    /// The odometry check before each step (see `check_odometry`).
+    pub check: OdometryCheck,
+}
+
+/// The odometry check's settings (`check_odometry`; in 3D, `filter3d::check_odometry3d`).
+#[derive(Clone, Copy, Debug)]
+pub struct OdometryCheck {
+    /// The wide search's window; None: no check.
+    pub window: Option<SearchWindow>,
     /// Search when fewer than this share of end points lie near an obstacle after the local match.
-    pub search_below: f64,
+    pub below: f64,
     /// Take the search's pose only where at least this share of end points lie near an obstacle
     /// (the configuration's `search_accept`, `search_below` where unset).
-    pub search_accept: f64,
+    pub accept: f64,
     /// Take the search's pose only where it is at least this distinct (`correlative::Found`); 0:
-    /// any pose that passes `search_below`.
-    pub search_distinct: f64,
-    /// Search only scans of at least this many end points (see `check_odometry`).
-    pub search_min_points: usize,
+    /// any pose that passes `accept`.
+    pub distinct: f64,
+    /// Search only scans of at least this many end points.
+    pub min_points: usize,
+}
+
+impl OdometryCheck {
+    /// No check: the matcher's other users (the final match, the loop closures' refinement).
+    pub const OFF: OdometryCheck = OdometryCheck { window: None, below: 0.0, accept: 0.0, distinct: 0.0, min_points: 0 };
 }
 
 /// Hill climbing of `eval` from `start` (robot pose); returns the mode and its value.
@@ -843,16 +855,17 @@ pub fn check_odometry(
     odom_prev: [f64; 3],
     odom_cur: [f64; 3],
 ) -> Result<Option<[f64; 3]>, GridError> {
-    let Some(window) = m.search.as_ref() else { return Ok(None) };
+    let c = &m.check;
+    let Some(window) = c.window.as_ref() else { return Ok(None) };
     // On a handful of end points every share the check reads is coarse (one point is 1/n of it),
     // and somewhere in a metre's window a few points fit walls by chance: a simulated office
     // scan of one reading in a bare corridor passed `search_distinct` and jumped the run a metre.
-    if pts.is_empty() || pts.len() < m.search_min_points {
+    if pts.is_empty() || pts.len() < c.min_points {
         return Ok(None);
     }
     let predicted = compose(pose, relative(odom_prev, odom_cur));
     let n = pts.len() as f64;
-    let enough = |matched: usize| matched as f64 >= m.search_below * n;
+    let enough = |matched: usize| matched as f64 >= c.below * n;
     // Cheap first (this runs before the particles, on one core): a prediction that already puts
     // the scan on the map needs no search.
     let view = FieldView::new(lf, grid);
@@ -867,7 +880,7 @@ pub fn check_odometry(
     let searched = correlative_search(grid, lf.occupied_threshold, floor, geom, pts, predicted, window)?;
     // Where another place a few decimetres off explains the scan as well (along a corridor, the
     // direction the scan cannot see), the best pose is the search's tie-break, not a correction.
-    if searched.distinct < m.search_distinct {
+    if searched.distinct < c.distinct {
         return Ok(None);
     }
     let (found, value, matched) = local_match(&view, m, geom, pts, searched.pose, None);
@@ -875,7 +888,7 @@ pub fn check_odometry(
     // merely better than the local match: where people walk beside the robot or doors stand open
     // (the Freiburg hospital log), no pose explains the scan, and a pose that explains a little
     // more of it is as likely wrong, a metre and 20 degrees away.
-    let better = matched as f64 >= m.search_accept * n && matched as f64 >= local_matched as f64 + 0.1 * n && value > local_value;
+    let better = matched as f64 >= c.accept * n && matched as f64 >= local_matched as f64 + 0.1 * n && value > local_value;
     Ok(better.then(|| compose(odom_prev, relative(pose, found))))
 }
 
@@ -1049,12 +1062,22 @@ mod tests {
         MatcherParams {
             step_xy: 0.05, step_theta: 0.035, refinements: 3, gauss_newton: 10, sample_xy: 0.005, sample_theta: 0.002,
             min_matched: 0.5, effective_beams: 9.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true,
-            search: Some(SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians() }),
-            search_below: 0.8,
-            search_accept: 0.8,
-            search_distinct: 0.0,
-            search_min_points: 0,
+            check: OdometryCheck {
+                window: Some(SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians() }),
+                below: 0.8,
+                accept: 0.8,
+                distinct: 0.0,
+                min_points: 0,
+            },
         }
+    }
+
+    /// `searching_matcher` with the check's `distinct` and `min_points` gates.
+    fn gated_matcher(distinct: f64, min_points: usize) -> MatcherParams {
+        let mut m = searching_matcher();
+        m.check.distinct = distinct;
+        m.check.min_points = min_points;
+        m
     }
 
     /// `check_odometry` in the room, the robot at (2, 1.5, 0) seeing `ranges`, after wheels
@@ -1078,10 +1101,10 @@ mod tests {
         // tof-scanmatch sets it, still undoes it; asked for more than the room offers, the
         // odometry stands.
         let (_, _, ranges) = room();
-        let m = MatcherParams { search_distinct: 0.2, ..searching_matcher() };
+        let m = gated_matcher(0.2, 0);
         let odom = check_after_glitch_with(&ranges, &m).expect("the glitch is found");
         assert!(odom[0].abs() < 0.03 && odom[1].abs() < 0.03 && odom[2].abs() < 0.01, "{odom:?}");
-        let m = MatcherParams { search_distinct: 0.6, ..searching_matcher() };
+        let m = gated_matcher(0.6, 0);
         assert!(check_after_glitch_with(&ranges, &m).is_none());
     }
 
@@ -1106,7 +1129,7 @@ mod tests {
         let pts = endpoints(&geom, &ranges, 1, 7.99);
         let lf = LikelihoodField::new(0.05, 0.9, 0.1, 7.99, 3, 0.0, false);
         let check = |min_points: usize| {
-            let m = MatcherParams { search_distinct: 0.2, search_min_points: min_points, ..searching_matcher() };
+            let m = gated_matcher(0.2, min_points);
             check_odometry(&lf, &m, &g, &geom, &pts, [0.0; 3], [0.0; 3], [0.0; 3]).unwrap()
         };
         let jumped = check(0).expect("ungated, the one point's coincidence is taken");
@@ -1114,7 +1137,7 @@ mod tests {
         assert!(check(2).is_none());
         // The room's glitch, seen with every beam, is still found with the gate as shipped.
         let (_, _, room_ranges) = room();
-        let m = MatcherParams { search_distinct: 0.2, search_min_points: 20, ..searching_matcher() };
+        let m = gated_matcher(0.2, 20);
         assert!(check_after_glitch_with(&room_ranges, &m).is_some());
     }
 
@@ -1148,7 +1171,7 @@ mod tests {
         let (g, angles, ranges) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
         let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, 3, 0.0, false);
-        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 0, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None, search_below: 0.0, search_accept: 0.0, search_distinct: 0.0, search_min_points: 0 };
+        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 0, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, check: OdometryCheck::OFF };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let view = FieldView::new(&lf, &g);
         let (pose, _) = climb(|p| objective(&view, &geom, &pts, 1.0, None, p), [2.08, 1.43, 0.03], &m);
@@ -1172,7 +1195,7 @@ mod tests {
         let (g, angles, ranges) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
         let lf = LikelihoodField::new(0.02, 0.9, 0.1, 20.0, 3, 0.0, true);
-        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 10, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, search: None, search_below: 0.0, search_accept: 0.0, search_distinct: 0.0, search_min_points: 0 };
+        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 10, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, check: OdometryCheck::OFF };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let view = FieldView::new(&lf, &g);
         let (mode, _) = climb(|p| objective(&view, &geom, &pts, 1.0, None, p), [2.04, 1.46, 0.02], &m);
