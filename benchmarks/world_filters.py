@@ -235,6 +235,8 @@ def main(argv: list[str] | None = None) -> int:
                     "within_5cm_pct": round(100 * ev["floorplan"]["occupied_within_5cm"], 1),
                     "closures_kept": backend.get("closures_accepted"),
                     "closures_found": backend.get("closures_found"),
+                    "corrected_scans": result.stats.get("odometry_corrected_scans"),
+                    "check_verdicts": [[c["scan"], c["verdict"]] for c in result.stats.get("check_corrections", [])],
                     "wall_s": round(wall, 1),
                 }
                 rows.append(row)

@@ -325,6 +325,10 @@ def test_the_summary_line_names_the_scans_whose_odometry_the_check_replaced():
     assert one == plain + "; odometry replaced by the odometry check at 1 scan(s): 562"
     many = _summary_line({**stats, "odometry_corrected_scans": list(range(100, 107))})
     assert many.endswith("at 7 scan(s): 100, 101, 102, 103, 104, ...")
+    # The back end's verdicts: a relocalisation onto an older map is named apart from slips.
+    judged = [{"scan": 562, "verdict": "slip"}, {"scan": 2920, "verdict": "relocalised, spread"}]
+    both = _summary_line({**stats, "odometry_corrected_scans": [562, 2920], "check_corrections": judged})
+    assert both.endswith("at 2 scan(s): 562, 2920 (1 of them relocalised onto an older map: 2920)")
 
 
 def test_only_omnitofs_own_warnings_read_as_omnitof_warnings():

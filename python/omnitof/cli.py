@@ -51,6 +51,10 @@ def _summary_line(stats: dict) -> str:
     if corrected:
         shown = ", ".join(str(k) for k in corrected[:5]) + (", ..." if len(corrected) > 5 else "")
         line += f"; odometry replaced by the odometry check at {len(corrected)} scan(s): {shown}"
+        # A relocalisation onto an older map is the front end closing a loop, not the wheels.
+        moved = [c["scan"] for c in stats.get("check_corrections", []) if c["verdict"].startswith("relocalised")]
+        if moved:
+            line += f" ({len(moved)} of them relocalised onto an older map: {', '.join(str(k) for k in moved[:5])})"
     return line
 
 

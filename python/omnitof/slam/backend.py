@@ -39,6 +39,18 @@ scans of the integrated scans in either case (a ToF bag has both). Behind it, as
   were, and the submap in progress is closed, since its scans were placed in the frame before
   the correction.
 
+**Relocalisations**: the front end's odometry check (a wide search where the wheels' motion
+explains too little of a scan) replaces the wheels' motion by the pose the map explains. Where
+the wheels slipped, the map of the last few metres explains the scan far better at the corrected
+pose than at the wheels' one, and the jump belongs in the front-end edge. Where a loop ends, the
+filter's drift makes the scan fit the start's map at the corrected pose, which the recent map
+does not support. That jump is the loop's whole drift put into one edge: kept there, it stays
+there. So the closures are judged with the wheels' motion as such a node's edge, and the
+optimisation spreads the drift along the loop, wherever the optimum with that edge still puts the
+node nearer the relocalised pose than the wheels' one: the kept closures then say what the
+relocalisation said. Where they do not, the jump stands, since nothing else says where the robot is
+(`Relocalisation`, `_judge_correction`, `_sides_with_relocalisation`).
+
 Everything is deterministic: the search and the core are bit-identical for any thread count,
 and the graph is optimised in node order on one thread.
 """
@@ -69,6 +81,12 @@ GNC_INNER_ITERATIONS = 10
 GNC_MIN_DISAGREEING = 2
 CHI2_PROBABILITY = 0.99
 CHI2_3DOF_99 = 11.345  # the CHI2_PROBABILITY quantile of chi-square with 3 degrees of freedom
+# A correction is judged only where the recent map holds at least this many nodes' scans, and
+# the scan at least this many end points (the odometry check's own floor in the presets,
+# scan_matcher.search_min_points: on fewer, one point is a twentieth of the share). The 3D
+# filter's check judges its rays, and the office's 2D slice often holds fewer than 20 end points.
+RELOCALISATION_MIN_NODES = 3
+RELOCALISATION_MIN_POINTS = 20
 
 
 class FrontEnd(Protocol):
@@ -115,6 +133,18 @@ class Closure:
     search: str  # "local" or "global"
     accepted: bool | None = None  # None until an optimisation has judged it
     information: np.ndarray | None = None  # inverse of the edge's covariance, once computed
+
+
+@dataclass
+class Relocalisation:
+    """A correction of the front end's odometry check at node `node` that the recent map does not
+    support (see the module docstring): `wheels` is the wheels' motion from the node before,
+    `shares` the share of the scan's end points near the map of the last
+    `relocalisation_recent_m` metres at the wheels' pose and at the corrected one."""
+
+    node: int
+    wheels: np.ndarray
+    shares: tuple[float, float]
 
 
 @dataclass
@@ -167,13 +197,20 @@ class PoseGraphBackend:
         self._searched_globally = False
         self._last_optimised_node = -10**9
         self._edge_factors: dict[int, tuple[bytes, gtsam.BetweenFactorPose2]] = {}
-        self.seconds = {"submaps": 0.0, "search": 0.0, "optimise": 0.0, "feedback": 0.0}
+        # The odometry check's corrections: node -> shares at the wheels' and the corrected pose
+        # (None: not judged); those that relocalised, by node.
+        self.corrections: dict[int, tuple[float, float] | None] = {}
+        self.relocalisations: dict[int, Relocalisation] = {}
+        self.spread: set[int] = set()  # relocalisations whose wheels' edge the last optimisation used
+        self._judging: list[int] | None = None  # those whose wheels' edge the verdicts use (None: all)
+        self.seconds = {"submaps": 0.0, "search": 0.0, "optimise": 0.0, "feedback": 0.0, "judge": 0.0}
 
     # --- the run ----------------------------------------------------------------------------
 
-    def add_node(self, scan: int, pf: FrontEnd) -> None:
+    def add_node(self, scan: int, pf: FrontEnd, corrected: bool = False) -> None:
         """Take the filter's state after integrating scan `scan`: add the node, insert it into the
-        current submap, search loop closures, optimise and feed back where it pays."""
+        current submap, search loop closures, optimise and feed back where it pays. `corrected`:
+        the filter's odometry check replaced the wheels' motion into this scan."""
         pose = np.asarray(pf.best_pose(), dtype=np.float64)
         j = len(self.scan_of)
         self.scan_of.append(scan)
@@ -184,6 +221,10 @@ class PoseGraphBackend:
             self.odometry_edges.append(relative(self.frontend[j - 1], pose))
             # Propagate from the previous node's best estimate along the front end's motion.
             self.estimate.append(compose(self.estimate[j - 1], self.odometry_edges[-1]))
+            if corrected and self.cfg.relocalisation_margin is not None:
+                clock = time.perf_counter()
+                self._judge_correction(j)
+                self._lap("judge", clock)
         clock = time.perf_counter()
         self._insert(j, pose, pf)
         found = 0
@@ -201,6 +242,47 @@ class PoseGraphBackend:
             clock = self._lap("optimise", clock)
             self._feed_back(j, pf)
             self._lap("feedback", clock)
+
+    def _judge_correction(self, j: int) -> None:
+        """Whether the check's correction at node j repaired the wheels or relocalised the robot
+        onto an older map: the share of the scan's end points near the map of the last
+        `relocalisation_recent_m` metres of the segment (at the front end's poses), at the wheels'
+        pose and at the corrected one. A slip leaves the corrected pose explained far better;
+        a relocalisation does not (the simulated worlds, tof3d: wheel glitches gain +0.17 to +0.92
+        but for one run's two, −0.25 and +0.08, which the optimum's test then kept as jumps;
+        loop ends −0.65 to +0.02; BENCHMARKS.md, "A relocalisation where a loop ends, spread
+        along the loop")."""
+        recent = self._recent_nodes(j)
+        scans = self.scans
+        k = self.scan_of[j]
+        ranges = scans.scan_ranges(k)
+        points = int(np.count_nonzero(np.isfinite(ranges) & (ranges < self.max_range)))
+        if len(recent) < RELOCALISATION_MIN_NODES or points < RELOCALISATION_MIN_POINTS:
+            self.corrections[j] = None  # too little map or scan to tell: the front end's edge stands
+            return
+        wheels = relative(scans.odometry[self.scan_of[j - 1]], scans.odometry[k])
+        grid = grid_along(scans, [self.scan_of[i] for i in recent], np.asarray([self.frontend[i] for i in recent]),
+                          self.map_cfg)
+        starts = np.stack([compose(self.frontend[j - 1], wheels), self.frontend[j]])
+        both = np.ascontiguousarray(np.broadcast_to(ranges, (2, len(ranges))))
+        _, share = grid.match_each(starts, both, scans.scan_angles(k), sensor_pose=scans.sensor_pose,
+                                   sigma=self.field_sigma, max_range=self.max_range, gauss_newton=0,
+                                   threads=self.threads)
+        shares = (float(share[0]), float(share[1]))
+        self.corrections[j] = shares
+        if shares[1] < shares[0] + self.cfg.relocalisation_margin:
+            self.relocalisations[j] = Relocalisation(j, wheels, shares)
+
+    def _recent_nodes(self, j: int) -> list[int]:
+        """The nodes of the current segment before j within `relocalisation_recent_m` metres of
+        travel, oldest first."""
+        out, moved, i = [], 0.0, j - 1
+        while i >= self.segment_start and moved < self.cfg.relocalisation_recent_m:
+            out.append(i)
+            if i > self.segment_start:
+                moved += float(np.hypot(*(self.frontend[i][:2] - self.frontend[i - 1][:2])))
+            i -= 1
+        return out[::-1]
 
     def _news_disagree(self) -> bool:
         """Whether a closure not yet judged disagrees with the current estimate. Those that
@@ -359,6 +441,13 @@ class PoseGraphBackend:
             poses = np.asarray(self.frontend[start:])
             self.odometry_edges[start:] = list(relative(poses[:-1], poses[1:]))
 
+    def _edges(self, spread: set[int] | list[int]) -> list[np.ndarray]:
+        """The front-end edges, with the wheels' motion into the relocalised nodes in `spread`."""
+        edges = list(self.odometry_edges)
+        for j in spread:
+            edges[j - 1] = self.relocalisations[j].wheels
+        return edges
+
     def _chain(self) -> list[np.ndarray]:
         """Node poses from the first node along the front-end edges only."""
         # Sequential by nature: each pose is the one before it moved by the edge.
@@ -377,13 +466,14 @@ class PoseGraphBackend:
     def _odometry_noise(self, edge: np.ndarray) -> gtsam.noiseModel.Base:
         return gtsam.noiseModel.Diagonal.Sigmas(self._odometry_sigmas(edge))
 
-    def _compound(self, a: int, b: int) -> tuple[gtsam.Pose2, np.ndarray]:
-        """The front-end edges from node a to node b composed into one (a < b), with the
-        covariance propagated to first order: composing T with an edge E moves T's covariance
-        by E⁻¹'s adjoint, Σ ← Ad(E⁻¹) Σ Ad(E⁻¹)ᵀ + Σ_E (GTSAM's right-hand tangent convention)."""
+    def _compound(self, a: int, b: int, edges: list[np.ndarray] | None = None) -> tuple[gtsam.Pose2, np.ndarray]:
+        """The front-end edges (default: `odometry_edges`) from node a to node b composed into
+        one (a < b), with the covariance propagated to first order: composing T with an edge E
+        moves T's covariance by E⁻¹'s adjoint, Σ ← Ad(E⁻¹) Σ Ad(E⁻¹)ᵀ + Σ_E (GTSAM's right-hand
+        tangent convention)."""
         # Sequential by nature, and only over the chain between two closure nodes.
         total, cov = gtsam.Pose2(), np.zeros((3, 3))
-        for edge in self.odometry_edges[a:b]:
+        for edge in (self.odometry_edges if edges is None else edges)[a:b]:
             e = gtsam.Pose2(*edge)
             ad = e.inverse().AdjointMap()
             cov = ad @ cov @ ad.T + np.diag(self._odometry_sigmas(edge) ** 2)
@@ -428,7 +518,37 @@ class PoseGraphBackend:
         closure (old ones too, so a wrongly kept one can still go), with the dropped ones that
         agree with the kept ones taken back (`_readmit`), stands until the next such run; the
         closures it keeps go into the robust Levenberg-Marquardt run.
+
+        With relocalisations (see the module docstring), the closures are first judged and the
+        graph optimised with the wheels' edge into each. Where the optimum then puts a
+        relocalised node nearer the wheels' pose than the relocalised one, the kept closures do
+        not say what the relocalisation said: everything is judged and optimised again, from the
+        same verdicts, with its jump, as without the relocalisation.
         """
+        spread = list(self.relocalisations)
+        before = ([c.accepted for c in self.closures], self.graduated, self.readmitted)
+        estimate = self._judged_optimum(final, spread)
+        jumps = [j for j in spread if not self._sides_with_relocalisation(j, estimate[j])]
+        if jumps:
+            for c, accepted in zip(self.closures, before[0]):
+                c.accepted = accepted
+            self.graduated, self.readmitted = before[1:]
+            spread = [j for j in spread if j not in jumps]
+            estimate = self._judged_optimum(final, spread)
+        self.spread = set(spread)
+        self.estimate = estimate
+        kept = [c for c in self.closures if c.accepted]
+        for c, ok in zip(kept, self._agreement(kept)):
+            if not ok:
+                c.accepted = False  # the robust kernel discounted it
+        self.optimisations += 1
+        self._last_optimised_node = len(self.estimate) - 1
+        self._pending = 0
+
+    def _judged_optimum(self, final: bool, spread: list[int]) -> list[np.ndarray]:
+        """`optimise`'s verdicts on the closures and its robust optimum, with the wheels' edges
+        into the relocalisations in `spread`."""
+        self._judging = spread
         pending = [c for c in self.closures if c.accepted is None]
         agree = self._agreement(pending)
         disagreeing = [c for c, ok in zip(pending, agree) if not ok]
@@ -441,21 +561,31 @@ class PoseGraphBackend:
             self.graduated += 1
             for c, keep in zip(self.closures, self._readmit(self._graduated())):
                 c.accepted = keep
-        graph, values = self._graph(robust=True, use=[c.accepted is True for c in self.closures])
+        return self._optimum([c.accepted is True for c in self.closures], spread)
+
+    def _optimum(self, use: list[bool], spread: list[int]) -> list[np.ndarray]:
+        """Levenberg-Marquardt with the robust kernel on the closures in `use`, from the current
+        estimate, with the wheels' edges into the relocalisations in `spread`."""
+        graph, values = self._graph(robust=True, use=use, spread=spread)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(LM_ITERATIONS)
         # Started from the last optimum, the graph is near its minimum; a millimetre-level
         # change of the cost is all the accuracy the map can show.
         params.setRelativeErrorTol(LM_RELATIVE_TOLERANCE)
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-        self.estimate = [_pose(result.atPose2(j)) for j in range(len(self.estimate))]
-        kept = [c for c in self.closures if c.accepted]
-        for c, ok in zip(kept, self._agreement(kept)):
-            if not ok:
-                c.accepted = False  # the robust kernel discounted it
-        self.optimisations += 1
-        self._last_optimised_node = len(self.estimate) - 1
-        self._pending = 0
+        return [_pose(result.atPose2(j)) for j in range(len(self.estimate))]
+
+    def _sides_with_relocalisation(self, j: int, pose: np.ndarray) -> bool:
+        """Whether `pose` (node j's optimum) lies nearer the relocalised pose than the wheels'
+        pose, both in the front end's frame, in units of the closures' smallest sigmas."""
+        cfg = self.cfg
+        scale = np.array([cfg.closure_sigma_xy_min, cfg.closure_sigma_xy_min, math.radians(cfg.closure_sigma_deg_min)])
+        wheels = compose(self.frontend[j - 1], self.relocalisations[j].wheels)
+        def distance(to: np.ndarray) -> float:
+            d = pose - to
+            d[2] = wrap_angle(d[2])
+            return float(np.linalg.norm(d / scale))
+        return distance(self.frontend[j]) < distance(wheels)
 
     def _graduated(self) -> list[bool]:
         """Which closures graduated non-convexity keeps as inliers (see `optimise`, which then
@@ -482,13 +612,15 @@ class PoseGraphBackend:
         """The graph of `_graduated`: the prior on node 0, the compounded front-end edges
         between the nodes that closures join, then the closures (those in `use`, default all)
         as plain Gaussian edges. Keys are positions in the sorted node list (`_reduced_keys`).
-        Also returns the number of factors before the closures."""
+        Also returns the number of factors before the closures. The edges into the
+        relocalisations being judged (`optimise`; default all) are the wheels'."""
         keys = self._reduced_keys()
+        edges = self._edges(list(self.relocalisations) if self._judging is None else self._judging)
         index = {k: i for i, k in enumerate(keys)}
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*self.estimate[0]), gtsam.noiseModel.Constrained.All(3)))
         for a, b in zip(keys[:-1], keys[1:]):
-            measured, cov = self._compound(a, b)
+            measured, cov = self._compound(a, b, edges)
             graph.add(gtsam.BetweenFactorPose2(index[a], index[b], measured, gtsam.noiseModel.Gaussian.Covariance(cov)))
         for c, keep in zip(self.closures, use or [True] * len(self.closures)):
             if keep:
@@ -561,12 +693,14 @@ class PoseGraphBackend:
         agree = self._agreement([self.closures[i] for i in used], poses)
         return [i for i, ok in zip(used, agree) if not ok]
 
-    def _graph(self, *, robust: bool, use: list[bool]) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
-        """The prior on the first node, the front-end edges, then the closures in `use`."""
+    def _graph(self, *, robust: bool, use: list[bool], spread: list[int] | None = None
+               ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        """The prior on the first node, the front-end edges (the wheels' into the relocalisations
+        in `spread`, default those of the last optimisation), then the closures in `use`."""
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*self.estimate[0]), gtsam.noiseModel.Constrained.All(3)))
-        for j, edge in enumerate(self.odometry_edges, start=1):
+        for j, edge in enumerate(self._edges(self.spread if spread is None else spread), start=1):
             graph.add(self._edge_factor(j, edge))
         for c, keep in zip(self.closures, use):
             if keep:
@@ -649,6 +783,25 @@ class PoseGraphBackend:
             edges = [[c.anchor, c.node] for c in self.closures if bool(c.accepted) == kept]
             return np.array(edges, dtype=np.int64).reshape(-1, 2)
         return {"nodes": nodes, "closures": pairs(True), "rejected": pairs(False)}
+
+    def correction_table(self) -> list[dict]:
+        """Every correction of the odometry check, for summary.yaml: its scan, the recent map's
+        share of end points at the wheels' and the corrected pose, and what became of it:
+        "slip" (the front end's edge stands), "relocalised, spread" (the wheels' edge: the
+        closures place the node where the relocalisation did), "relocalised, kept" (the jump
+        stands: the closures do not) or "not judged" (too little recent map or fewer than
+        RELOCALISATION_MIN_POINTS end points: the front end's edge stands)."""
+        def row(j: int, shares: tuple[float, float] | None) -> dict:
+            if shares is None:
+                return {"scan": int(self.scan_of[j]), "recent_share_wheels": None, "recent_share_corrected": None,
+                        "verdict": "not judged"}
+            if j not in self.relocalisations:
+                verdict = "slip"
+            else:
+                verdict = "relocalised, spread" if j in self.spread else "relocalised, kept"
+            return {"scan": int(self.scan_of[j]), "recent_share_wheels": round(shares[0], 3),
+                    "recent_share_corrected": round(shares[1], 3), "verdict": verdict}
+        return [row(j, shares) for j, shares in self.corrections.items()]
 
     def closure_table(self) -> list[dict]:
         """Every closure found, for summary.yaml: scans, score, whether it was kept."""

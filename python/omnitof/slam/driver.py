@@ -228,11 +228,12 @@ def _run(scans: ScanSequence, cfg: SlamConfig, progress: Callable[[int], None] |
             between.match_up_to(pf, int(k))
         cur = scans.odometry[k]
         own = scans.scan_angles(k) if scans.per_scan_geometry else None  # else the filter's
-        if pf.step(prev, cur, scans.scan_ranges(k), int(k), angles=own)[2]:
+        check_corrected = bool(pf.step(prev, cur, scans.scan_ranges(k), int(k), angles=own)[2])
+        if check_corrected:
             corrected_scans.append(int(k))
         prev = cur
         if backend is not None:
-            backend.add_node(int(k), front)
+            backend.add_node(int(k), front, check_corrected)
         memory.check(step, len(integrated))
         if progress is not None:
             progress(int(k) + 1 - done)
@@ -288,6 +289,7 @@ def _run(scans: ScanSequence, cfg: SlamConfig, progress: Callable[[int], None] |
     if backend is not None:
         stats["backend"] = backend.stats()
         stats["loop_closures"] = backend.closure_table()
+        stats["check_corrections"] = backend.correction_table()
     return SlamResult(
         trajectory=Trajectory(scans.timestamps, poses),
         odometry=Trajectory(scans.timestamps, scans.odometry),

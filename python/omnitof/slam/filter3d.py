@@ -169,7 +169,7 @@ def _run(scans: ScanSequence, frames: np.ndarray, clouds: Sequence[np.ndarray], 
         if info[4]:
             corrected_scans.append(int(k))
         if backend is not None:
-            backend.add_node(int(k), front)
+            backend.add_node(int(k), front, bool(info[4]))
         seconds.append(time.perf_counter() - t0)
         prev = cur
         memory.check(step, len(frames))
@@ -218,6 +218,7 @@ def _run(scans: ScanSequence, frames: np.ndarray, clouds: Sequence[np.ndarray], 
     if backend is not None:
         stats["backend"] = backend.stats()
         stats["loop_closures"] = backend.closure_table()
+        stats["check_corrections"] = backend.correction_table()
     if not occupancy.known.any():
         raise InputError("no ray of any frame left a mark in the 3D map (nothing within filter3d.max_range)",
                          scans.source or None)
