@@ -127,3 +127,16 @@ def test_degenerate_figures_draw_without_warnings(tmp_path: Path) -> None:
         plot_map(tmp_path / "one.png", tile, {"SLAM": np.zeros((1, 3))})
         plot_pose_graph(tmp_path / "graph.png", tile, np.zeros((1, 3)), np.zeros((0, 2), np.int64))
     assert all((tmp_path / n).stat().st_size > 1000 for n in ("empty.png", "one.png", "graph.png"))
+
+
+def test_the_pose_graph_names_its_closures_and_relocalisations(tmp_path: Path) -> None:
+    from omnitof.viz.maps import plot_pose_graph
+
+    tile = OccupancyMap(np.zeros((16, 16), np.float32), np.ones((16, 16), bool), 0.05, (0.0, 0.0))
+    nodes = np.array([[0.1, 0.1, 0.0], [0.5, 0.1, 0.0], [0.5, 0.5, 0.0], [0.12, 0.1, 0.0]])
+    fig = plot_pose_graph(tmp_path / "graph.png", tile, nodes, np.array([[0, 3]]), np.array([[1, 3]]),
+                          relocalised=np.array([3]))
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert labels == ["nodes (4)", "loop closures (1)", "rejected closures (1)", "relocalisations (1)"]
+    [marker] = [line for line in fig.axes[0].get_lines() if line.get_label().startswith("relocalisations")]
+    assert np.allclose(marker.get_xydata(), [[0.12, 0.1]])

@@ -141,7 +141,8 @@ def write_results(
     if result.graph is not None:
         paths["pose_graph"] = out / "pose_graph.png"
         plot_pose_graph(paths["pose_graph"], result.map, result.graph["nodes"], result.graph["closures"],
-                        result.graph["rejected"], title=f"pose graph: {title}" if title else "")
+                        result.graph["rejected"], relocalised=result.graph.get("relocalised"),
+                        title=f"pose graph: {title}" if title else "")
     summary = {"run": result.stats, **(extra or {}), "tum_poses_merged": merged}
     with atomic_write(paths["summary"]) as f:
         yaml.safe_dump(summary, f, sort_keys=False)

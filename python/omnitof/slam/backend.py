@@ -777,12 +777,13 @@ class PoseGraphBackend:
         }
 
     def graph(self, nodes: np.ndarray) -> dict:
-        """SlamResult.graph: the nodes' poses `nodes` (K, 3) and the closures kept and rejected
-        as (anchor, node) pairs."""
+        """SlamResult.graph: the nodes' poses `nodes` (K, 3), the closures kept and rejected as
+        (anchor, node) pairs, and the relocalised nodes."""
         def pairs(kept: bool) -> np.ndarray:
             edges = [[c.anchor, c.node] for c in self.closures if bool(c.accepted) == kept]
             return np.array(edges, dtype=np.int64).reshape(-1, 2)
-        return {"nodes": nodes, "closures": pairs(True), "rejected": pairs(False)}
+        return {"nodes": nodes, "closures": pairs(True), "rejected": pairs(False),
+                "relocalised": np.array(sorted(self.relocalisations), dtype=np.int64)}
 
     def correction_table(self) -> list[dict]:
         """Every correction of the odometry check, for summary.yaml: its scan, the recent map's

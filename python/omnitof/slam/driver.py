@@ -42,7 +42,8 @@ class SlamResult:
         scan at its optimised pose.
     stats: counts and timings of the run.
     graph: with the back end, its nodes' optimised poses (K, 3) (the integrated scans, in
-        order) and the accepted and rejected loop closures as (K_c, 2) node index pairs.
+        order), the accepted and rejected loop closures as (K_c, 2) node index pairs, and the
+        nodes where the odometry check relocalised the robot onto an older map ("relocalised").
     """
 
     trajectory: Trajectory

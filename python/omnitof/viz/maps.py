@@ -77,13 +77,15 @@ def plot_pose_graph(
     closures: np.ndarray,
     rejected: np.ndarray | None = None,
     *,
+    relocalised: np.ndarray | None = None,
     title: str = "",
     dpi: int = 150,
     figsize: tuple[float, float] = DEFAULT_FIGSIZE,
 ) -> Figure:
     """Draw the pose graph over the map as a PNG at `path` (atomically): the nodes (K, 3) joined
     in order by the front end's edges, the accepted loop closures (pairs of node indices (C, 2))
-    in green and the rejected ones in red."""
+    in green and the rejected ones in red; `relocalised` (node indices): where the odometry check
+    relocalised the robot onto an older map (the back end's verdict), in orange."""
     fig = Figure(figsize=figsize, dpi=dpi)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
@@ -97,6 +99,10 @@ def plot_pose_graph(
             segments = np.stack([nodes[pairs[:, 0], :2], nodes[pairs[:, 1], :2]], axis=1)
             ax.add_collection(LineCollection(segments, colors=colour, linewidths=0.6, alpha=0.7,
                                              label=f"{name} ({len(pairs)})"))
+    moved = np.zeros(0, dtype=np.int64) if relocalised is None else np.asarray(relocalised, dtype=np.int64).ravel()
+    if len(moved):
+        ax.plot(nodes[moved, 0], nodes[moved, 1], "^", color="C1", markersize=6,
+                label=f"relocalisations ({len(moved)})")
     ax.set_aspect("equal", adjustable="box")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
