@@ -49,7 +49,7 @@ there. So the closures are judged with the wheels' motion as such a node's edge,
 optimisation spreads the drift along the loop, wherever the optimum with that edge still puts the
 node nearer the relocalised pose than the wheels' one: the kept closures then say what the
 relocalisation said. Where they do not, the jump stands, since nothing else says where the robot is
-(`Relocalisation`, `_judge_correction`, `_sides_with_relocalisation`).
+(`_judge_correction`, `_sides_with_relocalisation`).
 
 Everything is deterministic: the search and the core are bit-identical for any thread count,
 and the graph is optimised in node order on one thread.
@@ -136,18 +136,6 @@ class Closure:
 
 
 @dataclass
-class Relocalisation:
-    """A correction of the front end's odometry check at node `node` that the recent map does not
-    support (see the module docstring): `wheels` is the wheels' motion from the node before,
-    `shares` the share of the scan's end points near the map of the last
-    `relocalisation_recent_m` metres at the wheels' pose and at the corrected one."""
-
-    node: int
-    wheels: np.ndarray
-    shares: tuple[float, float]
-
-
-@dataclass
 class _Submap:
     grid: _core.Submap
     first: int  # first node
@@ -197,10 +185,11 @@ class PoseGraphBackend:
         self._searched_globally = False
         self._last_optimised_node = -10**9
         self._edge_factors: dict[int, tuple[bytes, gtsam.BetweenFactorPose2]] = {}
-        # The odometry check's corrections: node -> shares at the wheels' and the corrected pose
-        # (None: not judged); those that relocalised, by node.
+        # The odometry check's corrections: node -> shares of the scan's end points near the recent
+        # map at the wheels' and the corrected pose (None: not judged). Those that relocalised
+        # the robot onto an older map: node -> the wheels' motion from the node before.
         self.corrections: dict[int, tuple[float, float] | None] = {}
-        self.relocalisations: dict[int, Relocalisation] = {}
+        self.relocalisations: dict[int, np.ndarray] = {}
         self.spread: set[int] = set()  # relocalisations whose wheels' edge the last optimisation used
         self._judging: list[int] | None = None  # those whose wheels' edge the verdicts use (None: all)
         self.seconds = {"submaps": 0.0, "search": 0.0, "optimise": 0.0, "feedback": 0.0, "judge": 0.0}
@@ -271,7 +260,7 @@ class PoseGraphBackend:
         shares = (float(share[0]), float(share[1]))
         self.corrections[j] = shares
         if shares[1] < shares[0] + self.cfg.relocalisation_margin:
-            self.relocalisations[j] = Relocalisation(j, wheels, shares)
+            self.relocalisations[j] = wheels
 
     def _recent_nodes(self, j: int) -> list[int]:
         """The nodes of the current segment before j within `relocalisation_recent_m` metres of
@@ -445,7 +434,7 @@ class PoseGraphBackend:
         """The front-end edges, with the wheels' motion into the relocalised nodes in `spread`."""
         edges = list(self.odometry_edges)
         for j in spread:
-            edges[j - 1] = self.relocalisations[j].wheels
+            edges[j - 1] = self.relocalisations[j]
         return edges
 
     def _chain(self) -> list[np.ndarray]:
@@ -580,7 +569,7 @@ class PoseGraphBackend:
         pose, both in the front end's frame, in units of the closures' smallest sigmas."""
         cfg = self.cfg
         scale = np.array([cfg.closure_sigma_xy_min, cfg.closure_sigma_xy_min, math.radians(cfg.closure_sigma_deg_min)])
-        wheels = compose(self.frontend[j - 1], self.relocalisations[j].wheels)
+        wheels = compose(self.frontend[j - 1], self.relocalisations[j])
         def distance(to: np.ndarray) -> float:
             d = pose - to
             d[2] = wrap_angle(d[2])
