@@ -321,6 +321,8 @@ def test_a_complete_run_of_another_configuration_is_not_taken_for_this_one(grid_
 
 @pytest.mark.parametrize("text, message", [
     ("inputs: [{name: a, lgo: x.clf}]", "inputs[0].lgo: unknown field"),
+    # The misspelt field first: it is why `inputs` is "required" (that was the message).
+    ("inputz: [{name: a, log: LOG}]", "inputz: unknown field (and 1 more problems)"),
     ("inputs: [{name: a, log: x.clf}]", "inputs[0].log: no such file or folder"),
     ("inputs: [{name: a, log: $OMNITOF_NO_SUCH_VARIABLE/x.clf}]", "inputs[0].log: $OMNITOF_NO_SUCH_VARIABLE is not set"),
     ("inputs: [{name: a, log: LOG, world: room}]", "inputs[0]: give either log"),

@@ -255,6 +255,28 @@ def test_intrinsics_reads_png_and_rejects_too_few_boards(rig, tmp_path):
         calibrate_intrinsics(images)
 
 
+def test_a_truncated_npz_a_tiny_image_and_a_tiny_board_are_user_mistakes(tmp_path, capsys):
+    # Each was a traceback (zipfile.BadZipFile; cv2.error from the detector's thresholding;
+    # cv2.error from findChessboardCorners).
+    from omnitof.calibration.images import load_images
+    from omnitof.calibration.intrinsics import detect_checkerboard
+    from omnitof.cli import main
+
+    whole = tmp_path / "whole.npz"
+    np.savez(whole, amplitude=np.ones((20, 30), np.float32))
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(whole.read_bytes()[:100])
+    with pytest.raises(CalibrationError, match="cut.npz: cannot read the npz file"):
+        load_images([cut])
+    for side in (1, 3, 14):
+        assert detect_checkerboard(np.random.default_rng(0).random((side, 40)), (7, 5)) is None
+    for board in ("3x3", "1x8", "8x0"):
+        assert main(["calibrate", "intrinsics", "--out", str(tmp_path / "c.yaml"), "--board", board, str(whole)]) == 2
+        err = capsys.readouterr().err
+        assert "--board: needs at least 4x4 squares" in err and err.count("\n") == 1
+    assert not (tmp_path / "c.yaml").exists()
+
+
 def test_intrinsics_from_a_ros_bag(rig, tmp_path):
     from omnitof.calibration.images import load_images
     from omnitof.calibration.intrinsics import calibrate_intrinsics

@@ -382,3 +382,54 @@ def test_running_out_of_memory_is_one_line_and_leaves_nothing(tmp_path, monkeypa
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Traceback" not in err
     assert err.startswith("omnitof: error: out of memory (Unable to allocate 58.2 TiB") and not out.exists()
+
+
+@pytest.fixture(scope="module")
+def tiny_tof_bag(tmp_path_factory):
+    """A simulated ToF bag of three frames (omnitof simulate)."""
+    bag = tmp_path_factory.mktemp("tof") / "bag"
+    assert main(["simulate", "--world", "room", "--out", str(bag), "--max-frames", "3", "--quiet"]) == 0
+    return bag
+
+
+@pytest.mark.filterwarnings("ignore:.*no --calibration given")  # the simulated bag's true rig is meant
+def test_scans_and_simulate_replace_a_bag_or_log_and_nothing_else(tmp_path, monkeypatch, capsys, tiny_tof_bag):
+    # --overwrite replaced whatever --out named: a folder of the user's own, the folder holding
+    # the input bag, a CARMEN log without being asked. Each is now refused before any work.
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep me")
+    (tmp_path / "log.clf").write_text("a log of my own")
+    inner = tmp_path / "holder" / "in"
+    inner.parent.mkdir()
+    import shutil
+
+    shutil.copytree(tiny_tof_bag, inner)
+    (tmp_path / "holder" / "notes.txt").write_text("keep me")
+    cases = [
+        (["simulate", "--world", "room", "--out", "mine", "--max-frames", "2", "--overwrite"],
+         "mine: is a folder but not a ROS 2 bag (it holds notes.txt)"),
+        (["simulate", "--world", "room", "--out", ".", "--max-frames", "2", "--overwrite"], "holds the current folder"),
+        (["simulate", "--world", "room", "--out", "mine/..", "--max-frames", "2", "--overwrite"], "holds the current folder"),
+        (["simulate", "--world", "room", "--out", "log.clf", "--max-frames", "2", "--overwrite"], "not a ROS 1 bag"),
+        (["scans", "holder/in", "--out", "holder", "--overwrite"], "holder: is (or holds) the input"),
+        (["scans", "holder/in", "--out", "holder/in", "--overwrite"], "is (or holds) the input"),
+        (["scans", "holder/in", "--out", "log.clf"], "log.clf exists already; replace it with --overwrite"),
+        (["scans", "holder/in", "--out", "new.clf", "--figure", "mine"], "mine: is a folder"),
+        (["scans", "holder/in", "--out", "new.clf", "--figure", "/proc/omnitof.png"], "/proc/omnitof.png: cannot write"),
+        (["scans", "holder/in", "--out", "nowhere/new.clf"], "its folder does not exist"),
+    ]
+    for argv, message in cases:
+        assert main([*argv, "--quiet"]) == 2, argv
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err and err.count("error:") == 1, (argv, err)
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "keep me"
+    assert (tmp_path / "log.clf").read_text() == "a log of my own"
+    assert (tmp_path / "holder" / "notes.txt").exists() and (inner / "metadata.yaml").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["holder", "log.clf", "mine"]  # nothing half-written
+    # What it may replace, it replaces: a log with --overwrite, a bag with --overwrite.
+    assert main(["scans", "holder/in", "--out", "log.clf", "--overwrite", "--quiet"]) == 0
+    assert (tmp_path / "log.clf").read_text().startswith("# CARMEN Logfile written by omnitof")
+    assert main(["scans", "holder/in", "--out", "scans", "--quiet"]) == 0
+    assert main(["scans", "holder/in", "--out", "scans", "--overwrite", "--quiet"]) == 0
+    assert main(["simulate", "--world", "room", "--out", "scans", "--max-frames", "2", "--overwrite", "--quiet"]) == 0

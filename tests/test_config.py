@@ -192,6 +192,8 @@ def test_a_bad_value_is_blamed_on_the_layer_that_set_it(tmp_path):
     good.write_text("filter:\n  particles: 12\n")
     bad = tmp_path / "bad.yaml"
     bad.write_text("map:\n  resolution: -1\n")
+    nulled = tmp_path / "nulled.yaml"
+    nulled.write_text("filter:\n  particles:\n")
     cases = [
         (dict(preset="paper", settings={"map.resolution": -1}), "--set map.resolution=-1: invalid configuration: map.resolution"),
         (dict(preset="paper", config=good, settings={"map.resolution": -1}), "--set map.resolution=-1:"),
@@ -199,6 +201,9 @@ def test_a_bad_value_is_blamed_on_the_layer_that_set_it(tmp_path):
         (dict(preset="paper", particles=0), "--particles 0: invalid configuration: filter.particles"),
         (dict(settings={"sensor_model.z_rand": 0.5}), "--set sensor_model.z_rand=0.5: invalid configuration: sensor_model: z_hit"),
         (dict(settings={"filter.seed": int("9" * 300)}), "--set filter.seed=" + "9" * 40 + "...:"),
+        # A value set to null is the setter's fault too (it was blamed on the defaults).
+        (dict(preset="paper", settings={"filter.particles": None}), "--set filter.particles=null: invalid configuration"),
+        (dict(preset="paper", config=nulled), f"{nulled}: invalid configuration: filter.particles"),
     ]
     for kwargs, message in cases:
         with pytest.raises(ConfigError) as err:

@@ -132,6 +132,18 @@ def test_a_log_whose_odometry_leaps_100_km_is_refused_before_slam(tmp_path, loop
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Traceback" not in err
     assert "map.resolution 0.001 m: the map of" in err and "1e+05 m ×" in err and "TB" in err
+    assert "alone" not in err  # half the log leapt: no single pose to blame
+
+
+def test_one_pose_far_from_the_rest_is_named_where_it_makes_the_map_too_big(loop):
+    # One odometry x read as 1e7 made the map 10,000 km wide: the refusal named only the
+    # resolution, which is not what the user must fix.
+    cfg = load_config(preset="sim2d")
+    one = loop.slice(0, 50)
+    one.odometry[17, 0] = 1e7
+    with pytest.raises(ResourceError, match=r"choose a coarser map\.resolution\); most of that span is the "
+                       r"odometry pose of scan 17 alone, at \(1e\+07, [-0-9.e+]+\) m"):
+        check_memory(one, cfg, available=500e6)
 
 
 # --- memory while a run goes on (MemoryWatch) ----------------------------------------------

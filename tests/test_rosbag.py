@@ -8,6 +8,7 @@ rosbags directly, so that the reader is checked against data its writer did not 
 from __future__ import annotations
 
 import math
+import re
 import warnings
 from pathlib import Path
 
@@ -383,6 +384,28 @@ def test_write_is_atomic(tmp_path: Path) -> None:
     assert [p.name for p in tmp_path.iterdir()] == ["b"]
 
 
+def test_overwrite_replaces_a_bag_and_nothing_else(tmp_path: Path, monkeypatch) -> None:
+    # The writer replaces its target as a whole: with overwrite it deleted a folder of the
+    # user's own, or a plain file, and "." crashed it.
+    from omnitof.errors import OutputError
+
+    frames = make_frames(SMALL, 2, samples=False)
+    odometry = trajectory(np.array([0.0, 0.1, 0.2]), seed=0)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep me")
+    (tmp_path / "notes.txt").write_text("keep me")
+    for target, message in [("mine", "not a ROS 2 bag (it holds notes.txt)"), ("notes.txt", "not a ROS 1 bag"),
+                            (".", "holds the current folder"), ("mine/..", "holds the current folder")]:
+        with pytest.raises(OutputError, match=re.escape(message)):
+            write_tof_bag(target, frames, camera=SMALL, odometry=odometry, overwrite=True)
+    assert (tmp_path / "mine" / "notes.txt").read_text() == (tmp_path / "notes.txt").read_text() == "keep me"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine", "notes.txt"]
+    write_tof_bag("bag", frames, camera=SMALL, odometry=odometry)  # a bag, its sidecar: replaced
+    write_tof_bag("bag", frames[:1], camera=SMALL, odometry=odometry, overwrite=True, sidecar={})
+    assert read_tof_bag(tmp_path / "bag").n_frames == 1
+
+
 def test_writer_rejects_bad_arguments(tmp_path: Path) -> None:
     frames = make_frames(SMALL, 2, samples=False)
     odometry = trajectory(np.array([0.0]), seed=0)
@@ -438,6 +461,8 @@ def test_not_a_bag(tmp_path: Path) -> None:
     folder.mkdir()
     expect_error(folder, "not a readable ROS bag")
     expect_error(tmp_path / "absent", "no such bag")
+    (folder / "metadata.yaml").write_text("foo: [\n")  # rosbags' YAML error spans four lines
+    assert "\n" not in str(expect_error(folder, "not a readable ROS bag (Could not load YAML"))
 
 
 def test_missing_and_mistyped_topics(tmp_path: Path) -> None:

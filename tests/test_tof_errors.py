@@ -5,6 +5,7 @@ decoded error, the offsets' closed form) and their YAML form."""
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -109,6 +110,18 @@ def test_errors_travel_with_the_rig_and_bad_fields_are_named():
     data["sensor"]["errors"]["wiggle"] = True
     with pytest.raises(RigError, match="wiggle"):
         Rig.from_dict(data)
+    # A number that is not one is named by its field and entry (it read "expected finite numbers
+    # of shape (4, 4), got shape (4, 4)", and "could not convert string to float" without a field).
+    data = rig.to_dict()
+    data["robot_T_camera"][2][3] = float("nan")
+    with pytest.raises(RigError, match=re.escape("robot_T_camera: entry [2, 3] is nan, not a finite number")):
+        Rig.from_dict(data)
+    data = rig.to_dict()
+    data["camera"]["fx"] = "abc"
+    with pytest.raises(RigError, match="camera.fx: expected a number, got 'abc'"):
+        Rig.from_dict(data)
+    data["camera"]["fx"] = np.float32(rig.camera.fx)  # numbers of numpy's own are numbers
+    assert Rig.from_dict(data).camera.fx == pytest.approx(rig.camera.fx)
     with pytest.raises(ToFErrorsError, match="harmonic3"):
         ToFErrors(harmonic3=0.5)
     with pytest.raises(ToFErrorsError, match="integration_time"):

@@ -7,15 +7,17 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import signal
 import sys
+import tempfile
 
 import numpy as np
 import warnings
 from pathlib import Path
 
 from omnitof import __version__
-from omnitof.errors import OmnitofError, OmnitofWarning, os_error_message
+from omnitof.errors import OmnitofError, OmnitofWarning, OutputError, os_error_message
 
 
 def _config_from_args(args: argparse.Namespace, default_preset: str | None = None):
@@ -169,15 +171,45 @@ def _add_tof_bag_options(p: argparse.ArgumentParser, prefix: str) -> None:
                    "(the simulator's), or the depth z along the optical axis that many drivers publish")
 
 
+def _checked_output_file(path: Path, overwrite: bool | None, what: str) -> None:
+    """Refuse a file output before any work: a folder in its place, a folder that is missing or
+    not writable, or (where `overwrite` is not None) a file there without --overwrite."""
+    if path.is_dir():
+        raise OutputError(f"{path}: is a folder; {what} is a file: give a file name")
+    if overwrite is False and os.path.lexists(path):
+        raise OutputError(f"{path} exists already; replace it with --overwrite")
+    if not path.parent.is_dir():
+        raise OutputError(f"{path}: cannot write: its folder does not exist")
+    try:  # a file made and removed beside it: os.access says yes to root even where nothing can be made
+        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".probe"):
+            pass
+    except OSError as err:
+        raise OutputError(f"{path}: cannot write: {err.strerror or err}") from None
+
+
 def cmd_scans(args: argparse.Namespace) -> int:
     from omnitof.slam_run import read_tof_input
 
+    # Every output checked before the frames are read: a bad path costs no work, and a run that
+    # fails leaves nothing written.
+    out = Path(args.out)
+    carmen = out.suffix in (".clf", ".log", ".txt")
+    if carmen:
+        _checked_output_file(out, args.overwrite, "a CARMEN log")
+    else:
+        from omnitof.io.rosbag import checked_bag_target
+
+        target, source = Path(os.path.abspath(out)).resolve(), Path(args.log).resolve()
+        if target == source or target in source.parents:
+            raise OutputError(f"{out}: is (or holds) the input {args.log}; give the output a new name")
+        checked_bag_target(out, args.overwrite)
+    if args.figure is not None:
+        _checked_output_file(Path(args.figure), None, "the figure")
     data = read_tof_input(args.log, calibration=args.calibration, height=args.height, band=args.band,
                           multipath=args.multipath_compensation, max_frames=args.max_frames, bar=_bar_factory(args),
                           topics=args.tof_topics, depth=args.tof_distance == "depth")
     scans = data.scans
-    out = Path(args.out)
-    if out.suffix in (".clf", ".log", ".txt"):
+    if carmen:
         from omnitof.io.carmen import write_carmen
 
         write_carmen(out, scans)
@@ -416,7 +448,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_tof_bag_options(p, "")
     p.add_argument("--max-frames", type=_positive_int, help="only the first N frames")
     p.add_argument("--figure", type=Path, help="draw the middle frame's scan (PNG)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing bag")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing bag or log (nothing else)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_scans)
 
@@ -481,7 +513,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_tof_errors(p)
     p.add_argument("--max-frames", type=_positive_int, help="write only the first N frames")
     p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="ROS 2 bag storage")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing bag")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing bag (nothing else)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_simulate)
 

@@ -156,6 +156,9 @@ def _board(text: str):
         cols, rows = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise CalibrationError(f"--board: expected COLSxROWS squares, e.g. 8x6, got {text!r}") from None
+    if min(cols, rows) < 4:
+        # OpenCV's detectors need more than two inner corners each way (cols - 1, rows - 1).
+        raise CalibrationError(f"--board: needs at least 4x4 squares (3x3 inner corners), got {text!r}")
     return cols, rows
 
 

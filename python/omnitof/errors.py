@@ -93,6 +93,13 @@ def yaml_problem(err: Exception) -> tuple[str, int | None]:
     return f"not valid YAML: {problem}", None if mark is None else mark.line + 1
 
 
+def leading_problem(problems: list[dict[str, Any]]) -> dict[str, Any]:
+    """The one of pydantic's validation problems (`ValidationError.errors()`) to report first: an
+    unknown field where there is one, since a misspelt field is also why the field meant is
+    "required" (an experiment's `inputz:` read "inputs: Field required")."""
+    return next((p for p in problems if p.get("type") == "extra_forbidden"), problems[0])
+
+
 def read_problem(err: OSError | UnicodeDecodeError | ValueError) -> str:
     """What went wrong reading a file, for a message that already names it: OSError's own text
     repeats the path ("[Errno 36] File name too long: '/a/...'"), after the path was named."""

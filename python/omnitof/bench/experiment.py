@@ -37,7 +37,7 @@ import yaml
 from pydantic import AfterValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from omnitof.settings_model import SettingsModel
-from omnitof.errors import ConfigError, OmnitofError, load_yaml, yaml_problem
+from omnitof.errors import ConfigError, OmnitofError, leading_problem, load_yaml, yaml_problem
 
 METRICS = ("relations", "trajectory", "floorplan", "table1")
 # Runs of one experiment: planning takes about 1 ms a run, a run seconds to hours.
@@ -269,7 +269,7 @@ def load_experiment(path: str | Path) -> Experiment:
     try:
         spec = ExperimentSpec.model_validate(data)
     except ValidationError as err:
-        first = err.errors()[0]
+        first = leading_problem(err.errors())
         message = first["msg"].removeprefix("Value error, ")
         if first["type"] == "extra_forbidden":
             message = "unknown field"

@@ -4,6 +4,7 @@ ROS bags (every frame, via `omnitof.io.rosbag.read_tof_bag`)."""
 
 from __future__ import annotations
 
+import zipfile
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -80,7 +81,7 @@ def _npz_image(path: Path) -> AmplitudeImage:
                 raise CalibrationError("npz file has no 'amplitude' array", path)
             amplitude = np.asarray(data["amplitude"], dtype=np.float32)
             distance = np.asarray(data["distance"], dtype=np.float32) if "distance" in data else None
-    except (OSError, ValueError) as err:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:  # a truncated file: BadZipFile
         raise CalibrationError(f"cannot read the npz file: {read_problem(err)}", path) from None
     if amplitude.ndim != 2 or (distance is not None and distance.shape != amplitude.shape):
         raise CalibrationError("npz images must be (H, W), amplitude and distance alike", path)

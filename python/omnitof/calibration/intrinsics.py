@@ -47,8 +47,15 @@ def to_uint8(amplitude: np.ndarray) -> np.ndarray:
     return np.clip(a * (255.0 / top), 0.0, 255.0).astype(np.uint8)
 
 
+# OpenCV's classic detector thresholds the image in blocks that an image narrower than this
+# cannot hold (it asserts, OpenCV 4 and 5); no board is seen in so few pixels anyway.
+_MIN_IMAGE_SIDE_PX = 15
+
+
 def detect_checkerboard(amplitude: np.ndarray, pattern_size: tuple[int, int]) -> np.ndarray | None:
     """Sub-pixel inner corners (N, 2) float32 in OpenCV's order, or None if not found whole."""
+    if min(np.shape(amplitude)[:2]) < _MIN_IMAGE_SIDE_PX:
+        return None
     image = to_uint8(amplitude)
     # The classic detector (its corners can be 1.6 px off, so cornerSubPix brings them within
     # ~0.1 px first); SB is the fallback, as it finds boards the classic one misses. Both are

@@ -59,7 +59,7 @@ from pydantic import ConfigDict, Field, ValidationError, field_validator, model_
 
 from omnitof.settings_model import SettingsModel
 from omnitof.sensor.camera import Camera
-from omnitof.errors import ConfigError, InputError
+from omnitof.errors import ConfigError, InputError, leading_problem
 from omnitof.sensor.mirrors import Mirror, MirrorPlane
 from omnitof.scan.grazing import drop_grazing
 from omnitof.scan.multipath import MultipathCompensation, MultipathSettings
@@ -227,7 +227,7 @@ def scan_settings(settings: ScanSettings | None = None, **overrides: Any) -> Sca
     try:
         out = ScanSettings(**base)
     except ValidationError as err:
-        first = err.errors()[0]
+        first = leading_problem(err.errors())
         name = ".".join(str(p) for p in first["loc"]) or "(settings)"
         raise ScanConfigError(f"ScanSettings.{name}: {first['msg']}") from None
     return out

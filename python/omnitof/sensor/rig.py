@@ -27,6 +27,7 @@ rig read from either is the same object.
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -212,6 +213,9 @@ def camera_to_dict(camera: Camera) -> dict[str, Any]:
 def camera_from_dict(data: Any, source: str | Path | None = None, error: type[InputError] = RigError) -> Camera:
     """The camera of a YAML entry; `error` (naming the field) if it is incomplete or invalid."""
     values = {key: _required(data, key, "camera.", source, error) for key in CAMERA_FIELDS}
+    for key, value in values.items():  # named here: Camera's own error does not say which field
+        if not isinstance(value, numbers.Real) or isinstance(value, bool):
+            raise error(f"camera.{key}: expected a number, got {value!r}", source)
     dist = _numbers(_required(data, "dist", "camera.", source, error), (5,), "camera.dist", source, error)
     try:
         return Camera(**values, dist=tuple(float(v) for v in dist))
@@ -234,6 +238,9 @@ def _numbers(value: Any, shape: tuple[int, ...], where: str, source: str | Path 
     except (TypeError, ValueError):
         raise error(f"{where}: expected numbers of shape {shape}", source) from None
     fits = out.ndim == len(shape) and all(w in (-1, s) for w, s in zip(shape, out.shape))
-    if not fits or not np.all(np.isfinite(out)):
+    if not fits:
         raise error(f"{where}: expected finite numbers of shape {shape}, got shape {out.shape}", source)
+    if not np.all(np.isfinite(out)):
+        at = tuple(int(i) for i in np.argwhere(~np.isfinite(out))[0])
+        raise error(f"{where}: entry {list(at)} is {out[at]}, not a finite number", source)
     return out

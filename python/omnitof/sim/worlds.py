@@ -42,7 +42,7 @@ import yaml
 from pydantic import ConfigDict, Field, ValidationError, model_validator
 
 from omnitof.settings_model import SettingsModel
-from omnitof.errors import InputError, load_yaml, yaml_problem
+from omnitof.errors import InputError, leading_problem, load_yaml, yaml_problem
 from omnitof.sim.laser2d import World2D
 
 # Obstacles that reach below this height (m) block the robot: a Pioneer-class base with the
@@ -494,7 +494,7 @@ def parse_world(data: Any, source: str | Path | None = None) -> World:
     try:
         spec = WorldSpec.model_validate(data)
     except ValidationError as err:
-        first = err.errors()[0]
+        first = leading_problem(err.errors())
         more = f" (and {err.error_count() - 1} more problems)" if err.error_count() > 1 else ""
         raise WorldError(f"{_field(first['loc'])}: {first['msg']}{more}", where) from None
     return _compile(spec, where)

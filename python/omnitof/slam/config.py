@@ -510,14 +510,15 @@ def _blame(loc: tuple[str, ...], layers: list[_Layer]) -> str:
     """The last layer that set the field at `loc` (or, for a section's own check, any field of it)."""
     for source, fields, style in reversed(layers):
         node: Any = fields
+        found = True
         for part in loc:
             if not isinstance(node, dict):
                 break  # the layer set a whole value that holds `loc` (an item of a list)
             if part not in node:
-                node = None
+                found = False
                 break
-            node = node[part]
-        if node is None:
+            node = node[part]  # None where the layer set it to null: that layer is to blame
+        if not found:
             continue
         if style == "file":
             return source

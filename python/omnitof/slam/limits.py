@@ -277,12 +277,29 @@ def check_memory(scans: ScanSequence, cfg: SlamConfig, *, available: float | Non
             f"map.resolution {cfg.map.resolution:g} m: the map of {scans.source or 'these scans'} "
             f"spans {width:.4g} m × {height:.4g} m, {cols:.3g} × {rows:.3g} cells, and the run "
             f"would need about {_size(estimate.total)}; {have} (choose a coarser map.resolution)"
+            f"{_outlier(scans, max(width, height))}"
         )
     raise ResourceError(
         f"filter.particles {cfg.filter.particles}: the particles' maps would need about "
         f"{_size(estimate.particles_bytes)} (with map.resolution {cfg.map.resolution:g} m over "
         f"{width:.4g} m × {height:.4g} m); {have} (choose fewer particles)"
     )
+
+
+def _outlier(scans: ScanSequence, span: float) -> str:
+    """Where one odometry pose alone makes most of the map's span (a number read wrong, say):
+    a note naming it; otherwise nothing. A trajectory's own extent puts no pose much more than
+    half the span from the median position."""
+    if len(scans) < 3 or not math.isfinite(span):
+        return ""
+    xy = scans.odometry[:, :2]
+    away = np.hypot(*(xy - np.median(xy, axis=0)).T)
+    k = int(np.argmax(away))
+    if not away[k] > 0.75 * span:
+        return ""
+    x, y = xy[k]
+    return (f"; most of that span is the odometry pose of scan {k} alone, at ({x:.6g}, {y:.6g}) m, "
+            f"{away[k]:.4g} m from the others' median: is it read right?")
 
 
 def check_submaps(scans: ScanSequence, cfg: SlamConfig) -> None:

@@ -26,6 +26,7 @@ from omnitof.io.rosbag.common import (
     BagExistsError,
     RosbagWarning,
     bag_message_types,
+    checked_bag_target,
     from_ros_time,
     to_ros_time,
 )
@@ -47,6 +48,7 @@ __all__ = [
     "ToFFrameStamped",
     "ToFTopics",
     "bag_message_types",
+    "checked_bag_target",
     "from_ros_time",
     "interpolate_poses",
     "read_laserscan_bag",

@@ -39,7 +39,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from omnitof.errors import InputError, OmnitofError, OmnitofWarning, load_yaml, read_problem, yaml_problem
+from omnitof.errors import InputError, OmnitofError, OmnitofWarning, OutputError, load_yaml, read_problem, yaml_problem
 from omnitof.geometry import quaternion_to_yaw, yaw_to_quaternion
 from omnitof.interrupts import deferred_signals
 from omnitof.io.atomic import fsync_dir, temporary_folder
@@ -52,6 +52,7 @@ __all__ = [
     "BagExistsError",
     "RosbagWarning",
     "bag_message_types",
+    "checked_bag_target",
     "from_ros_time",
     "to_ros_time",
 ]
@@ -222,8 +223,11 @@ def _opened(path: Path) -> Iterator[AnyReader]:
         reader = AnyReader([path], default_typestore=_ros2_store())
         reader.open()
     except Exception as err:  # rosbags raises several kinds; all mean "not a readable bag"
+        why = " ".join(str(err).split())  # one line: a YAML error's text spans several
+        if len(why) > 200:
+            why = why[:200] + "..."
         raise InputError(
-            f"not a readable ROS bag ({err}); a ROS 1 bag is a file ending in '.bag', a ROS 2 "
+            f"not a readable ROS bag ({why}); a ROS 1 bag is a file ending in '.bag', a ROS 2 "
             "bag a folder with metadata.yaml (or a bare .mcap / .db3 file)",
             path,
         ) from None
@@ -429,6 +433,43 @@ def _fsync_tree(path: Path) -> None:
         fsync_dir(folder)
 
 
+# What a bag holds: a ROS 2 bag folder its metadata, storage files and omnitof's sidecar.
+_BAG_FOLDER_FILES = ("metadata.yaml", SIDECAR_NAME)
+_BAG_STORAGE_SUFFIXES = (".mcap", ".db3", ".db3-shm", ".db3-wal")
+
+
+def checked_bag_target(path: str | Path, overwrite: bool) -> Path:
+    """The absolute path a bag may be written to as `path`, or an OutputError saying why not.
+
+    It may not exist, or, with `overwrite`, be a bag: a ROS 1 bag file (.bag) or a ROS 2 bag folder
+    (metadata.yaml, storage files, the sidecar). Anything else is refused even with `overwrite`,
+    since the writer replaces its target as a whole: a results folder or a folder of the
+    user's own would be lost. The root and the current folder (or one that holds it) are
+    refused too, as for a results folder (omnitof.io.atomic)."""
+    shown = Path(path)
+    path = Path(os.path.abspath(shown))
+    if path.parent == path:
+        raise OutputError(f"{shown}: the root folder cannot be a bag")
+    here, real = Path.cwd().resolve(), path.resolve()
+    if here == real or real in here.parents:
+        raise OutputError(f"{shown}: holds the current folder, which a bag in its place would pull away")
+    if not os.path.lexists(path):
+        return path
+    if not overwrite:
+        raise BagExistsError(f"{shown} exists already; replace it with --overwrite (overwrite=True in Python)")
+    if path.is_dir():
+        names = sorted(p.name for p in path.iterdir())
+        foreign = [n for n in names if n not in _BAG_FOLDER_FILES and not n.endswith(_BAG_STORAGE_SUFFIXES)]
+        if foreign or "metadata.yaml" not in names:
+            held = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+            why = f"it holds {held}" if foreign else "it has no metadata.yaml"
+            raise OutputError(f"{shown}: is a folder but not a ROS 2 bag ({why}); --overwrite replaces a bag only, "
+                              "as a whole: give a new name")
+    elif path.suffix != ".bag":
+        raise OutputError(f"{shown}: is a file but not a ROS 1 bag (.bag); --overwrite replaces a bag only: give a new name")
+    return path
+
+
 @contextmanager
 def _atomic_path(path: Path, overwrite: bool) -> Iterator[Path]:
     """Yield a not-yet-existing path to build a bag (file or folder) at; rename it to `path`.
@@ -438,8 +479,7 @@ def _atomic_path(path: Path, overwrite: bool) -> Iterator[Path]:
     to disk, and renamed into place only if the block succeeds; otherwise the staging folder is
     removed and `path` is left as it was. What a killed writer left is swept first.
     """
-    if path.exists() and not overwrite:
-        raise BagExistsError(f"{path} exists already; replace it with --overwrite (overwrite=True in Python)")
+    path = checked_bag_target(path, overwrite)
     path.parent.mkdir(parents=True, exist_ok=True)
     with temporary_folder(path) as staging:
         inner = staging / path.name
