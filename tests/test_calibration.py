@@ -277,6 +277,23 @@ def test_a_truncated_npz_a_tiny_image_and_a_tiny_board_are_user_mistakes(tmp_pat
     assert not (tmp_path / "c.yaml").exists()
 
 
+def test_a_board_that_is_not_the_printed_one_warns(rig):
+    # 4x4 squares asked of 8x6 boards: a part of each board is found, and the fit (4 px RMS,
+    # fy a tenth of fx) was written without a word.
+    import warnings
+
+    from omnitof.calibration.intrinsics import calibrate_intrinsics
+    from omnitof.calibration.targets import Checkerboard, render_checkerboard_images
+    from omnitof.errors import OmnitofWarning
+
+    images, _ = render_checkerboard_images(rig.camera, 6, seed=4)
+    with pytest.warns(OmnitofWarning, match=r"the intrinsics fit badly: .* is the board 4x4 squares as printed"):
+        calibrate_intrinsics(images, Checkerboard(cols=4, rows=4))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", OmnitofWarning)
+        assert calibrate_intrinsics(images).rms_px < 0.2  # the printed board: no warning
+
+
 def test_intrinsics_from_a_ros_bag(rig, tmp_path):
     from omnitof.calibration.images import load_images
     from omnitof.calibration.intrinsics import calibrate_intrinsics

@@ -349,6 +349,10 @@ def test_only_omnitofs_own_warnings_read_as_omnitof_warnings():
     (["scans", "BAG", "--out", "x.clf", "--band", "-0.1"], "--band: expected a number above 0"),
     (["eval", "relations", "a", "b", "--tolerance", "-1"], "--tolerance: expected a number of at least 0"),
     (["design", "--yaw", "1e308"], "--yaw: expected a number of at most 360"),
+    # These three named the library's fields (n_mirrors, tilt_deg, elev_band_deg), not the options.
+    (["design", "--mirrors", "2"], "--mirrors: expected at least 3"),
+    (["design", "--tilt", "90"], "--tilt: expected a number below 90"),
+    (["design", "--band", "-5"], "--band: expected a number of at least 0"),
     (["simulate", "--out", "OUT", "--speed", "inf"], "--speed: expected a finite number"),
     (["calibrate", "render-targets", "--out", "OUT", "--boards", "0"], "--boards: expected at least 1"),
     (["calibrate", "intrinsics", "x.png", "--out", "c.yaml", "--square", "0"], "--square: expected a number above 0"),

@@ -595,6 +595,15 @@ def test_bad_sidecar(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="mapping") as info:
         read_tof_bag(tmp_path / "b")
     assert info.value.path == tmp_path / "b" / SIDECAR_NAME
+    # An empty sidecar, or one of a newer format, is said so (both read as "no calibration", or
+    # half-understood).
+    for text, message in [("", "the bag's sidecar is empty"), ("omnitof_sidecar: 99\n", "omnitof_sidecar: 99: this "
+                          "omnitof reads sidecars of version 1 or older"), ("omnitof_sidecar: one\n", "omnitof_sidecar: 'one'")]:
+        (tmp_path / "b" / SIDECAR_NAME).write_text(text)
+        with pytest.raises(InputError, match=message):
+            read_tof_bag(tmp_path / "b")
+    (tmp_path / "b" / SIDECAR_NAME).write_text("omnitof_sidecar: 1\nnotes: a field of a later version 1\n")
+    assert read_tof_bag(tmp_path / "b").sidecar["notes"].startswith("a field")
 
 
 # --- laser-scan bags -----------------------------------------------------------------------

@@ -106,14 +106,22 @@ def _scan_delay(text: str) -> str | float:
     return value
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected at least 1, got {value}")
-    return value
+def _whole(at_least: int):
+    """An argparse type for whole numbers of at least `at_least`."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if value < at_least:
+            raise argparse.ArgumentTypeError(f"expected at least {at_least}, got {value}")
+        return value
+
+    return parse
+
+
+_positive_int = _whole(1)
 
 
 # A laser's scan delay is a fraction of a second; seconds beyond this are a mistake, not a delay.
@@ -131,8 +139,10 @@ def _seed(text: str) -> int:
     return value
 
 
-def _number(*, above: float | None = None, at_least: float | None = None, at_most: float | None = None):
-    """An argparse type for finite numbers (and, if given, > `above`, >= `at_least`, <= `at_most`)."""
+def _number(*, above: float | None = None, at_least: float | None = None, at_most: float | None = None,
+            below: float | None = None):
+    """An argparse type for finite numbers (and, if given, > `above`, >= `at_least`, <= `at_most`,
+    < `below`)."""
 
     def parse(text: str) -> float:
         try:
@@ -147,6 +157,8 @@ def _number(*, above: float | None = None, at_least: float | None = None, at_mos
             raise argparse.ArgumentTypeError(f"expected a number of at least {at_least:g}, got {text!r}")
         if at_most is not None and not value <= at_most:
             raise argparse.ArgumentTypeError(f"expected a number of at most {at_most:g}, got {text!r}")
+        if below is not None and not value < below:
+            raise argparse.ArgumentTypeError(f"expected a number below {below:g}, got {text!r}")
         return value
 
     return parse
@@ -481,10 +493,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("design", help="measure a mirror-pyramid rig: bearing coverage, elevation bands")
     p.add_argument("--lens", choices=["standard", "wide"], default="wide", help="SR4000 lens (43.6° or 69°)")
-    p.add_argument("--mirrors", type=int, default=4, help="number of mirrors")
-    p.add_argument("--tilt", type=_number(), default=56.0, help="mirror tilt from the optical axis (deg)")
+    p.add_argument("--mirrors", type=_whole(3), default=4, help="number of mirrors (at least 3)")
+    p.add_argument("--tilt", type=_number(above=0, below=90), default=56.0, help="mirror tilt from the optical axis (deg)")
     p.add_argument("--yaw", type=_number(at_least=-360, at_most=360), default=0.0, help="pyramid yaw against the driving direction (deg)")
-    p.add_argument("--band", type=_number(), default=10.0, help="usable elevations: ± this around horizontal (deg)")
+    p.add_argument("--band", type=_number(at_least=0, at_most=90), default=10.0,
+                   help="usable elevations: ± this around horizontal (deg)")
     p.add_argument("--figure", type=Path, help="draw the mirror regions of the image (PNG)")
     p.add_argument("--sweep", type=Path, metavar="PNG", help="sweep tilt, yaw, mirrors and lens; plot to PNG")
     p.add_argument("--apex-sweep", action="store_true",

@@ -16,6 +16,7 @@ there); cv2.calibrateCamera fits K and (k1, k2, p1, p2[, k3]).
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -26,6 +27,7 @@ from scipy.ndimage import gaussian_filter, map_coordinates, maximum_filter, mini
 from omnitof.calibration import CalibrationError
 from omnitof.calibration.images import AmplitudeImage
 from omnitof.calibration.targets import Checkerboard
+from omnitof.errors import OmnitofWarning
 from omnitof.sensor.camera import Camera
 
 # Percentile of the amplitude that maps to 255 when an image is scaled to 8 bits.
@@ -36,6 +38,9 @@ MIN_VIEWS = 3
 # MIN_OUTLIER_PX) is rejected as an outlier and the calibration repeated without it.
 OUTLIER_FACTOR = 3.0
 MIN_OUTLIER_PX = 0.2
+# An RMS reprojection error above this is a fit gone wrong, not a camera's noise (simulated
+# boards: 0.03-0.1 px; a real ToF camera's amplitude images: tenths of a pixel).
+SUSPECT_RMS_PX = 1.0
 
 
 def to_uint8(amplitude: np.ndarray) -> np.ndarray:
@@ -239,6 +244,14 @@ def calibrate_intrinsics(
     camera = Camera(width, height, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), coeffs)
     if not math.isfinite(rms):
         raise CalibrationError("cv2.calibrateCamera did not converge")
+    inside = 0 <= camera.cx < width and 0 <= camera.cy < height
+    if rms > SUSPECT_RMS_PX or not inside:
+        # A board size that is not the printed one still finds a part of the board (3x3 inner
+        # corners in an 8x6 board: 3.2 px RMS, the principal point outside the image).
+        warnings.warn(OmnitofWarning(
+            f"the intrinsics fit badly: {rms:.2f} px RMS, principal point ({camera.cx:.1f}, {camera.cy:.1f}) px "
+            f"in a {width}x{height} image; is the board {board.cols}x{board.rows} squares as printed (--board)?"),
+            stacklevel=2)
     poses = {}
     for name, r, t in zip(used, rvecs, tvecs):
         pose = np.eye(4)

@@ -38,6 +38,7 @@ import numpy as np
 
 from omnitof.errors import ConfigError
 from omnitof.io.rosbag import DEFAULT_STORAGE, ToFFrameStamped, write_tof_bag
+from omnitof.io.rosbag.common import SIDECAR_VERSION
 from omnitof.sim import laser2d
 from omnitof.sim.render import Renderer, RenderSettings
 from omnitof.sim.worlds import World, WorldError
@@ -51,7 +52,6 @@ ROBOT_RADIUS = 0.3
 # Frame times start here (seconds, ROS time 2026-01-01T00:00:00Z): zero stamps confuse some
 # ROS tools, which take them for "no time".
 DEFAULT_START_TIME = 1_767_225_600.0
-SIDECAR_VERSION = 1
 
 
 @dataclass(frozen=True)

@@ -49,6 +49,7 @@ from omnitof.types import Trajectory
 __all__ = [
     "DEFAULT_STORAGE",
     "SIDECAR_NAME",
+    "SIDECAR_VERSION",
     "BagExistsError",
     "RosbagWarning",
     "bag_message_types",
@@ -60,6 +61,8 @@ __all__ = [
 # rosbags writes MCAP since 0.10; fall back to sqlite3 with an older one.
 DEFAULT_STORAGE = "mcap" if hasattr(StoragePlugin, "MCAP") else "sqlite3"
 SIDECAR_NAME = "omnitof.yaml"
+# The sidecar's format (its `omnitof_sidecar` field; sim.sequence.rig_sidecar writes it).
+SIDECAR_VERSION = 1
 
 # rosbag2 metadata version 8 is read by ROS 2 Iron and later; rosbags writes 8 or 9 only.
 _ROSBAG2_VERSION: Literal[8] = 8
@@ -393,11 +396,16 @@ def _read_sidecar(path: Path) -> dict | None:
     except (OSError, UnicodeDecodeError) as err:
         raise InputError(f"cannot read the bag's sidecar: {read_problem(err)}", sidecar) from None
     if data is None:
-        return {}
+        raise InputError("the bag's sidecar is empty: it should hold the simulated rig (omnitof simulate writes it); "
+                         "remove the empty file", sidecar)
     if not isinstance(data, dict):
         raise InputError(
             f"the sidecar must hold a mapping, got a {type(data).__name__}", sidecar
         )
+    version = data.get("omnitof_sidecar", SIDECAR_VERSION)
+    if isinstance(version, bool) or not isinstance(version, int) or version > SIDECAR_VERSION:
+        raise InputError(f"omnitof_sidecar: {version!r}: this omnitof reads sidecars of version "
+                         f"{SIDECAR_VERSION} or older (written by a newer omnitof?)", sidecar)
     return data
 
 
