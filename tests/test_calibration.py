@@ -268,6 +268,8 @@ def test_a_truncated_npz_a_tiny_image_and_a_tiny_board_are_user_mistakes(tmp_pat
     cut.write_bytes(whole.read_bytes()[:100])
     with pytest.raises(CalibrationError, match="cut.npz: cannot read the npz file"):
         load_images([cut])
+    with pytest.raises(CalibrationError, match="gone.png: no such file or folder"):
+        load_images([tmp_path / "gone.png"])  # was OpenCV's own warning, then "cannot read the image"
     for side in (1, 3, 14):
         assert detect_checkerboard(np.random.default_rng(0).random((side, 40)), (7, 5)) is None
     for board in ("3x3", "1x8", "8x0"):

@@ -164,7 +164,11 @@ def test_cli_slam_refuses_calibration_for_a_laser_log(tmp_path, capsys):
     assert main(["slam", str(log), "--out", str(tmp_path / "o"), "--map3d", "--quiet"]) == 2
     assert "ToF images" in capsys.readouterr().err
     assert main(["slam", str(log), "--out", str(tmp_path / "o"), "--tof-distance", "depth", "--quiet"]) == 2
-    assert "--tof-distance need a bag of ToF images" in capsys.readouterr().err
+    assert "--tof-distance needs a bag of ToF images" in capsys.readouterr().err
+    # A slice height or band on a laser log was ignored without a word.
+    assert main(["slam", str(log), "--out", str(tmp_path / "o"), "--height", "5", "--band", "0.2", "--quiet"]) == 2
+    assert "--height, --band need a bag of ToF images" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
 
 
 def test_cli_scans_exports_carmen_and_laserscan_bag(tmp_path, capsys):

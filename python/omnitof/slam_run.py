@@ -143,9 +143,13 @@ def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *, cf
 
         cfg = cfg.model_copy(update={"scan": scan_settings(cfg.scan, **slice_given)})
     tof = _is_tof_input(log, request.tof_topics)
-    if not tof and (request.calibration is not None or request.map3d or request.tof_topics is not None
-                    or request.tof_depth):
-        raise OmnitofError(f"{log}: --calibration, --map3d, --tof-topics and --tof-distance need a bag of ToF images")
+    tof_only = [name for name, given in (
+        ("--calibration", request.calibration is not None), ("--height", request.height is not None),
+        ("--band", request.band is not None), ("--map3d", request.map3d), ("--tof-topics", request.tof_topics is not None),
+        ("--tof-distance", request.tof_depth), ("--multipath-compensation", request.multipath_compensation != "auto"),
+        ("--compare-2d", request.compare_2d)) if given]  # fmt: skip
+    if not tof and tof_only:  # a laser log has no slice, rig or images: the option would be ignored
+        raise OmnitofError(f"{log}: {', '.join(tof_only)} need{'s' if len(tof_only) == 1 else ''} a bag of ToF images")
     if not tof and cfg.filter3d.enabled:
         raise OmnitofError(f"{log}: the 3D filter (--filter 3d, filter3d.enabled) needs a bag of ToF images")
     relations = None

@@ -43,6 +43,8 @@ def load_images(paths: Iterable[str | Path], *, topics: Any = None, depth: bool 
     out: list[AmplitudeImage] = []
     for raw in paths:
         path = Path(raw)
+        if not path.exists():  # before OpenCV, which prints its own warning and says only "cannot read"
+            raise CalibrationError("no such file or folder", path)
         if path.is_dir() and not (path / "metadata.yaml").exists():
             members = sorted(
                 p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES + (".npz",)
