@@ -643,6 +643,11 @@ def test_timestamps_going_backwards(tmp_path):
     with pytest.raises(InputError) as excinfo:
         read_carmen(path, max_time_reversal=0.0)
     rejects(excinfo, path, 3, "10.100000 follows 10.200000")
+    # A stamp of 1e300 was printed with all its 300 digits, twice.
+    with pytest.raises(InputError) as excinfo:
+        read_carmen(write(tmp_path, [flaser([1.0], t) for t in (10.0, 1e300, 10.4)]))
+    assert "10.400000 follows 1e+300 (line 2), 1e+300 s earlier" in str(excinfo.value)
+    assert len(str(excinfo.value)) < 300
     path = write(tmp_path, lines[:4])
     with pytest.warns(CarmenWarning, match="1 FLASER timestamps are earlier.*first at line 3"):
         log = read_carmen(path)

@@ -902,8 +902,14 @@ def _same_offset(offsets: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return (shift <= OFFSET_TOLERANCE_M) & (turn <= OFFSET_TOLERANCE_RAD)
 
 
+def _fixed(value: float, decimals: int) -> str:
+    """`value` with `decimals` decimals, as a log writes it; in exponent form where that would
+    print hundreds of digits (a pose or stamp of 1e300 read from a broken line)."""
+    return f"{value:.{decimals}f}" if abs(value) < 1e12 else f"{value:.6g}"
+
+
 def _fmt_pose(pose: np.ndarray) -> str:
-    return f"(x {pose[0]:.4f} m, y {pose[1]:.4f} m, theta {math.degrees(pose[2]):.2f}°)"
+    return f"(x {_fixed(pose[0], 4)} m, y {_fixed(pose[1], 4)} m, theta {_fixed(math.degrees(pose[2]), 2)}°)"
 
 
 def _interpolate_odometry(
@@ -928,8 +934,8 @@ def _interpolate_odometry(
     if outside.size:
         i = int(outside[0])
         raise ctx.error(
-            f"{kind} scan at t = {stamps[i]:.6f} is outside the odometry's time span "
-            f"[{t[0]:.6f}, {t[-1]:.6f}]; its pose cannot be interpolated",
+            f"{kind} scan at t = {_fixed(stamps[i], 6)} is outside the odometry's time span "
+            f"[{_fixed(t[0], 6)}, {_fixed(t[-1], 6)}]; its pose cannot be interpolated",
             scans[i].line,
         )
     poses = odometry.poses
@@ -1066,8 +1072,8 @@ def _check_time_order(
     if too_far.size:
         i = int(too_far[0]) + 1
         raise ctx.error(
-            f"{kind} timestamps go backwards: {stamps[i]:.6f} follows {stamps[i - 1]:.6f} "
-            f"(line {scans[i - 1].line}), {stamps[i - 1] - stamps[i]:.6f} s earlier; at most "
+            f"{kind} timestamps go backwards: {_fixed(stamps[i], 6)} follows {_fixed(stamps[i - 1], 6)} "
+            f"(line {scans[i - 1].line}), {_fixed(stamps[i - 1] - stamps[i], 6)} s earlier; at most "
             f"{max_time_reversal} s is tolerated (max_time_reversal)",
             scans[i].line,
         )
