@@ -282,6 +282,58 @@ def test_the_cores_functions_refuse_what_no_sensor_robot_or_filter_gives():
                       ({"sensor_pose": np.array([0.0, np.inf, 0.0])}, "sensor_pose")):
         with pytest.raises(ValueError, match=what):
             _core.ParticleFilter(**core_sections(SlamConfig()), **{**sensor, **bad})
+    # The configuration's sections as the Python API may hand them over: a clamp the wrong way
+    # round panicked at the first scan, 10**9 refinements or threads hung, NaN sigmas, steps and
+    # alphas ran on without a word (a review's hostile inputs, thirty-seventh session).
+    for section, field, value, what in (
+        ("map", "l_min", 5.0, "l_min must not exceed l_max"), ("map", "l_max", np.nan, "must be finite"),
+        ("map", "resolution", 0.0, "map.resolution"), ("scan_matcher", "refinements", 10**9, "refinements"),
+        ("scan_matcher", "step_xy", np.nan, "step_xy"), ("filter", "threads", 10**9, "filter.threads"),
+        ("likelihood_field", "sigma", np.nan, "likelihood_field.sigma"),
+        ("likelihood_field", "window_cells", -5, "window_cells"), ("motion", "alpha1", np.nan, "motion.alpha"),
+        ("sensor_model", "beam_stride", 0, "beam_stride"), ("sensor_model", "effective_beams", np.nan, "effective_beams"),
+    ):
+        sections = core_sections(SlamConfig())
+        sections[section] = {**sections[section], field: value}
+        with pytest.raises(ValueError, match=what):
+            _core.ParticleFilter(**sections, **sensor)
+    pf = _core.ParticleFilter(**core_sections(SlamConfig()), **sensor)
+    with pytest.raises(ValueError, match="odom_prev and odom_cur must be finite"):
+        pf.step(z, np.array([np.nan, 0.0, 0.0]), ranges, 0)
+    with pytest.raises(ValueError, match="threads must lie in 1..=1024"):
+        _core.VoxelGrid(0.1, 0.9, -0.4, -2.0, 3.5, threads=10**9)
+    # These returned plausible numbers (or wrote nothing) from NaN poses, angles and ranges.
+    with pytest.raises(ValueError, match="finite"):
+        grid.expected_ranges(np.array([np.nan, 0.0, 0.0]), angles, 10.0, 0.5)
+    with pytest.raises(ValueError, match="max_range positive"):
+        grid.expected_ranges(z, angles, -5.0, 0.5)
+    with pytest.raises(ValueError, match="max_range positive"):
+        grid.integrate(z, angles, ranges, np.nan)
+    with pytest.raises(ValueError, match="scan angles must be finite"):
+        grid.integrate(z, np.full(90, np.nan), ranges, 10.0)
+    with pytest.raises(ValueError, match="sigma_hit"):
+        _core.beam_likelihood(np.ones(2), 1.0, **{**BEAM, "sigma_hit": 0.0})
+
+
+def test_arrays_in_fortran_order_are_refused_not_read_transposed():
+    # rust-numpy's as_slice takes a Fortran-ordered array and hands over its columns as rows:
+    # `starts.T` of a (3, N) array matched other poses, `xyz.T` integrated other points.
+    angles = np.linspace(-np.pi, np.pi, 90, endpoint=False)
+    ranges = np.full(90, 2.0, np.float32)
+    grid = _core.OccupancyGrid(0.05, 0.9, -0.4, -2.0, 3.5)
+    grid.integrate(np.zeros(3), angles, ranges, 10.0)
+    starts = np.array([[0.0, 0.1, 0.0], [0.1, 0.0, 0.05]])
+    both = np.tile(ranges, (2, 1))
+    poses, _ = grid.match_each(starts, both, angles, max_range=10.0, gauss_newton=0)
+    with pytest.raises(TypeError, match="not C-ordered"):
+        grid.match_each(np.asfortranarray(starts), both, angles, max_range=10.0, gauss_newton=0)
+    poses_again, _ = grid.match_each(np.ascontiguousarray(np.asfortranarray(starts)), both, angles, max_range=10.0,
+                                     gauss_newton=0)
+    np.testing.assert_array_equal(poses, poses_again)
+    voxels = _core.VoxelGrid(0.1, 0.9, -0.4, -2.0, 3.5)
+    xyz = np.array([[1.0, 2.0, 3.0], [1.5, 0.5, 1.0]])
+    with pytest.raises(TypeError, match="not C-ordered"):
+        voxels.integrate(np.zeros((2, 3)), np.asfortranarray(xyz), 10.0)
 
 
 @pytest.mark.parametrize("fallback", ["prediction", "draw"])

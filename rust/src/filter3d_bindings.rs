@@ -8,6 +8,8 @@
 use numpy::{PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
+
+use crate::COrder;
 use pyo3::types::PyDict;
 
 use crate::filter3d::{Field3d, FilterParams3d, ParticleFilter3d};
@@ -75,7 +77,7 @@ fn rays(a: &PyReadonlyArray2<'_, f64>, what: &str, resolution: f64) -> PyResult<
         return Err(PyValueError::new_err(format!("{what} must have shape (N, 3), got {shape:?}")));
     }
     let limit = 0.5 * (INDEX_LIMIT as f64) * resolution;
-    let out: Vec<[f64; 3]> = a.as_slice()?.chunks_exact(3).map(|r| [r[0], r[1], r[2]]).collect();
+    let out: Vec<[f64; 3]> = a.c_slice()?.chunks_exact(3).map(|r| [r[0], r[1], r[2]]).collect();
     if let Some(bad) = out.iter().find(|p| !p.iter().all(|v| v.is_finite() && v.abs() < limit)) {
         return Err(PyValueError::new_err(format!("{what}: {bad:?} is not a finite point within ±{limit} m")));
     }
@@ -104,6 +106,11 @@ impl PyParticleFilter3D {
     ) -> PyResult<Self> {
         let threshold = map.occupied_threshold;
         let f3 = filter3d;
+        if !(f3.effective_rays.is_finite() && f3.effective_rays > 0.0) || f3.free_stride < 1 || f3.climb_stride < 1 {
+            return Err(PyValueError::new_err(
+                "filter3d.effective_rays must be positive and finite, free_stride and climb_stride at least 1",
+            ));
+        }
         let base = filter_params(filter, motion, sensor_model, likelihood_field, scan_matcher, map, f3.max_range)?;
         let params = FilterParams3d {
             n_particles: base.n_particles,
@@ -143,8 +150,8 @@ impl PyParticleFilter3D {
         endpoints: PyReadonlyArray2<f64>,
         scan: u64,
     ) -> PyResult<(f64, bool, usize, usize, bool)> {
-        let prev = pose3(odom_prev.as_slice()?, "odom_prev")?;
-        let cur = pose3(odom_cur.as_slice()?, "odom_cur")?;
+        let prev = pose3(odom_prev.c_slice()?, "odom_prev")?;
+        let cur = pose3(odom_cur.c_slice()?, "odom_cur")?;
         if !prev.iter().chain(&cur).all(|v| v.is_finite()) {
             return Err(PyValueError::new_err("odometry poses must be finite"));
         }
@@ -190,7 +197,7 @@ impl PyParticleFilter3D {
         poses: PyReadonlyArray2<f64>,
         clouds: Vec<PyReadonlyArray2<f32>>,
     ) -> PyResult<()> {
-        let pose = pose3(pose.as_slice()?, "pose")?;
+        let pose = pose3(pose.c_slice()?, "pose")?;
         let at = rays(&poses, "poses", f64::INFINITY)?;
         if !pose.iter().chain(at.iter().flatten()).all(|v| v.is_finite()) {
             return Err(PyValueError::new_err("poses must be finite"));
@@ -205,7 +212,7 @@ impl PyParticleFilter3D {
                 return Err(PyValueError::new_err(format!("cloud {k} must have shape (M, 6), got {:?}", cloud.shape())));
             }
             let (mut o, mut e) = (Vec::new(), Vec::new());
-            for r in cloud.as_slice()?.chunks_exact(6) {
+            for r in cloud.c_slice()?.chunks_exact(6) {
                 let r: [f64; 6] = std::array::from_fn(|i| r[i] as f64);
                 if !r.iter().all(|v| v.is_finite() && v.abs() < limit) {
                     return Err(PyValueError::new_err(format!("cloud {k}: {r:?} is not a finite ray within ±{limit} m")));

@@ -36,12 +36,54 @@ use motion::OdometryMotion;
 use sensor_model::{integrate_scan, BeamModel, ScanGeometry};
 use voxel::VoxelGrid;
 
+/// The data of a numpy array in C (row-major) order. rust-numpy's `as_slice` takes a
+/// Fortran-ordered array too, and hands over its columns as rows (`xyz.T` of a (3, N) array
+/// was read as other points): such an array is refused.
+pub(crate) trait COrder<T> {
+    fn c_slice(&self) -> PyResult<&[T]>;
+}
+
+impl<T: numpy::Element, D: numpy::ndarray::Dimension> COrder<T> for numpy::PyReadonlyArray<'_, T, D> {
+    fn c_slice(&self) -> PyResult<&[T]> {
+        if !self.is_c_contiguous() {
+            return Err(PyTypeError::new_err(format!(
+                "an array of shape {:?} is not C-ordered (row-major) and contiguous: pass numpy.ascontiguousarray(it)",
+                self.shape()
+            )));
+        }
+        Ok(self.as_slice()?)
+    }
+}
+
+/// Most worker threads a pool is made with: more only exhausts the machine (a pool of 10⁹
+/// threads hung), never speeds a run.
+pub(crate) const MAX_THREADS: usize = 1024;
+
+/// `threads` checked: at least 1 and at most MAX_THREADS.
+pub(crate) fn checked_threads(threads: usize, what: &str) -> PyResult<usize> {
+    if !(1..=MAX_THREADS).contains(&threads) {
+        return Err(PyValueError::new_err(format!("{what} must lie in 1..={MAX_THREADS}, got {threads}")));
+    }
+    Ok(threads)
+}
+
+/// A grid's log-odds increments and clamps, checked: finite, and l_min <= l_max (a clamp the
+/// other way round panicked at the first scan).
+pub(crate) fn log_odds_model(l_occ: f32, l_free: f32, l_min: f32, l_max: f32) -> PyResult<LogOddsModel> {
+    if ![l_occ, l_free, l_min, l_max].iter().all(|v| v.is_finite()) {
+        return Err(PyValueError::new_err("l_occ, l_free, l_min and l_max must be finite"));
+    }
+    if !(l_min <= l_max) {
+        return Err(PyValueError::new_err("l_min must not exceed l_max"));
+    }
+    Ok(LogOddsModel { l_occ, l_free, l_min, l_max })
+}
+
 /// A rayon pool of `threads` workers, or None (rayon's global pool) when not given.
 pub(crate) fn optional_pool(threads: Option<usize>) -> PyResult<Option<rayon::ThreadPool>> {
     match threads {
-        Some(0) => Err(PyValueError::new_err("threads must be >= 1")),
         Some(n) => rayon::ThreadPoolBuilder::new()
-            .num_threads(n)
+            .num_threads(checked_threads(n, "threads")?)
             .build()
             .map(Some)
             .map_err(|e| PyValueError::new_err(e.to_string())),
@@ -79,8 +121,11 @@ fn scan_geometry<'a>(
     if angles.len() != ranges.len() {
         return Err(PyValueError::new_err("angles and ranges differ in length"));
     }
+    if !angles.iter().all(|a| a.is_finite()) {
+        return Err(PyValueError::new_err("scan angles must be finite"));
+    }
     let sensor = match sensor_pose {
-        Some(s) => pose3(s.as_slice()?, "sensor_pose")?,
+        Some(s) => pose3(s.c_slice()?, "sensor_pose")?,
         None => [0.0; 3],
     };
     if !sensor.iter().all(|v| v.is_finite()) {
@@ -309,8 +354,43 @@ fn filter_params(
     });
     let threads = match f.threads {
         0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
-        n => n,
+        n => checked_threads(n, "filter.threads")?,
     };
+    // What the config layer checks, checked again here for the Python API: a clamp the wrong
+    // way round panicked, an unbounded iteration count hung, NaN sigmas and steps ran on
+    // without a word.
+    let log_odds = log_odds_model(g.l_occ, g.l_free, g.l_min, g.l_max)?;
+    if !(g.resolution.is_finite() && g.resolution > 0.0) {
+        return Err(PyValueError::new_err(format!("map.resolution must be positive and finite, got {}", g.resolution)));
+    }
+    if sm.refinements > MAX_MATCH_ITERATIONS || sm.gauss_newton > MAX_MATCH_ITERATIONS {
+        return Err(PyValueError::new_err(format!(
+            "scan_matcher.refinements and gauss_newton must not exceed {MAX_MATCH_ITERATIONS}"
+        )));
+    }
+    if !(sm.step_xy.is_finite() && sm.step_xy > 0.0 && sm.step_deg.is_finite() && sm.step_deg > 0.0) {
+        return Err(PyValueError::new_err("scan_matcher.step_xy and step_deg must be positive and finite"));
+    }
+    if !(s.max_range.min(scan_max_range) > 0.0) {
+        return Err(PyValueError::new_err("sensor_model.max_range and the scan's largest range must be positive"));
+    }
+    if !(lf.sigma.is_finite() && lf.sigma > 0.0 && (1..=MAX_FIELD_WINDOW).contains(&lf.window_cells)) {
+        return Err(PyValueError::new_err(format!(
+            "likelihood_field.sigma must be positive and finite and window_cells in 1..={MAX_FIELD_WINDOW}"
+        )));
+    }
+    if ![m.alpha1, m.alpha2, m.alpha3, m.alpha4].iter().all(|a| a.is_finite() && *a >= 0.0) {
+        return Err(PyValueError::new_err("motion.alpha1..alpha4 must be finite and at least 0"));
+    }
+    let beam_weights = [s.z_hit, s.z_short, s.z_max, s.z_rand].iter().all(|w| w.is_finite() && *w >= 0.0);
+    if !beam_weights || !(s.sigma_hit.is_finite() && s.sigma_hit > 0.0 && s.lambda_short.is_finite() && s.lambda_short > 0.0) {
+        return Err(PyValueError::new_err(
+            "sensor_model: z_hit, z_short, z_max, z_rand must be at least 0, sigma_hit and lambda_short positive and finite",
+        ));
+    }
+    if s.beam_stride < 1 || !(s.effective_beams.is_finite() && s.effective_beams > 0.0) {
+        return Err(PyValueError::new_err("sensor_model.beam_stride must be at least 1 and effective_beams positive and finite"));
+    }
     // Readings beyond the sensor's range are no echo, whatever the configuration allows.
     let max_range = s.max_range.min(scan_max_range);
     Ok(FilterParams {
@@ -353,7 +433,7 @@ fn filter_params(
         },
         beam_stride: s.beam_stride,
         effective_beams: s.effective_beams,
-        log_odds: LogOddsModel { l_occ: g.l_occ, l_free: g.l_free, l_min: g.l_min, l_max: g.l_max },
+        log_odds,
         resolution: g.resolution,
         map_max_range: g.max_range.min(scan_max_range),
         clear_no_echo: g.clear_no_echo,
@@ -390,11 +470,11 @@ impl PyParticleFilter {
             return Err(PyValueError::new_err("scan_max_range must be positive and finite"));
         }
         let params = filter_params(filter, motion, sensor_model, likelihood_field, scan_matcher, map, scan_max_range)?;
-        let sensor = pose3(sensor_pose.as_slice()?, "sensor_pose")?;
+        let sensor = pose3(sensor_pose.c_slice()?, "sensor_pose")?;
         if !sensor.iter().all(|v| v.is_finite()) {
             return Err(PyValueError::new_err("sensor_pose must be finite"));
         }
-        let angles = angles.as_slice()?;
+        let angles = angles.c_slice()?;
         if !angles.iter().all(|a| a.is_finite()) {
             return Err(PyValueError::new_err("angles must be finite"));
         }
@@ -415,11 +495,14 @@ impl PyParticleFilter {
         scan: u64,
         angles: Option<PyReadonlyArray1<f64>>,
     ) -> PyResult<(f64, bool, bool)> {
-        let prev = pose3(odom_prev.as_slice()?, "odom_prev")?;
-        let cur = pose3(odom_cur.as_slice()?, "odom_cur")?;
-        let ranges = ranges.as_slice()?;
+        let prev = pose3(odom_prev.c_slice()?, "odom_prev")?;
+        let cur = pose3(odom_cur.c_slice()?, "odom_cur")?;
+        if !prev.iter().chain(cur.iter()).all(|v| v.is_finite()) {
+            return Err(PyValueError::new_err("odom_prev and odom_cur must be finite poses"));
+        }
+        let ranges = ranges.c_slice()?;
         let angles = match &angles {
-            Some(a) => Some(scan_angles(a.as_slice()?, ranges.len())?),
+            Some(a) => Some(scan_angles(a.c_slice()?, ranges.len())?),
             None if ranges.len() != self.inner.n_beams() => {
                 return Err(PyValueError::new_err(format!(
                     "scan has {} ranges, the filter was made for {} (give the scan's own angles)",
@@ -444,13 +527,13 @@ impl PyParticleFilter {
         ranges: PyReadonlyArray1<f32>,
         angles: Option<PyReadonlyArray1<f64>>,
     ) -> PyResult<Option<([f64; 3], f64)>> {
-        let start = pose3(start.as_slice()?, "start")?;
+        let start = pose3(start.c_slice()?, "start")?;
         if !start.iter().all(|v| v.is_finite()) {
             return Err(PyValueError::new_err("start must be a finite pose"));
         }
-        let ranges = ranges.as_slice()?;
+        let ranges = ranges.c_slice()?;
         let angles = match &angles {
-            Some(a) => Some(a.as_slice()?),
+            Some(a) => Some(a.c_slice()?),
             None => None,
         };
         let n = angles.map_or(self.inner.n_beams(), |a| a.len());
@@ -486,13 +569,13 @@ impl PyParticleFilter {
             Some(a) if a.shape() != ranges.shape() => {
                 return Err(PyValueError::new_err(format!("angles {:?} and ranges {:?} differ in shape", a.shape(), ranges.shape())));
             }
-            Some(a) => Some(a.as_slice()?),
+            Some(a) => Some(a.c_slice()?),
             None if beams != self.inner.n_beams() => {
                 return Err(PyValueError::new_err(format!("scans have {} ranges for {} beam angles", beams, self.inner.n_beams())));
             }
             None => None,
         };
-        let ranges = ranges.as_slice()?;
+        let ranges = ranges.c_slice()?;
         let inner = &self.inner;
         let found = py.detach(|| inner.match_chain(&odometry, ranges, angles_slice, beams, min_matched));
         Ok(found.map(|(poses, matched)| (rows3(py, &poses), PyArray1::from_vec(py, matched))))
@@ -506,7 +589,7 @@ impl PyParticleFilter {
     /// Restart every particle at `pose` with a copy of `grid`'s map, trajectories beginning at
     /// scan `scan` (a correction fed back from the pose graph).
     fn reset(&mut self, pose: PyReadonlyArray1<f64>, scan: u64, grid: PyRef<'_, PyOccupancyGrid>) -> PyResult<()> {
-        let pose = pose3(pose.as_slice()?, "pose")?;
+        let pose = pose3(pose.c_slice()?, "pose")?;
         if !pose.iter().all(|v| v.is_finite()) {
             return Err(PyValueError::new_err("pose must be finite"));
         }
@@ -593,10 +676,7 @@ impl PyOccupancyGrid {
         if !(resolution > 0.0 && resolution.is_finite()) {
             return Err(PyValueError::new_err("resolution must be positive and finite"));
         }
-        if !(l_min <= l_max) {
-            return Err(PyValueError::new_err("l_min must not exceed l_max"));
-        }
-        Ok(PyOccupancyGrid { grid: TiledGrid::new(resolution), model: LogOddsModel { l_occ, l_free, l_min, l_max } })
+        Ok(PyOccupancyGrid { grid: TiledGrid::new(resolution), model: log_odds_model(l_occ, l_free, l_min, l_max)? })
     }
 
     #[pyo3(signature = (robot_pose, angles, ranges, max_range, clear_no_echo=false, sensor_pose=None, once_per_scan=false))]
@@ -610,8 +690,11 @@ impl PyOccupancyGrid {
         sensor_pose: Option<PyReadonlyArray1<f64>>,
         once_per_scan: bool,
     ) -> PyResult<()> {
-        let robot = pose3(robot_pose.as_slice()?, "robot_pose")?;
-        let (angles, ranges) = (angles.as_slice()?, ranges.as_slice()?);
+        let robot = pose3(robot_pose.c_slice()?, "robot_pose")?;
+        if !robot.iter().all(|v| v.is_finite()) || !(max_range > 0.0) {
+            return Err(PyValueError::new_err("robot_pose must be finite and max_range positive"));
+        }
+        let (angles, ranges) = (angles.c_slice()?, ranges.c_slice()?);
         let geom = scan_geometry(angles, ranges, sensor_pose)?;
         integrate_scan(&mut self.grid, &self.model, &geom, robot, ranges, max_range, clear_no_echo, once_per_scan)
             .map_err(grid_error)
@@ -642,7 +725,7 @@ impl PyOccupancyGrid {
         refinements: u32,
         gauss_newton: u32,
     ) -> PyResult<([f64; 3], f64)> {
-        let start = pose3(start.as_slice()?, "start")?;
+        let start = pose3(start.c_slice()?, "start")?;
         if !start.iter().all(|v| v.is_finite()) {
             return Err(PyValueError::new_err("start must be a finite pose"));
         }
@@ -653,7 +736,7 @@ impl PyOccupancyGrid {
         if refinements > MAX_MATCH_ITERATIONS || gauss_newton > MAX_MATCH_ITERATIONS {
             return Err(PyValueError::new_err(format!("refinements and gauss_newton must not exceed {MAX_MATCH_ITERATIONS}")));
         }
-        let (angles, ranges) = (angles.as_slice()?, ranges.as_slice()?);
+        let (angles, ranges) = (angles.c_slice()?, ranges.c_slice()?);
         let geom = scan_geometry(angles, ranges, sensor_pose)?;
         let lf = LikelihoodField::new(sigma, 0.9, 0.1, max_range, window, occupied_threshold, false);
         let m = MatcherParams {
@@ -704,8 +787,8 @@ impl PyOccupancyGrid {
                 "angles {:?} fit neither one scan ({beams},) nor every scan ({n}, {beams})", angles.shape()
             )));
         }
-        let angles = angles.as_slice()?;
-        let ranges = ranges.as_slice()?;
+        let angles = angles.c_slice()?;
+        let ranges = ranges.c_slice()?;
         // Padding (per-scan geometry) is a NaN angle with an infinite range; any beam with a
         // range needs a bearing.
         let bearing = |i: usize| if shared { angles[i % beams] } else { angles[i] };
@@ -720,7 +803,7 @@ impl PyOccupancyGrid {
             )));
         }
         let sensor = match sensor_pose {
-            Some(s) => pose3(s.as_slice()?, "sensor_pose")?,
+            Some(s) => pose3(s.c_slice()?, "sensor_pose")?,
             None => [0.0; 3],
         };
         if !sensor.iter().all(|v| v.is_finite()) {
@@ -749,13 +832,16 @@ impl PyOccupancyGrid {
         max_range: f64,
         occupied_threshold: f32,
     ) -> PyResult<Bound<'py, PyArray1<f64>>> {
-        let sp = pose3(sensor_pose.as_slice()?, "sensor_pose")?;
+        let sp = pose3(sensor_pose.c_slice()?, "sensor_pose")?;
+        if !sp.iter().all(|v| v.is_finite()) || !(max_range > 0.0) || !angles.c_slice()?.iter().all(|a| a.is_finite()) {
+            return Err(PyValueError::new_err("sensor_pose and angles must be finite and max_range positive"));
+        }
         let model = BeamModel {
             z_hit: 1.0, z_short: 0.0, z_max: 0.0, z_rand: 0.0, sigma_hit: 1.0, lambda_short: 1.0,
             max_range, occupied_threshold,
         };
         let out = angles
-            .as_slice()?
+            .c_slice()?
             .iter()
             .map(|a| match model.expected_range(&self.grid, [sp[0], sp[1]], sp[2] + a) {
                 (z, true) => z,
@@ -772,7 +858,7 @@ pub(crate) fn points3(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec
     if shape[1] != 3 {
         return Err(PyValueError::new_err(format!("{what} must have shape (N, 3), got {shape:?}")));
     }
-    Ok(a.as_slice()?.chunks_exact(3).map(|r| [r[0], r[1], r[2]]).collect())
+    Ok(a.c_slice()?.chunks_exact(3).map(|r| [r[0], r[1], r[2]]).collect())
 }
 
 /// A sparse 3D log-odds voxel grid (rust/src/voxel.rs); NaN = unknown.
@@ -787,14 +873,8 @@ impl PyVoxelGrid {
     #[new]
     #[pyo3(signature = (resolution, l_occ, l_free, l_min, l_max, threads=None))]
     fn new(resolution: f64, l_occ: f32, l_free: f32, l_min: f32, l_max: f32, threads: Option<usize>) -> PyResult<Self> {
-        let grid = VoxelGrid::new(resolution, LogOddsModel { l_occ, l_free, l_min, l_max }).map_err(PyValueError::new_err)?;
-        let pool = match threads {
-            Some(0) => return Err(PyValueError::new_err("threads must be >= 1")),
-            Some(n) => Some(
-                rayon::ThreadPoolBuilder::new().num_threads(n).build().map_err(|e| PyValueError::new_err(e.to_string()))?,
-            ),
-            None => None,
-        };
+        let grid = VoxelGrid::new(resolution, log_odds_model(l_occ, l_free, l_min, l_max)?).map_err(PyValueError::new_err)?;
+        let pool = optional_pool(threads)?;
         Ok(PyVoxelGrid { grid, pool })
     }
 
@@ -879,7 +959,7 @@ fn sample_motion_odometry<'py>(
     n: usize,
     seed: u64,
 ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-    let (pose, prev, cur) = (pose3(pose.as_slice()?, "pose")?, pose3(odom_prev.as_slice()?, "odom_prev")?, pose3(odom_cur.as_slice()?, "odom_cur")?);
+    let (pose, prev, cur) = (pose3(pose.c_slice()?, "pose")?, pose3(odom_prev.c_slice()?, "odom_prev")?, pose3(odom_cur.c_slice()?, "odom_cur")?);
     if !pose.iter().chain(&prev).chain(&cur).all(|v| v.is_finite()) {
         return Err(PyValueError::new_err("pose, odom_prev and odom_cur must be finite"));
     }
@@ -913,14 +993,22 @@ fn beam_likelihood<'py>(
     lambda_short: f64,
     max_range: f64,
 ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+    let weights_ok = [z_hit, z_short, z_max, z_rand].iter().all(|w| w.is_finite() && *w >= 0.0);
+    if !weights_ok || !(sigma_hit.is_finite() && sigma_hit > 0.0 && lambda_short.is_finite() && lambda_short > 0.0)
+        || !(max_range.is_finite() && max_range > 0.0)
+    {
+        return Err(PyValueError::new_err(
+            "beam model: the z weights must be at least 0, sigma_hit, lambda_short and max_range positive and finite",
+        ));
+    }
     let m = BeamModel { z_hit, z_short, z_max, z_rand, sigma_hit, lambda_short, max_range, occupied_threshold: 0.0 };
-    Ok(PyArray1::from_vec(py, z.as_slice()?.iter().map(|&zi| m.likelihood(zi, z_star)).collect()))
+    Ok(PyArray1::from_vec(py, z.c_slice()?.iter().map(|&zi| m.likelihood(zi, z_star)).collect()))
 }
 
 /// Effective sample size (paper eq. 10) of normalised weights.
 #[pyfunction]
 fn neff(weights: PyReadonlyArray1<f64>) -> PyResult<f64> {
-    let w = weights.as_slice()?;
+    let w = weights.c_slice()?;
     normalised_weights(w)?;
     Ok(filter::neff(w))
 }
@@ -944,7 +1032,7 @@ fn normalised_weights(w: &[f64]) -> PyResult<()> {
 /// Indices drawn by low-variance resampling from normalised weights.
 #[pyfunction]
 fn low_variance_resample<'py>(py: Python<'py>, weights: PyReadonlyArray1<f64>, seed: u64) -> PyResult<Bound<'py, PyArray1<u64>>> {
-    let w = weights.as_slice()?;
+    let w = weights.c_slice()?;
     normalised_weights(w)?;
     let idx = filter::low_variance_resample(w, &mut filter::rng_for(seed, 0, 1));
     Ok(PyArray1::from_vec(py, idx.into_iter().map(|i| i as u64).collect()))

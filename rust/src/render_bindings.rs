@@ -8,6 +8,8 @@ use numpy::{IntoPyArray, PyArray1, PyArray3, PyArray4, PyReadonlyArray1, PyReado
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
+use crate::COrder;
+
 use crate::light::Illumination;
 use crate::tof_frames::{self, check_layout, Decoded, Images, Layout, SensorModel};
 use crate::render::{light_masks, render_with, Block, Kind, Material, Mirror, Rig, RenderParams, Scene, Wall, MAX_SECONDARY};
@@ -17,7 +19,7 @@ fn rows<'a>(a: &'a PyReadonlyArray2<'_, f64>, cols: usize, what: &str) -> PyResu
     if shape[1] != cols {
         return Err(PyValueError::new_err(format!("{what} must have shape (N, {cols}), got {shape:?}")));
     }
-    Ok(a.as_slice()?.chunks_exact(cols).collect())
+    Ok(a.c_slice()?.chunks_exact(cols).collect())
 }
 
 fn same_len(n: usize, m: usize, what: &str) -> PyResult<()> {
@@ -51,7 +53,7 @@ fn mirrors(
 ) -> PyResult<Vec<Mirror>> {
     let planes = rows(planes, 4, "mirror_planes")?;
     let vertices = rows(vertices, 3, "mirror_vertices")?;
-    let (counts, reflectivity) = (counts.as_slice()?, reflectivity.as_slice()?);
+    let (counts, reflectivity) = (counts.c_slice()?, reflectivity.c_slice()?);
     same_len(planes.len(), counts.len(), "mirror_counts")?;
     same_len(planes.len(), reflectivity.len(), "mirror_reflectivity")?;
     if counts.iter().sum::<u64>() as usize != vertices.len() {
@@ -130,7 +132,7 @@ impl PyRenderer {
         seed: u64,
     ) -> PyResult<Self> {
         let wall_rows = rows(&walls, 6, "walls")?;
-        let wall_mats = wall_materials.as_slice()?;
+        let wall_mats = wall_materials.c_slice()?;
         same_len(wall_rows.len(), wall_mats.len(), "wall_materials")?;
         let walls: Vec<Wall> = wall_rows
             .iter()
@@ -138,7 +140,7 @@ impl PyRenderer {
             .map(|(r, &m)| Wall { a: [r[0], r[1]], b: [r[2], r[3]], bottom: r[4], top: r[5], material: m })
             .collect();
         let box_rows = rows(&boxes, 7, "boxes")?;
-        let box_mats = box_materials.as_slice()?;
+        let box_mats = box_materials.c_slice()?;
         same_len(box_rows.len(), box_mats.len(), "box_materials")?;
         let blocks: Vec<Block> = box_rows
             .iter()
@@ -292,9 +294,9 @@ impl PyRenderer {
             fixed_pattern: fixed_pattern.map(|a| a.as_slice().map(|s| s.to_vec())).transpose()?,
         };
         model.check(pixels).map_err(PyValueError::new_err)?;
-        let images = Images { phasor: phasor.as_slice()?, active: active.as_slice()?, ambient: ambient.as_slice()? };
-        let first: Vec<usize> = first.as_slice()?.iter().map(|&f| f as usize).collect();
-        let layout = Layout { first: &first, per_sample: per_sample.as_slice()?, seeds: seeds.as_slice()? };
+        let images = Images { phasor: phasor.c_slice()?, active: active.c_slice()?, ambient: ambient.c_slice()? };
+        let first: Vec<usize> = first.c_slice()?.iter().map(|&f| f as usize).collect();
+        let layout = Layout { first: &first, per_sample: per_sample.c_slice()?, seeds: seeds.c_slice()? };
         check_layout(&images, &layout, pixels).map_err(PyValueError::new_err)?;
         let n = first.len();
         let mut samples = vec![0f32; n * 4 * pixels];
