@@ -315,6 +315,28 @@ def test_the_cores_functions_refuse_what_no_sensor_robot_or_filter_gives():
         _core.beam_likelihood(np.ones(2), 1.0, **{**BEAM, "sigma_hit": 0.0})
 
 
+def test_the_3d_filter_refuses_nan_weights_zero_strides_and_frames_beyond_its_grid():
+    # effective_rays NaN gave NaN weights; a frame at 1e15 m was dropped and the reset's map was
+    # empty, without a word.
+    from omnitof.slam.config import SlamConfig
+    from omnitof.slam.filter3d import core_sections_3d
+
+    def sections(**f3):
+        s = core_sections_3d(SlamConfig.model_validate({"filter": {"particles": 3, "threads": 1, "seed": 1}}))
+        s["filter3d"] = {**s["filter3d"], **f3}
+        return s
+
+    for bad in ({"effective_rays": np.nan}, {"free_stride": 0}, {"climb_stride": 0}):
+        with pytest.raises(ValueError, match="filter3d"):
+            _core.ParticleFilter3D(**sections(**bad))
+    pf = _core.ParticleFilter3D(**sections())
+    cloud = np.ones((3, 6), np.float32)
+    with pytest.raises(ValueError, match="poses: .* is not a finite point within"):
+        pf.reset(np.zeros(3), 0, np.array([[1e15, 0.0, 0.0]]), [cloud])
+    pf.reset(np.zeros(3), 0, np.zeros((1, 3)), [cloud])
+    assert pf.map().bounds() is not None
+
+
 def test_arrays_in_fortran_order_are_refused_not_read_transposed():
     # rust-numpy's as_slice takes a Fortran-ordered array and hands over its columns as rows:
     # `starts.T` of a (3, N) array matched other poses, `xyz.T` integrated other points.

@@ -198,7 +198,9 @@ impl PyParticleFilter3D {
         clouds: Vec<PyReadonlyArray2<f32>>,
     ) -> PyResult<()> {
         let pose = pose3(pose.c_slice()?, "pose")?;
-        let at = rays(&poses, "poses", f64::INFINITY)?;
+        // Within the grid's reach, as the rays are: a frame placed beyond it was dropped, and
+        // the reset returned an empty map without a word.
+        let at = rays(&poses, "poses", self.inner.params.resolution)?;
         if !pose.iter().chain(at.iter().flatten()).all(|v| v.is_finite()) {
             return Err(PyValueError::new_err("poses must be finite"));
         }
