@@ -441,7 +441,7 @@ def _fsync_tree(path: Path) -> None:
         fsync_dir(folder)
 
 
-# What a bag holds: a ROS 2 bag folder its metadata, storage files and omnitof's sidecar.
+# What a ROS 2 bag folder holds: its metadata, its storage files and omnitof's sidecar.
 _BAG_FOLDER_FILES = ("metadata.yaml", SIDECAR_NAME)
 _BAG_STORAGE_SUFFIXES = (".mcap", ".db3", ".db3-shm", ".db3-wal")
 
