@@ -289,8 +289,8 @@ def test_the_cores_functions_refuse_what_no_sensor_robot_or_filter_gives():
         ("map", "l_min", 5.0, "l_min must not exceed l_max"), ("map", "l_max", np.nan, "must be finite"),
         ("map", "resolution", 0.0, "map.resolution"), ("scan_matcher", "refinements", 10**9, "refinements"),
         ("scan_matcher", "step_xy", np.nan, "step_xy"), ("filter", "threads", 10**9, "filter.threads"),
-        ("likelihood_field", "sigma", np.nan, "likelihood_field.sigma"),
-        ("likelihood_field", "window_cells", -5, "window_cells"), ("motion", "alpha1", np.nan, "motion.alpha"),
+        ("likelihood_field", "sigma", np.nan, "likelihood_field: sigma"),
+        ("likelihood_field", "window_cells", -5, "likelihood_field: window"), ("motion", "alpha1", np.nan, "motion.alpha"),
         ("sensor_model", "beam_stride", 0, "beam_stride"), ("sensor_model", "effective_beams", np.nan, "effective_beams"),
     ):
         sections = core_sections(SlamConfig())
@@ -313,6 +313,10 @@ def test_the_cores_functions_refuse_what_no_sensor_robot_or_filter_gives():
         grid.integrate(z, np.full(90, np.nan), ranges, 10.0)
     with pytest.raises(ValueError, match="sigma_hit"):
         _core.beam_likelihood(np.ones(2), 1.0, **{**BEAM, "sigma_hit": 0.0})
+    sections = core_sections(SlamConfig())
+    sections["sensor_model"] = {**sections["sensor_model"], "sigma_hit": np.nan}
+    with pytest.raises(ValueError, match="sensor_model: .*sigma_hit"):
+        _core.ParticleFilter(**sections, **sensor)
 
 
 def test_the_3d_filter_refuses_nan_weights_zero_strides_and_frames_beyond_its_grid():

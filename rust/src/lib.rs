@@ -118,12 +118,7 @@ fn scan_geometry<'a>(
     ranges: &[f32],
     sensor_pose: Option<PyReadonlyArray1<f64>>,
 ) -> PyResult<ScanGeometry<'a>> {
-    if angles.len() != ranges.len() {
-        return Err(PyValueError::new_err("angles and ranges differ in length"));
-    }
-    if !angles.iter().all(|a| a.is_finite()) {
-        return Err(PyValueError::new_err("scan angles must be finite"));
-    }
+    let angles = scan_angles(angles, ranges.len())?;
     let sensor = match sensor_pose {
         Some(s) => pose3(s.c_slice()?, "sensor_pose")?,
         None => [0.0; 3],
@@ -144,12 +139,12 @@ const MAX_MATCH_ITERATIONS: u32 = 1000;
 
 /// The likelihood field's settings as the grid's matchers take them, or a ValueError naming
 /// what is wrong (NaN and infinite values included).
-fn field_settings(sigma: f64, max_range: f64, window: i32) -> PyResult<()> {
+fn field_settings(sigma: f64, max_range: f64, window: i32, prefix: &str) -> PyResult<()> {
     if !(sigma.is_finite() && sigma > 0.0 && max_range.is_finite() && max_range > 0.0) {
-        return Err(PyValueError::new_err("sigma and max_range must be positive and finite"));
+        return Err(PyValueError::new_err(format!("{prefix}sigma and max_range must be positive and finite")));
     }
     if !(1..=MAX_FIELD_WINDOW).contains(&window) {
-        return Err(PyValueError::new_err(format!("window must lie in 1..={MAX_FIELD_WINDOW} cells, got {window}")));
+        return Err(PyValueError::new_err(format!("{prefix}window must lie in 1..={MAX_FIELD_WINDOW} cells, got {window}")));
     }
     Ok(())
 }
@@ -163,6 +158,19 @@ fn field_weights(z_hit: f64, z_rand: f64) -> PyResult<()> {
         )));
     }
     Ok(())
+}
+
+/// The beam model, checked: weights at least 0, sigma_hit, lambda_short and max_range positive
+/// and finite (a NaN sigma gave plausible densities, a zero one NaN weights).
+fn beam_model(m: BeamModel, prefix: &str) -> PyResult<BeamModel> {
+    let weights = [m.z_hit, m.z_short, m.z_max, m.z_rand].iter().all(|w| w.is_finite() && *w >= 0.0);
+    let positive = [m.sigma_hit, m.lambda_short, m.max_range].iter().all(|v| v.is_finite() && *v > 0.0);
+    if !(weights && positive) {
+        return Err(PyValueError::new_err(format!(
+            "{prefix}z_hit, z_short, z_max and z_rand must be at least 0, sigma_hit, lambda_short and max_range positive and finite"
+        )));
+    }
+    Ok(m)
 }
 
 /// A scan's own beam bearings: one finite angle per range.
@@ -371,36 +379,14 @@ fn filter_params(
     if !(sm.step_xy.is_finite() && sm.step_xy > 0.0 && sm.step_deg.is_finite() && sm.step_deg > 0.0) {
         return Err(PyValueError::new_err("scan_matcher.step_xy and step_deg must be positive and finite"));
     }
-    if !(s.max_range.min(scan_max_range) > 0.0) {
-        return Err(PyValueError::new_err("sensor_model.max_range and the scan's largest range must be positive"));
-    }
-    if !(lf.sigma.is_finite() && lf.sigma > 0.0 && (1..=MAX_FIELD_WINDOW).contains(&lf.window_cells)) {
-        return Err(PyValueError::new_err(format!(
-            "likelihood_field.sigma must be positive and finite and window_cells in 1..={MAX_FIELD_WINDOW}"
-        )));
-    }
+    // Readings beyond the sensor's range are no echo, whatever the configuration allows.
+    let max_range = s.max_range.min(scan_max_range);
+    field_settings(lf.sigma, max_range, lf.window_cells, "likelihood_field: ")?;
     if ![m.alpha1, m.alpha2, m.alpha3, m.alpha4].iter().all(|a| a.is_finite() && *a >= 0.0) {
         return Err(PyValueError::new_err("motion.alpha1..alpha4 must be finite and at least 0"));
     }
-    let beam_weights = [s.z_hit, s.z_short, s.z_max, s.z_rand].iter().all(|w| w.is_finite() && *w >= 0.0);
-    if !beam_weights || !(s.sigma_hit.is_finite() && s.sigma_hit > 0.0 && s.lambda_short.is_finite() && s.lambda_short > 0.0) {
-        return Err(PyValueError::new_err(
-            "sensor_model: z_hit, z_short, z_max, z_rand must be at least 0, sigma_hit and lambda_short positive and finite",
-        ));
-    }
-    if s.beam_stride < 1 || !(s.effective_beams.is_finite() && s.effective_beams > 0.0) {
-        return Err(PyValueError::new_err("sensor_model.beam_stride must be at least 1 and effective_beams positive and finite"));
-    }
-    // Readings beyond the sensor's range are no echo, whatever the configuration allows.
-    let max_range = s.max_range.min(scan_max_range);
-    Ok(FilterParams {
-        n_particles: f.particles,
-        seed: f.seed,
-        threads,
-        motion: OdometryMotion { alpha: [m.alpha1, m.alpha2, m.alpha3, m.alpha4] },
-        proposal,
-        observation,
-        beam: BeamModel {
+    let beam = beam_model(
+        BeamModel {
             z_hit: s.z_hit,
             z_short: s.z_short,
             z_max: s.z_max,
@@ -410,6 +396,19 @@ fn filter_params(
             max_range,
             occupied_threshold: g.occupied_threshold,
         },
+        "sensor_model: ",
+    )?;
+    if s.beam_stride < 1 || !(s.effective_beams.is_finite() && s.effective_beams > 0.0) {
+        return Err(PyValueError::new_err("sensor_model.beam_stride must be at least 1 and effective_beams positive and finite"));
+    }
+    Ok(FilterParams {
+        n_particles: f.particles,
+        seed: f.seed,
+        threads,
+        motion: OdometryMotion { alpha: [m.alpha1, m.alpha2, m.alpha3, m.alpha4] },
+        proposal,
+        observation,
+        beam,
         field: LikelihoodField::new(lf.sigma, lf.z_hit, lf.z_rand, max_range, lf.window_cells, g.occupied_threshold, lf.fit_walls),
         matcher: MatcherParams {
             step_xy: sm.step_xy,
@@ -729,7 +728,7 @@ impl PyOccupancyGrid {
         if !start.iter().all(|v| v.is_finite()) {
             return Err(PyValueError::new_err("start must be a finite pose"));
         }
-        field_settings(sigma, max_range, window)?;
+        field_settings(sigma, max_range, window, "")?;
         if !(step_xy.is_finite() && step_xy > 0.0 && step_theta.is_finite() && step_theta > 0.0) {
             return Err(PyValueError::new_err("step_xy and step_theta must be positive and finite"));
         }
@@ -795,7 +794,7 @@ impl PyOccupancyGrid {
         if (0..ranges.len()).any(|i| ranges[i].is_finite() && !bearing(i).is_finite()) {
             return Err(PyValueError::new_err("angles must be finite for every beam with a range"));
         }
-        field_settings(sigma, max_range, window)?;
+        field_settings(sigma, max_range, window, "")?;
         field_weights(z_hit, z_rand)?;
         if beam_stride < 1 || gauss_newton > MAX_MATCH_ITERATIONS {
             return Err(PyValueError::new_err(format!(
@@ -993,15 +992,7 @@ fn beam_likelihood<'py>(
     lambda_short: f64,
     max_range: f64,
 ) -> PyResult<Bound<'py, PyArray1<f64>>> {
-    let weights_ok = [z_hit, z_short, z_max, z_rand].iter().all(|w| w.is_finite() && *w >= 0.0);
-    if !weights_ok || !(sigma_hit.is_finite() && sigma_hit > 0.0 && lambda_short.is_finite() && lambda_short > 0.0)
-        || !(max_range.is_finite() && max_range > 0.0)
-    {
-        return Err(PyValueError::new_err(
-            "beam model: the z weights must be at least 0, sigma_hit, lambda_short and max_range positive and finite",
-        ));
-    }
-    let m = BeamModel { z_hit, z_short, z_max, z_rand, sigma_hit, lambda_short, max_range, occupied_threshold: 0.0 };
+    let m = beam_model(BeamModel { z_hit, z_short, z_max, z_rand, sigma_hit, lambda_short, max_range, occupied_threshold: 0.0 }, "")?;
     Ok(PyArray1::from_vec(py, z.c_slice()?.iter().map(|&zi| m.likelihood(zi, z_star)).collect()))
 }
 

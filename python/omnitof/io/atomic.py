@@ -236,18 +236,26 @@ def atomic_folder(
         _ACTIVE.discard(staging)
 
 
-def _checked_target(shown: Path, may_replace: Callable[[Path], None] | None) -> Path:
-    """The absolute folder `shown` names, once it is known that a results folder may go there."""
+def replaceable_place(shown: str | Path, thing: str) -> Path:
+    """The absolute path `shown` names, where `thing` (a results folder, a bag) is to replace
+    whatever is there as a whole: never the root, nor the current folder or one that holds it
+    (the new one put in its place would pull the process's folder away)."""
     path = Path(os.path.abspath(shown))
-    if path.is_symlink():
-        path = path.resolve()  # replace the folder the link names, keep the link
     if path.parent == path:
-        raise OutputError(f"{shown}: the root folder cannot be a results folder")
-    if path.exists() and not path.is_dir():
-        raise OutputError(f"{shown}: is a file, not a folder; choose another place for the results")
+        raise OutputError(f"{shown}: the root folder cannot be {thing}")
     here, real = Path.cwd().resolve(), path.resolve()
     if here == real or real in here.parents:
-        raise OutputError(f"{shown}: holds the current folder, which a new folder in its place would pull away")
+        raise OutputError(f"{shown}: holds the current folder, which {thing} in its place would pull away")
+    return path
+
+
+def _checked_target(shown: Path, may_replace: Callable[[Path], None] | None) -> Path:
+    """The absolute folder `shown` names, once it is known that a results folder may go there."""
+    path = replaceable_place(shown, "a results folder")
+    if path.is_symlink():
+        path = path.resolve()  # replace the folder the link names, keep the link
+    if path.exists() and not path.is_dir():
+        raise OutputError(f"{shown}: is a file, not a folder; choose another place for the results")
     if path.is_dir() and may_replace is not None:
         may_replace(path)
     sweep_leftovers(path)

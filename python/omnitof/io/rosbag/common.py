@@ -42,7 +42,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from omnitof.errors import InputError, OmnitofError, OmnitofWarning, OutputError, load_yaml, read_problem, yaml_problem
 from omnitof.geometry import quaternion_to_yaw, yaw_to_quaternion
 from omnitof.interrupts import deferred_signals
-from omnitof.io.atomic import fsync_dir, temporary_folder
+from omnitof.io.atomic import fsync_dir, replaceable_place, temporary_folder
 from omnitof.io.plain import to_plain
 from omnitof.types import Trajectory
 
@@ -453,14 +453,9 @@ def checked_bag_target(path: str | Path, overwrite: bool) -> Path:
     (metadata.yaml, storage files, the sidecar). Anything else is refused even with `overwrite`,
     since the writer replaces its target as a whole: a results folder or a folder of the
     user's own would be lost. The root and the current folder (or one that holds it) are
-    refused too, as for a results folder (omnitof.io.atomic)."""
+    refused too (`omnitof.io.atomic.replaceable_place`)."""
     shown = Path(path)
-    path = Path(os.path.abspath(shown))
-    if path.parent == path:
-        raise OutputError(f"{shown}: the root folder cannot be a bag")
-    here, real = Path.cwd().resolve(), path.resolve()
-    if here == real or real in here.parents:
-        raise OutputError(f"{shown}: holds the current folder, which a bag in its place would pull away")
+    path = replaceable_place(shown, "a bag")
     if not os.path.lexists(path):
         return path
     if not overwrite:
