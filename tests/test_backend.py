@@ -118,6 +118,20 @@ def test_submap_search_finds_a_far_displaced_scan_and_rejects_one_from_elsewhere
                           scans.sensor_pose) is None
 
 
+def test_a_submap_refuses_a_scan_too_wide_or_too_far_and_stays_as_it_was():
+    angles = np.linspace(-np.pi, np.pi, 36, endpoint=False)
+    ranges = np.full(36, 2.0, np.float32)
+    sub = _core.Submap(0.05, 0.9, -0.4, -2.0, 3.5, 10.0)
+    sub.insert(np.zeros(3), ranges, angles)
+    # 1000 km away: the submap's 8192 cells (410 m) cannot hold both scans.
+    with pytest.raises(ValueError, match=r"must fit in 8192 cells: this scan would make it 20000400 cells wide"):
+        sub.insert(np.array([1e6, 0.0, 0.0]), ranges, angles)
+    # A first scan 1e15 m out is narrow enough, but beyond the cells a search can index.
+    with pytest.raises(ValueError, match=r"the scan at \(1\.000e15, 0\.000e0\) m lies beyond the 536870912 cells"):
+        _core.Submap(0.05, 0.9, -0.4, -2.0, 3.5, 10.0).insert(np.array([1e15, 0.0, 0.0]), ranges, angles)
+    assert sub.num_scans == 1
+
+
 def test_scans_between_integrated_ones_are_posed_by_their_own_match(corridor_loop):
     scans = corridor_loop.slice(0, 700)
     by_odometry = run_slam(scans, loop_config(False))

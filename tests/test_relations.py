@@ -6,13 +6,14 @@ import json
 import math
 import os
 import statistics
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
-from omnitof.errors import InputError
+from omnitof.errors import InputError, OmnitofWarning
 from omnitof.eval.relations import Relations, evaluate_relations, read_relations
 from omnitof.geometry import compose, relative
 from omnitof.types import Trajectory
@@ -175,6 +176,22 @@ def test_unmatched_relations_are_counted() -> None:
     np.testing.assert_array_equal(result.matched, [True, True, True, False, False])
     assert len(result.trans_errors) == 3
     assert evaluate_relations(gt, rel, time_tolerance=3e-3).n_matched == 4
+
+
+def test_a_loose_tolerance_that_matches_other_moments_is_warned_of() -> None:
+    gt = _ground_truth()  # poses 0.4 s apart
+    t = gt.timestamps
+    rel = Relations(
+        t1=[t[0], t[1], t[0] - 100.0],  # the last end lies 100 s before the trajectory
+        t2=[t[1], t[2], t[1]],
+        delta=relative(gt.poses[[0, 1, 0]], gt.poses[[1, 2, 1]]),
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert evaluate_relations(gt, rel, time_tolerance=0.1).n_matched == 2  # none far: no warning
+    with pytest.warns(OmnitofWarning, match=r"run.tum: 1 of 3 matched relations have an end up to 100 s"):
+        result = evaluate_relations(gt, rel, time_tolerance=1e6, source="run.tum")
+    assert result.n_matched == 3
 
 
 def test_unsorted_trajectory_is_matched() -> None:

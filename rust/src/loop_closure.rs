@@ -160,9 +160,16 @@ impl Submap {
         };
         let side = (reach[2] - reach[0]).max(reach[3] - reach[1]) / self.params.resolution;
         let far = reach.iter().map(|v| v.abs()).fold(0.0, f64::max) / self.params.resolution;
-        if side > MAX_SIDE_CELLS || far > MAX_CELL_COORD {
+        if side > MAX_SIDE_CELLS {
             return Err(format!(
                 "a submap must fit in {MAX_SIDE_CELLS} cells: this scan would make it {side:.0} cells wide"
+            ));
+        }
+        if far > MAX_CELL_COORD {
+            return Err(format!(
+                "the scan at ({:.3e}, {:.3e}) m lies beyond the {MAX_CELL_COORD:.0} cells of {} m a submap \
+                 reaches from the map's origin",
+                sp[0], sp[1], self.params.resolution
             ));
         }
         let p = &self.params;

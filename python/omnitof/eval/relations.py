@@ -39,13 +39,14 @@ How this matches the benchmark's own tools (read from their public sources, not 
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from omnitof.errors import InputError, read_problem
+from omnitof.errors import InputError, OmnitofWarning, read_problem
 from omnitof.io.text import parse_float_row
 from omnitof.geometry import relative, wrap_angle
 from omnitof.types import Trajectory
@@ -249,6 +250,7 @@ def evaluate_relations(
     matched = ok1 & ok2
     if not matched.any():
         raise InputError(_no_match_message(traj, relations, time_tolerance), source)
+    _warn_of_other_moments(traj, relations, i1, i2, matched, source)
     gaps = np.abs(relations.t2[matched] - relations.t1[matched])
     # Errors beyond float64's range (a trajectory or a relation 1e300 m off) are inf, and so are
     # their statistics: the answer, not a page of numpy's overflow warnings.
@@ -327,6 +329,35 @@ def match_times(
     nearest = np.where(take_left, left, right)
     ok = np.abs(query - ts[nearest]) <= tolerance
     return order[nearest], ok
+
+
+def _warn_of_other_moments(
+    traj: Trajectory, relations: Relations, i1: np.ndarray, i2: np.ndarray, matched: np.ndarray,
+    source: str | Path | None,
+) -> None:
+    """Warn where a loose `time_tolerance` matched relation ends to poses of other moments.
+
+    A relation end further from its pose than half the trajectory's median step is nearer to
+    another moment of the run than to that pose: its error then holds the motion in between, not
+    the estimate's. The default 1 ms never allows this at a scanner's rate."""
+    steps = np.diff(np.sort(traj.timestamps))
+    steps = steps[steps > 0]
+    if not len(steps):
+        return
+    half_step = 0.5 * float(np.median(steps))
+    offsets = np.maximum(
+        np.abs(relations.t1[matched] - traj.timestamps[i1[matched]]),
+        np.abs(relations.t2[matched] - traj.timestamps[i2[matched]]),
+    )
+    far = offsets > half_step
+    if far.any():
+        where = f"{source}: " if source else ""
+        warnings.warn(OmnitofWarning(
+            f"{where}{int(far.sum())} of {int(matched.sum())} matched relations have an end up to "
+            f"{offsets.max():.3g} s from the trajectory's pose it was matched to (the trajectory's "
+            f"median step is {2 * half_step:.3g} s): their errors include the motion in between. "
+            "Is the time tolerance too loose, or the trajectory not one pose per scan?"
+        ), stacklevel=3)
 
 
 def _no_match_message(traj: Trajectory, relations: Relations, tolerance: float) -> str:
