@@ -351,7 +351,7 @@ def test_arrays_in_fortran_order_are_refused_not_read_transposed():
     starts = np.array([[0.0, 0.1, 0.0], [0.1, 0.0, 0.05]])
     both = np.tile(ranges, (2, 1))
     poses, _ = grid.match_each(starts, both, angles, max_range=10.0, gauss_newton=0)
-    with pytest.raises(TypeError, match="not C-ordered"):
+    with pytest.raises(TypeError, match="starts: an array of shape .* not C-ordered"):
         grid.match_each(np.asfortranarray(starts), both, angles, max_range=10.0, gauss_newton=0)
     poses_again, _ = grid.match_each(np.ascontiguousarray(np.asfortranarray(starts)), both, angles, max_range=10.0,
                                      gauss_newton=0)
@@ -360,6 +360,112 @@ def test_arrays_in_fortran_order_are_refused_not_read_transposed():
     xyz = np.array([[1.0, 2.0, 3.0], [1.5, 0.5, 1.0]])
     with pytest.raises(TypeError, match="not C-ordered"):
         voxels.integrate(np.zeros((2, 3)), np.asfortranarray(xyz), 10.0)
+
+
+def _renderer(**changes):
+    """The core's renderer of an 8×8 pinhole camera in a 6 m × 6 m room, with `changes`."""
+    v, u = np.mgrid[0:8, 0:8] - 3.5
+    d = np.stack([u / 6, v / 6, np.ones((8, 8))], -1).reshape(-1, 3)
+    args = dict(
+        walls=np.array([[-3, -3, 3, -3, 0, 2.5], [3, -3, 3, 3, 0, 2.5], [3, 3, -3, 3, 0, 2.5], [-3, 3, -3, -3, 0, 2.5]],
+                       dtype=float),
+        wall_materials=np.zeros(4, np.uint32), boxes=np.zeros((0, 7)), box_materials=np.zeros(0, np.uint32),
+        materials=np.array([[0, 0.6, 0, 0, 0, 0]], dtype=float), floor_material=0, ceiling_material=0,
+        ceiling_height=2.5, cell=0.5, directions=d / np.linalg.norm(d, axis=1)[:, None], height=8, width=8,
+        sub_rays=1, mirror_planes=np.array([[0.0, 0, 1, 0.1]]),
+        mirror_vertices=np.array([[-1.0, -1, 0.1], [1, -1, 0.1], [1, 1, 0.1], [-1, 1, 0.1]]),
+        mirror_counts=np.array([4], np.uint64), mirror_reflectivity=np.array([0.9]),
+        robot_T_camera=np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0.3], [0, 0, 0, 1]], dtype=float),
+        f_mod=20e6, amplitude_at_1m=1000.0, max_bounces=2, min_gain=1e-4,
+    )
+    args.update(changes)
+    return _core._Renderer(**args)
+
+
+def test_the_renderer_refuses_what_would_panic_hang_or_render_garbage():
+    base = _renderer()
+    t, material = base.cast(np.array([[0.0, 0, 1], [0, 0, 1], [0, 0, 1]]),
+                            np.array([[1e-200, 0, 0], [1e160, 0, 0], [np.nan, 0, 0]]))
+    np.testing.assert_allclose(t[:2], 3.0)  # the +x wall, whatever the direction's length
+    assert t[2] == np.inf and material[2] == -1  # NaN: the rig's marker of a ray that is not there
+    refused = {
+        # sums and products that wrapped past 2⁶⁴ and panicked later
+        "mirror_counts must add up": dict(mirror_planes=np.array([[0.0, 0, 1, 0.1]] * 2),
+                                          mirror_reflectivity=np.array([0.9, 0.9]),
+                                          mirror_counts=np.array([2**64 - 1, 5], np.uint64)),
+        "directions do not fill": dict(height=2**63, width=2, directions=np.zeros((0, 3))),
+        # a ray between two perfect mirrors never fades: 10⁹ bounces hung
+        "max_bounces must be at most 64": dict(max_bounces=10**9),
+        "min_gain must be finite": dict(min_gain=np.inf),
+        "f_mod must lie in": dict(f_mod=np.inf),
+        "amplitude_at_1m in": dict(amplitude_at_1m=1e300),
+        "led_half_angle_deg must lie in": dict(leds=np.array([[0.02, 0, 0]]), led_half_angle_deg=360.0),
+        "orthonormal": dict(robot_T_camera=np.zeros((4, 4))),
+        "a reflection": dict(robot_T_camera=np.diag([1.0, 1.0, -1.0, 1.0])),
+        "encloses no area": dict(mirror_vertices=np.tile([0.0, 0, 0.1], (4, 1))),
+        "material kind must be a whole number": dict(materials=np.array([[1.9, 0.6, 0, 0, 0, 0]])),
+        "robot_T_camera: an array": dict(robot_T_camera=np.asfortranarray(np.eye(4))),
+    }
+    for message, changes in refused.items():
+        with pytest.raises((ValueError, TypeError), match=message):
+            _renderer(**changes)
+    with pytest.raises(ValueError, match="ray 0: the origin must be finite and the direction finite and not zero"):
+        base.cast(np.zeros((1, 3)), np.zeros((1, 3)))
+    image = np.zeros((64, 2), np.float32), np.ones(64, np.float32), np.ones(64, np.float32)
+    layout = np.zeros(1, np.uint64), np.zeros(1, bool), np.zeros(1, np.uint64)
+    for message, extra in {"harmonics must be finite": dict(harmonics=(np.nan, 0.0)),
+                           "amplitude offset must be finite": dict(amplitude_offset=(np.inf, 100.0)),
+                           "fixed_pattern must be finite": dict(fixed_pattern=np.full(64, np.nan)),
+                           "fixed_pattern: an array": dict(fixed_pattern=np.zeros(128)[::2])}.items():
+        with pytest.raises((ValueError, TypeError), match=message):
+            base.frames(*image, *layout, electrons_per_unit=20.0, read_noise=0.0, full_well=1e5, **extra)
+
+
+def _compensator(n_side=8, **changes):
+    n = n_side * n_side
+    args = dict(width=n_side, height=n_side, origins=np.zeros((n, 3)), directions=np.tile([0.0, 0, 1], (n, 1)),
+                paths=np.zeros(n), labels=np.zeros(n, np.int32), solid_angles=np.full(n, 0.03), emission=np.ones(n),
+                source_gain=np.ones(n), targets=np.arange(n, dtype=np.uint32), windows=np.tile([0.0, 10], (n, 1)),
+                k=0.84, amplitude_at_1m=1000.0, mirror_reflectivity=0.9, stride=1, target_stride=1, normal_radius=1,
+                smooth_radius=1, depth_tolerance=0.1, min_reflectance=0.0, min_cos=0.1, min_separation=0.05,
+                max_ratio=1.0)
+    args.update(changes)
+    return _core._MultipathCompensator(**args)
+
+
+def test_the_multipath_compensator_refuses_what_would_panic_hang_or_switch_it_off():
+    _compensator()
+    empty = dict(origins=np.zeros((0, 3)), directions=np.zeros((0, 3)), paths=np.zeros(0),
+                 labels=np.zeros(0, np.int32), solid_angles=np.zeros(0), emission=np.zeros(0),
+                 source_gain=np.zeros(0), targets=np.zeros(0, np.uint32), windows=np.zeros((0, 2)))
+    refused = {
+        "at least 1×1 pixels, got 0×0": dict(n_side=0),  # a chunk size of 0 panicked at the first frame
+        "at least 1×1 pixels, got 4294967296×4294967296": dict(width=2**32, height=2**32, **empty),
+        "normal_radius and smooth_radius must be at most the image's side": dict(normal_radius=10**9),  # hung
+        "k must be at most 1e6": dict(k=1e300),
+        "min_cos at most 1": dict(min_cos=2.0),
+        "solid angles must be finite": dict(solid_angles=np.full(64, np.nan)),
+        "pixel 0: a mirror pixel needs a unit direction": dict(directions=np.tile([0.0, 0, 2], (64, 1))),
+        "windows must be finite": dict(windows=np.tile([5.0, 1], (64, 1))),
+    }
+    for message, changes in refused.items():
+        with pytest.raises(ValueError, match=message):
+            _compensator(**changes)
+
+
+def test_a_submap_refuses_a_resolution_too_coarse_and_a_window_too_wide_for_its_tree():
+    angles = np.linspace(-np.pi, np.pi, 90, endpoint=False)
+    ranges = (2 / np.maximum(np.abs(np.cos(angles)), np.abs(np.sin(angles)))).astype(np.float32)  # a 4 m square room
+    # Matches came back metres outside a ±0.3 m window at 10 m cells.
+    with pytest.raises(ValueError, match="resolution 10 m is too coarse for max_range 5 m"):
+        _core.Submap(10.0, 0.9, -0.4, -2.0, 3.5, 5.0)
+    shallow = _core.Submap(0.05, 0.9, -0.4, -2.0, 3.5, 5.0, depth=0)
+    shallow.insert(np.zeros(3), ranges, angles)
+    shallow.finish()
+    assert shallow.match_scan(ranges, angles, np.zeros(3), 0.3, 0.1, 0.0) is not None
+    # Without a tree every pose of a 20 m window would be scored: minutes.
+    with pytest.raises(ValueError, match="the window is too wide for a tree of depth 0"):
+        shallow.match_scan(ranges, angles, np.zeros(3), 20.0, 4.0, 0.0)
 
 
 @pytest.mark.parametrize("fallback", ["prediction", "draw"])

@@ -239,7 +239,7 @@ def test_metal_door_in_the_building_reads_far_from_itself_or_weakly():
     rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     o = RAY_O @ rot.T + [pose[0], pose[1], 0.0]
     d = RAY_D @ rot.T
-    t, names = r.first_surface(o.reshape(-1, 3), np.nan_to_num(d).reshape(-1, 3))
+    t, names = r.first_surface(np.nan_to_num(o).reshape(-1, 3), d.reshape(-1, 3))
     on_door = (names.reshape(LABELS.shape) == "metal") & (LABELS >= 0)
     assert on_door.sum() > 200
     door_distance = (TO_MIRROR + t.reshape(LABELS.shape))[on_door]
@@ -365,6 +365,8 @@ def test_bad_settings_and_poses_are_refused():
         RenderSettings(sub_rays=0)
     with pytest.raises(RenderConfigError, match="mirror_reflectivity"):
         RenderSettings(mirror_reflectivity=1.5)
+    with pytest.raises(RenderConfigError, match="max_bounces must be at most 64"):
+        RenderSettings(max_bounces=10**9)  # between two perfect mirrors a ray never fades: it hung
     r = renderer(load_world("room"), sub_rays=1)
     with pytest.raises(RenderConfigError, match="poses"):
         r.phasors(np.zeros((2, 2)))

@@ -77,7 +77,7 @@ fn rays(a: &PyReadonlyArray2<'_, f64>, what: &str, resolution: f64) -> PyResult<
         return Err(PyValueError::new_err(format!("{what} must have shape (N, 3), got {shape:?}")));
     }
     let limit = 0.5 * (INDEX_LIMIT as f64) * resolution;
-    let out: Vec<[f64; 3]> = a.c_slice()?.chunks_exact(3).map(|r| [r[0], r[1], r[2]]).collect();
+    let out: Vec<[f64; 3]> = a.c_slice(what)?.chunks_exact(3).map(|r| [r[0], r[1], r[2]]).collect();
     if let Some(bad) = out.iter().find(|p| !p.iter().all(|v| v.is_finite() && v.abs() < limit)) {
         return Err(PyValueError::new_err(format!("{what}: {bad:?} is not a finite point within ±{limit} m")));
     }
@@ -150,8 +150,8 @@ impl PyParticleFilter3D {
         endpoints: PyReadonlyArray2<f64>,
         scan: u64,
     ) -> PyResult<(f64, bool, usize, usize, bool)> {
-        let prev = pose3(odom_prev.c_slice()?, "odom_prev")?;
-        let cur = pose3(odom_cur.c_slice()?, "odom_cur")?;
+        let prev = pose3(odom_prev.c_slice("odom_prev")?, "odom_prev")?;
+        let cur = pose3(odom_cur.c_slice("odom_cur")?, "odom_cur")?;
         if !prev.iter().chain(&cur).all(|v| v.is_finite()) {
             return Err(PyValueError::new_err("odometry poses must be finite"));
         }
@@ -197,7 +197,7 @@ impl PyParticleFilter3D {
         poses: PyReadonlyArray2<f64>,
         clouds: Vec<PyReadonlyArray2<f32>>,
     ) -> PyResult<()> {
-        let pose = pose3(pose.c_slice()?, "pose")?;
+        let pose = pose3(pose.c_slice("pose")?, "pose")?;
         // Within the grid's reach, as the rays are: a frame placed beyond it was dropped, and
         // the reset returned an empty map without a word.
         let at = rays(&poses, "poses", self.inner.params.resolution)?;
@@ -214,7 +214,7 @@ impl PyParticleFilter3D {
                 return Err(PyValueError::new_err(format!("cloud {k} must have shape (M, 6), got {:?}", cloud.shape())));
             }
             let (mut o, mut e) = (Vec::new(), Vec::new());
-            for r in cloud.c_slice()?.chunks_exact(6) {
+            for r in cloud.c_slice("cloud")?.chunks_exact(6) {
                 let r: [f64; 6] = std::array::from_fn(|i| r[i] as f64);
                 if !r.iter().all(|v| v.is_finite() && v.abs() < limit) {
                     return Err(PyValueError::new_err(format!("cloud {k}: {r:?} is not a finite ray within ±{limit} m")));

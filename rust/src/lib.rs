@@ -40,14 +40,14 @@ use voxel::VoxelGrid;
 /// Fortran-ordered array too, and hands over its columns as rows (`xyz.T` of a (3, N) array
 /// was read as other points): such an array is refused.
 pub(crate) trait COrder<T> {
-    fn c_slice(&self) -> PyResult<&[T]>;
+    fn c_slice(&self, what: &str) -> PyResult<&[T]>;
 }
 
 impl<T: numpy::Element, D: numpy::ndarray::Dimension> COrder<T> for numpy::PyReadonlyArray<'_, T, D> {
-    fn c_slice(&self) -> PyResult<&[T]> {
+    fn c_slice(&self, what: &str) -> PyResult<&[T]> {
         if !self.is_c_contiguous() {
             return Err(PyTypeError::new_err(format!(
-                "an array of shape {:?} is not C-ordered (row-major) and contiguous: pass numpy.ascontiguousarray(it)",
+                "{what}: an array of shape {:?} is not C-ordered (row-major) and contiguous: pass numpy.ascontiguousarray(it)",
                 self.shape()
             )));
         }
@@ -120,7 +120,7 @@ fn scan_geometry<'a>(
 ) -> PyResult<ScanGeometry<'a>> {
     let angles = scan_angles(angles, ranges.len())?;
     let sensor = match sensor_pose {
-        Some(s) => pose3(s.c_slice()?, "sensor_pose")?,
+        Some(s) => pose3(s.c_slice("sensor_pose")?, "sensor_pose")?,
         None => [0.0; 3],
     };
     if !sensor.iter().all(|v| v.is_finite()) {
@@ -469,11 +469,11 @@ impl PyParticleFilter {
             return Err(PyValueError::new_err("scan_max_range must be positive and finite"));
         }
         let params = filter_params(filter, motion, sensor_model, likelihood_field, scan_matcher, map, scan_max_range)?;
-        let sensor = pose3(sensor_pose.c_slice()?, "sensor_pose")?;
+        let sensor = pose3(sensor_pose.c_slice("sensor_pose")?, "sensor_pose")?;
         if !sensor.iter().all(|v| v.is_finite()) {
             return Err(PyValueError::new_err("sensor_pose must be finite"));
         }
-        let angles = angles.c_slice()?;
+        let angles = angles.c_slice("angles")?;
         if !angles.iter().all(|a| a.is_finite()) {
             return Err(PyValueError::new_err("angles must be finite"));
         }
@@ -494,14 +494,14 @@ impl PyParticleFilter {
         scan: u64,
         angles: Option<PyReadonlyArray1<f64>>,
     ) -> PyResult<(f64, bool, bool)> {
-        let prev = pose3(odom_prev.c_slice()?, "odom_prev")?;
-        let cur = pose3(odom_cur.c_slice()?, "odom_cur")?;
+        let prev = pose3(odom_prev.c_slice("odom_prev")?, "odom_prev")?;
+        let cur = pose3(odom_cur.c_slice("odom_cur")?, "odom_cur")?;
         if !prev.iter().chain(cur.iter()).all(|v| v.is_finite()) {
             return Err(PyValueError::new_err("odom_prev and odom_cur must be finite poses"));
         }
-        let ranges = ranges.c_slice()?;
+        let ranges = ranges.c_slice("ranges")?;
         let angles = match &angles {
-            Some(a) => Some(scan_angles(a.c_slice()?, ranges.len())?),
+            Some(a) => Some(scan_angles(a.c_slice("angles")?, ranges.len())?),
             None if ranges.len() != self.inner.n_beams() => {
                 return Err(PyValueError::new_err(format!(
                     "scan has {} ranges, the filter was made for {} (give the scan's own angles)",
@@ -526,13 +526,13 @@ impl PyParticleFilter {
         ranges: PyReadonlyArray1<f32>,
         angles: Option<PyReadonlyArray1<f64>>,
     ) -> PyResult<Option<([f64; 3], f64)>> {
-        let start = pose3(start.c_slice()?, "start")?;
+        let start = pose3(start.c_slice("start")?, "start")?;
         if !start.iter().all(|v| v.is_finite()) {
             return Err(PyValueError::new_err("start must be a finite pose"));
         }
-        let ranges = ranges.c_slice()?;
+        let ranges = ranges.c_slice("ranges")?;
         let angles = match &angles {
-            Some(a) => Some(a.c_slice()?),
+            Some(a) => Some(a.c_slice("angles")?),
             None => None,
         };
         let n = angles.map_or(self.inner.n_beams(), |a| a.len());
@@ -568,13 +568,13 @@ impl PyParticleFilter {
             Some(a) if a.shape() != ranges.shape() => {
                 return Err(PyValueError::new_err(format!("angles {:?} and ranges {:?} differ in shape", a.shape(), ranges.shape())));
             }
-            Some(a) => Some(a.c_slice()?),
+            Some(a) => Some(a.c_slice("angles")?),
             None if beams != self.inner.n_beams() => {
                 return Err(PyValueError::new_err(format!("scans have {} ranges for {} beam angles", beams, self.inner.n_beams())));
             }
             None => None,
         };
-        let ranges = ranges.c_slice()?;
+        let ranges = ranges.c_slice("ranges")?;
         let inner = &self.inner;
         let found = py.detach(|| inner.match_chain(&odometry, ranges, angles_slice, beams, min_matched));
         Ok(found.map(|(poses, matched)| (rows3(py, &poses), PyArray1::from_vec(py, matched))))
@@ -588,7 +588,7 @@ impl PyParticleFilter {
     /// Restart every particle at `pose` with a copy of `grid`'s map, trajectories beginning at
     /// scan `scan` (a correction fed back from the pose graph).
     fn reset(&mut self, pose: PyReadonlyArray1<f64>, scan: u64, grid: PyRef<'_, PyOccupancyGrid>) -> PyResult<()> {
-        let pose = pose3(pose.c_slice()?, "pose")?;
+        let pose = pose3(pose.c_slice("pose")?, "pose")?;
         if !pose.iter().all(|v| v.is_finite()) {
             return Err(PyValueError::new_err("pose must be finite"));
         }
@@ -689,11 +689,11 @@ impl PyOccupancyGrid {
         sensor_pose: Option<PyReadonlyArray1<f64>>,
         once_per_scan: bool,
     ) -> PyResult<()> {
-        let robot = pose3(robot_pose.c_slice()?, "robot_pose")?;
+        let robot = pose3(robot_pose.c_slice("robot_pose")?, "robot_pose")?;
         if !robot.iter().all(|v| v.is_finite()) || !(max_range > 0.0) {
             return Err(PyValueError::new_err("robot_pose must be finite and max_range positive"));
         }
-        let (angles, ranges) = (angles.c_slice()?, ranges.c_slice()?);
+        let (angles, ranges) = (angles.c_slice("angles")?, ranges.c_slice("ranges")?);
         let geom = scan_geometry(angles, ranges, sensor_pose)?;
         integrate_scan(&mut self.grid, &self.model, &geom, robot, ranges, max_range, clear_no_echo, once_per_scan)
             .map_err(grid_error)
@@ -724,7 +724,7 @@ impl PyOccupancyGrid {
         refinements: u32,
         gauss_newton: u32,
     ) -> PyResult<([f64; 3], f64)> {
-        let start = pose3(start.c_slice()?, "start")?;
+        let start = pose3(start.c_slice("start")?, "start")?;
         if !start.iter().all(|v| v.is_finite()) {
             return Err(PyValueError::new_err("start must be a finite pose"));
         }
@@ -735,7 +735,7 @@ impl PyOccupancyGrid {
         if refinements > MAX_MATCH_ITERATIONS || gauss_newton > MAX_MATCH_ITERATIONS {
             return Err(PyValueError::new_err(format!("refinements and gauss_newton must not exceed {MAX_MATCH_ITERATIONS}")));
         }
-        let (angles, ranges) = (angles.c_slice()?, ranges.c_slice()?);
+        let (angles, ranges) = (angles.c_slice("angles")?, ranges.c_slice("ranges")?);
         let geom = scan_geometry(angles, ranges, sensor_pose)?;
         let lf = LikelihoodField::new(sigma, 0.9, 0.1, max_range, window, occupied_threshold, false);
         let m = MatcherParams {
@@ -786,8 +786,8 @@ impl PyOccupancyGrid {
                 "angles {:?} fit neither one scan ({beams},) nor every scan ({n}, {beams})", angles.shape()
             )));
         }
-        let angles = angles.c_slice()?;
-        let ranges = ranges.c_slice()?;
+        let angles = angles.c_slice("angles")?;
+        let ranges = ranges.c_slice("ranges")?;
         // Padding (per-scan geometry) is a NaN angle with an infinite range; any beam with a
         // range needs a bearing.
         let bearing = |i: usize| if shared { angles[i % beams] } else { angles[i] };
@@ -802,7 +802,7 @@ impl PyOccupancyGrid {
             )));
         }
         let sensor = match sensor_pose {
-            Some(s) => pose3(s.c_slice()?, "sensor_pose")?,
+            Some(s) => pose3(s.c_slice("sensor_pose")?, "sensor_pose")?,
             None => [0.0; 3],
         };
         if !sensor.iter().all(|v| v.is_finite()) {
@@ -831,8 +831,8 @@ impl PyOccupancyGrid {
         max_range: f64,
         occupied_threshold: f32,
     ) -> PyResult<Bound<'py, PyArray1<f64>>> {
-        let sp = pose3(sensor_pose.c_slice()?, "sensor_pose")?;
-        if !sp.iter().all(|v| v.is_finite()) || !(max_range > 0.0) || !angles.c_slice()?.iter().all(|a| a.is_finite()) {
+        let sp = pose3(sensor_pose.c_slice("sensor_pose")?, "sensor_pose")?;
+        if !sp.iter().all(|v| v.is_finite()) || !(max_range > 0.0) || !angles.c_slice("angles")?.iter().all(|a| a.is_finite()) {
             return Err(PyValueError::new_err("sensor_pose and angles must be finite and max_range positive"));
         }
         let model = BeamModel {
@@ -840,7 +840,7 @@ impl PyOccupancyGrid {
             max_range, occupied_threshold,
         };
         let out = angles
-            .c_slice()?
+            .c_slice("angles")?
             .iter()
             .map(|a| match model.expected_range(&self.grid, [sp[0], sp[1]], sp[2] + a) {
                 (z, true) => z,
@@ -857,7 +857,7 @@ pub(crate) fn points3(a: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec
     if shape[1] != 3 {
         return Err(PyValueError::new_err(format!("{what} must have shape (N, 3), got {shape:?}")));
     }
-    Ok(a.c_slice()?.chunks_exact(3).map(|r| [r[0], r[1], r[2]]).collect())
+    Ok(a.c_slice(what)?.chunks_exact(3).map(|r| [r[0], r[1], r[2]]).collect())
 }
 
 /// A sparse 3D log-odds voxel grid (rust/src/voxel.rs); NaN = unknown.
@@ -958,7 +958,7 @@ fn sample_motion_odometry<'py>(
     n: usize,
     seed: u64,
 ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-    let (pose, prev, cur) = (pose3(pose.c_slice()?, "pose")?, pose3(odom_prev.c_slice()?, "odom_prev")?, pose3(odom_cur.c_slice()?, "odom_cur")?);
+    let (pose, prev, cur) = (pose3(pose.c_slice("pose")?, "pose")?, pose3(odom_prev.c_slice("odom_prev")?, "odom_prev")?, pose3(odom_cur.c_slice("odom_cur")?, "odom_cur")?);
     if !pose.iter().chain(&prev).chain(&cur).all(|v| v.is_finite()) {
         return Err(PyValueError::new_err("pose, odom_prev and odom_cur must be finite"));
     }
@@ -993,13 +993,13 @@ fn beam_likelihood<'py>(
     max_range: f64,
 ) -> PyResult<Bound<'py, PyArray1<f64>>> {
     let m = beam_model(BeamModel { z_hit, z_short, z_max, z_rand, sigma_hit, lambda_short, max_range, occupied_threshold: 0.0 }, "")?;
-    Ok(PyArray1::from_vec(py, z.c_slice()?.iter().map(|&zi| m.likelihood(zi, z_star)).collect()))
+    Ok(PyArray1::from_vec(py, z.c_slice("z")?.iter().map(|&zi| m.likelihood(zi, z_star)).collect()))
 }
 
 /// Effective sample size (paper eq. 10) of normalised weights.
 #[pyfunction]
 fn neff(weights: PyReadonlyArray1<f64>) -> PyResult<f64> {
-    let w = weights.c_slice()?;
+    let w = weights.c_slice("weights")?;
     normalised_weights(w)?;
     Ok(filter::neff(w))
 }
@@ -1023,7 +1023,7 @@ fn normalised_weights(w: &[f64]) -> PyResult<()> {
 /// Indices drawn by low-variance resampling from normalised weights.
 #[pyfunction]
 fn low_variance_resample<'py>(py: Python<'py>, weights: PyReadonlyArray1<f64>, seed: u64) -> PyResult<Bound<'py, PyArray1<u64>>> {
-    let w = weights.c_slice()?;
+    let w = weights.c_slice("weights")?;
     normalised_weights(w)?;
     let idx = filter::low_variance_resample(w, &mut filter::rng_for(seed, 0, 1));
     Ok(PyArray1::from_vec(py, idx.into_iter().map(|i| i as u64).collect()))

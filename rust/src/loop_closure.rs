@@ -46,6 +46,9 @@ pub const MAX_SIDE_CELLS: f64 = 8192.0;
 /// Bound of |coordinates| (in cells) of everything the search touches, so that i32 cell
 /// indices plus window offsets never overflow.
 const MAX_CELL_COORD: f64 = (1u64 << 29) as f64;
+/// Bound of the cell reads of a search's top level (rotations × top nodes × points): about a
+/// second's work.
+const MAX_TOP_LEVEL_WORK: f64 = (1u64 << 30) as f64;
 /// Bound of (rotations × points), the memory of the discretised scans (8 bytes each).
 const MAX_ROTATED_POINTS: usize = 1 << 26;
 /// Neighbourhood of the best pose whose scores give the covariance: ± this many cells in x and
@@ -92,6 +95,14 @@ impl SubmapParams {
         }
         if !(self.max_range.is_finite() && self.max_range > 0.0) {
             return Err("max_range must be positive and finite".into());
+        }
+        // A scan must span cells: coarser, the heading step (a cell at max_range) nears π and a
+        // match lands anywhere in the cells around the window.
+        if self.resolution * 8.0 > self.max_range {
+            return Err(format!(
+                "resolution {} m is too coarse for max_range {} m: at most an eighth of it",
+                self.resolution, self.max_range
+            ));
         }
         if !(0.0..=1.0).contains(&self.unknown_probability) {
             return Err("unknown_probability must lie in [0, 1]".into());
@@ -555,6 +566,17 @@ impl SearchSpace {
             return Err("too many headings × points: subsample the scan or narrow the window".into());
         }
         let height = (0..=grids.depth()).find(|&h| (1i64 << h) > 2 * n_xy as i64).unwrap_or(grids.depth());
+        // The search scores every node of its top level: a tree too shallow for the window
+        // makes that an exhaustive search (a 20 m window at depth 0 ran for minutes).
+        let top = ((2.0 * n_xy + 1.0) / (1u64 << height) as f64).ceil();
+        let top_work = n_rot as f64 * top * top * points.len() as f64;
+        if top_work > MAX_TOP_LEVEL_WORK {
+            return Err(format!(
+                "the window is too wide for a tree of depth {}: {top_work:.0} cell reads at its top level \
+                 (at most {MAX_TOP_LEVEL_WORK:.0}); raise the depth or narrow the window",
+                grids.depth()
+            ));
+        }
         let mut space = SearchSpace {
             initial,
             resolution: res,

@@ -161,8 +161,11 @@ impl Compensator {
             if b.anchor as usize >= n {
                 return Err("a source beyond the view has its anchor outside the image".into());
             }
-            if !(b.factor.is_finite() && b.factor >= 0.0 && b.path.is_finite()) || b.origin.iter().chain(&b.dir).any(|v| !v.is_finite()) {
-                return Err("sources beyond the view need finite origins, directions, paths and factors >= 0".into());
+            if !(b.factor.is_finite() && b.factor >= 0.0 && b.path.is_finite())
+                || b.origin.iter().chain(&b.dir).any(|v| !v.is_finite())
+                || (norm(b.dir) - 1.0).abs() >= 1e-6
+            {
+                return Err("sources beyond the view need finite origins, unit directions, finite paths and factors >= 0".into());
             }
         }
         self.beyond = beyond;
@@ -170,7 +173,10 @@ impl Compensator {
     }
 
     fn check(&self) -> Result<(), String> {
-        let n = self.width * self.height;
+        let n = match self.width.checked_mul(self.height) {
+            Some(n) if self.width > 0 && self.height > 0 => n,
+            _ => return Err(format!("the image must be at least 1×1 pixels, got {}×{}", self.width, self.height)),
+        };
         for (name, len) in [
             ("origins", self.origin.len()),
             ("directions", self.dir.len()),
@@ -184,8 +190,23 @@ impl Compensator {
                 return Err(format!("{name}: {len} values for {n} pixels"));
             }
         }
-        if self.source_gain.iter().any(|g| !(g.is_finite() && *g >= 0.0)) {
-            return Err("source gains must be finite and >= 0".into());
+        for (name, values) in [("source gains", &self.source_gain), ("solid angles", &self.omega), ("emission", &self.emission)] {
+            if values.iter().any(|g| !(g.is_finite() && *g >= 0.0)) {
+                return Err(format!("{name} must be finite and >= 0"));
+            }
+        }
+        // Pixels without a ray (label < 0) carry zeros and an infinite path; every other one a
+        // finite origin, a unit direction and a finite path.
+        for i in 0..n {
+            if !self.origin[i].iter().chain(&self.dir[i]).all(|v| v.is_finite()) {
+                return Err(format!("pixel {i}: origins and directions must be finite"));
+            }
+            if self.label[i] >= 0 && !((norm(self.dir[i]) - 1.0).abs() < 1e-6 && self.path[i].is_finite() && self.path[i] >= 0.0) {
+                return Err(format!("pixel {i}: a mirror pixel needs a unit direction and a finite path >= 0"));
+            }
+        }
+        if self.windows.iter().any(|w| !(w[0].is_finite() && w[1].is_finite() && w[0] <= w[1])) {
+            return Err("windows must be finite (lo, hi) pairs with lo <= hi".into());
         }
         if self.targets.len() != self.windows.len() {
             return Err(format!("{} targets but {} windows", self.targets.len(), self.windows.len()));
@@ -196,6 +217,18 @@ impl Compensator {
         let p = &self.params;
         if p.stride == 0 || p.target_stride == 0 || p.normal_radius == 0 {
             return Err("stride, target_stride and normal_radius must be >= 1".into());
+        }
+        let side = self.width.max(self.height);
+        if p.normal_radius > side || p.smooth_radius > side {
+            return Err(format!("normal_radius and smooth_radius must be at most the image's side, {side} pixels"));
+        }
+        // k = 4π·f_mod/c: 1e6 rad/m is a modulation far beyond any ToF camera's (40 GHz).
+        if !(p.k <= 1e6 && p.amplitude_at_1m <= 1e30 && p.mirror_reflectivity <= 1.0 && p.min_cos <= 1.0) {
+            return Err(format!(
+                "k must be at most 1e6 rad/m, amplitude_at_1m at most 1e30, mirror_reflectivity and min_cos at most 1 \
+                 (got {}, {}, {}, {})",
+                p.k, p.amplitude_at_1m, p.mirror_reflectivity, p.min_cos
+            ));
         }
         for (name, v) in [
             ("k", p.k),

@@ -68,13 +68,13 @@ impl PyMultipathCompensator {
             height,
             points3(&origins, "origins")?,
             points3(&directions, "directions")?,
-            paths.c_slice()?.to_vec(),
-            labels.c_slice()?.to_vec(),
-            solid_angles.c_slice()?.to_vec(),
-            emission.c_slice()?.to_vec(),
-            source_gain.c_slice()?.to_vec(),
-            targets.c_slice()?.to_vec(),
-            windows.c_slice()?.chunks_exact(2).map(|r| [r[0], r[1]]).collect(),
+            paths.c_slice("paths")?.to_vec(),
+            labels.c_slice("labels")?.to_vec(),
+            solid_angles.c_slice("solid_angles")?.to_vec(),
+            emission.c_slice("emission")?.to_vec(),
+            source_gain.c_slice("source_gain")?.to_vec(),
+            targets.c_slice("targets")?.to_vec(),
+            windows.c_slice("windows")?.chunks_exact(2).map(|r| [r[0], r[1]]).collect(),
             CompensationParams {
                 k,
                 amplitude_at_1m,
@@ -96,7 +96,7 @@ impl PyMultipathCompensator {
             (None, None, None, None, None) => vec![],
             (Some(o), Some(d), Some(p), Some(a), Some(f)) => {
                 let (o, d) = (points3(&o, "beyond_origins")?, points3(&d, "beyond_directions")?);
-                let (p, a, f) = (p.c_slice()?, a.c_slice()?, f.c_slice()?);
+                let (p, a, f) = (p.c_slice("beyond_paths")?, a.c_slice("beyond_anchors")?, f.c_slice("beyond_factors")?);
                 if [d.len(), p.len(), a.len(), f.len()].iter().any(|&len| len != o.len()) {
                     return Err(PyValueError::new_err("the beyond_* arrays must all have one row per source"));
                 }
@@ -126,7 +126,7 @@ impl PyMultipathCompensator {
                 amplitudes.shape()
             )));
         }
-        let (d, a) = (distances.c_slice()?, amplitudes.c_slice()?);
+        let (d, a) = (distances.c_slice("distances")?, amplitudes.c_slice("amplitudes")?);
         let n = self.inner.width * self.inner.height;
         let mut out = vec![0f32; d.len()];
         py.detach(|| {

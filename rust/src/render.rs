@@ -634,6 +634,15 @@ impl Mirror {
         if self.polygon.len() < 3 || self.polygon.iter().flatten().any(|v| !v.is_finite()) {
             return Err(format!("mirror {index}: the outline needs >= 3 finite vertices"));
         }
+        // Twice the outline's area, projected on the normal (shoelace in 3D): an outline of
+        // coincident or collinear vertices would cover the whole plane or none of it.
+        let o = self.polygon[0];
+        let area2: f64 = (1..self.polygon.len() - 1)
+            .map(|i| dot(n, cross(sub(self.polygon[i], o), sub(self.polygon[i + 1], o))))
+            .sum();
+        if !(area2.abs() > 1e-12) {
+            return Err(format!("mirror {index}: the outline encloses no area (coincident or collinear vertices)"));
+        }
         if !(0.0..=1.0).contains(&self.reflectivity) {
             return Err(format!("mirror {index}: reflectivity must lie in [0, 1]"));
         }
@@ -698,7 +707,8 @@ impl Rig {
         mirrors: &[Mirror],
         robot_t_camera: [[f64; 4]; 3],
     ) -> Result<Rig, String> {
-        if height == 0 || width == 0 || sub_rays == 0 || dirs.len() != height * width * sub_rays {
+        let count = height.checked_mul(width).and_then(|p| p.checked_mul(sub_rays));
+        if height == 0 || width == 0 || sub_rays == 0 || count != Some(dirs.len()) {
             return Err(format!(
                 "{} directions do not fill {height}×{width} pixels × {sub_rays} sub-rays",
                 dirs.len()
@@ -709,6 +719,21 @@ impl Rig {
         }
         if robot_t_camera.iter().flatten().any(|v| !v.is_finite()) {
             return Err("robot_T_camera must be finite".into());
+        }
+        // A rigid mount: its rotation orthonormal and not a reflection.
+        let r = |i: usize, j: usize| robot_t_camera[i][j];
+        for i in 0..3 {
+            for j in 0..3 {
+                let rrt = (0..3).map(|k| r(i, k) * r(j, k)).sum::<f64>();
+                if (rrt - if i == j { 1.0 } else { 0.0 }).abs() > 1e-6 {
+                    return Err("robot_T_camera's rotation must be orthonormal (a rigid mount)".into());
+                }
+            }
+        }
+        let det = r(0, 0) * (r(1, 1) * r(2, 2) - r(1, 2) * r(2, 1)) - r(0, 1) * (r(1, 0) * r(2, 2) - r(1, 2) * r(2, 0))
+            + r(0, 2) * (r(1, 0) * r(2, 1) - r(1, 1) * r(2, 0));
+        if det < 0.0 {
+            return Err("robot_T_camera's rotation is a reflection (determinant −1)".into());
         }
         let rays = dirs.iter().map(|&v| through_mirrors(v, mirrors)).collect();
         Ok(Rig { height, width, sub_rays, rays, mirrors: mirrors.to_vec(), robot_t_camera })

@@ -19,7 +19,7 @@ fn rows<'a>(a: &'a PyReadonlyArray2<'_, f64>, cols: usize, what: &str) -> PyResu
     if shape[1] != cols {
         return Err(PyValueError::new_err(format!("{what} must have shape (N, {cols}), got {shape:?}")));
     }
-    Ok(a.c_slice()?.chunks_exact(cols).collect())
+    Ok(a.c_slice(what)?.chunks_exact(cols).collect())
 }
 
 fn same_len(n: usize, m: usize, what: &str) -> PyResult<()> {
@@ -33,6 +33,9 @@ fn materials(table: &PyReadonlyArray2<'_, f64>) -> PyResult<Vec<Material>> {
     rows(table, 6, "materials")?
         .into_iter()
         .map(|r| {
+            if r[0] != r[0].round() {
+                return Err(PyValueError::new_err(format!("material kind must be a whole number, got {}", r[0])));
+            }
             let kind = match r[0] as i64 {
                 0 => Kind::Matte,
                 1 => Kind::Metal,
@@ -53,10 +56,11 @@ fn mirrors(
 ) -> PyResult<Vec<Mirror>> {
     let planes = rows(planes, 4, "mirror_planes")?;
     let vertices = rows(vertices, 3, "mirror_vertices")?;
-    let (counts, reflectivity) = (counts.c_slice()?, reflectivity.c_slice()?);
+    let (counts, reflectivity) = (counts.c_slice("mirror_counts")?, reflectivity.c_slice("mirror_reflectivity")?);
     same_len(planes.len(), counts.len(), "mirror_counts")?;
     same_len(planes.len(), reflectivity.len(), "mirror_reflectivity")?;
-    if counts.iter().sum::<u64>() as usize != vertices.len() {
+    let total = counts.iter().try_fold(0u64, |sum, &k| sum.checked_add(k));
+    if total != Some(vertices.len() as u64) {
         return Err(PyValueError::new_err("mirror_counts must add up to the number of mirror_vertices"));
     }
     let mut next = 0;
@@ -68,6 +72,10 @@ fn mirrors(
     }
     Ok(out)
 }
+
+/// Most specular bounces a ray follows: a ray between two perfect mirrors never fades, so
+/// `min_gain` alone does not end it (10⁹ bounces hung).
+const MAX_BOUNCES: u32 = 64;
 
 /// (samples, distance, amplitude, offset, saturated) of `_Renderer.frames`.
 type Frames<'py> = (
@@ -132,7 +140,7 @@ impl PyRenderer {
         seed: u64,
     ) -> PyResult<Self> {
         let wall_rows = rows(&walls, 6, "walls")?;
-        let wall_mats = wall_materials.c_slice()?;
+        let wall_mats = wall_materials.c_slice("wall_materials")?;
         same_len(wall_rows.len(), wall_mats.len(), "wall_materials")?;
         let walls: Vec<Wall> = wall_rows
             .iter()
@@ -140,7 +148,7 @@ impl PyRenderer {
             .map(|(r, &m)| Wall { a: [r[0], r[1]], b: [r[2], r[3]], bottom: r[4], top: r[5], material: m })
             .collect();
         let box_rows = rows(&boxes, 7, "boxes")?;
-        let box_mats = box_materials.c_slice()?;
+        let box_mats = box_materials.c_slice("box_materials")?;
         same_len(box_rows.len(), box_mats.len(), "box_materials")?;
         let blocks: Vec<Block> = box_rows
             .iter()
@@ -170,8 +178,19 @@ impl PyRenderer {
         }
         let rig = Rig::new(&dirs, height, width, sub_rays, &mirrors, m).map_err(PyValueError::new_err)?;
 
-        if !(f_mod > 0.0 && amplitude_at_1m > 0.0 && min_gain >= 0.0) {
-            return Err(PyValueError::new_err("f_mod and amplitude_at_1m must be > 0, min_gain >= 0"));
+        // f_mod beyond 1 THz makes the unambiguous range 0.15 mm; an amplitude beyond 1e30 overflows
+        // the float32 images.
+        if !(f_mod > 0.0 && f_mod <= 1e12 && amplitude_at_1m > 0.0 && amplitude_at_1m <= 1e30) {
+            return Err(PyValueError::new_err("f_mod must lie in (0, 1e12] Hz and amplitude_at_1m in (0, 1e30]"));
+        }
+        if !(min_gain >= 0.0 && min_gain.is_finite()) {
+            return Err(PyValueError::new_err(format!("min_gain must be finite and >= 0, got {min_gain}")));
+        }
+        if max_bounces > MAX_BOUNCES {
+            return Err(PyValueError::new_err(format!("max_bounces must be at most {MAX_BOUNCES}, got {max_bounces}")));
+        }
+        if !(led_half_angle_deg > 0.0 && led_half_angle_deg <= 180.0) {
+            return Err(PyValueError::new_err(format!("led_half_angle_deg must lie in (0, 180], got {led_half_angle_deg}")));
         }
         // Without `leds` the light is coaxial, and the interreflections are lit by one source at
         // the lens centre with the LEDs' profile; with them, by the LEDs themselves.
@@ -184,7 +203,7 @@ impl PyRenderer {
         light.check().map_err(PyValueError::new_err)?;
         let bounce = light.clone();
         let illumination = leds.is_some().then_some(light);
-        if multipath_rays as usize > MAX_SECONDARY * sub_rays {
+        if multipath_rays as usize > MAX_SECONDARY.saturating_mul(sub_rays) {
             return Err(PyValueError::new_err(format!(
                 "multipath_rays must be at most {} per sub-ray, got {multipath_rays}",
                 MAX_SECONDARY
@@ -231,8 +250,8 @@ impl PyRenderer {
         Ok(Array4::from_shape_vec((poses.len(), h, w, 4), out).unwrap().into_pyarray(py))
     }
 
-    /// First surface along world rays (N, 3) origins and unit directions: (distance (N,),
-    /// material index (N,)); inf and −1 where nothing is hit.
+    /// First surface along world rays (N, 3) origins and directions of any length: (distance
+    /// (N,), material index (N,)); inf and −1 where nothing is hit or the direction holds a NaN.
     fn cast<'py>(
         &self,
         py: Python<'py>,
@@ -245,6 +264,18 @@ impl PyRenderer {
         let mut t = Array1::from_elem(o.len(), f64::INFINITY);
         let mut material = Array1::from_elem(o.len(), -1i64);
         for (i, (o, d)) in o.iter().zip(&d).enumerate() {
+            // Scaled by the largest component first, so that 1e-200 or 1e160 neither under- nor
+            // overflows its square.
+            if d.iter().any(|v| v.is_nan()) {
+                continue; // the rig's marker of a ray the lens does not have: nothing is hit
+            }
+            let big = d.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            if !(big > 0.0 && big.is_finite() && o.iter().all(|v| v.is_finite())) {
+                return Err(PyValueError::new_err(format!(
+                    "ray {i}: the origin must be finite and the direction finite and not zero, got {o:?}, {d:?}"
+                )));
+            }
+            let d = [d[0] / big, d[1] / big, d[2] / big];
             let norm = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
             let unit = [d[0] / norm, d[1] / norm, d[2] / norm];
             if let Some(hit) = self.scene.intersect([o[0], o[1], o[2]], unit, 0.0, f64::INFINITY) {
@@ -291,12 +322,12 @@ impl PyRenderer {
             full_well,
             harmonics: harmonics.map(|(a, b)| [a, b]),
             amplitude_offset: amplitude_offset.map(|(a, b)| [a, b]),
-            fixed_pattern: fixed_pattern.map(|a| a.as_slice().map(|s| s.to_vec())).transpose()?,
+            fixed_pattern: fixed_pattern.map(|a| a.c_slice("fixed_pattern").map(|s| s.to_vec())).transpose()?,
         };
         model.check(pixels).map_err(PyValueError::new_err)?;
-        let images = Images { phasor: phasor.c_slice()?, active: active.c_slice()?, ambient: ambient.c_slice()? };
-        let first: Vec<usize> = first.c_slice()?.iter().map(|&f| f as usize).collect();
-        let layout = Layout { first: &first, per_sample: per_sample.c_slice()?, seeds: seeds.c_slice()? };
+        let images = Images { phasor: phasor.c_slice("phasor")?, active: active.c_slice("active")?, ambient: ambient.c_slice("ambient")? };
+        let first: Vec<usize> = first.c_slice("first")?.iter().map(|&f| f as usize).collect();
+        let layout = Layout { first: &first, per_sample: per_sample.c_slice("per_sample")?, seeds: seeds.c_slice("seeds")? };
         check_layout(&images, &layout, pixels).map_err(PyValueError::new_err)?;
         let n = first.len();
         let mut samples = vec![0f32; n * 4 * pixels];

@@ -54,10 +54,18 @@ impl SensorModel {
             if fp.len() != pixels {
                 return Err(format!("fixed_pattern has {} values for {pixels} pixels", fp.len()));
             }
+            if !fp.iter().all(|v| v.is_finite()) {
+                return Err("fixed_pattern must be finite".into());
+            }
         }
-        if let Some([_, reference]) = self.amplitude_offset {
-            if !(reference > 0.0) {
-                return Err("the amplitude offset's reference amplitude must be > 0".into());
+        if let Some(h) = self.harmonics {
+            if !h.iter().all(|v| v.is_finite()) {
+                return Err("harmonics must be finite".into());
+            }
+        }
+        if let Some([scale, reference]) = self.amplitude_offset {
+            if !(scale.is_finite() && reference > 0.0 && reference.is_finite()) {
+                return Err("the amplitude offset must be finite, its reference amplitude > 0".into());
             }
         }
         Ok(())

@@ -53,6 +53,9 @@ from omnitof.sensor.tof_errors import fixed_pattern
 DEFAULT_MIRROR_REFLECTIVITY = 0.9
 # SensorNoise.ambient is the background offset on a surface of this albedo seen directly.
 AMBIENT_REFERENCE_ALBEDO = 0.5
+# Most specular bounces the core follows (render_bindings.rs MAX_BOUNCES): between two perfect
+# mirrors a ray never fades below min_gain.
+MAX_BOUNCES = 64
 
 
 class RenderConfigError(ConfigError, ValueError):
@@ -103,6 +106,8 @@ class RenderSettings:
             minimum = 1 if name == "sub_rays" else 0
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
                 raise RenderConfigError(f"RenderSettings.{name} must be a whole number >= {minimum}, got {value!r}")
+        if self.max_bounces > MAX_BOUNCES:
+            raise RenderConfigError(f"RenderSettings.max_bounces must be at most {MAX_BOUNCES}, got {self.max_bounces!r}")
         if self.threads is not None and (not isinstance(self.threads, (int, np.integer)) or self.threads < 1):
             raise RenderConfigError(f"RenderSettings.threads must be None or >= 1, got {self.threads!r}")
         if not (math.isfinite(self.cell) and self.cell > 0.0):
@@ -277,8 +282,10 @@ class Renderer:
         return self._frames(ph, poses2, gens, first, moving)
 
     def first_surface(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The first surface along world rays (N, 3) origins, (N, 3) directions (any length):
-        (distance (N,) metres along the ray, inf if none; material name (N,), "" if none).
+        """The first surface along world rays (N, 3) origins, (N, 3) directions (any length; a
+        NaN marks a ray that does not exist, as in the rig's directions): (distance (N,) metres
+        along the ray, inf if none; material name (N,), "" if none). Zero or infinite
+        directions and non-finite origins are refused (ValueError).
         The renderer's own intersection, for tests and ground truth in 3D."""
         o = np.ascontiguousarray(np.reshape(origins, (-1, 3)), dtype=np.float64)
         d = np.ascontiguousarray(np.reshape(directions, (-1, 3)), dtype=np.float64)
