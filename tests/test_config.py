@@ -149,6 +149,28 @@ def test_dotted_settings_override_like_a_file_and_name_the_field():
         parse_setting("filter.particles")
 
 
+def test_overrides_in_python_that_are_not_nested_sections_are_refused():
+    for bad, message in [("x", "overrides: expected a mapping of sections, .* got str"),
+                         ({"filter.particles": 5}, "overrides: 'filter.particles': nest the field"),
+                         ({1: 2}, "overrides: section names are strings, got 1")]:
+        with pytest.raises(ConfigError, match=message):
+            load_config(overrides=bad)
+    assert load_config(overrides={"filter": {"particles": 5}}).filter.particles == 5
+
+
+def test_numbers_are_read_as_yaml_1_2_reads_them():
+    # YAML 1.1 (PyYAML) reads 10:00 as the base-60 integer 600, and 5e-2 as a string.
+    from omnitof.slam.config import parse_setting
+    from omnitof.slam_run import slam_config
+
+    assert parse_setting("map.resolution=5e-2") == ("map.resolution", 0.05)
+    assert parse_setting("filter.particles=10:00") == ("filter.particles", "10:00")
+    with pytest.raises(ConfigError, match="filter.particles"):
+        slam_config(settings=dict([parse_setting("filter.particles=10:00")]))
+    assert [parse_setting(f"a.b={v}")[1] for v in ("-.5", "1_000", "0x1F", ".inf", "3", "true")] == [
+        -0.5, 1000, 31, float("inf"), 3, True]
+
+
 @pytest.mark.parametrize("value, problem", [
     ("9" * 5000, "a value that cannot be read (Exceeds the limit (4300 digits)"),
     ("2024-13-45", "a value that cannot be read (month must be in 1..12)"),

@@ -241,6 +241,8 @@ def test_a_bad_setting_names_its_field():
         scan_settings(multipath={"stride": 0})
     with pytest.raises(ScanConfigError, match="multipath.colour"):
         scan_settings(multipath={"colour": 1})
+    with pytest.raises(ScanConfigError, match="multipath.led_count"):
+        scan_settings(multipath={"led_count": 4000})
 
 
 @pytest.mark.filterwarnings("ignore::omnitof.scan.tof_input.ToFInputWarning")

@@ -194,6 +194,26 @@ def test_a_loose_tolerance_that_matches_other_moments_is_warned_of() -> None:
     assert result.n_matched == 3
 
 
+def test_non_finite_poses_and_tolerances_are_refused_not_scored_as_nan() -> None:
+    from omnitof.eval.trajectory import absolute_trajectory_error
+
+    gt = _ground_truth()
+    rel = _relations_of(gt, PAIRS)
+    poses = gt.poses.copy()
+    poses[5, 1] = np.nan
+    with pytest.raises(InputError, match="run.tum: the trajectory's pose 5 is not finite"):
+        evaluate_relations(Trajectory(gt.timestamps, poses), rel, source="run.tum")
+    with pytest.raises(ValueError, match="time_tolerance must be >= 0 seconds, got nan"):
+        evaluate_relations(gt, rel, time_tolerance=float("nan"))
+    with pytest.raises(ValueError, match="the estimate's pose 5 is not finite"):
+        absolute_trajectory_error(poses, gt.poses)
+    with pytest.raises(ValueError, match=r"must be \(N >= 1, 3\) poses"):
+        absolute_trajectory_error(np.zeros((0, 3)), np.zeros((0, 3)))
+    with pytest.raises(ValueError, match=r"poses must have shape \(N, 3\) \(x, y, theta\), got \(12, 2\)"):
+        Trajectory(gt.timestamps, gt.poses[:, :2])
+    assert absolute_trajectory_error(gt.poses, gt.poses).rmse == 0.0
+
+
 def test_unsorted_trajectory_is_matched() -> None:
     gt = _ground_truth()
     order = np.random.default_rng(3).permutation(len(gt))

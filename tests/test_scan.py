@@ -86,6 +86,8 @@ def test_a_wall_just_inside_max_range_is_not_cut_short(rays_robot):
     assert np.isfinite(high).sum() > 150
     with pytest.raises(ScanConfigError, match=r"max_range \+ range_margin is 110 m; it must stay below 104.86 m"):
         ScanExtractor.from_rig(max_range=100.0, range_margin=10.0)
+    with pytest.raises(ScanConfigError, match=r"min_range 10 m must be less than max_range 7 m: every bin would be empty"):
+        ScanExtractor.from_rig(min_range=10.0, max_range=7.0)
 
 
 def test_slice_height_selects_points_analytically(rays_robot):

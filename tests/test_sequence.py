@@ -139,6 +139,19 @@ def test_path_into_a_wall_is_refused():
         robot_path(world)
 
 
+def test_odometry_errors_and_a_start_time_that_make_no_odometry_are_refused():
+    from omnitof.errors import ConfigError
+    from omnitof.sim.sequence import OdometryErrors, make_sequence
+
+    for bad, message in [(dict(heading_drift=math.inf), "odometry.heading_drift must lie within"),
+                         (dict(wheel_radius_error=1e300), "odometry.wheel_radius_error must be a fraction"),
+                         (dict(alphas=(0.1, math.nan, 0.0, 0.0)), "odometry.alphas must be four finite")]:
+        with pytest.raises(ConfigError, match=message):
+            OdometryErrors(**bad)  # an infinite drift made every odometry pose NaN
+    with pytest.raises(ConfigError, match="start_time must be seconds"):
+        make_sequence(load_world("room"), start_time=math.nan)
+
+
 def test_cli_simulate_writes_a_bag(tmp_path, capsys):
     out = tmp_path / "bag"
     assert main(["simulate", "--world", "room", "--out", str(out), "--max-frames", "3", "--quiet"]) == 0

@@ -126,4 +126,6 @@ def test_errors_travel_with_the_rig_and_bad_fields_are_named():
         ToFErrors(harmonic3=0.5)
     with pytest.raises(ToFErrorsError, match="integration_time"):
         ToFErrors(integration_time=0.0)
+    with pytest.raises(ToFErrorsError, match="errors.led_count must be at most 64, got 4000"):
+        ToFErrors(led_count=4000)  # every light path is worked out per LED: it ran for minutes
     assert ToFErrors.realistic().only("wiggling") == ToFErrors(wiggling=True)

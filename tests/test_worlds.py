@@ -205,6 +205,12 @@ BAD_FILES = [
     ("name: x\nceiling_height: 2.5\nwalls:\n  - points: [[0, 0], [3, 0]]\npath:\n  waypoints: [[1, 1], [2, 1]]\n"
      "  laps: 1000000000000\n", ["path.laps", "less than or equal to 10000"]),
     ("name: x\nceiling_height: 2.5\nwalls: [[0, 0], [1, 0]\n", ["not valid YAML"]),
+    # A box 1e300 m wide made the path's clearance NaN, and the robot drove through it.
+    ("name: x\nceiling_height: 2.5\nboxes:\n  - {centre: [3, 1], size: [1.0e300, 0.2], height: 1}\n",
+     ["boxes[0].size[0]", "less than or equal to 100000"]),
+    ("name: x\nceiling_height: 2.5\nwalls:\n  - points: [[0, 0], [3, 1e9]]\n", ["walls[0].points[1][1]", "100000"]),
+    ("name: x\nceiling_height: 2.5\nambient: 1.0e300\nwalls:\n  - points: [[0, 0], [3, 0]]\n",
+     ["ambient", "less than or equal to 10000"]),
 ]
 
 
@@ -239,3 +245,10 @@ def test_extends_cycles_and_missing_bases_are_refused(tmp_path):
     lonely = write(tmp_path, "extends: nowhere\nname: c\n", "c.yaml")
     with pytest.raises(WorldError, match="extends: no world file 'nowhere.yaml'"):
         load_world(lonely)
+
+
+def test_a_folder_or_a_missing_file_is_named_as_such(tmp_path):
+    with pytest.raises(WorldError, match="a folder, not a world file"):
+        load_world(tmp_path)
+    with pytest.raises(WorldError, match="no such world file"):
+        load_world(tmp_path / "absent.yaml")

@@ -6,6 +6,7 @@ status, never a traceback, because they describe a user's mistake (bad file, bad
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -68,6 +69,31 @@ class _UniqueKeyLoader(yaml.SafeLoader):
                     None, None, f"the key {str(key)[:40]!r} is given twice in one mapping", key_node.start_mark
                 )
         return super().construct_mapping(node, deep=deep)
+
+
+def _numbers_without_base_60() -> None:
+    """Numbers as YAML 1.2 reads them, in `_UniqueKeyLoader`. PyYAML follows YAML 1.1, where
+    `10:00` is the base-60 integer 600 (`--set filter.particles=10:00` ran 600 particles) and
+    `5e-2`, without a dot, is a string (ROS map files write resolutions so). Every other implicit
+    type (bool, null, timestamps, ...) stays as PyYAML has it."""
+    resolvers = {
+        first: [(tag, regexp) for tag, regexp in entries if tag not in (_INT, _FLOAT)]
+        for first, entries in yaml.SafeLoader.yaml_implicit_resolvers.items()
+    }
+    _UniqueKeyLoader.yaml_implicit_resolvers = resolvers
+    _UniqueKeyLoader.add_implicit_resolver(
+        _INT, re.compile(r"^(?:[-+]?0b[0-1_]+|[-+]?0[0-7_]+|[-+]?(?:0|[1-9][0-9_]*)|[-+]?0x[0-9a-fA-F_]+)$"),
+        list("-+0123456789"),
+    )
+    _UniqueKeyLoader.add_implicit_resolver(
+        _FLOAT, re.compile(r"^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?|[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+"
+                           r"|[-+]?\.[0-9][0-9_]*(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"),
+        list("-+0123456789."),
+    )
+
+
+_INT, _FLOAT = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"
+_numbers_without_base_60()
 
 
 def load_yaml(text: str) -> Any:

@@ -259,7 +259,14 @@ class Trajectory:
 
     def __post_init__(self) -> None:
         self.timestamps = np.ascontiguousarray(self.timestamps, dtype=np.float64)
-        self.poses = np.ascontiguousarray(self.poses, dtype=np.float64).reshape(-1, 3)
+        poses = np.ascontiguousarray(self.poses, dtype=np.float64)
+        if self.timestamps.ndim != 1:
+            raise ValueError(f"a trajectory's timestamps must be one-dimensional, got shape {self.timestamps.shape}")
+        if poses.ndim == 1 and poses.size % 3 == 0:  # flat (x, y, theta, x, y, theta, ...)
+            poses = poses.reshape(-1, 3)
+        if poses.ndim != 2 or poses.shape[1] != 3:
+            raise ValueError(f"a trajectory's poses must have shape (N, 3) (x, y, theta), got {poses.shape}")
+        self.poses = poses
         if len(self.timestamps) != len(self.poses):
             raise ValueError("a trajectory needs one timestamp per pose")
 

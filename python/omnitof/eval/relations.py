@@ -243,8 +243,13 @@ def evaluate_relations(
     Raises:
         InputError: if no relation has both ends in the trajectory.
     """
-    if time_tolerance < 0:
-        raise ValueError(f"time_tolerance must be >= 0, got {time_tolerance}")
+    if not time_tolerance >= 0:  # NaN too
+        raise ValueError(f"time_tolerance must be >= 0 seconds, got {time_tolerance}")
+    bad = ~(np.isfinite(traj.timestamps) & np.isfinite(traj.poses).all(axis=1))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(f"the trajectory's pose {i} is not finite: stamp {traj.timestamps[i]}, pose {traj.poses[i]}",
+                         source)
     i1, ok1 = match_times(traj.timestamps, relations.t1, time_tolerance)
     i2, ok2 = match_times(traj.timestamps, relations.t2, time_tolerance)
     matched = ok1 & ok2

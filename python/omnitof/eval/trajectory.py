@@ -34,6 +34,12 @@ def absolute_trajectory_error(estimate: np.ndarray, truth: np.ndarray) -> Trajec
     truth = np.asarray(truth, dtype=np.float64)
     if estimate.shape != truth.shape:
         raise ValueError(f"trajectories differ in shape: {estimate.shape} vs {truth.shape}")
+    if estimate.ndim != 2 or estimate.shape[1] != 3 or len(estimate) == 0:
+        raise ValueError(f"trajectories must be (N >= 1, 3) poses (x, y, theta), got shape {estimate.shape}")
+    for name, poses in (("estimate", estimate), ("truth", truth)):
+        bad = ~np.isfinite(poses).all(axis=1)
+        if bad.any():
+            raise ValueError(f"the {name}'s pose {int(np.argmax(bad))} is not finite: {poses[np.argmax(bad)]}")
     d = np.hypot(estimate[:, 0] - truth[:, 0], estimate[:, 1] - truth[:, 1])
     h = np.degrees(np.abs(wrap_angle(estimate[:, 2] - truth[:, 2])))
     return TrajectoryError(

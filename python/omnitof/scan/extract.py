@@ -190,6 +190,9 @@ class ScanSettings(SettingsModel):
 
     @model_validator(mode="after")
     def _sortable_ranges(self) -> "ScanSettings":
+        if self.min_range >= self.max_range:
+            raise ValueError(f"min_range {self.min_range:g} m must be less than max_range {self.max_range:g} m: "
+                             "every bin would be empty")
         if self.max_range + self.range_margin >= _RANGE_LIMIT:
             raise ValueError(
                 f"max_range + range_margin is {self.max_range + self.range_margin:g} m; it must stay below "

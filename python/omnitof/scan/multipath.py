@@ -38,7 +38,7 @@ from omnitof.settings_model import SettingsModel
 from omnitof import _core
 from omnitof.sensor.camera import Camera
 from omnitof.sensor.mirrors import MirrorPlane
-from omnitof.sensor.tof_errors import SPEED_OF_LIGHT, ToFErrors, led_ring
+from omnitof.sensor.tof_errors import MAX_LEDS, SPEED_OF_LIGHT, ToFErrors, led_ring
 
 # The one-way distance (m) at which each pixel's LED emission is worked out: the working point
 # of the sensor model. The LEDs are a few cm from the lens, so which of them light a pixel's
@@ -69,7 +69,7 @@ class MultipathSettings(SettingsModel):
         description="the light comes from LEDs beside the lens (the led_* fields); false: a point source at the "
         "lens centre that emits the same in every direction",
     )
-    led_count: int = Field(4, ge=1, description="LEDs on a ring around the lens")
+    led_count: int = Field(4, ge=1, le=MAX_LEDS, description="LEDs on a ring around the lens")
     led_radius: float = Field(0.035, ge=0.0, lt=0.5, description="the ring's radius (m), in the lens plane")
     led_profile_exponent: float = Field(1.0, ge=0.0, description="each LED emits cos^p of the angle from the optical axis")
     led_half_angle_deg: float = Field(40.0, gt=0.0, le=180.0, description="and nothing beyond this angle (degrees)")

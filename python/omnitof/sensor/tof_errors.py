@@ -82,6 +82,9 @@ import scipy.constants
 from omnitof.errors import ConfigError
 
 SPEED_OF_LIGHT: float = scipy.constants.c
+# Most LEDs a ring may have: every light path is worked out per LED (a real ring holds a few dozen; 4000
+# took the multipath compensation's set-up past half a minute).
+MAX_LEDS = 64
 
 
 # The effects a user switches on and off (`omnitof simulate --tof-errors`, `omnitof demo`).
@@ -160,6 +163,8 @@ class ToFErrors:
                 least = 1 if f.name == "led_count" else 0
                 if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
                     raise ToFErrorsError(f"errors.{f.name} must be a whole number >= {least}, got {value!r}")
+                if f.name == "led_count" and value > MAX_LEDS:
+                    raise ToFErrorsError(f"errors.led_count must be at most {MAX_LEDS}, got {value!r}")
                 continue
             if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
                 raise ToFErrorsError(f"errors.{f.name} must be a number, got {value!r}")

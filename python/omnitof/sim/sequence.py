@@ -73,6 +73,12 @@ class MotionSettings:
             raise ConfigError(f"motion.overlap must be >= 0 metres, got {self.overlap!r}")
 
 
+def _real(value: object) -> bool:
+    """A finite number (not a bool)."""
+    return (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+            and math.isfinite(value))
+
+
 @dataclass(frozen=True)
 class OdometryErrors:
     """Wheel odometry errors (see `laser2d.simulate_odometry`): the motion model's variances
@@ -83,6 +89,18 @@ class OdometryErrors:
     wheel_radius_error: float = laser2d.DEFAULT_WHEEL_RADIUS_ERROR
     wheel_base_error: float = laser2d.DEFAULT_WHEEL_BASE_ERROR
     heading_drift: float = laser2d.DEFAULT_HEADING_DRIFT
+
+    def __post_init__(self) -> None:
+        # Wheels that err by half their size, or a heading that drifts a radian per metre, are
+        # no odometry (an infinite drift made every pose NaN).
+        for name in ("wheel_radius_error", "wheel_base_error"):
+            value = getattr(self, name)
+            if not (_real(value) and abs(value) < 0.5):
+                raise ConfigError(f"odometry.{name} must be a fraction within ±0.5, got {value!r}")
+        if not (_real(self.heading_drift) and abs(self.heading_drift) <= 1.0):
+            raise ConfigError(f"odometry.heading_drift must lie within ±1 radian per metre, got {self.heading_drift!r}")
+        if len(self.alphas) != 4 or not all(_real(a) and a >= 0.0 for a in self.alphas):
+            raise ConfigError(f"odometry.alphas must be four finite variances >= 0, got {self.alphas!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -151,7 +169,7 @@ def robot_path(world: World, motion: MotionSettings = MotionSettings()) -> laser
         raise WorldError(f"world {world.name!r}: path.waypoints: {err}", world.source) from None
     walls = laser2d.World2D(world.obstacles())
     clearance = walls.distance_to_walls(path.poses[:, :2])
-    if clearance.min() < ROBOT_RADIUS:
+    if not clearance.min() >= ROBOT_RADIUS:  # NaN too: a clearance that cannot be worked out
         i = int(np.argmin(clearance))
         x, y = path.poses[i, :2]
         raise WorldError(
@@ -171,6 +189,8 @@ def make_sequence(
     start_time: float = DEFAULT_START_TIME,
 ) -> Sequence:
     """Ground truth and odometry of the robot's drive through `world` (no frames yet)."""
+    if not (_real(start_time) and 0.0 <= start_time < 1e10):
+        raise ConfigError(f"start_time must be seconds in [0, 1e10), got {start_time!r}")
     path = robot_path(world, motion)
     odometry = laser2d.simulate_odometry(
         path.poses,
@@ -204,6 +224,8 @@ def render_sequence(
     stop = len(sequence) if stop is None else min(int(stop), len(sequence))
     if batch < 1:
         raise ConfigError(f"batch must be >= 1, got {batch!r}")
+    if start < 0:
+        raise ConfigError(f"start must be a frame index >= 0, got {start!r}")
     for first in range(int(start), stop, batch):
         last = min(first + batch, stop)
         errors = renderer.sensor.errors

@@ -73,9 +73,13 @@ class _Strict(SettingsModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
 
+# Every length and coordinate of a world within 100 km of its origin: a building or a campus
+# is far smaller, and a box 1e300 m wide turned the path's clearance into NaN.
+WORLD_LIMIT = 1e5
 Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
-Positive = Annotated[float, Field(gt=0.0)]
-Point2 = tuple[float, float]
+Positive = Annotated[float, Field(gt=0.0, le=WORLD_LIMIT)]
+Coordinate = Annotated[float, Field(ge=-WORLD_LIMIT, le=WORLD_LIMIT)]
+Point2 = tuple[Coordinate, Coordinate]
 
 
 class MatteSpec(_Strict):
@@ -171,7 +175,7 @@ MATERIALS: dict[str, Material] = {
 
 class DoorSpec(_Strict):
     segment: Annotated[int, Field(ge=0)] = 0
-    at: float
+    at: Coordinate
     width: Positive
     height: Positive = 2.05
     leaf: str | None = None
@@ -190,7 +194,7 @@ class BoxSpec(_Strict):
     centre: Point2
     size: tuple[Positive, Positive]
     yaw_deg: float = 0.0
-    bottom: Annotated[float, Field(ge=0.0)] = 0.0
+    bottom: Annotated[float, Field(ge=0.0, le=WORLD_LIMIT)] = 0.0
     height: Positive
     material: str = "furniture"
 
@@ -216,7 +220,8 @@ class WorldSpec(_Strict):
     ceiling_height: Positive
     floor_material: str = "floor"
     ceiling_material: str = "ceiling"
-    ambient: Annotated[float, Field(ge=0.0)] = 1.0
+    # Background light relative to the camera's default; 1e4 is beyond direct sunlight.
+    ambient: Annotated[float, Field(ge=0.0, le=1e4)] = 1.0
     materials: dict[str, MaterialSpec] = {}
     walls: list[WallSpec] = []
     boxes: list[BoxSpec] = []
@@ -502,6 +507,8 @@ def parse_world(data: Any, source: str | Path | None = None) -> World:
 
 def _read_merged(path: Path, chain: tuple[Path, ...]) -> dict:
     """The YAML mapping of `path`, with the world it `extends` merged under it."""
+    if path.is_dir():
+        raise WorldError("a folder, not a world file (a world is one YAML file)", path)
     if not path.is_file():
         raise WorldError("no such world file", path)
     resolved = path.resolve()

@@ -638,5 +638,22 @@ def load_layers(
         except UnicodeDecodeError:
             raise ConfigError(f"{path}: not a text file (a YAML configuration is UTF-8 text)") from None
         layers.append((str(path), _read_yaml(text, str(path)), "file"))
+    _check_nested(settings, settings_source)
     layers += [(settings_source, settings or {}, "settings"), ("", options or {}, "options")]
     return _validate(layers)
+
+
+def _check_nested(settings: Any, source: str) -> None:
+    """Overrides in Python are nested sections of fields; a dotted key or a string is the
+    command line's form, which pydantic would call an unknown field."""
+    if settings is None:
+        return
+    if not isinstance(settings, Mapping):
+        raise ConfigError(f"{source}: expected a mapping of sections, e.g. {{'filter': {{'particles': 30}}}}, "
+                          f"got {type(settings).__name__}")
+    for key in settings:
+        if not isinstance(key, str):
+            raise ConfigError(f"{source}: section names are strings, got {key!r}")
+        if "." in key:
+            raise ConfigError(f"{source}: {key!r}: nest the field ({{'filter': {{'particles': 30}}}}), or turn "
+                              "dotted keys into sections with omnitof.slam.config.settings_overrides")
