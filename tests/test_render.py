@@ -367,6 +367,8 @@ def test_bad_settings_and_poses_are_refused():
         RenderSettings(mirror_reflectivity=1.5)
     with pytest.raises(RenderConfigError, match="max_bounces must be at most 64"):
         RenderSettings(max_bounces=10**9)  # between two perfect mirrors a ray never fades: it hung
+    with pytest.raises(RenderConfigError, match="seed must be below 2..64"):
+        RenderSettings(seed=2**70)
     r = renderer(load_world("room"), sub_rays=1)
     with pytest.raises(RenderConfigError, match="poses"):
         r.phasors(np.zeros((2, 2)))
@@ -374,6 +376,8 @@ def test_bad_settings_and_poses_are_refused():
         r.phasors(np.array([np.nan, 0.0, 0.0]))
     with pytest.raises(RenderConfigError, match="seed"):
         r.render_many(np.array([[4.5, 3.0, 1.0]]), seed=-1)
+    with pytest.raises(RenderConfigError, match="seed must be >= 0, got -1"):
+        r.render(np.array([4.5, 3.0, 1.0]), seed=-1)
 
 
 def test_poses_along_the_loop_for_the_benchmarks():

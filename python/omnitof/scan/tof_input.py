@@ -223,6 +223,9 @@ def read_tof_scans(
 
     from omnitof.io.rosbag import ToFTopics, read_tof_bag
 
+    if max_frames is not None and int(max_frames) < 0:
+        raise ValueError(f"max_frames must be >= 0, got {max_frames!r}")
+
     bag = read_tof_bag(path, topics=topics or ToFTopics(), depth=depth)
     settings, multipath_rule = multipath_for_bag(bag, settings or ScanSettings(), multipath)
     extractor, rig_source = extractor_for_bag(bag, calibration, settings)

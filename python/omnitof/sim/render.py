@@ -106,6 +106,8 @@ class RenderSettings:
             minimum = 1 if name == "sub_rays" else 0
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
                 raise RenderConfigError(f"RenderSettings.{name} must be a whole number >= {minimum}, got {value!r}")
+        if self.seed >= 2**64:
+            raise RenderConfigError(f"RenderSettings.seed must be below 2**64, got {self.seed!r}")
         if self.max_bounces > MAX_BOUNCES:
             raise RenderConfigError(f"RenderSettings.max_bounces must be at most {MAX_BOUNCES}, got {self.max_bounces!r}")
         if self.threads is not None and (not isinstance(self.threads, (int, np.integer)) or self.threads < 1):
@@ -240,6 +242,8 @@ class Renderer:
     def render(self, pose: np.ndarray, *, seed: int | np.random.Generator) -> Frame:
         """One frame at the robot pose (x, y, θ): phasors, noisy samples and their decoding."""
         pose = np.asarray(pose, dtype=np.float64)
+        if not isinstance(seed, np.random.Generator) and int(seed) < 0:
+            raise RenderConfigError(f"seed must be >= 0, got {seed!r}")
         gen = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
         return self._frames(self.phasors(pose), pose.reshape(1, 3), [gen], np.zeros(1, dtype=np.int64),
                             np.zeros(1, dtype=bool))[0]

@@ -71,6 +71,10 @@ class MotionSettings:
                 raise ConfigError(f"motion.{name} must be a positive number, got {value!r}")
         if not (math.isfinite(self.overlap) and self.overlap >= 0.0):
             raise ConfigError(f"motion.overlap must be >= 0 metres, got {self.overlap!r}")
+        # A frame per millimetre of the path at most: more only asks for memory (rate_hz 1e9 did).
+        if self.rate_hz > 1000.0 * self.speed:
+            raise ConfigError(f"motion.rate_hz {self.rate_hz!r} at motion.speed {self.speed!r} m/s is more than a "
+                              "frame per millimetre driven")
 
 
 def _real(value: object) -> bool:
