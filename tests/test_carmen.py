@@ -16,6 +16,7 @@ import pytest
 from omnitof.errors import ConfigError, InputError
 from omnitof.geometry import compose, wrap_angle
 from omnitof.io.carmen import CarmenWarning, old_format_angles, read_carmen
+from omnitof.types import ScanSequence
 
 DEG = math.pi / 180.0
 HOST = "testhost"
@@ -982,3 +983,50 @@ def test_write_carmen_round_trip(tmp_path, suffix):
     assert np.allclose(back.sensor_pose, scans.sensor_pose, atol=1e-5)
     assert np.allclose(back.timestamps, scans.timestamps, atol=1e-6)
     assert back.max_range == scans.max_range
+
+
+def _two_scans(**fields) -> ScanSequence:
+    given = {"timestamps": [1.0, 2.0], "ranges": np.ones((2, 3)), "angles": [-0.1, 0.0, 0.1],
+             "odometry": np.zeros((2, 3)), "max_range": 8.0}
+    return ScanSequence(**{**given, **fields})
+
+
+@pytest.mark.parametrize(
+    ("fields", "hostname", "message"),
+    [
+        ({}, "my host", "hostname must be one word, without whitespace or NUL, got 'my host'"),
+        ({}, "", "hostname must be one word, without whitespace or NUL, got ''"),
+        ({}, "a\x1cb", r"hostname must be one word, without whitespace or NUL, got 'a\\x1cb'"),
+        ({}, "a\0b", r"hostname must be one word, without whitespace or NUL, got 'a\\x00b'"),
+        ({"odometry": [[0, 0, 0], [np.nan, 0, 0]]}, HOST, r"scan 1 is not finite: timestamp 2.0, odometry \[nan, 0.0, 0.0\]"),
+        ({"timestamps": [1.0, np.inf]}, HOST, "scan 1 is not finite: timestamp inf"),
+        ({"timestamps": [np.nan, 1.0]}, HOST, "scan 0 is not finite: timestamp nan"),
+        ({"max_range": np.inf}, HOST, "max_range must be a finite number of at least 1 mm, got inf"),
+        ({"max_range": 0.0004}, HOST, "max_range must be a finite number of at least 1 mm, got 0.0004"),
+        ({"sensor_pose": [0.0, np.nan, 0.0]}, HOST, r"sensor_pose is not finite: \[0.0, nan, 0.0\]"),
+        ({"timestamps": [5.0, 1.0]}, HOST,
+         "scan 1: its timestamp 1.000000 is 4.000000 s before the one of scan 0; read_carmen tolerates at most 1.0 s"),
+        ({"timestamps": [], "ranges": np.ones((0, 3)), "odometry": np.zeros((0, 3))}, HOST,
+         "no scans to write: a CARMEN log needs at least one"),
+        ({"ranges": np.ones((2, 0)), "angles": np.zeros(0)}, HOST, "the scans have no beam; ROBOTLASER1 needs one"),
+        ({"angles": [[-0.1, 0.0, 0.1], [0.0, np.nan, np.nan]], "beam_counts": [3, 0]}, HOST,
+         "scan 1 has no beam; ROBOTLASER1 needs one"),
+    ],
+)
+def test_write_carmen_refuses_what_read_carmen_would(tmp_path, fields, hostname, message):
+    from omnitof.io.carmen import write_carmen
+
+    with pytest.raises(ValueError, match=message):
+        write_carmen(tmp_path / "x.log", _two_scans(**fields), hostname=hostname)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_write_carmen_keeps_small_clock_steps_back(tmp_path):
+    # Real logs' clocks step back now and then; read_carmen tolerates up to 1 s (with a warning).
+    from omnitof.io.carmen import write_carmen
+
+    write_carmen(tmp_path / "x.log", _two_scans(timestamps=[2.0, 1.5]), hostname="robot-1")
+    with pytest.warns(CarmenWarning, match="earlier than the one before"):
+        back = read_carmen(tmp_path / "x.log").scans
+    np.testing.assert_array_equal(back.timestamps, [2.0, 1.5])
+    np.testing.assert_array_equal(back.ranges, np.ones((2, 3)))

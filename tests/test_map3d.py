@@ -21,6 +21,7 @@ from omnitof.map3d import (
     build_voxel_map,
     surface_distance,
 )
+from omnitof.errors import InputError
 from omnitof.io.ply import PlyError, read_ply, write_ply
 from omnitof.viz.map3d import height_colors, plot_voxels
 
@@ -342,3 +343,68 @@ def test_room_map_has_occupied_voxels_on_the_true_surfaces(room_scene, tmp_path)
     write_ply(tmp_path / "room.ply", occ, height_colors(occ))
     back, _ = read_ply(tmp_path / "room.ply")
     np.testing.assert_allclose(back, occ, atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("points", "message"),
+    [
+        ([[0.0, 0.0, 0.0], [np.nan, 0.0, 0.0]], r"point 1 is not finite: \[nan, 0.0, 0.0\]"),
+        ([[0.0, -np.inf, 0.0]], r"point 0 is not finite: \[0.0, -inf, 0.0\]"),
+        ([[0.0, 0.0, 0.0], [0.0, 0.0, 1e300]], r"point 1 lies beyond float32's range \(±3.4e\+38\) of PLY float coordinates: \[0.0, 0.0, 1e\+300\]"),
+    ],
+)
+def test_ply_writer_refuses_points_the_reader_would_refuse(tmp_path, points, message):
+    with pytest.raises(PlyError, match=message):
+        write_ply(tmp_path / "p.ply", np.array(points))
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("comment", ["x\nend_header", "x\x0bend_header", "a\rb", "a\x0cb", "a\x1cb", "a\x1eb", "café", "a\u2028b", "a\x85b"])
+def test_ply_comment_must_be_one_ascii_line(tmp_path, comment):
+    with pytest.raises(PlyError, match=r"the comment must be one line of ASCII text, got "):
+        write_ply(tmp_path / "p.ply", np.zeros((1, 3)), comment=comment)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_ply_comment_holding_end_header_round_trips(tmp_path, binary):
+    pts = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    write_ply(tmp_path / "p.ply", pts, binary=binary, comment="ends at end_header")
+    back, _ = read_ply(tmp_path / "p.ply")
+    np.testing.assert_array_equal(back, pts)
+
+
+def _ply_text(properties, rows, newline="\n"):
+    header = ["ply", "format ascii 1.0", f"element vertex {len(rows)}", *properties, "end_header"]
+    return newline.join(header + [" ".join(map(str, r)) for r in rows]) + newline
+
+
+def test_ply_float_colours_are_fractions_scaled_to_255(tmp_path):
+    props = ["property float x", "property float y", "property float z",
+             "property float red", "property float green", "property double blue"]
+    path = tmp_path / "c.ply"
+    path.write_text(_ply_text(props, [[0, 0, 0, 0.8, 0.0, 1.0], [1, 1, 1, 0.5, 0.25, 0.1]]))
+    _, cols = read_ply(path)
+    np.testing.assert_array_equal(cols, [[204, 0, 255], [128, 64, 26]])
+    path.write_text(_ply_text(props, [[0, 0, 0, 1.5, 0.0, 0.0]]))
+    with pytest.raises(InputError, match=r"c.ply: PLY colours must lie in 0..255 \(0..1 for float properties\)"):
+        read_ply(path)
+
+
+def test_ply_integer_colours_stay_0_to_255(tmp_path):
+    props = ["property float x", "property float y", "property float z",
+             "property uchar red", "property ushort green", "property int blue"]
+    path = tmp_path / "c.ply"
+    path.write_text(_ply_text(props, [[0, 0, 0, 255, 1, 0]]))
+    _, cols = read_ply(path)
+    np.testing.assert_array_equal(cols, [[255, 1, 0]])
+    path.write_text(_ply_text(props, [[0, 0, 0, 0, 256, 0]]))
+    with pytest.raises(InputError, match=r"PLY colours must lie in 0..255"):
+        read_ply(path)
+
+
+def test_ply_with_crlf_line_ends_says_so(tmp_path):
+    path = tmp_path / "w.ply"
+    path.write_bytes(_ply_text(["property float x", "property float y", "property float z"], [[0, 0, 0]], "\r\n").encode())
+    with pytest.raises(InputError, match=r"w.ply: the PLY header's lines end in CRLF \(\\r\\n\)"):
+        read_ply(path)

@@ -270,6 +270,14 @@ def test_read_relations(tmp_path: Path) -> None:
     np.testing.assert_array_equal(rel.delta[1], [-0.153130, -0.051420, -2.405850])
 
 
+def test_a_bad_row_after_a_form_feed_is_named_by_its_own_line(tmp_path: Path) -> None:
+    path = tmp_path / "r.relations"
+    path.write_text("# made by a tool\x0cthat pages its output\n1 2 0.1 0.2 0 0 0 0.3\n1 2 0.1 x 0 0 0 0.3\n")
+    with pytest.raises(InputError) as info:
+        read_relations(path)
+    assert info.value.line == 3
+
+
 @pytest.mark.parametrize(
     ("row", "match"),
     [

@@ -424,6 +424,22 @@ def test_writer_rejects_bad_arguments(tmp_path: Path) -> None:
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize(
+    ("given", "message"),
+    [
+        ({"distance": "/odom"}, "topics.distance and topics.odometry are both '/odom'"),
+        ({"amplitude": "/tof/distance"}, "topics.distance and topics.amplitude are both '/tof/distance'"),
+        ({"samples": "/cam", "ground_truth": "/cam"}, "topics.samples and topics.ground_truth are both '/cam'"),
+    ],
+)
+def test_tof_writer_refuses_one_topic_for_two_roles(tmp_path: Path, given: dict, message: str) -> None:
+    frames = make_frames(SMALL, 2, samples=False)
+    odometry = trajectory(np.array([f.timestamp for f in frames]), seed=4)
+    with pytest.raises(ValueError, match=f"{re.escape(message)}: each needs a topic of its own"):
+        write_tof_bag(tmp_path / "b", frames, camera=SMALL, odometry=odometry, topics=ToFTopics(**given))
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_custom_topics(tmp_path: Path) -> None:
     topics = ToFTopics(distance="/cam/depth", amplitude="/cam/ampl", odometry="/wheel_odom")
     frames = make_frames(SMALL, 2, samples=False)
@@ -709,6 +725,29 @@ def test_laserscan_writer_checks(tmp_path: Path) -> None:
     back.timestamps = back.timestamps[::-1].copy()
     with pytest.raises(ValueError, match="must not decrease"):
         write_laserscan_bag(tmp_path / "x", back)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    ("topics", "message"),
+    [
+        ({"scan_topic": "/odom"}, "scan_topic and odom_topic are both '/odom'"),
+        ({"odom_topic": "/ground_truth"}, "odom_topic and ground_truth_topic are both '/ground_truth'"),
+        ({"scan_topic": "/tf_static"}, "scan_topic and tf_static_topic are both '/tf_static'"),
+    ],
+)
+def test_laserscan_writer_refuses_one_topic_for_two_roles(tmp_path: Path, topics: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=f"{re.escape(message)}: each needs a topic of its own"):
+        write_laserscan_bag(tmp_path / "x", scan_sequence(n=3), **topics)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("field", ["odometry", "ground_truth"])
+def test_laserscan_writer_refuses_poses_its_reader_would(tmp_path: Path, field: str) -> None:
+    scans = scan_sequence(n=3)
+    getattr(scans, field)[2, 1] = np.nan
+    with pytest.raises(ValueError, match=rf"scan 2: its {field} pose is not finite: \[[^,]+, nan, "):
+        write_laserscan_bag(tmp_path / "x", scans)
     assert list(tmp_path.iterdir()) == []
 
 

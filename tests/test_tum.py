@@ -181,3 +181,47 @@ def test_write_sorted_keeps_each_pose_with_its_timestamp(tmp_path):
     assert np.allclose(back.timestamps, [10.0, 10.1, 10.2, 10.3])
     assert np.allclose(back.poses[:, 0], [0.0, 1.0, 2.0, 3.0])
     assert np.allclose(back.poses[:, 2], [0.0, 0.1, 0.2, 0.3])
+
+
+@pytest.mark.parametrize(
+    ("t", "poses", "message"),
+    [
+        ([0.0, np.nan, 0.5], np.zeros((3, 3)), r"trajectory pose 1 is not finite: timestamp nan, pose \[0.0, 0.0, 0.0\]"),
+        ([0.0, 1.0, np.inf], np.zeros((3, 3)), "trajectory pose 2 is not finite: timestamp inf"),
+        ([0.0, 1.0], [[0.0, 0.0, 0.0], [np.nan, 0.0, 0.0]], r"trajectory pose 1 is not finite: timestamp 1.0, pose \[nan, 0.0, 0.0\]"),
+        ([0.0, 1.0], [[0.0, 0.0, -np.inf], [0.0, 0.0, 0.0]], "trajectory pose 0 is not finite"),
+        ([0.0, 1.0], [[0.0, 0.0, 0.0], [0.0, 2e9, 0.0]], r"trajectory pose 1 lies beyond ±1e\+09 m: \[0.0, 2000000000.0\]"),
+    ],
+)
+@pytest.mark.parametrize("sort", [False, True])
+def test_writer_refuses_poses_the_reader_would_refuse(
+    tmp_path: Path, t: list[float], poses: np.ndarray, message: str, sort: bool
+) -> None:
+    with pytest.raises(ValueError, match=message):
+        write_tum(tmp_path / "t.tum", Trajectory(t, np.asarray(poses, dtype=float)), sort=sort)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_writer_refuses_an_empty_trajectory(tmp_path: Path) -> None:
+    # read_tum refuses a file without a pose, so none is written.
+    with pytest.raises(ValueError, match="the trajectory has no pose; a TUM file needs at least one"):
+        write_tum(tmp_path / "t.tum", Trajectory(np.zeros(0), np.zeros((0, 3))))
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("separator", ["\x0c", "\x1c", "\x1d", "\x1e", "\x85", "\u2028", "\u2029", "\x0b"])
+def test_line_numbers_count_newlines_only(tmp_path: Path, separator: str) -> None:
+    # str.splitlines() breaks at these too; the line number of an error must not move.
+    path = tmp_path / "t.tum"
+    path.write_text(f"0 1 2 0 0 0 0 1{separator}\n1 1 2 0 0 0 0 1\nbad\n", encoding="utf-8")
+    with pytest.raises(InputError) as info:
+        read_tum(path)
+    assert info.value.line == 3 and f"{path}:3: " in str(info.value)
+
+
+def test_line_numbers_after_crlf_and_cr(tmp_path: Path) -> None:
+    path = tmp_path / "t.tum"
+    path.write_bytes(b"0 1 2 0 0 0 0 1\r\n1 1 2 0 0 0 0 1\r2 1 2 0 0 0 0 1\nbad\n")
+    with pytest.raises(InputError) as info:
+        read_tum(path)
+    assert info.value.line == 4

@@ -102,7 +102,9 @@ def read_relations(path: str | Path) -> Relations:
             planar (z, roll, pitch not 0); naming the file if it cannot be read or is empty.
     """
     try:
-        lines = Path(path).read_text(encoding="utf-8").splitlines()
+        # "\n" only (read_text folds "\r\n" and "\r" into it): splitlines() also breaks at form
+        # feeds, \x1c-\x1e, \x85 and \u2028, and every line number after them would be wrong.
+        lines = Path(path).read_text(encoding="utf-8").split("\n")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"cannot read the relations file: {read_problem(exc)}", path) from None
     rows = [

@@ -79,6 +79,8 @@ MOUNT_MIN_SHARE = 0.9
 _MAX_BEAM_ANGLE = 2.0 * math.pi + 1e-9
 # Scans whose first and last beams agree with the first scan's to this (rad) share its geometry.
 GEOMETRY_TOLERANCE = 1e-6
+# read_carmen's default for the largest backwards step of scan timestamps (seconds) it accepts.
+MAX_TIME_REVERSAL = 1.0
 
 # Held odometry (see _held_odometry): a laser message's pose counts as the last ODOM pose when it
 # equals it to the logs' print precision, judged over at least this many scans taken while the
@@ -146,7 +148,7 @@ def read_carmen(
     skip_bad_lines: bool = False,
     laser: str = "front",
     fov_deg: float = 180.0,
-    max_time_reversal: float = 1.0,
+    max_time_reversal: float = MAX_TIME_REVERSAL,
 ) -> CarmenLog:
     """Read a CARMEN log (plain text, gzip or bzip2, told apart by the file's magic bytes).
 
@@ -1100,14 +1102,22 @@ def write_carmen(path: str | Path, scans: ScanSequence, *, hostname: str = "omni
     Each scan's beams must be evenly spaced (ROBOTLASER1 states start angle and step only).
     No-echo readings are written as the maximum range. gzip or bzip2 compression follows the suffix
     (.gz, .bz2). The file is written atomically.
+
+    Raises:
+        ValueError: for what `read_carmen` would refuse, naming the argument or the scan: no
+            scan, a scan without beams or with uneven ones, a hostname that is empty or holds
+            whitespace, timestamps or poses that are not finite, a timestamp more than
+            MAX_TIME_REVERSAL (1 s) before the one of the scan before, a max_range that is not a
+            finite number of at least 1 mm.
     """
     from omnitof.geometry import compose
     from omnitof.io.atomic import atomic_write
 
+    _check_writable(scans, hostname)
     if scans.per_scan_geometry:
-        geometry = [_robotlaser_geometry(scans.scan_angles(i)) for i in range(len(scans))]
+        geometry = [_robotlaser_geometry(scans.scan_angles(i), i) for i in range(len(scans))]
     else:
-        geometry = [_robotlaser_geometry(scans.angles)] * len(scans)
+        geometry = [_robotlaser_geometry(scans.angles, None)] * len(scans)
     laser_poses = compose(scans.odometry, scans.sensor_pose)
     max_range = float(scans.max_range)
     ranges = np.where(np.isfinite(scans.ranges), scans.ranges, max_range)
@@ -1143,8 +1153,39 @@ def write_carmen(path: str | Path, scans: ScanSequence, *, hostname: str = "omni
         f.write(text)
 
 
-def _robotlaser_geometry(angles: np.ndarray) -> tuple[float, float, int]:
-    """(start_angle, angular_resolution, beams) of evenly spaced beams, else ValueError."""
+def _check_writable(scans: ScanSequence, hostname: str) -> None:
+    """Refuse, before writing, what read_carmen would refuse to read back."""
+    if not hostname or any(c.isspace() for c in hostname) or "\0" in hostname:
+        # The hostname is one token of the line; a NUL makes the file binary to the reader.
+        raise ValueError(f"hostname must be one word, without whitespace or NUL, got {hostname!r}")
+    if len(scans) == 0:
+        raise ValueError("no scans to write: a CARMEN log needs at least one")
+    if not (math.isfinite(scans.max_range) and round(scans.max_range, 3) > 0.0):
+        # Written to the millimetre: a smaller one would read as 0.
+        raise ValueError(f"max_range must be a finite number of at least 1 mm, got {scans.max_range}")
+    bad = np.flatnonzero(~(np.isfinite(scans.timestamps) & np.isfinite(scans.odometry).all(axis=1)))
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(
+            f"scan {i} is not finite: timestamp {scans.timestamps[i]}, odometry {scans.odometry[i].tolist()}"
+        )
+    if not np.isfinite(scans.sensor_pose).all():
+        raise ValueError(f"sensor_pose is not finite: {scans.sensor_pose.tolist()}")
+    steps = np.diff(scans.timestamps)
+    back = np.flatnonzero(steps < -MAX_TIME_REVERSAL)
+    if back.size:
+        i = int(back[0]) + 1
+        raise ValueError(
+            f"scan {i}: its timestamp {scans.timestamps[i]:.6f} is {-steps[i - 1]:.6f} s before the "
+            f"one of scan {i - 1}; read_carmen tolerates at most {MAX_TIME_REVERSAL} s"
+        )
+
+
+def _robotlaser_geometry(angles: np.ndarray, scan: int | None) -> tuple[float, float, int]:
+    """(start_angle, angular_resolution, beams) of evenly spaced beams, else ValueError naming
+    the scan (None: every scan's)."""
+    if not len(angles):
+        raise ValueError(f"{'the scans have' if scan is None else f'scan {scan} has'} no beam; ROBOTLASER1 needs one")
     step = float(angles[1] - angles[0]) if len(angles) > 1 else 0.0
     if len(angles) > 2 and not np.allclose(np.diff(angles), step, atol=1e-9):
         raise ValueError("ROBOTLASER1 needs evenly spaced beams")

@@ -15,6 +15,11 @@ class PlyError(ConfigError, ValueError):
     """Points or colours that cannot be written as a PLY cloud."""
 
 
+# The ASCII characters at which str.splitlines() (the reader's) ends a header line.
+_LINE_BREAKS = "\n\r\x0b\x0c\x1c\x1d\x1e"
+# PLY float coordinates are float32: larger values would be written as inf.
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
     "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
@@ -36,8 +41,16 @@ def write_ply(
     Format: PLY 1.0, `binary_little_endian` (default) or `ascii`; one `vertex` element with
     float (float32) x, y, z and, with colours, uchar red, green, blue — what MeshLab,
     CloudCompare, Open3D and Blender read.
+
+    Raises:
+        PlyError (a ValueError): for what `read_ply` would refuse or misread: points that are
+            not finite or lie beyond float32's range (naming the first), colours that are not
+            uint8 of the points' shape, a comment that is not one line of ASCII text.
     """
     pts = _points(points)
+    if not comment.isascii() or any(c in comment for c in _LINE_BREAKS):
+        # A line break would start header lines of its own ('end_header' among them).
+        raise PlyError(f"the comment must be one line of ASCII text, got {comment!r}")
     cols = None
     if colors is not None:
         cols = np.asarray(colors)
@@ -57,7 +70,7 @@ def write_ply(
     header = [
         "ply",
         f"format {'binary_little_endian' if binary else 'ascii'} 1.0",
-        *(f"comment {line}" for line in comment.splitlines()),
+        *([f"comment {comment}"] if comment else []),
         f"element vertex {len(pts)}",
         "property float x",
         "property float y",
@@ -80,23 +93,32 @@ def write_ply(
 
 def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     """Read a PLY vertex cloud (ascii or binary_little_endian, scalar vertex properties, no
-    other elements): (points (N, 3) float64, colours (N, 3) uint8 or None).
+    other elements): (points (N, 3) float64, colours (N, 3) uint8 or None). Integer colours are
+    0..255; float colours are fractions 0..1, scaled to 0..255.
 
     Raises:
         InputError: naming the file (and the header line) for anything else: a file that cannot
-            be read, a header that is not ASCII or not of this shape, a body that does not hold
-            the vertices it declares, coordinates that are not finite, colours outside 0..255.
+            be read, a header that is not ASCII or not of this shape or has CRLF line ends, a
+            body that does not hold the vertices it declares, coordinates that are not finite,
+            colours outside 0..255 (0..1 for float ones).
     """
     path = Path(path)
     try:
         data = path.read_bytes()
     except OSError as err:
         raise InputError(f"cannot read the PLY file: {err.strerror or err}", path) from None
-    end = data.find(b"end_header\n")
+    if data.startswith(b"ply\r\n"):
+        raise InputError(
+            "the PLY header's lines end in CRLF (\\r\\n), as Windows writes them; this reader "
+            "takes LF (\\n) line ends only",
+            path,
+        )
+    # end_header on a line of its own: a comment may hold the word.
+    end = data.find(b"\nend_header\n")
     if not data.startswith(b"ply\n") or end < 0:
         raise InputError("not a PLY file (no 'ply' magic or 'end_header')", path)
     fmt, count, fields = _header(data[:end], path)
-    body = data[end + len(b"end_header\n"):]
+    body = data[end + len(b"\nend_header\n"):]
     names = [f[0] for f in fields]
     dtype = np.dtype(fields)
     if fmt == "binary_little_endian":
@@ -127,10 +149,14 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
         raise InputError("PLY vertex coordinates must be finite", path)
     colors = None
     if {"red", "green", "blue"} <= set(names):
-        rgb = np.stack([table[c] for c in ("red", "green", "blue")], axis=1)
-        if rgb.size and (not np.isfinite(rgb.astype(np.float64)).all() or rgb.min() < 0 or rgb.max() > 255):
-            raise InputError("PLY colours must lie in 0..255", path)
-        colors = rgb.astype(np.uint8)
+        channels = ("red", "green", "blue")
+        rgb = np.stack([table[c] for c in channels], axis=1).astype(np.float64)
+        # Float colours are fractions 0..1 (as Blender, CGAL and openFrameworks read them),
+        # integer ones 0..255.
+        top = np.array([1.0 if dtype[c].kind == "f" else 255.0 for c in channels])
+        if rgb.size and (not np.isfinite(rgb).all() or rgb.min() < 0 or (rgb > top).any()):
+            raise InputError("PLY colours must lie in 0..255 (0..1 for float properties)", path)
+        colors = np.rint(rgb * (255.0 / top)).astype(np.uint8)
     return points, colors
 
 
@@ -178,4 +204,13 @@ def _points(array: np.ndarray) -> np.ndarray:
     pts = np.ascontiguousarray(array, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise PlyError(f"points must have shape (N, 3), got {pts.shape}")
+    bad = np.flatnonzero(~np.isfinite(pts).all(axis=1))
+    if bad.size:
+        raise PlyError(f"point {bad[0]} is not finite: {pts[bad[0]].tolist()}")
+    far = np.flatnonzero((np.abs(pts) > _FLOAT32_MAX).any(axis=1))
+    if far.size:
+        raise PlyError(
+            f"point {far[0]} lies beyond float32's range (±{_FLOAT32_MAX:.3g}) of PLY float "
+            f"coordinates: {pts[far[0]].tolist()}"
+        )
     return pts

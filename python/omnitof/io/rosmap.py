@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from omnitof.errors import InputError, load_yaml, read_problem, yaml_problem
+from omnitof.errors import InputError, OutputError, load_yaml, read_problem, yaml_problem
 from omnitof.io.atomic import atomic_write
 from omnitof.types import OccupancyMap
 
@@ -51,22 +51,52 @@ def write_ros_map(
     """Write `occ` as `<stem>.pgm` (binary P5, 8 bit) and the YAML at `yaml_path`, atomically.
 
     Cells never observed, or with free_thresh <= p <= occupied_thresh, are written as unknown.
-    The image is written first, so the YAML never names a missing image. Returns the PGM path.
+    Both files are written in full under temporary names before either is renamed into place,
+    the image first, so the YAML never names a missing image and a failure leaves an existing
+    pair as it was. Returns the PGM path.
 
     Raises:
-        ValueError: for thresholds with which map_server would misread the written values.
+        ValueError: for a `yaml_path` ending in .pgm (the YAML would replace the image), a map
+            that `read_ros_map` could not read back (naming the field), or thresholds with which
+            map_server would misread the written values.
+        OutputError: where the YAML or the PGM path is a folder.
     """
     _check_thresholds(occupied_thresh, free_thresh)
+    _check_map(occ)
     yaml_path = Path(yaml_path)
+    if yaml_path.suffix.lower() == ".pgm":
+        raise ValueError(
+            f"yaml_path {str(yaml_path)!r} ends in .pgm: the YAML would replace the map image; "
+            "give it a .yaml name"
+        )
     pgm_path = yaml_path.with_suffix(".pgm")
+    for target in (yaml_path, pgm_path):  # before anything is written
+        if target.is_dir():
+            raise OutputError(f"{target}: is a folder; a map file cannot replace it")
     pixels = _trinary_pixels(occ, occupied_thresh, free_thresh)
     # The flip: OccupancyMap row 0 is the lowest y, image row 0 the highest y.
     image = pixels[::-1]
-    with atomic_write(pgm_path, "wb") as f:
-        f.write(_encode_pgm(image, comment=f"omnitof {occ.resolution:.3f} m/pix"))
-    with atomic_write(yaml_path, "w") as f:
-        f.write(_map_yaml(pgm_path.name, occ, occupied_thresh, free_thresh))
+    with atomic_write(yaml_path, "w") as yaml_file:
+        yaml_file.write(_map_yaml(pgm_path.name, occ, occupied_thresh, free_thresh))
+        yaml_file.flush()  # a full disk shows here, before the image is replaced
+        with atomic_write(pgm_path, "wb") as pgm_file:
+            pgm_file.write(_encode_pgm(image, comment=f"omnitof {occ.resolution:.3f} m/pix"))
     return pgm_path
+
+
+def _check_map(occ: OccupancyMap) -> None:
+    """Refuse what read_ros_map would refuse on reading the files back."""
+    shape = np.shape(occ.log_odds)
+    if len(shape) != 2 or 0 in shape:
+        raise ValueError(f"the map's log_odds must be a non-empty 2-D grid, got shape {shape}")
+    if np.shape(occ.known) != shape:
+        raise ValueError(f"the map's known must have the shape of log_odds {shape}, got {np.shape(occ.known)}")
+    resolution = float(occ.resolution)
+    if not (math.isfinite(resolution) and resolution > 0.0):
+        raise ValueError(f"the map's resolution must be a positive finite number, got {resolution}")
+    origin = np.asarray(occ.origin, dtype=np.float64)
+    if origin.shape != (2,) or not np.isfinite(origin).all():
+        raise ValueError(f"the map's origin must be two finite numbers (x, y), got {occ.origin}")
 
 
 def _check_thresholds(occupied_thresh: float, free_thresh: float) -> None:
@@ -102,8 +132,9 @@ def _map_yaml(
 ) -> str:
     x0, y0 = (float(v) for v in occ.origin)
     # repr() of a float round-trips exactly; written by hand to keep map_server's familiar layout.
-    return (
-        f"image: {image_name}\n"
+    # The image name goes through PyYAML, which quotes it where a plain scalar would be misread
+    # ('#m.pgm' is a comment, 'a: b.pgm' a mapping).
+    return yaml.safe_dump({"image": image_name}, width=math.inf) + (
         f"resolution: {float(occ.resolution)!r}\n"
         f"origin: [{x0!r}, {y0!r}, 0.0]\n"
         "negate: 0\n"
@@ -124,9 +155,12 @@ def read_ros_map(yaml_path: str | Path, *, log_odds: float = DEFAULT_LOG_ODDS) -
     0 and known = False.
 
     Raises:
-        InputError: naming the YAML and the missing or invalid field, or the image and what is
-            wrong with it.
+        InputError: naming the YAML and the missing or invalid field (free_thresh must be below
+            occupied_thresh), or the image and what is wrong with it.
+        ValueError: for a `log_odds` that is not a positive finite number.
     """
+    if not (math.isfinite(log_odds) and log_odds > 0.0):
+        raise ValueError(f"log_odds must be a positive finite number, got {log_odds}")
     yaml_path = Path(yaml_path)
     meta = _load_yaml(yaml_path)
     resolution = _positive_number(meta, "resolution", yaml_path)
@@ -134,6 +168,13 @@ def read_ros_map(yaml_path: str | Path, *, log_odds: float = DEFAULT_LOG_ODDS) -
     negate = _negate(meta, yaml_path)
     occupied_thresh = _probability(meta, "occupied_thresh", yaml_path)
     free_thresh = _probability(meta, "free_thresh", yaml_path)
+    if free_thresh >= occupied_thresh:
+        # A pixel would be both occupied and free (it ends up free: unknown cells become known).
+        raise InputError(
+            f"fields 'free_thresh' ({free_thresh!r}) and 'occupied_thresh' ({occupied_thresh!r}): "
+            "free_thresh must be below occupied_thresh",
+            yaml_path,
+        )
     _check_mode(meta, yaml_path)
     image_path = _image_path(meta, yaml_path)
     image, maxval = _decode_pgm(image_path)
@@ -175,9 +216,17 @@ def _field(meta: dict[str, Any], key: str, path: Path) -> Any:
 
 
 def _number(value: Any, key: str, path: Path) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    number = math.nan
+    # A string too: map_server (yaml-cpp) reads any scalar that spells a number as one, quoted
+    # or not, where YAML 1.1 makes 5e-2 a string.
+    if isinstance(value, (str, int, float)) and not isinstance(value, bool):
+        try:
+            number = float(value)
+        except (ValueError, OverflowError):  # not a number; an integer beyond float's range
+            pass
+    if not math.isfinite(number):
         raise InputError(f"field '{key}' must be a finite number, got {value!r}", path)
-    return float(value)
+    return number
 
 
 def _positive_number(meta: dict[str, Any], key: str, path: Path) -> float:
@@ -290,6 +339,8 @@ def _p2_pixels(raw: bytes, count: int, path: Path) -> np.ndarray:
         values = np.array(text.split(), dtype=np.int64)
     except ValueError as exc:
         raise InputError("P2 PGM pixels must be integers", path) from exc
+    except OverflowError:
+        raise InputError("a P2 PGM pixel value is too large (a PGM's maximum is 65535)", path) from None
     if values.size != count:
         raise InputError(f"P2 PGM has {values.size} pixels, expected {count}", path)
     if values.size and values.min() < 0:

@@ -43,9 +43,11 @@ def write_tum(path: str | Path, traj: Trajectory, *, sort: bool = False) -> int:
     written, the latest estimate. Returns how many poses were left out so.
 
     Raises:
-        ValueError: if, without `sort`, the timestamps decrease (the file could not be read
-            back).
+        ValueError: for what `read_tum` would refuse to read back: no pose, a timestamp or pose
+            that is not finite (naming the pose), a position beyond ±1e9 m, or, without `sort`,
+            timestamps that decrease.
     """
+    _check_poses(traj)
     if sort:
         order = np.argsort(traj.timestamps, kind="stable")
         traj = Trajectory(traj.timestamps[order], traj.poses[order])
@@ -62,6 +64,24 @@ def write_tum(path: str | Path, traj: Trajectory, *, sort: bool = False) -> int:
         f.write(HEADER + "\n")
         np.savetxt(f, data, fmt=_FORMATS, delimiter=" ")
     return len(traj) - n
+
+
+def _check_poses(traj: Trajectory) -> None:
+    if len(traj) == 0:
+        raise ValueError("the trajectory has no pose; a TUM file needs at least one")
+    bad = ~(np.isfinite(traj.timestamps) & np.isfinite(traj.poses).all(axis=1))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(
+            f"trajectory pose {i} is not finite: timestamp {traj.timestamps[i]}, "
+            f"pose {traj.poses[i].tolist()}"
+        )
+    far = np.flatnonzero(np.abs(traj.poses[:, :2]).max(axis=1) > _LIMITS["x"])
+    if far.size:
+        i = int(far[0])
+        raise ValueError(
+            f"trajectory pose {i} lies beyond ±{_LIMITS['x']:g} m: {traj.poses[i, :2].tolist()}"
+        )
 
 
 def _check_increasing(timestamps: np.ndarray) -> None:
@@ -105,8 +125,11 @@ def read_tum(path: str | Path) -> Trajectory:
 
 
 def _read_lines(path: str | Path) -> list[str]:
+    # Split on "\n" only (read_text folds "\r\n" and "\r" into it): splitlines() would also
+    # break at form feeds, \x1c-\x1e, \x85 and \u2028, and every line number after them would be
+    # wrong.
     try:
-        return Path(path).read_text(encoding="utf-8").splitlines()
+        return Path(path).read_text(encoding="utf-8").split("\n")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"cannot read the TUM trajectory: {read_problem(exc)}", path) from None
 

@@ -422,6 +422,16 @@ def _sidecar_text(sidecar: dict) -> str:
     )
 
 
+def _distinct_topics(roles: dict[str, str]) -> None:
+    """ValueError naming two roles given one topic: a bag's reader takes a topic for one role
+    (by name or type), so it would read the other role's messages as its own."""
+    seen: dict[str, str] = {}
+    for role, topic in roles.items():
+        if topic in seen:
+            raise ValueError(f"{seen[topic]} and {role} are both {topic!r}: each needs a topic of its own")
+        seen[topic] = role
+
+
 def _storage_plugin(storage: str) -> StoragePlugin:
     names = {"sqlite3": "SQLITE3", "mcap": "MCAP"}
     if storage not in names or not hasattr(StoragePlugin, names[storage]):

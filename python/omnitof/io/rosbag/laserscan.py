@@ -36,6 +36,7 @@ from omnitof.io.rosbag.common import (
     WORLD_FRAME,
     RosbagWarning,
     _atomic_path,
+    _distinct_topics,
     _frame_name,
     _header,
     _messages,
@@ -358,9 +359,14 @@ def write_laserscan_bag(
 
     Raises:
         BagExistsError: `path` exists and overwrite is False.
-        ValueError: uneven beams, timestamps going backwards, a bad path or version.
+        ValueError: uneven beams, timestamps going backwards, odometry or ground truth that is
+            not finite, one topic for two roles, a bad path or version.
     """
     path = Path(path)
+    _distinct_topics({
+        "scan_topic": scan_topic, "odom_topic": odom_topic,
+        "ground_truth_topic": ground_truth_topic, "tf_static_topic": tf_static_topic,
+    })  # fmt: skip
     if version not in (1, 2):
         raise ValueError(f"version must be 1 (ROS 1) or 2 (ROS 2), got {version!r}")
     if version == 1 and path.suffix != ".bag":
@@ -381,6 +387,12 @@ def write_laserscan_bag(
         raise ValueError("write_laserscan_bag needs at least one scan")
     if not (math.isfinite(scans.max_range) and scans.max_range > 0.0):
         raise ValueError(f"max_range must be a positive number, got {scans.max_range}")
+    for name, poses in (("odometry", scans.odometry), ("ground_truth", scans.ground_truth)):
+        if poses is None:
+            continue
+        bad = np.flatnonzero(~np.isfinite(poses).all(axis=1))
+        if bad.size:  # the reader refuses a pose that is not finite
+            raise ValueError(f"scan {bad[0]}: its {name} pose is not finite: {poses[bad[0]].tolist()}")
     ros1 = version == 1
     store = _ros1_store() if ros1 else _ros2_store()
     intensities = (

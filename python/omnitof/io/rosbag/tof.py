@@ -62,6 +62,7 @@ from omnitof.io.rosbag.common import (
     RosbagWarning,
     _atomic_path,
     _connections,
+    _distinct_topics,
     _header,
     _messages,
     _ns_to_s,
@@ -202,9 +203,11 @@ def write_tof_bag(
 
     Raises:
         BagExistsError: `path` exists and overwrite is False.
-        ValueError: bad frames, trajectories or arguments (nothing is left at `path`).
+        ValueError: bad frames, trajectories or arguments, one topic for two roles (nothing is
+            left at `path`).
     """
     path = Path(path)
+    _distinct_topics({f"topics.{role}": getattr(topics, role) for role in ToFTopics.__dataclass_fields__})
     plugin = _storage_plugin(storage)
     if path.suffix == ".bag":
         raise ValueError(
