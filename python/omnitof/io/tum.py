@@ -23,6 +23,8 @@ ROW_MESSAGE = "TUM trajectory rows need 8 numbers: timestamp x y z qx qy qz qw"
 _FIELDS = ("timestamp", "x", "y", "z", "qx", "qy", "qz", "qw")
 # Positions beyond a million kilometres and quaternions far from unit length come from a broken
 # writer; the statistics over them overflow or print as hundreds of digits.
+# The largest heading (rad, unwrapped) written: at 1e6 rad a float64 still holds it to 1e-10 rad.
+MAX_HEADING = 1e6
 _LIMITS = {"x": 1e9, "y": 1e9, "z": 1e9, "qx": 1e3, "qy": 1e3, "qz": 1e3, "qw": 1e3}
 
 # Unix times (~1e9 s) at microsecond precision need 6 decimals; positions to the micrometre, and
@@ -76,6 +78,10 @@ def _check_poses(traj: Trajectory) -> None:
             f"trajectory pose {i} is not finite: timestamp {traj.timestamps[i]}, "
             f"pose {traj.poses[i].tolist()}"
         )
+    turned = np.flatnonzero(np.abs(traj.poses[:, 2]) > MAX_HEADING)
+    if turned.size:  # its quaternion would hold only rounding error
+        i = int(turned[0])
+        raise ValueError(f"trajectory pose {i}: heading {traj.poses[i, 2]:g} rad is beyond ±{MAX_HEADING:g} rad")
     far = np.flatnonzero(np.abs(traj.poses[:, :2]).max(axis=1) > _LIMITS["x"])
     if far.size:
         i = int(far[0])
