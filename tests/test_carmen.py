@@ -1001,8 +1001,9 @@ def _two_scans(**fields) -> ScanSequence:
         ({"odometry": [[0, 0, 0], [np.nan, 0, 0]]}, HOST, r"scan 1 is not finite: timestamp 2.0, odometry \[nan, 0.0, 0.0\]"),
         ({"timestamps": [1.0, np.inf]}, HOST, "scan 1 is not finite: timestamp inf"),
         ({"timestamps": [np.nan, 1.0]}, HOST, "scan 0 is not finite: timestamp nan"),
-        ({"max_range": np.inf}, HOST, "max_range must be a finite number of at least 1 mm, got inf"),
-        ({"max_range": 0.0004}, HOST, "max_range must be a finite number of at least 1 mm, got 0.0004"),
+        ({"max_range": np.inf}, HOST, "max_range must be a finite number of at least 1 mm and at most 1e.06 m, got inf"),
+        ({"max_range": 0.0004}, HOST, "max_range must be a finite number of at least 1 mm and at most 1e.06 m, got 0.0004"),
+        ({"max_range": 1e300}, HOST, "max_range must be a finite number of at least 1 mm and at most 1e.06 m, got 1e.300"),
         ({"sensor_pose": [0.0, np.nan, 0.0]}, HOST, r"sensor_pose is not finite: \[0.0, nan, 0.0\]"),
         ({"timestamps": [5.0, 1.0]}, HOST,
          "scan 1: its timestamp 1.000000 is 4.000000 s before the one of scan 0; read_carmen tolerates at most 1.0 s"),
@@ -1016,8 +1017,14 @@ def _two_scans(**fields) -> ScanSequence:
 def test_write_carmen_refuses_what_read_carmen_would(tmp_path, fields, hostname, message):
     from omnitof.io.carmen import write_carmen
 
+    # Non-finite stamps and poses are set after the scans were made: ScanSequence refuses them.
+    finite = {key: value for key, value in fields.items()
+              if key not in ("odometry", "timestamps", "sensor_pose") or np.isfinite(value).all()}
+    scans = _two_scans(**finite)
+    for key in fields.keys() - finite.keys():
+        setattr(scans, key, np.asarray(fields[key], dtype=np.float64))
     with pytest.raises(ValueError, match=message):
-        write_carmen(tmp_path / "x.log", _two_scans(**fields), hostname=hostname)
+        write_carmen(tmp_path / "x.log", scans, hostname=hostname)
     assert list(tmp_path.iterdir()) == []
 
 

@@ -214,6 +214,21 @@ def test_non_finite_poses_and_tolerances_are_refused_not_scored_as_nan() -> None
     assert absolute_trajectory_error(gt.poses, gt.poses).rmse == 0.0
 
 
+def test_of_poses_sharing_a_stamp_the_last_is_scored_as_the_tum_file_keeps_it(tmp_path: Path) -> None:
+    from omnitof.io.tum import read_tum, write_tum
+
+    gt = _ground_truth()
+    t = gt.timestamps
+    # Two estimates at t[3]: the first wrong, the second (the latest) right.
+    traj = Trajectory(np.insert(t, 3, t[3]), np.insert(gt.poses, 3, gt.poses[3] + [5.0, 5.0, 1.0], axis=0))
+    rel = _relations_of(gt, [(2, 3), (3, 4)])
+    in_memory = evaluate_relations(traj, rel)
+    write_tum(tmp_path / "t.tum", traj)
+    from_file = evaluate_relations(read_tum(tmp_path / "t.tum"), rel)
+    np.testing.assert_allclose(in_memory.trans_errors, 0.0, atol=1e-9)
+    np.testing.assert_allclose(from_file.trans_errors, in_memory.trans_errors, atol=1e-5)
+
+
 def test_unsorted_trajectory_is_matched() -> None:
     gt = _ground_truth()
     order = np.random.default_rng(3).permutation(len(gt))

@@ -66,6 +66,18 @@ def test_per_scan_geometry_is_checked():
         ScanSequence([0.0, 1.0], ranges[:, :2], angles, np.zeros((2, 3)))
 
 
+def test_stamps_and_poses_that_are_not_finite_are_refused():
+    # A NaN stamp made in Python ran through SLAM into the trajectory, where only the TUM file
+    # written at the end refused it.
+    ranges, angles = np.ones((2, 3)), [0.0, 0.1, 0.2]
+    with pytest.raises(ValueError, match="timestamps must be finite; entry 1 is nan"):
+        ScanSequence([0.0, np.nan], ranges, angles, np.zeros((2, 3)))
+    with pytest.raises(ValueError, match=r"odometry must be finite; entry 0 is \[inf"):
+        ScanSequence([0.0, 1.0], ranges, angles, [[np.inf, 0, 0], [0, 0, 0]])
+    with pytest.raises(ValueError, match="ground_truth must be finite"):
+        ScanSequence([0.0, 1.0], ranges, angles, np.zeros((2, 3)), ground_truth=[[0, 0, 0], [0, np.nan, 0]])
+
+
 def test_evenly_spaced_beams_keeps_one_geometry_where_all_share_it():
     angles, counts = evenly_spaced_beams([-1.0, -1.0 + 1e-8], [0.5, 0.5], [4, 4], tolerance=1e-6)
     assert counts is None

@@ -85,6 +85,13 @@ class ScanSequence:
             self.ground_truth = np.ascontiguousarray(self.ground_truth, dtype=np.float64)
             if self.ground_truth.shape != (n, 3):
                 raise ValueError(f"ground_truth must have shape ({n}, 3)")
+        # Every reader refuses these; a NaN stamp or pose made in Python ran through SLAM into
+        # the trajectory, and a NaN there fails only the file written at the end.
+        for name in ("timestamps", "odometry", "sensor_pose", "ground_truth"):
+            values = getattr(self, name)
+            if values is not None and not np.isfinite(values).all():
+                first = int(np.argmax(~np.isfinite(values).reshape(len(values), -1).all(axis=1)))
+                raise ValueError(f"{name} must be finite; entry {first} is {values[first]}")
         if self.remissions is not None:
             self.remissions = np.ascontiguousarray(self.remissions, dtype=np.float32)
             if self.remissions.shape != self.ranges.shape:

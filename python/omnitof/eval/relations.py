@@ -334,6 +334,9 @@ def match_times(
     left = np.clip(right - 1, 0, n - 1)
     take_left = np.abs(query - ts[left]) < np.abs(query - ts[right])
     nearest = np.where(take_left, left, right)
+    # Of poses that share a stamp, the last (the latest estimate): the one write_tum keeps, so
+    # that a run scores the same in memory and from its TUM file.
+    nearest = (np.searchsorted(ts, ts, side="right") - 1)[nearest]
     ok = np.abs(query - ts[nearest]) <= tolerance
     return order[nearest], ok
 

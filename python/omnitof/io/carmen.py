@@ -79,6 +79,8 @@ MOUNT_MIN_SHARE = 0.9
 _MAX_BEAM_ANGLE = 2.0 * math.pi + 1e-9
 # Scans whose first and last beams agree with the first scan's to this (rad) share its geometry.
 GEOMETRY_TOLERANCE = 1e-6
+# The largest max_range write_carmen writes (m): no laser reaches 1000 km.
+MAX_WRITTEN_RANGE = 1e6
 # read_carmen's default for the largest backwards step of scan timestamps (seconds) it accepts.
 MAX_TIME_REVERSAL = 1.0
 
@@ -1108,7 +1110,7 @@ def write_carmen(path: str | Path, scans: ScanSequence, *, hostname: str = "omni
             scan, a scan without beams or with uneven ones, a hostname that is empty or holds
             whitespace, timestamps or poses that are not finite, a timestamp more than
             MAX_TIME_REVERSAL (1 s) before the one of the scan before, a max_range that is not a
-            finite number of at least 1 mm.
+            finite number of at least 1 mm and at most MAX_WRITTEN_RANGE (1000 km).
     """
     from omnitof.geometry import compose
     from omnitof.io.atomic import atomic_write
@@ -1160,9 +1162,11 @@ def _check_writable(scans: ScanSequence, hostname: str) -> None:
         raise ValueError(f"hostname must be one word, without whitespace or NUL, got {hostname!r}")
     if len(scans) == 0:
         raise ValueError("no scans to write: a CARMEN log needs at least one")
-    if not (math.isfinite(scans.max_range) and round(scans.max_range, 3) > 0.0):
-        # Written to the millimetre: a smaller one would read as 0.
-        raise ValueError(f"max_range must be a finite number of at least 1 mm, got {scans.max_range}")
+    if not (math.isfinite(scans.max_range) and 0.0 < round(scans.max_range, 3) <= MAX_WRITTEN_RANGE):
+        # Written to the millimetre: a smaller one would read as 0; no-echo readings are written
+        # as it, in float32, where 1e300 is inf.
+        raise ValueError(f"max_range must be a finite number of at least 1 mm and at most {MAX_WRITTEN_RANGE:g} m, "
+                         f"got {scans.max_range}")
     bad = np.flatnonzero(~(np.isfinite(scans.timestamps) & np.isfinite(scans.odometry).all(axis=1)))
     if bad.size:
         i = int(bad[0])
