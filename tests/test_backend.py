@@ -132,6 +132,29 @@ def test_a_submap_refuses_a_scan_too_wide_or_too_far_and_stays_as_it_was():
     assert sub.num_scans == 1
 
 
+def test_threads_may_search_one_submap_at_once(corridor_loop):
+    from concurrent.futures import ThreadPoolExecutor
+
+    scans = corridor_loop
+    sub = _core.Submap(0.05, 0.9, -0.4, -2.0, 3.5, scans.max_range)
+    for k in range(0, 120, 4):
+        sub.insert(scans.ground_truth[k], scans.ranges[k], scans.angles, scans.sensor_pose)
+    sub.finish()
+    sub.release_grids()  # the first search makes them again
+
+    def search(k):
+        start = scans.ground_truth[k] + np.array([0.3, -0.2, 0.05])
+        return sub.match_scan(scans.ranges[k], scans.angles, start, 0.5, 0.1, 0.5, scans.sensor_pose)
+
+    alone = [search(k) for k in range(40, 80, 5)]
+    with ThreadPoolExecutor(4) as pool:  # each search held the submap mutably: 'Already borrowed'
+        together = list(pool.map(search, range(40, 80, 5)))
+    for a, b in zip(alone, together):
+        assert (a is None) == (b is None)
+        if a is not None:
+            np.testing.assert_array_equal(a[0], b[0])
+
+
 def test_scans_between_integrated_ones_are_posed_by_their_own_match(corridor_loop):
     scans = corridor_loop.slice(0, 700)
     by_odometry = run_slam(scans, loop_config(False))

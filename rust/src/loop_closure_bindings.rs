@@ -169,8 +169,7 @@ impl PySubmap {
     #[pyo3(signature = (ranges, angles, initial_pose, linear_window, angular_window, min_score, sensor_pose=None, refine=true, field_sigma=None))]
     #[allow(clippy::too_many_arguments)]
     fn match_scan<'py>(
-        &mut self,
-        py: Python<'py>,
+        slf: &Bound<'py, Self>,
         ranges: PyReadonlyArray1<f32>,
         angles: PyReadonlyArray1<f64>,
         initial_pose: PyReadonlyArray1<f64>,
@@ -186,7 +185,8 @@ impl PySubmap {
                 return Err(PyValueError::new_err("field_sigma must be positive and finite"));
             }
         }
-        if !self.inner.is_finished() {
+        let py = slf.py();
+        if !slf.borrow().inner.is_finished() {
             return Err(PyValueError::new_err("the submap is not finished: call finish() first"));
         }
         let initial = pose(&initial_pose, "initial_pose")?;
@@ -203,10 +203,20 @@ impl PySubmap {
         let geom = ScanGeometry { angles: &angles, sensor: sensor(sensor_pose.as_ref())? };
         let ranges: &[f32] = &ranges;
         let opts = MatchOptions { linear_window, angular_window, min_score, refine };
-        if self.inner.grids().is_none() {
-            self.finish(py)?; // released: made again
+        if slf.borrow().inner.grids().is_none() {
+            // Released: made again, with the GIL held, so that a thread searching meanwhile
+            // waits for them instead of finding the submap borrowed.
+            let mut this = slf.borrow_mut();
+            let PySubmap { inner, pool, .. } = &mut *this;
+            match pool {
+                Some(pool) => pool.install(|| inner.finish().map(|_| ())),
+                None => inner.finish().map(|_| ()),
+            }
+            .map_err(crate::grid_error)?;
         }
-        let (inner, pool) = (&self.inner, &self.pool);
+        // A shared borrow for the search itself, so that threads may search one submap at once.
+        let this = slf.borrow();
+        let (inner, pool) = (&this.inner, &this.pool);
         let found = py
             .detach(|| match pool {
                 Some(pool) => pool.install(|| inner.match_scan(&geom, ranges, initial, &opts)),
