@@ -158,6 +158,18 @@ def test_overrides_in_python_that_are_not_nested_sections_are_refused():
     assert load_config(overrides={"filter": {"particles": 5}}).filter.particles == 5
 
 
+def test_what_the_project_writes_as_yaml_reads_back_as_written():
+    # Strings the loader reads as numbers (1e5 since base 60 went; 10:00 in YAML 1.1) are quoted.
+    import yaml
+
+    from omnitof.errors import dump_yaml, load_yaml
+
+    data = {"names": ["1e5", "10:00", "5e-2", "-.5", "010", "0x1F", "2024-01-01", "true", "x"],
+            "numbers": [1e5, 0.05, -0.5, 8, float("inf")], "flag": True, "nothing": None}
+    text = dump_yaml(data, sort_keys=False)
+    assert load_yaml(text) == data and yaml.safe_load(text) == data
+
+
 def test_numbers_are_read_as_yaml_1_2_reads_them():
     # YAML 1.1 (PyYAML) reads 10:00 as the base-60 integer 600, and 5e-2 as a string.
     from omnitof.slam.config import parse_setting

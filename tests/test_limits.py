@@ -86,6 +86,12 @@ def test_submaps_wider_than_the_back_end_allows_are_refused(loop):
     with pytest.raises(ConfigError, match=r"backend\.submap_length 6 m plus twice the reach 8 m .* cells wide at "
                        r"map\.resolution 0\.001 m; the back end allows 8192"):
         check_limits(loop, cfg, available=float("inf"))
+    # Cells coarser than an eighth of the reach: refused by the core's submap at the first
+    # submap (a traceback after the front end had run); now before the run.
+    coarse = load_config(preset="laser180-scanmatch", overrides={"map": {"resolution": 0.5, "max_range": 3.0}})
+    with pytest.raises(ConfigError, match=r"map\.resolution 0\.5 m is too coarse for the back end's submaps at a "
+                       r"reach of 3 m \(map\.max_range 3 m"):
+        check_limits(loop, coarse, available=float("inf"))
 
 
 def test_non_finite_odometry_is_refused(loop):

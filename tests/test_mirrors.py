@@ -406,3 +406,23 @@ def test_region_figure_colours_and_names_each_mirror(tmp_path: Path):
     amplitude = np.random.default_rng(0).random(camera.shape)
     plot_mirror_regions(tmp_path / "over.png", camera, mirrors, image=amplitude)
     assert (tmp_path / "over.png").stat().st_size > 0
+
+
+def test_a_mount_typed_to_five_decimals_is_snapped_to_a_rotation_and_a_skewed_one_refused():
+    from omnitof.scan.extract import ScanExtractor
+    from omnitof.sensor.design import default_rig
+    from omnitof.sensor.mirrors import MirrorParameterError, camera_mount, rigid_mount
+
+    c = round(math.cos(math.pi / 4), 5)  # a 45° yaw written as 0.70711: RᵀR is 9e-6 off I
+    typed = np.array([[c, -c, 0, 0], [c, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]) @ camera_mount()
+    exact = rigid_mount(typed)
+    np.testing.assert_allclose(exact[:3, :3].T @ exact[:3, :3], np.eye(3), atol=1e-15)
+    np.testing.assert_allclose(exact, typed, atol=1e-5)
+    # The core's renderer and multipath compensation allow 1e-6: the typed mount reaches them exact.
+    rig = default_rig()
+    ScanExtractor(rig.camera, list(rig.planes), rig.masks(1.0), typed, multipath={"enabled": True})
+    for bad, message in [(np.diag([1.0, 1.0, 1.01, 1.0]), "RᵀR is 0.0201 off I"),
+                         (np.diag([1.0, 1.0, -1.0, 1.0]), "det -1"),
+                         (np.vstack([np.eye(4)[:3], [0, 0, 1, 1]]), "last row must be 0 0 0 1")]:
+        with pytest.raises(MirrorParameterError, match=message):
+            rigid_mount(bad)

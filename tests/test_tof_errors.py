@@ -128,4 +128,6 @@ def test_errors_travel_with_the_rig_and_bad_fields_are_named():
         ToFErrors(integration_time=0.0)
     with pytest.raises(ToFErrorsError, match="errors.led_count must be at most 64, got 4000"):
         ToFErrors(led_count=4000)  # every light path is worked out per LED: it ran for minutes
+    with pytest.raises(ToFErrorsError, match=r"errors.led_half_angle_deg must lie in \(0, 180\], got 360"):
+        ToFErrors(led_half_angle_deg=360.0)  # rendered a dark image
     assert ToFErrors.realistic().only("wiggling") == ToFErrors(wiggling=True)

@@ -307,11 +307,10 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_plan_boards(args: argparse.Namespace) -> int:
-    import yaml
-
     from omnitof.calibration import load_calibration
     from omnitof.calibration.planning import board_plan
     from omnitof.calibration.targets import Checkerboard
+    from omnitof.errors import dump_yaml
     from omnitof.io.atomic import atomic_write
     from omnitof.sensor.design import default_rig
     from omnitof.viz.calibration import plot_board_plan
@@ -338,7 +337,7 @@ def cmd_plan_boards(args: argparse.Namespace) -> int:
     plan = board_plan(camera, board, args.boards, args.seed, sigma_px=sigma_px, taken=taken)
     args.out.mkdir(parents=True, exist_ok=True)
     with atomic_write(args.out / "boards.yaml", "w") as handle:
-        yaml.safe_dump(plan, handle, sort_keys=False)
+        dump_yaml(plan, handle, sort_keys=False)
     boards = plan["boards"]
     plot_board_plan(args.out / "boards.png", camera.width, camera.height,
                     [np.array(b["outline_px"]) for b in boards], np.array([b["first_corner_px"] for b in boards]),

@@ -27,8 +27,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
+from omnitof.errors import dump_yaml
 from omnitof.io.atomic import atomic_write
 from omnitof.io.plain import to_plain
 
@@ -164,7 +164,7 @@ def run_world(settings: DemoSettings, out: str | Path, *, progress: bool = True,
     summary["stages"] = stages.rows
     summary["total_seconds"] = round(time.perf_counter() - started, 1)
     with atomic_write(paths["summary"]) as f:
-        yaml.safe_dump({"run": result.stats, "demo": to_plain(summary)}, f, sort_keys=False)
+        dump_yaml({"run": result.stats, "demo": to_plain(summary)}, f, sort_keys=False)
     return DemoRun(summary, world, scans)
 
 
@@ -364,7 +364,7 @@ def write_report(path: Path, summary: dict[str, Any], voxel_paths: dict[str, Pat
     if "table1_text" in ev:
         lines += ["## Table I: distances between opposite walls (cm)", "", "```", ev["table1_text"], "```", ""]
     cal = summary["calibration"]
-    lines += ["## Calibration", "", "```", yaml.safe_dump(to_plain(cal), sort_keys=False).rstrip(), "```", ""]
+    lines += ["## Calibration", "", "```", dump_yaml(to_plain(cal), sort_keys=False).rstrip(), "```", ""]
     lines += ["## The sensor", "", "![amplitude](fig3_amplitude.png) ![depth](fig3_depth.png)", "",
               "![scan](scan.png) ![slice](slice.png)", ""]
     if voxel_paths:

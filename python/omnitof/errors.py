@@ -71,29 +71,44 @@ class _UniqueKeyLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
-def _numbers_without_base_60() -> None:
-    """Numbers as YAML 1.2 reads them, in `_UniqueKeyLoader`. PyYAML follows YAML 1.1, where
-    `10:00` is the base-60 integer 600 (`--set filter.particles=10:00` ran 600 particles) and
-    `5e-2`, without a dot, is a string (ROS map files write resolutions so). Every other implicit
-    type (bool, null, timestamps, ...) stays as PyYAML has it."""
-    resolvers = {
-        first: [(tag, regexp) for tag, regexp in entries if tag not in (_INT, _FLOAT)]
+_INT, _FLOAT = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"
+
+
+def _numbers_without_base_60(cls: type, keep_yaml_1_1: bool = False) -> None:
+    """Numbers in `cls` (a loader or a dumper) as PyYAML's YAML 1.1 reads them, less base 60
+    and plus exponents without a dot: `10:00` was the integer 600 (`--set filter.particles=10:00`
+    ran 600 particles) and `5e-2` a string (ROS map files write resolutions so); both as YAML
+    1.2 reads them. Every other implicit type (bool, null, octal 010, 1_000, timestamps) stays as
+    PyYAML has it. A dumper keeps YAML 1.1's rules as well (`keep_yaml_1_1`), so that it quotes
+    every string that either would read as a number: what it writes reads back the same here
+    and in other YAML 1.1 tools."""
+    cls.yaml_implicit_resolvers = {
+        first: [(tag, regexp) for tag, regexp in entries if keep_yaml_1_1 or tag not in (_INT, _FLOAT)]
         for first, entries in yaml.SafeLoader.yaml_implicit_resolvers.items()
     }
-    _UniqueKeyLoader.yaml_implicit_resolvers = resolvers
-    _UniqueKeyLoader.add_implicit_resolver(
+    cls.add_implicit_resolver(
         _INT, re.compile(r"^(?:[-+]?0b[0-1_]+|[-+]?0[0-7_]+|[-+]?(?:0|[1-9][0-9_]*)|[-+]?0x[0-9a-fA-F_]+)$"),
         list("-+0123456789"),
     )
-    _UniqueKeyLoader.add_implicit_resolver(
+    cls.add_implicit_resolver(
         _FLOAT, re.compile(r"^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?|[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+"
                            r"|[-+]?\.[0-9][0-9_]*(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"),
         list("-+0123456789."),
     )
 
 
-_INT, _FLOAT = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"
-_numbers_without_base_60()
+class YamlDumper(getattr(yaml, "CSafeDumper", yaml.SafeDumper)):  # type: ignore[misc]
+    """PyYAML's safe dumper (the C one where built) with `load_yaml`'s numbers: every YAML the
+    project writes is read back by `load_yaml` to what was written."""
+
+
+_numbers_without_base_60(_UniqueKeyLoader)
+_numbers_without_base_60(YamlDumper, keep_yaml_1_1=True)
+
+
+def dump_yaml(data: Any, stream: Any = None, **options: Any) -> Any:
+    """`yaml.safe_dump` with `YamlDumper` (the text, or None when written to `stream`)."""
+    return yaml.dump(data, stream, Dumper=YamlDumper, **options)
 
 
 def load_yaml(text: str) -> Any:

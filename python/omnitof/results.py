@@ -31,9 +31,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
-from omnitof.errors import OutputError
+from omnitof.errors import OutputError, dump_yaml
 from omnitof.interrupts import pause_point
 from omnitof.slam.config import SlamConfig
 from omnitof.io.atomic import atomic_folder, atomic_write
@@ -145,7 +144,7 @@ def write_results(
                         title=f"pose graph: {title}" if title else "")
     summary = {"run": result.stats, **(extra or {}), "tum_poses_merged": merged}
     with atomic_write(paths["summary"]) as f:
-        yaml.safe_dump(summary, f, sort_keys=False)
+        dump_yaml(summary, f, sort_keys=False)
     return paths
 
 

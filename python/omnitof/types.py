@@ -11,6 +11,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
+def first_non_finite(*arrays: np.ndarray) -> int | None:
+    """The first row at which any of `arrays` ((N,) or (N, k) each, N shared) holds a value
+    that is not finite; None where every row is finite. Every check of stamps and poses uses it,
+    so that each names the first bad row the same way."""
+    if len(arrays[0]) == 0:
+        return None
+    bad = np.zeros(len(arrays[0]), dtype=bool)
+    for values in arrays:
+        values = np.asarray(values)
+        bad |= ~np.isfinite(values).reshape(len(values), -1).all(axis=1)
+    return int(np.argmax(bad)) if bad.any() else None
+
+
 @dataclass
 class ScanSequence:
     """A stream of planar range scans with the odometry pose of the robot at each scan.
@@ -89,8 +102,8 @@ class ScanSequence:
         # the trajectory, and a NaN there fails only the file written at the end.
         for name in ("timestamps", "odometry", "sensor_pose", "ground_truth"):
             values = getattr(self, name)
-            if values is not None and not np.isfinite(values).all():
-                first = int(np.argmax(~np.isfinite(values).reshape(len(values), -1).all(axis=1)))
+            first = None if values is None else first_non_finite(values)
+            if first is not None:
                 raise ValueError(f"{name} must be finite; entry {first} is {values[first]}")
         if self.remissions is not None:
             self.remissions = np.ascontiguousarray(self.remissions, dtype=np.float32)

@@ -163,8 +163,9 @@ impl PyRenderer {
             })
             .collect();
         let table = self::materials(&materials)?;
+        // "world: " marks the scene's own refusals, which the Python side blames on the world file.
         let scene = Scene::new(&walls, &blocks, table, floor_material, ceiling_material, ceiling_height, cell)
-            .map_err(PyValueError::new_err)?;
+            .map_err(|e| PyValueError::new_err(format!("world: {e}")))?;
 
         let dirs: Vec<[f64; 3]> = rows(&directions, 3, "directions")?.iter().map(|r| [r[0], r[1], r[2]]).collect();
         let mirrors = self::mirrors(&mirror_planes, &mirror_vertices, &mirror_counts, &mirror_reflectivity)?;

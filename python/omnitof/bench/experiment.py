@@ -37,7 +37,7 @@ import yaml
 from pydantic import AfterValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from omnitof.settings_model import SettingsModel
-from omnitof.errors import ConfigError, OmnitofError, leading_problem, load_yaml, yaml_problem
+from omnitof.errors import ConfigError, OmnitofError, dump_yaml, leading_problem, load_yaml, yaml_problem
 
 METRICS = ("relations", "trajectory", "floorplan", "table1")
 # Runs of one experiment: planning takes about 1 ms a run, a run seconds to hours.
@@ -234,7 +234,7 @@ class RunSpec:
 
 
 def _yaml_scalar(value: Any) -> str:
-    return yaml.safe_dump(value, default_flow_style=True).strip().removesuffix("\n...").strip()
+    return dump_yaml(value, default_flow_style=True).strip().removesuffix("\n...").strip()
 
 
 def _field(loc: tuple) -> str:

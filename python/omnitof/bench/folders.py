@@ -25,6 +25,7 @@ from typing import Any
 import yaml
 
 from omnitof.bench.experiment import ExperimentError, RunSpec
+from omnitof.errors import dump_yaml
 from omnitof.io.atomic import atomic_folder, atomic_write, sweep_leftovers
 from omnitof.io.plain import to_plain
 from omnitof.results import SUMMARY, is_complete
@@ -97,7 +98,7 @@ def write_failure(out: Path, run_id: str, record: dict[str, Any]) -> Path:
 
 
 def _write_record(folder: Path, record: dict[str, Any]) -> None:
-    (folder / RECORD).write_text(yaml.safe_dump(to_plain(record), sort_keys=False, allow_unicode=True),
+    (folder / RECORD).write_text(dump_yaml(to_plain(record), sort_keys=False, allow_unicode=True),
                                  encoding="utf-8")
 
 

@@ -38,7 +38,7 @@ from omnitof.bench import folders
 from omnitof.bench.experiment import Experiment, InputSpec, RunSpec, plan_runs
 from omnitof.bench.inputs import InputFile, input_file, prepare_world
 from omnitof.bench.task import run_one
-from omnitof.errors import OmnitofError
+from omnitof.errors import OmnitofError, dump_yaml
 from omnitof.io.atomic import atomic_write
 
 # How long to wait for a running cluster to have a worker before giving up.
@@ -265,7 +265,7 @@ def _save_prepared(out: Path, name: str, future: Any) -> None:
         f.write(made.data or b"")
     # The record last: a bag without it is not taken for made (`_prepared`).
     with atomic_write(bag.with_suffix(".yaml")) as f:
-        yaml.safe_dump(made.made or {}, f, sort_keys=False, allow_unicode=True)
+        dump_yaml(made.made or {}, f, sort_keys=False, allow_unicode=True)
 
 
 def collect_run(out: Path, run: RunSpec, label: str, future: Any,

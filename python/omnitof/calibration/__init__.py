@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from omnitof.errors import InputError, load_yaml, yaml_problem
+from omnitof.errors import InputError, YamlDumper, load_yaml, yaml_problem
 from omnitof.io.atomic import atomic_write
 from omnitof.io.plain import to_plain
 from omnitof.calibration.distance import DistanceCorrection, DistanceCorrectionError
@@ -295,11 +295,11 @@ def save_calibration(cal: Calibration, path: str | Path) -> Path:
     return path
 
 
-class _Dumper(yaml.SafeDumper):
+class _Dumper(YamlDumper):
     """Lists of numbers on one line ([1.0, 2.0]); everything else (mask rows) one item a line."""
 
 
-def _represent_list(dumper: yaml.SafeDumper, data: list) -> yaml.Node:
+def _represent_list(dumper: YamlDumper, data: list) -> yaml.Node:
     flow = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in data)
     return dumper.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flow)
 

@@ -28,7 +28,7 @@ from matplotlib.path import Path as MplPath
 from scipy.ndimage import distance_transform_edt
 
 from omnitof.calibration import CalibrationError
-from omnitof.errors import load_yaml, yaml_problem
+from omnitof.errors import dump_yaml, load_yaml, yaml_problem
 from omnitof.sensor.camera import Camera
 from omnitof.io.atomic import atomic_write
 from omnitof.sensor.mirrors import MirrorPlane
@@ -161,7 +161,7 @@ def write_polygon_file(path: str | Path, polygons: Mapping[str, np.ndarray]) -> 
     path = Path(path)
     data = {k: np.asarray(v, dtype=np.float64).tolist() for k, v in polygons.items()}
     text = "# mirror regions: image polygons, u v in pixels (pixel centres at integers)\n"
-    text += yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=100)
+    text += dump_yaml(data, sort_keys=False, default_flow_style=None, width=100)
     with atomic_write(path, "w") as handle:
         handle.write(text)
     return path

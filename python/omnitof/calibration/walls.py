@@ -32,7 +32,7 @@ import numpy as np
 import yaml
 
 from omnitof.calibration.distance import DistanceCorrection, samples_from_plane
-from omnitof.errors import load_yaml, yaml_problem
+from omnitof.errors import dump_yaml, load_yaml, yaml_problem
 
 # Wall distances (metres, horizontal, from the centre of the mirror's view): the scans' range
 # (ScanSettings.max_range 7 m; oblique rays reach the 7.49 m unambiguous range beyond 5 m).
@@ -381,5 +381,5 @@ def write_wall_recordings(folder: str | Path, recordings: Sequence[WallRecording
     out = folder / "walls.yaml"
     with atomic_write(out) as handle:
         handle.write("# Wall positions for `omnitof calibrate distance` (see docs/guide/calibration.md).\n")
-        yaml.safe_dump({"walls": entries}, handle, sort_keys=False)
+        dump_yaml({"walls": entries}, handle, sort_keys=False)
     return out

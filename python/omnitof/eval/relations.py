@@ -49,7 +49,7 @@ import numpy as np
 from omnitof.errors import InputError, OmnitofWarning, read_problem
 from omnitof.io.text import parse_float_row
 from omnitof.geometry import relative, wrap_angle
-from omnitof.types import Trajectory
+from omnitof.types import Trajectory, first_non_finite
 
 ROW_MESSAGE = "relation rows need 8 numbers: t1 t2 x y z roll pitch yaw"
 _FIELDS = ("t1", "t2", "x", "y", "z", "roll", "pitch", "yaw")
@@ -247,9 +247,8 @@ def evaluate_relations(
     """
     if not time_tolerance >= 0:  # NaN too
         raise ValueError(f"time_tolerance must be >= 0 seconds, got {time_tolerance}")
-    bad = ~(np.isfinite(traj.timestamps) & np.isfinite(traj.poses).all(axis=1))
-    if bad.any():
-        i = int(np.argmax(bad))
+    i = first_non_finite(traj.timestamps, traj.poses)
+    if i is not None:
         raise InputError(f"the trajectory's pose {i} is not finite: stamp {traj.timestamps[i]}, pose {traj.poses[i]}",
                          source)
     i1, ok1 = match_times(traj.timestamps, relations.t1, time_tolerance)

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from omnitof.geometry import wrap_angle
+from omnitof.types import first_non_finite
 
 
 @dataclass(frozen=True)
@@ -37,9 +38,9 @@ def absolute_trajectory_error(estimate: np.ndarray, truth: np.ndarray) -> Trajec
     if estimate.ndim != 2 or estimate.shape[1] != 3 or len(estimate) == 0:
         raise ValueError(f"trajectories must be (N >= 1, 3) poses (x, y, theta), got shape {estimate.shape}")
     for name, poses in (("estimate", estimate), ("truth", truth)):
-        bad = ~np.isfinite(poses).all(axis=1)
-        if bad.any():
-            raise ValueError(f"the {name}'s pose {int(np.argmax(bad))} is not finite: {poses[np.argmax(bad)]}")
+        i = first_non_finite(poses)
+        if i is not None:
+            raise ValueError(f"the {name}'s pose {i} is not finite: {poses[i]}")
     d = np.hypot(estimate[:, 0] - truth[:, 0], estimate[:, 1] - truth[:, 1])
     h = np.degrees(np.abs(wrap_angle(estimate[:, 2] - truth[:, 2])))
     return TrajectoryError(

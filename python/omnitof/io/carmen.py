@@ -47,6 +47,7 @@ from omnitof.types import (
     Trajectory,
     drop_repeated_scans,
     evenly_spaced_beams,
+    first_non_finite,
     pad_rows,
 )
 
@@ -1167,9 +1168,8 @@ def _check_writable(scans: ScanSequence, hostname: str) -> None:
         # as it, in float32, where 1e300 is inf.
         raise ValueError(f"max_range must be a finite number of at least 1 mm and at most {MAX_WRITTEN_RANGE:g} m, "
                          f"got {scans.max_range}")
-    bad = np.flatnonzero(~(np.isfinite(scans.timestamps) & np.isfinite(scans.odometry).all(axis=1)))
-    if bad.size:
-        i = int(bad[0])
+    i = first_non_finite(scans.timestamps, scans.odometry)
+    if i is not None:
         raise ValueError(
             f"scan {i} is not finite: timestamp {scans.timestamps[i]}, odometry {scans.odometry[i].tolist()}"
         )

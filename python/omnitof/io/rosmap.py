@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from omnitof.errors import InputError, OutputError, load_yaml, read_problem, yaml_problem
+from omnitof.errors import InputError, OutputError, dump_yaml, load_yaml, read_problem, yaml_problem
 from omnitof.io.atomic import atomic_write
 from omnitof.types import OccupancyMap
 
@@ -134,7 +134,7 @@ def _map_yaml(
     # repr() of a float round-trips exactly; written by hand to keep map_server's familiar layout.
     # The image name goes through PyYAML, which quotes it where a plain scalar would be misread
     # ('#m.pgm' is a comment, 'a: b.pgm' a mapping).
-    return yaml.safe_dump({"image": image_name}, width=math.inf) + (
+    return dump_yaml({"image": image_name}, width=1 << 30) + (
         f"resolution: {float(occ.resolution)!r}\n"
         f"origin: [{x0!r}, {y0!r}, 0.0]\n"
         "negate: 0\n"

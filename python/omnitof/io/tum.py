@@ -16,7 +16,7 @@ from omnitof.errors import InputError, read_problem
 from omnitof.io.text import parse_float_row
 from omnitof.geometry import quaternion_to_yaw, yaw_to_quaternion
 from omnitof.io.atomic import atomic_write
-from omnitof.types import Trajectory
+from omnitof.types import Trajectory, first_non_finite
 
 HEADER = "# timestamp x y z qx qy qz qw"
 ROW_MESSAGE = "TUM trajectory rows need 8 numbers: timestamp x y z qx qy qz qw"
@@ -71,9 +71,8 @@ def write_tum(path: str | Path, traj: Trajectory, *, sort: bool = False) -> int:
 def _check_poses(traj: Trajectory) -> None:
     if len(traj) == 0:
         raise ValueError("the trajectory has no pose; a TUM file needs at least one")
-    bad = ~(np.isfinite(traj.timestamps) & np.isfinite(traj.poses).all(axis=1))
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
+    i = first_non_finite(traj.timestamps, traj.poses)
+    if i is not None:
         raise ValueError(
             f"trajectory pose {i} is not finite: timestamp {traj.timestamps[i]}, "
             f"pose {traj.poses[i].tolist()}"

@@ -60,7 +60,7 @@ from pydantic import ConfigDict, Field, ValidationError, field_validator, model_
 from omnitof.settings_model import SettingsModel
 from omnitof.sensor.camera import Camera
 from omnitof.errors import ConfigError, InputError, leading_problem
-from omnitof.sensor.mirrors import Mirror, MirrorPlane
+from omnitof.sensor.mirrors import Mirror, MirrorParameterError, MirrorPlane, rigid_mount
 from omnitof.scan.grazing import drop_grazing
 from omnitof.scan.multipath import MultipathCompensation, MultipathSettings
 from omnitof.scan.pixel_filter import PixelFilter, PixelFilterSettings
@@ -282,10 +282,11 @@ class ScanExtractor:
                 f"got {labels.min()}..{labels.max()}"
             )
         self.labels = labels.astype(np.int32)
-        mount = np.asarray(robot_T_camera, dtype=np.float64)
-        if mount.shape != (4, 4) or not np.all(np.isfinite(mount)):
-            raise ScanConfigError(f"robot_T_camera must be a finite 4×4 transform, got shape {mount.shape}")
-        self.robot_T_camera = mount
+        try:
+            # Its rotation made exact: the multipath compensation needs unit directions.
+            self.robot_T_camera = rigid_mount(robot_T_camera)
+        except MirrorParameterError as err:
+            raise ScanConfigError(str(err)) from None
         self._precompute()
 
     # --- construction helpers ----------------------------------------------------------------

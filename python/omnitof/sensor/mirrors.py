@@ -101,18 +101,41 @@ def camera_mount(camera_height: float = DEFAULT_CAMERA_HEIGHT) -> np.ndarray:
     return transform
 
 
+# How far RᵀR of a mount may stray from I: a rotation typed to 5 decimals (a 45° yaw as 0.70711)
+# is meant as one. `rigid_mount` then snaps it to the nearest rotation for everything downstream.
+MOUNT_TOLERANCE = 1e-5
+
+
 def mount_rotation(robot_T_camera: np.ndarray | None = None) -> np.ndarray:
     """The rotation robot_R_camera (3×3) of a mount robot_T_camera (4×4), checked to be a
-    proper rotation; ROBOT_R_CAMERA (camera_mount's) if None."""
+    proper rotation to MOUNT_TOLERANCE and snapped to the nearest one; ROBOT_R_CAMERA
+    (camera_mount's) if None."""
     if robot_T_camera is None:
         return np.asarray(ROBOT_R_CAMERA)
-    transform = np.asarray(robot_T_camera, dtype=np.float64)
+    return rigid_mount(robot_T_camera)[:3, :3]
+
+
+def rigid_mount(robot_T_camera: np.ndarray) -> np.ndarray:
+    """robot_T_camera (4×4) checked to be a rigid transform (finite, a proper rotation to
+    MOUNT_TOLERANCE, bottom row 0 0 0 1), its rotation snapped to the nearest proper rotation
+    (the polar factor, by SVD): the renderer and the multipath compensation need one exactly."""
+    transform = np.array(robot_T_camera, dtype=np.float64)
     if transform.shape != (4, 4):
         raise MirrorParameterError(f"robot_T_camera must be 4×4, got shape {transform.shape}")
+    if not np.isfinite(transform).all():
+        raise MirrorParameterError("robot_T_camera must be finite")
+    if not np.array_equal(transform[3], [0.0, 0.0, 0.0, 1.0]):
+        raise MirrorParameterError(f"robot_T_camera's last row must be 0 0 0 1, got {transform[3].tolist()}")
     rotation = transform[:3, :3]
-    if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-9) or np.linalg.det(rotation) < 0:
-        raise MirrorParameterError("robot_T_camera's rotation must be a proper rotation")
-    return rotation
+    stray = np.abs(rotation.T @ rotation - np.eye(3)).max()
+    if not stray <= MOUNT_TOLERANCE or np.linalg.det(rotation) < 0:
+        raise MirrorParameterError(
+            f"robot_T_camera's rotation must be a proper rotation (RᵀR = I to {MOUNT_TOLERANCE:g}, det +1); "
+            f"RᵀR is {stray:.3g} off I, det {np.linalg.det(rotation):.6g}"
+        )
+    u, _, vt = np.linalg.svd(rotation)
+    transform[:3, :3] = u @ vt
+    return transform
 
 
 def direction_name(bearing_deg: float) -> str:

@@ -43,7 +43,7 @@ from omnitof.sensor.mirrors import (
     MirrorPlane,
     camera_mount,
     masks,
-    mount_rotation,
+    rigid_mount,
 )
 from omnitof.sensor.tof import SensorNoise, ToFParameterError
 
@@ -84,8 +84,7 @@ class Rig:
             raise MirrorParameterError(f"rig: {len(planes)} mirror planes but {len(names)} names")
         if len(set(names)) != len(names):
             raise MirrorParameterError(f"rig: mirror names must differ, got {list(names)}")
-        mount = np.array(self.robot_T_camera, dtype=np.float64)
-        mount_rotation(mount)  # checks that it is a proper rigid transform
+        mount = rigid_mount(self.robot_T_camera)  # checked, its rotation made exact
         mount.setflags(write=False)
         outlines = self.outlines
         if outlines is not None:

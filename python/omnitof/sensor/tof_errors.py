@@ -176,6 +176,8 @@ class ToFErrors:
         for name in ("amplitude_reference", "integration_time"):
             if not getattr(self, name) > 0.0:
                 raise ToFErrorsError(f"errors.{name} must be > 0, got {getattr(self, name)!r}")
+        if not 0.0 < self.led_half_angle_deg <= 180.0:
+            raise ToFErrorsError(f"errors.led_half_angle_deg must lie in (0, 180], got {self.led_half_angle_deg!r}")
         if not 0.0 <= self.led_radius < 0.5:
             raise ToFErrorsError(f"errors.led_radius must lie in [0, 0.5) metres, got {self.led_radius!r}")
         if not 0.0 < self.led_half_angle_deg <= 180.0:

@@ -42,7 +42,7 @@ from omnitof import _core
 from omnitof.sensor.camera import Camera
 from omnitof.sensor.design import DEFAULT_RIG_MIRRORS, DEFAULT_RIG_TILT_DEG, DEFAULT_RIG_YAW_DEG, default_rig
 from omnitof.errors import ConfigError
-from omnitof.sensor.mirrors import Mirror, camera_mount, mount_rotation, pyramid
+from omnitof.sensor.mirrors import Mirror, camera_mount, pyramid, rigid_mount
 from omnitof.sensor.rig import Rig
 from omnitof.sim.worlds import World
 from omnitof.sensor.tof import SensorNoise, ToFFrame, unambiguous_range
@@ -197,9 +197,7 @@ class Renderer:
             )
         if self.robot_T_camera is None:
             self.robot_T_camera = camera_mount()
-        mount = np.asarray(self.robot_T_camera, dtype=np.float64)
-        mount_rotation(mount)  # checks that it is a proper rigid transform
-        self.robot_T_camera = mount
+        self.robot_T_camera = rigid_mount(self.robot_T_camera)  # checked, its rotation made exact
         self._directions = sub_ray_directions(self.camera, self.settings.sub_rays, self.settings.seed)
         self._core = self._build_core()
 
@@ -395,9 +393,13 @@ class Renderer:
                 threads=settings.threads,
                 **self._light_arguments(),
             )
-        except ValueError as err:  # the core refuses a scene it cannot hold (a plan too wide)
+        except ValueError as err:
+            message = str(err)
+            if not message.startswith("world: "):  # the rig's or the settings' (named in it)
+                raise RenderConfigError(f"renderer: {message}") from None
+            # the world's: a scene the core cannot hold (a plan too wide)
             where = f"{world.source}: " if getattr(world, "source", None) else ""
-            raise RenderConfigError(f"{where}world {world.name!r}: {err}") from None
+            raise RenderConfigError(f"{where}world {world.name!r}: {message.removeprefix('world: ')}") from None
 
 
 def subpixel_offsets(height: int, width: int, sub_rays: int, seed: int) -> np.ndarray:

@@ -24,13 +24,12 @@ import yaml
 from pydantic import ConfigDict, Field, ValidationError, model_validator
 
 from omnitof.settings_model import SettingsModel
-from omnitof.errors import ConfigError, load_yaml, yaml_problem
+from omnitof.errors import ConfigError, dump_yaml, load_yaml, yaml_problem
 from omnitof.io.text import shorten
 from omnitof.scan.extract import ScanSettings
 
 # libyaml's emitter where PyYAML has it (the same text, 4x faster: `omnitof bench` writes one
 # configuration per run to compare it with a resumed run's).
-_DUMPER = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 
 
 # Every number has its real domain here, not only its sign: a value outside it would not
@@ -444,7 +443,7 @@ class SlamConfig(_Section):
         return self
 
     def to_yaml(self) -> str:
-        return yaml.dump(self.model_dump(), Dumper=_DUMPER, sort_keys=False)
+        return dump_yaml(self.model_dump(), sort_keys=False)
 
 
 def preset_names() -> list[str]:

@@ -307,11 +307,20 @@ def check_submaps(scans: ScanSequence, cfg: SlamConfig) -> None:
     backend.submap_length metres of trajectory plus the sensor's reach on each side.
 
     Raises:
-        ConfigError: naming backend.submap_length, map.max_range and map.resolution.
+        ConfigError: naming backend.submap_length, map.max_range and map.resolution; or
+            map.resolution coarser than an eighth of the reach.
     """
     if not cfg.backend.enabled:
         return
-    side = (cfg.backend.submap_length + 2.0 * _reach(scans, cfg)) / cfg.map.resolution
+    reach = _reach(scans, cfg)
+    if 8.0 * cfg.map.resolution > reach:  # the core's SubmapParams::check
+        raise ConfigError(
+            f"map.resolution {cfg.map.resolution:g} m is too coarse for the back end's submaps at a reach of "
+            f"{reach:g} m (map.max_range {cfg.map.max_range:g} m, the scans' {scans.max_range:g} m): a "
+            "submap's cells must be at most an eighth of it, or its search turns in steps near π; refine "
+            "map.resolution or turn the back end off (backend.enabled false)"
+        )
+    side = (cfg.backend.submap_length + 2.0 * reach) / cfg.map.resolution
     limit = _core.Submap.max_side_cells()
     if side > limit:
         raise ConfigError(

@@ -39,7 +39,9 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from omnitof.errors import InputError, OmnitofError, OmnitofWarning, OutputError, load_yaml, read_problem, yaml_problem
+from omnitof.errors import (
+    InputError, OmnitofError, OmnitofWarning, OutputError, dump_yaml, load_yaml, read_problem, yaml_problem,
+)
 from omnitof.geometry import quaternion_to_yaw, yaw_to_quaternion
 from omnitof.interrupts import deferred_signals
 from omnitof.io.atomic import fsync_dir, replaceable_place, temporary_folder
@@ -413,7 +415,7 @@ def _sidecar_text(sidecar: dict) -> str:
     if not isinstance(sidecar, dict):
         raise ValueError(f"sidecar must be a dict, got {type(sidecar).__name__}")
     try:
-        body = yaml.safe_dump(to_plain(sidecar), sort_keys=False, allow_unicode=True)
+        body = dump_yaml(to_plain(sidecar), sort_keys=False, allow_unicode=True)
     except yaml.YAMLError as err:
         raise ValueError(f"sidecar is not YAML-serialisable: {err}") from None
     return (

@@ -57,6 +57,7 @@ from omnitof.types import (
     Trajectory,
     drop_repeated_scans,
     evenly_spaced_beams,
+    first_non_finite,
     pad_rows,
 )
 
@@ -390,9 +391,9 @@ def write_laserscan_bag(
     for name, poses in (("odometry", scans.odometry), ("ground_truth", scans.ground_truth)):
         if poses is None:
             continue
-        bad = np.flatnonzero(~np.isfinite(poses).all(axis=1))
-        if bad.size:  # the reader refuses a pose that is not finite
-            raise ValueError(f"scan {bad[0]}: its {name} pose is not finite: {poses[bad[0]].tolist()}")
+        i = first_non_finite(poses)
+        if i is not None:  # the reader refuses a pose that is not finite
+            raise ValueError(f"scan {i}: its {name} pose is not finite: {poses[i].tolist()}")
     ros1 = version == 1
     store = _ros1_store() if ros1 else _ros2_store()
     intensities = (
