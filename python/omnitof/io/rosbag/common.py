@@ -19,7 +19,8 @@ beside it as `<file>.omnitof.yaml`.
 Writing is all-or-nothing: a bag is written under a hidden temporary name beside its target
 (`.<name>.<random>.tmp/`) and renamed into place only when complete, so an interrupted write
 leaves no valid-looking bag. Times are ROS times (sec, nanosec) made from float seconds with
-`to_ros_time` (nearest nanosecond) and read back with `from_ros_time`; they must be >= 0.
+`to_ros_time` (nearest nanosecond) and read back with `from_ros_time`; they must lie in
+[0, 2**31) s (ROS 2 stamps hold int32 seconds).
 Units and frames follow omnitof.types: metres, radians, seconds; θ counter-clockwise from +x.
 """
 
@@ -98,7 +99,8 @@ class RosbagWarning(OmnitofWarning):
 
 
 def to_ros_time(t: float) -> tuple[int, int]:
-    """(sec, nanosec) of a time in float seconds, to the nearest nanosecond; t must be >= 0.
+    """(sec, nanosec) of a time in float seconds, to the nearest nanosecond; t must lie in
+    [0, 2**31) s.
 
     The whole seconds are split off exactly before rounding, so epoch times (~1.7e9 s) keep the
     full precision of their float.
@@ -113,8 +115,10 @@ def from_ros_time(sec: int, nanosec: int) -> float:
 
 def _to_ns(t: float) -> int:
     t = float(t)
-    if not math.isfinite(t) or t < 0.0:
-        raise ValueError(f"a ROS bag time must be finite and >= 0 s, got {t!r}")
+    # A header stamp's seconds are an int32 in ROS 2 (uint32 in ROS 1): 1e300 s raised a bare
+    # struct.error deep in the serialiser.
+    if not (math.isfinite(t) and 0.0 <= t < 2.0**31):
+        raise ValueError(f"a ROS bag time must be finite, >= 0 s and before 2038-01-19 (2**31 s), got {t!r}")
     sec = math.floor(t)
     return sec * _NS + round((t - sec) * 1e9)  # t - floor(t) is exact for floats
 
