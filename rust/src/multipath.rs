@@ -222,7 +222,7 @@ impl Compensator {
         if p.normal_radius > side || p.smooth_radius > side {
             return Err(format!("normal_radius and smooth_radius must be at most the image's side, {side} pixels"));
         }
-        // k = 4π·f_mod/c: 1e6 rad/m is a modulation far beyond any ToF camera's (40 GHz).
+        // k = 4π·f_mod/c: 1e6 rad/m is a modulation of 24 THz, far beyond any ToF camera's (tens of MHz).
         if !(p.k <= 1e6 && p.amplitude_at_1m <= 1e30 && p.mirror_reflectivity <= 1.0 && p.min_cos <= 1.0) {
             return Err(format!(
                 "k must be at most 1e6 rad/m, amplitude_at_1m at most 1e30, mirror_reflectivity and min_cos at most 1 \

@@ -75,7 +75,6 @@ class MotionSettings:
             raise ConfigError(f"motion.overlap must be >= 0 metres, got {self.overlap!r}")
 
 
-
 def _real(value: object) -> bool:
     """A finite number (not a bool)."""
     return (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
