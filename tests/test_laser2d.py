@@ -219,6 +219,14 @@ def test_loop_path_respects_speed_and_turn_rate_and_closes():
     print(f"loop path: {path.length:.2f} m, {len(path.poses)} poses, {path.timestamps[-1]:.1f} s")
 
 
+def test_plan_path_refuses_waypoints_that_are_not_finite_or_too_far():
+    with pytest.raises(ConfigError, match=r"waypoints must be finite, got \[nan, 1.0\]"):
+        plan_path(np.array([[0.0, 0.0], [np.nan, 1.0]]))
+    # 1e300 m: an infinite length, which int() refused with a bare OverflowError.
+    with pytest.raises(ConfigError, match="the path is inf m long"):
+        plan_path(np.array([[0.0, 0.0], [1e300, 0.0]]))
+
+
 def test_plan_path_refuses_a_turn_radius_the_rate_limit_forbids():
     with pytest.raises(ConfigError, match="max_turn_rate"):
         plan_path(np.array([[0.0, 0.0], [5.0, 0.0], [5.0, 5.0]]), 0.4, 10.0, 0.6, turn_radius=0.5)

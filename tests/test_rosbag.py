@@ -742,6 +742,13 @@ def test_laserscan_writer_refuses_one_topic_for_two_roles(tmp_path: Path, topics
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_topic_for_ground_truth_the_scans_do_not_have_clashes_with_nothing(tmp_path: Path) -> None:
+    scans = scan_sequence(n=3)
+    scans.ground_truth = None  # no ground truth topic is written
+    write_laserscan_bag(tmp_path / "x", scans, ground_truth_topic="/odom")
+    assert read_laserscan_bag(tmp_path / "x").ground_truth is None
+
+
 @pytest.mark.parametrize("field", ["odometry", "ground_truth"])
 def test_laserscan_writer_refuses_poses_its_reader_would(tmp_path: Path, field: str) -> None:
     scans = scan_sequence(n=3)

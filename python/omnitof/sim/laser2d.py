@@ -385,6 +385,11 @@ class PlannedPath:
     length: float
 
 
+# Most samples a planned path may have (each a pose; a simulated drive's frames): more only asks
+# for memory. 10 000 laps of a 10 m loop at 10 Hz and 0.4 m/s are 2.5 million.
+MAX_PATH_SAMPLES = 1e7
+
+
 def plan_path(
     waypoints: np.ndarray,
     speed: float = 0.4,
@@ -419,9 +424,15 @@ def plan_path(
             f"turn_radius {radius} m needs {speed / radius:.3f} rad/s at {speed} m/s, "
             f"above max_turn_rate {max_turn_rate} rad/s"
         )
-    pieces = _path_pieces(pts, radius)
-    total = float(sum(p.length for p in pieces))
+    if not np.isfinite(pts).all():
+        raise ConfigError(f"waypoints must be finite, got {pts[~np.isfinite(pts).all(axis=1)][0].tolist()}")
+    with np.errstate(over="ignore", invalid="ignore"):  # a waypoint at 1e300 m: an infinite length
+        pieces = _path_pieces(pts, radius)
+        total = float(sum(p.length for p in pieces))
     step = speed / rate_hz
+    if not total / step <= MAX_PATH_SAMPLES:  # inf too: a waypoint at 1e300 m
+        raise ConfigError(f"the path is {total:.3g} m long: at {speed:g} m/s and {rate_hz:g} Hz that is more than "
+                          f"{MAX_PATH_SAMPLES:.0e} samples")
     n = int(math.floor(total / step + 1e-9)) + 1
     s = np.arange(n) * step
     return PlannedPath(timestamps=np.arange(n) / rate_hz, poses=_sample_pieces(pieces, s),

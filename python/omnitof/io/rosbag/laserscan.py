@@ -364,10 +364,10 @@ def write_laserscan_bag(
             not finite, one topic for two roles, a bad path or version.
     """
     path = Path(path)
-    _distinct_topics({
-        "scan_topic": scan_topic, "odom_topic": odom_topic,
-        "ground_truth_topic": ground_truth_topic, "tf_static_topic": tf_static_topic,
-    })  # fmt: skip
+    roles = {"scan_topic": scan_topic, "odom_topic": odom_topic, "tf_static_topic": tf_static_topic}
+    if scans.ground_truth is not None:  # written only then
+        roles["ground_truth_topic"] = ground_truth_topic
+    _distinct_topics(roles)
     if version not in (1, 2):
         raise ValueError(f"version must be 1 (ROS 1) or 2 (ROS 2), got {version!r}")
     if version == 1 and path.suffix != ".bag":
