@@ -753,7 +753,7 @@ def test_a_topic_for_ground_truth_the_scans_do_not_have_clashes_with_nothing(tmp
 def test_laserscan_writer_refuses_poses_its_reader_would(tmp_path: Path, field: str) -> None:
     scans = scan_sequence(n=3)
     getattr(scans, field)[2, 1] = np.nan
-    with pytest.raises(ValueError, match=rf"scan 2: its {field} pose is not finite: \[[^,]+, nan, "):
+    with pytest.raises(ValueError, match=rf"the scans' {field} pose 2 is not finite: \[[^,]+, nan, "):
         write_laserscan_bag(tmp_path / "x", scans)
     assert list(tmp_path.iterdir()) == []
 

@@ -179,3 +179,34 @@ def test_ply_clouds_read_back_as_written(case):
         back, colours = read_ply(path)
         assert colours is None
         np.testing.assert_array_equal(back, points.astype(np.float32).astype(np.float64))
+
+
+BAG = settings(PROPERTY, max_examples=int(40 * SCALE))  # a bag write and read take tens of ms
+
+
+@BAG
+@given(case=scan_fields(), version=st.sampled_from([1, 2]))
+def test_laserscan_bags_read_back_as_written(case, version):
+    from omnitof.io.rosbag import read_laserscan_bag, write_laserscan_bag
+
+    fields, _ = case
+    try:
+        with np.errstate(invalid="ignore", over="ignore"):
+            scans = ScanSequence(**fields)
+    except (ValueError, OmnitofError):  # the scans themselves refused the values: nothing to write
+        return
+    with tempfile.TemporaryDirectory() as name:
+        path = Path(name) / ("scans.bag" if version == 1 else "scans")
+        if not written_or_refused(write_laserscan_bag, path, scans, version=version):
+            return
+        back = read_laserscan_bag(path)
+        assert len(back) == len(scans)
+        np.testing.assert_allclose(back.timestamps, scans.timestamps, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(back.odometry[:, :2], scans.odometry[:, :2], rtol=0, atol=1e-6)
+        turn = np.angle(np.exp(1j * (back.odometry[:, 2] - scans.odometry[:, 2])))
+        np.testing.assert_allclose(turn, 0.0, atol=1e-6)
+        # No echo stays no echo; every reading up to range_max comes back (float32), as ROS reads
+        # LaserScan (only values beyond range_max are discarded).
+        echo = np.isfinite(scans.ranges) & (scans.ranges > 0.0) & (scans.ranges <= np.float32(back.max_range))
+        assert np.array_equal(np.isfinite(back.ranges) & (back.ranges > 0.0), echo)
+        np.testing.assert_array_equal(back.ranges[echo], scans.ranges[echo])

@@ -56,6 +56,11 @@ def anchor_offset(xy: np.ndarray, cell: float, reach_cells: float, unit_cells: i
     return np.round(xy[0] / unit) * unit
 
 
+# The largest heading (rad, unwrapped) a writer turns into a quaternion: at 1e6 rad a float64
+# still holds it to 1e-10 rad; at 1e300 its quaternion is rounding error.
+MAX_HEADING = 1e6
+
+
 def yaw_to_quaternion(theta: np.ndarray) -> np.ndarray:
     """Unit quaternions (qx, qy, qz, qw) of rotations by theta about +z."""
     theta = np.asarray(theta, dtype=np.float64)

@@ -14,7 +14,7 @@ import numpy as np
 
 from omnitof.errors import InputError, read_problem
 from omnitof.io.text import parse_float_row
-from omnitof.geometry import quaternion_to_yaw, yaw_to_quaternion
+from omnitof.geometry import MAX_HEADING, quaternion_to_yaw, yaw_to_quaternion
 from omnitof.io.atomic import atomic_write
 from omnitof.types import Trajectory, first_non_finite
 
@@ -23,8 +23,6 @@ ROW_MESSAGE = "TUM trajectory rows need 8 numbers: timestamp x y z qx qy qz qw"
 _FIELDS = ("timestamp", "x", "y", "z", "qx", "qy", "qz", "qw")
 # Positions beyond a million kilometres and quaternions far from unit length come from a broken
 # writer; the statistics over them overflow or print as hundreds of digits.
-# The largest heading (rad, unwrapped) written: at 1e6 rad a float64 still holds it to 1e-10 rad.
-MAX_HEADING = 1e6
 _LIMITS = {"x": 1e9, "y": 1e9, "z": 1e9, "qx": 1e3, "qy": 1e3, "qz": 1e3, "qw": 1e3}
 
 # Unix times (~1e9 s) at microsecond precision need 6 decimals; positions to the micrometre, and

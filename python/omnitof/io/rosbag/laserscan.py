@@ -36,6 +36,7 @@ from omnitof.io.rosbag.common import (
     WORLD_FRAME,
     RosbagWarning,
     _atomic_path,
+    _check_written_poses,
     _distinct_topics,
     _frame_name,
     _header,
@@ -57,7 +58,6 @@ from omnitof.types import (
     Trajectory,
     drop_repeated_scans,
     evenly_spaced_beams,
-    first_non_finite,
     pad_rows,
 )
 
@@ -68,6 +68,8 @@ _MAX_LASER_TILT_RAD = math.radians(5.0)
 # Scans whose first and last beams agree with the first scan's to this (rad) share its geometry;
 # also the tolerance on evenly spaced beams when writing (LaserScan stores angle_min + i·increment).
 _GEOMETRY_TOLERANCE = 1e-6
+# The largest float32: LaserScan's ranges and range_max are float32.
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 # --- reading -------------------------------------------------------------------------------
@@ -386,14 +388,14 @@ def write_laserscan_bag(
         raise ValueError("write_laserscan_bag: scan timestamps must not decrease")
     if not len(scans):
         raise ValueError("write_laserscan_bag needs at least one scan")
-    if not (math.isfinite(scans.max_range) and scans.max_range > 0.0):
-        raise ValueError(f"max_range must be a positive number, got {scans.max_range}")
+    if not (math.isfinite(scans.max_range) and 0.0 < scans.max_range <= _FLOAT32_MAX
+            and np.float32(scans.max_range) > 0.0):
+        # LaserScan's range_max is a float32: 1e300 overflows it, 1e-320 is 0 in it.
+        raise ValueError(f"max_range must be a positive float32 number, got {scans.max_range}")
     for name, poses in (("odometry", scans.odometry), ("ground_truth", scans.ground_truth)):
-        if poses is None:
-            continue
-        i = first_non_finite(poses)
-        if i is not None:  # the reader refuses a pose that is not finite
-            raise ValueError(f"scan {i}: its {name} pose is not finite: {poses[i].tolist()}")
+        if poses is not None:
+            _check_written_poses(poses, f"the scans' {name}")
+    _check_written_poses(scans.sensor_pose[None, :], "the sensor")
     ros1 = version == 1
     store = _ros1_store() if ros1 else _ros2_store()
     intensities = (

@@ -61,6 +61,7 @@ from omnitof.io.rosbag.common import (
     WORLD_FRAME,
     RosbagWarning,
     _atomic_path,
+    _check_written_poses,
     _connections,
     _distinct_topics,
     _header,
@@ -78,7 +79,7 @@ from omnitof.io.rosbag.common import (
 )
 from omnitof.sensor.camera import Camera, CameraParameterError
 from omnitof.sensor.rig import Rig
-from omnitof.types import Trajectory
+from omnitof.types import Trajectory, first_non_finite
 
 __all__ = ["ToFBag", "ToFFrameStamped", "ToFTopics", "read_tof_bag", "write_tof_bag"]
 
@@ -333,12 +334,11 @@ def _camera_info_cdr(store: Any, header: Any, camera: Camera) -> Any:
 def _checked_trajectory(trajectory: Trajectory, name: str) -> Trajectory:
     if not isinstance(trajectory, Trajectory):
         raise ValueError(f"{name} must be a Trajectory, got {type(trajectory).__name__}")
-    if not np.all(np.isfinite(trajectory.poses)) or not np.all(
-        np.isfinite(trajectory.timestamps)
-    ):
-        raise ValueError(f"{name} has non-finite poses or timestamps")
     if len(trajectory) == 0:
         raise ValueError(f"{name} has no pose")
+    if first_non_finite(trajectory.timestamps) is not None:
+        raise ValueError(f"{name} has non-finite timestamps")
+    _check_written_poses(trajectory.poses, name)
     if np.any(np.diff(trajectory.timestamps) < 0):
         raise ValueError(f"{name} timestamps must not decrease")
     return trajectory
