@@ -61,6 +61,15 @@ def anchor_offset(xy: np.ndarray, cell: float, reach_cells: float, unit_cells: i
 MAX_HEADING = 1e6
 
 
+def check_headings(poses: np.ndarray, what: str) -> None:
+    """ValueError naming the first of `poses` (N, 3) whose heading lies beyond MAX_HEADING, for
+    writers that turn headings into quaternions (TUM files, bags)."""
+    turned = np.flatnonzero(np.abs(poses[:, 2]) > MAX_HEADING)
+    if turned.size:
+        i = int(turned[0])
+        raise ValueError(f"{what} pose {i}: heading {poses[i, 2]:g} rad is beyond ±{MAX_HEADING:g} rad")
+
+
 def yaw_to_quaternion(theta: np.ndarray) -> np.ndarray:
     """Unit quaternions (qx, qy, qz, qw) of rotations by theta about +z."""
     theta = np.asarray(theta, dtype=np.float64)

@@ -14,7 +14,7 @@ import numpy as np
 
 from omnitof.errors import InputError, read_problem
 from omnitof.io.text import parse_float_row
-from omnitof.geometry import MAX_HEADING, quaternion_to_yaw, yaw_to_quaternion
+from omnitof.geometry import check_headings, quaternion_to_yaw, yaw_to_quaternion
 from omnitof.io.atomic import atomic_write
 from omnitof.types import Trajectory, first_non_finite
 
@@ -75,10 +75,7 @@ def _check_poses(traj: Trajectory) -> None:
             f"trajectory pose {i} is not finite: timestamp {traj.timestamps[i]}, "
             f"pose {traj.poses[i].tolist()}"
         )
-    turned = np.flatnonzero(np.abs(traj.poses[:, 2]) > MAX_HEADING)
-    if turned.size:  # its quaternion would hold only rounding error
-        i = int(turned[0])
-        raise ValueError(f"trajectory pose {i}: heading {traj.poses[i, 2]:g} rad is beyond ±{MAX_HEADING:g} rad")
+    check_headings(traj.poses, "trajectory")
     far = np.flatnonzero(np.abs(traj.poses[:, :2]).max(axis=1) > _LIMITS["x"])
     if far.size:
         i = int(far[0])

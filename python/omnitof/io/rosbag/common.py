@@ -43,7 +43,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from omnitof.errors import (
     InputError, OmnitofError, OmnitofWarning, OutputError, dump_yaml, load_yaml, read_problem, yaml_problem,
 )
-from omnitof.geometry import MAX_HEADING, quaternion_to_yaw, yaw_to_quaternion
+from omnitof.geometry import check_headings, quaternion_to_yaw, yaw_to_quaternion
 from omnitof.interrupts import deferred_signals
 from omnitof.io.atomic import fsync_dir, replaceable_place, temporary_folder
 from omnitof.io.plain import to_plain
@@ -430,13 +430,11 @@ def _sidecar_text(sidecar: dict) -> str:
 
 def _check_written_poses(poses: np.ndarray, what: str) -> None:
     """ValueError naming the first of `poses` (N, 3) that a reader would not get back: one that
-    is not finite, or whose heading is beyond MAX_HEADING (its quaternion would be rounding error)."""
+    is not finite, or whose heading its quaternion cannot hold (`geometry.check_headings`)."""
     i = first_non_finite(poses)
     if i is not None:
         raise ValueError(f"{what} pose {i} is not finite: {poses[i].tolist()}")
-    turned = np.flatnonzero(np.abs(poses[:, 2]) > MAX_HEADING)
-    if turned.size:
-        raise ValueError(f"{what} pose {turned[0]}: heading {poses[turned[0], 2]:g} rad is beyond ±{MAX_HEADING:g} rad")
+    check_headings(poses, what)
 
 
 def _distinct_topics(roles: dict[str, str]) -> None:
