@@ -153,6 +153,25 @@ def test_wall_samples_cover_the_length():
     assert np.all((np.abs(points[:, 0] % 4) < 1e-9) | (np.abs(points[:, 1] % 4) < 1e-9))
 
 
+def test_sample_counts_beyond_memory_are_refused_by_name():
+    # A user's spacing or step given in the wrong unit (mm for m) or a wall at infinity: one
+    # ValueError that says what to change, not numpy's MemoryError after minutes of allocation.
+    from omnitof.eval.floorplan import wall_samples
+    from omnitof.eval.table1 import sample_profile
+
+    with pytest.raises(ValueError, match="samples, more than 1e\\+08: give a wider spacing"):
+        wall_samples(ROOM * 1e4, spacing=1e-6)
+    with pytest.raises(ValueError, match="finite"):
+        wall_samples(np.array([[[0.0, 0.0], [np.inf, 0.0]]]))
+    occ = _grid_from_segments(ROOM)
+    with pytest.raises(ValueError, match="samples, more than 1e\\+07: give a larger step"):
+        sample_profile(occ, np.array([2.0, 2.0]), 0.0, half_length=1e3, step=1e-6)
+    with pytest.raises(ValueError, match="finite"):
+        sample_profile(occ, np.array([2.0, np.nan]), 0.0, half_length=1.0)
+    s, profile = sample_profile(occ, np.array([2.0, 2.0]), 0.0, half_length=2.5)
+    assert len(s) == len(profile) == 201  # ±2.5 m every half cell (0.025 m)
+
+
 def test_visible_wall_samples_line_of_sight_and_range():
     from omnitof.eval.floorplan import visible_wall_samples
 

@@ -7,6 +7,6 @@ scan → slam → map3d → eval → viz, with `cli`, `demo` and `results` on to
 
 from omnitof import _moved
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 _moved.install()

@@ -486,13 +486,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_bench)
 
-    p = sub.add_parser("config", help="print the configuration a run would use")
+    p = sub.add_parser(
+        "config", help="print the configuration a run would use",
+        description="Print the configuration a run would use. Without --preset or --config these are "
+                    "the bare defaults; `omnitof slam` picks its preset by its input (laser180-scanmatch "
+                    "for CARMEN logs and LaserScan bags, tof-scanmatch for ToF bags): name it to see that run's.",
+    )
     _add_config_options(p)
     p.add_argument("--list", action="store_true", help="list the bundled presets")
     p.set_defaults(func=cmd_config)
 
     p = sub.add_parser("design", help="measure a mirror-pyramid rig: bearing coverage, elevation bands")
-    p.add_argument("--lens", choices=["standard", "wide"], default="wide", help="SR4000 lens (43.6° or 69°)")
+    p.add_argument("--lens", choices=["standard", "wide"], default="wide", help="SR4000 lens (43.8° or 69°)")
     p.add_argument("--mirrors", type=_whole(3), default=4, help="number of mirrors (at least 3)")
     p.add_argument("--tilt", type=_number(above=0, below=90), default=56.0, help="mirror tilt from the optical axis (deg)")
     p.add_argument("--yaw", type=_number(at_least=-360, at_most=360), default=0.0, help="pyramid yaw against the driving direction (deg)")

@@ -10,6 +10,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+# The largest float32: what the binary formats that store float32 (PLY points, LaserScan ranges)
+# can hold; their writers refuse larger values rather than write inf.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
 
 def first_non_finite(*arrays: np.ndarray) -> int | None:
     """The first row at which any of `arrays` ((N,) or (N, k) each, N shared) holds a value

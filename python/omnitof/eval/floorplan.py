@@ -81,13 +81,25 @@ class WallCoverage:
         return {k: float(v) for k, v in self.__dict__.items()}
 
 
+# The most wall samples one call makes (1.6 GB of points): a building's 10 km of wall at 1 mm.
+MAX_WALL_SAMPLES = 1e8
+
+
 def wall_samples(segments: np.ndarray, spacing: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
     """Points every ~`spacing` metres along the walls, at the middles of equal pieces:
     (points (K, 2), length (K,) of wall each stands for, metres)."""
     seg = np.asarray(segments, dtype=np.float64).reshape(-1, 2, 2)
     if not spacing > 0:
         raise ValueError(f"spacing must be > 0, got {spacing!r}")
+    if not np.isfinite(seg).all():
+        raise ValueError("wall segments must be finite")
     lengths = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1)
+    total = float(np.maximum(np.ceil(lengths / spacing), 1.0).sum())
+    if not total <= MAX_WALL_SAMPLES:  # rather than numpy's MemoryError, or a hang
+        raise ValueError(
+            f"{lengths.sum():.6g} m of wall every {spacing:g} m is {total:.3g} samples, more than "
+            f"{MAX_WALL_SAMPLES:.0e}: give a wider spacing"
+        )
     counts = np.maximum(np.ceil(lengths / spacing).astype(np.int64), 1)
     owner = np.repeat(np.arange(len(seg)), counts)
     first = np.cumsum(counts) - counts

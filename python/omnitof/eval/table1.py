@@ -158,6 +158,10 @@ def fit_two_gaussians(
     return WallFit(abs(m2 - m1), np.array([m1, m2]), np.array([w1, w2]), np.array([a1, a2]), c)
 
 
+# The most points one profile samples: far more than any patch of a map holds cells.
+MAX_PROFILE_SAMPLES = 1e7
+
+
 def sample_profile(
     occ: OccupancyMap,
     centre: np.ndarray,
@@ -181,6 +185,15 @@ def sample_profile(
     step = res / 2.0 if step is None else float(step)
     if not (step > 0 and half_length > 0 and n_lines >= 1 and patch_width >= 0):
         raise ValueError("step, half_length must be > 0, n_lines >= 1 and patch_width >= 0")
+    samples = (2.0 * half_length / step + 1.0) * n_lines
+    if not samples <= MAX_PROFILE_SAMPLES:  # rather than numpy's MemoryError, or a hang
+        raise ValueError(
+            f"a profile of {2 * half_length:g} m every {step:g} m on {n_lines} lines is "
+            f"{samples:.3g} samples, more than {MAX_PROFILE_SAMPLES:.0e}: give a larger step"
+        )
+    if not (np.isfinite(np.asarray(centre, dtype=np.float64)).all() and math.isfinite(direction)
+            and math.isfinite(patch_width)):
+        raise ValueError("the profile's centre, direction and patch_width must be finite")
     values = np.where(np.asarray(occ.known, dtype=bool), occ.probability, unknown)
     s = np.arange(-half_length, half_length + step / 2, step)
     along = np.array([math.cos(direction), math.sin(direction)])

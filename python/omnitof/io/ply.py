@@ -9,6 +9,7 @@ import numpy as np
 
 from omnitof.errors import ConfigError, InputError
 from omnitof.io.atomic import atomic_write
+from omnitof.types import FLOAT32_MAX
 
 
 class PlyError(ConfigError, ValueError):
@@ -17,9 +18,6 @@ class PlyError(ConfigError, ValueError):
 
 # The ASCII characters at which str.splitlines() (the reader's) ends a header line.
 _LINE_BREAKS = "\n\r\x0b\x0c\x1c\x1d\x1e"
-# PLY float coordinates are float32: larger values would be written as inf.
-_FLOAT32_MAX = float(np.finfo(np.float32).max)
-
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
     "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
@@ -207,10 +205,10 @@ def _points(array: np.ndarray) -> np.ndarray:
     bad = np.flatnonzero(~np.isfinite(pts).all(axis=1))
     if bad.size:
         raise PlyError(f"point {bad[0]} is not finite: {pts[bad[0]].tolist()}")
-    far = np.flatnonzero((np.abs(pts) > _FLOAT32_MAX).any(axis=1))
+    far = np.flatnonzero((np.abs(pts) > FLOAT32_MAX).any(axis=1))
     if far.size:
         raise PlyError(
-            f"point {far[0]} lies beyond float32's range (±{_FLOAT32_MAX:.3g}) of PLY float "
+            f"point {far[0]} lies beyond float32's range (±{FLOAT32_MAX:.3g}) of PLY float "
             f"coordinates: {pts[far[0]].tolist()}"
         )
     return pts

@@ -54,6 +54,7 @@ from omnitof.io.rosbag.common import (
     _to_ns,
 )
 from omnitof.types import (
+    FLOAT32_MAX,
     ScanSequence,
     Trajectory,
     drop_repeated_scans,
@@ -68,9 +69,6 @@ _MAX_LASER_TILT_RAD = math.radians(5.0)
 # Scans whose first and last beams agree with the first scan's to this (rad) share its geometry;
 # also the tolerance on evenly spaced beams when writing (LaserScan stores angle_min + i·increment).
 _GEOMETRY_TOLERANCE = 1e-6
-# The largest float32: LaserScan's ranges and range_max are float32.
-_FLOAT32_MAX = float(np.finfo(np.float32).max)
-
 
 # --- reading -------------------------------------------------------------------------------
 
@@ -388,7 +386,7 @@ def write_laserscan_bag(
         raise ValueError("write_laserscan_bag: scan timestamps must not decrease")
     if not len(scans):
         raise ValueError("write_laserscan_bag needs at least one scan")
-    if not (math.isfinite(scans.max_range) and 0.0 < scans.max_range <= _FLOAT32_MAX
+    if not (math.isfinite(scans.max_range) and 0.0 < scans.max_range <= FLOAT32_MAX
             and np.float32(scans.max_range) > 0.0):
         # LaserScan's range_max is a float32: 1e300 overflows it, 1e-320 is 0 in it.
         raise ValueError(f"max_range must be a positive float32 number, got {scans.max_range}")
