@@ -11,7 +11,7 @@ a few seeds' numbers in the last digits.)
     python benchmarks/world_filters.py --worlds corridor1 office --drives 0 1 --seeds 0 1 2 \
         [--preset tof-scanmatch] [--particles 30] [--set backend.min_score=0.65 ...] \
         [--tof-errors default|all|none|LIST] [--ideal-scans [seen]] [--odometry-scale F]
-        [--odometry-jump AT DX DY DEG]
+        [--odometry-jump AT DX DY DEG] [--off-plan M]
         [--max-incidence DEG] [--true-rig] [--multipath-compensation auto|on|off]
         [--multipath-max-ratio R] [--bands HEIGHT:BAND ...] [--cache DIR]
 
@@ -24,7 +24,9 @@ where they have a reading), to tell the ranges' errors from the readings' number
 `--odometry-scale F` multiplies every odometry step's translation by F (the simulated wheels
 report 1 % too far: F = 1/1.01 takes that out, an oracle no real run has). `--odometry-jump AT
 DX DY DEG` makes the wheels glitch once, a fraction AT through the drive (what the filters must
-repair). `--max-incidence DEG`
+repair). `--off-plan M` drops every reading whose end point, from the true pose, lies more than M
+metres off the floor plan at the slice height (an oracle filter, to tell what the wrong readings
+cost). `--max-incidence DEG`
 drops the bins seen at a grazing angle (`ScanSettings.max_incidence_deg`, omnitof.scan.grazing),
 as the extraction would have as its last step. `--true-rig` extracts with the true rig, given
 the same wall-fitted distance correction as the estimate (issue 16's reference).
@@ -126,6 +128,25 @@ def ideal_scans(world, scans, only_seen: bool = False):
     return dataclasses.replace(scans, ranges=ranges.astype(np.float32))
 
 
+def off_plan_dropped(world, scans, limit: float):
+    """`scans` with every reading whose end point, from the true pose, lies more than `limit`
+    metres from the floor plan at the slice height turned into no echo: an oracle filter of the
+    readings no real run has, to tell what the wrong readings cost."""
+    segs = np.asarray(world.segments_at(ScanSettings().height), dtype=np.float64).reshape(-1, 2, 2)
+    gt = scans.ground_truth
+    bearing = scans.angles[None, :] + gt[:, 2:3]
+    r = np.where(np.isfinite(scans.ranges), scans.ranges, 0.0)
+    pts = np.stack([gt[:, 0:1] + r * np.cos(bearing), gt[:, 1:2] + r * np.sin(bearing)], axis=-1).reshape(-1, 2)
+    a, d = segs[:, 0], segs[:, 1] - segs[:, 0]
+    dist = np.empty(len(pts))
+    for i in range(0, len(pts), 4096):
+        p = pts[i:i + 4096, None, :]
+        t = np.clip(((p - a) * d).sum(-1) / np.maximum((d * d).sum(-1), 1e-12), 0.0, 1.0)
+        dist[i:i + 4096] = np.linalg.norm(p - (a + t[..., None] * d), axis=-1).min(axis=1)
+    off = np.isfinite(scans.ranges) & (dist.reshape(scans.ranges.shape) > limit)
+    return dataclasses.replace(scans, ranges=np.where(off, np.inf, scans.ranges).astype(np.float32))
+
+
 def scaled_odometry(scans, factor: float):
     """`scans` with each odometry step's translation (in the robot frame) times `factor`."""
     steps = relative(scans.odometry[:-1], scans.odometry[1:])
@@ -175,6 +196,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ideal-scans", nargs="?", const="all", choices=["all", "seen"], default=None,
                         help="exact ranges from the floor plan at the true poses instead of the ToF scans "
                              "(seen: only where the ToF scan has a reading)")
+    parser.add_argument("--off-plan", type=float, default=None, metavar="M",
+                        help="oracle: drop the readings more than M metres off the floor plan at the true pose")
     parser.add_argument("--odometry-scale", type=float, default=1.0,
                         help="multiply each odometry step's translation by this (an oracle for the wheels' scale error)")
     parser.add_argument("--odometry-jump", nargs=4, type=float, default=None, metavar=("AT", "DX", "DY", "DEG"),
@@ -208,6 +231,8 @@ def main(argv: list[str] | None = None) -> int:
                                     bands=bands)
             if args.ideal_scans:
                 scans = ideal_scans(world, scans, only_seen=args.ideal_scans == "seen")
+            if args.off_plan is not None:
+                scans = off_plan_dropped(world, scans, args.off_plan)
             if args.odometry_scale != 1.0:
                 scans = scaled_odometry(scans, args.odometry_scale)
             if args.odometry_jump:

@@ -178,6 +178,35 @@ def test_slam_reads_a_laserscan_ros2_bag(tmp_path, corridor_loop, capsys):
     assert len(traj) == 300
 
 
+def test_slam_reads_odometry_from_tf_and_a_named_scan_topic(tmp_path, corridor_loop, capsys):
+    # A robot that publishes its odometry only to tf, with its laser on a topic of its own name
+    # beside a second one: --laser-topics names it; the odometry is found on /tf by itself.
+    from omnitof.io.rosbag import write_laserscan_bag
+
+    scans = corridor_loop.slice(0, 200)
+    bag = tmp_path / "tf_bag"
+    write_laserscan_bag(bag, scans, scan_topic="/front_scan", odometry_on_tf=True)
+    assert quick_slam(bag, tmp_path / "run", "--laser-topics", "scan=/front_scan") == 0
+    summary = yaml.safe_load((tmp_path / "run" / "summary.yaml").read_text())
+    assert summary["input"]["odometry"] == ("interpolated from the transform odom → base_link on /tf at each "
+                                            "scan's timestamp")
+    odometry = read_tum(tmp_path / "run" / "odometry.tum")
+    np.testing.assert_allclose(odometry.poses[:, :2], scans.odometry[:, :2], atol=1e-6)
+    # The SLAM trajectory against the bag's ground truth: the run is a real one.
+    assert summary["trajectory_error"]["slam"]["mean"] < 0.1
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_:
+        main(["slam", str(bag), "--out", str(tmp_path / "x"), "--laser-topics", "scan=/front_scan,laser=/x"])
+    assert exit_.value.code == 2 and "unknown role 'laser'" in capsys.readouterr().err
+
+
+def test_laser_topics_on_a_carmen_log_is_refused(tmp_path, short_log, capsys):
+    assert quick_slam(short_log, tmp_path / "run", "--laser-topics", "scan=/scan") != 0
+    err = capsys.readouterr().err
+    assert "--laser-topics needs a bag of LaserScan messages" in err and "Traceback" not in err
+    assert not (tmp_path / "run").exists()
+
+
 @pytest.mark.parametrize("option, value, message", [
     ("--scan-delay", "nan", "within"), ("--scan-delay", "inf", "within"), ("--scan-delay", "1e6", "within"),
     ("--scan-delay", "soon", "seconds or 'auto'"), ("--max-scans", "0", "at least 1"),

@@ -25,9 +25,11 @@ from omnitof.io.rosbag import (
     DEFAULT_STORAGE,
     SIDECAR_NAME,
     BagExistsError,
+    LaserTopics,
     RosbagWarning,
     ToFFrameStamped,
     ToFTopics,
+    bag_message_types,
     from_ros_time,
     interpolate_poses,
     read_laserscan_bag,
@@ -43,6 +45,8 @@ NOETIC = get_typestore(Stores.ROS1_NOETIC)
 NOETIC.register(
     get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage")
 )
+OLD_TF = "tf/msg/tfMessage"  # ROS 1 before Hydro: the same fields
+NOETIC.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", OLD_TF))
 IMG = "sensor_msgs/msg/Image"
 INFO = "sensor_msgs/msg/CameraInfo"
 ODOM = "nav_msgs/msg/Odometry"
@@ -172,13 +176,13 @@ def scan_msg(store, ns: int, ranges, *, frame="laser", angle_min=-1.0, inc=0.5, 
     )
 
 
-def tf_msg(store, transforms):
-    """transforms: (parent, child, (x, y, z), (qx, qy, qz, qw)) tuples."""
+def tf_msg(store, transforms, ns: int = 0, msgtype: str = TF):
+    """transforms: (parent, child, (x, y, z), (qx, qy, qz, qw)) tuples, all stamped `ns`."""
     t = store.types
-    return t[TF](
+    return t[msgtype](
         transforms=[
             t["geometry_msgs/msg/TransformStamped"](
-                header=header(store, 0, parent),
+                header=header(store, ns, parent),
                 child_frame_id=child,
                 transform=t["geometry_msgs/msg/Transform"](
                     translation=t["geometry_msgs/msg/Vector3"](x=xyz[0], y=xyz[1], z=xyz[2]),
@@ -812,6 +816,139 @@ def test_ros1_laserscan_bag(tmp_path: Path) -> None:
     assert scans.remissions is None  # the scans carry no intensities
 
 
+def yaw_q(yaw: float) -> tuple[float, float, float, float]:
+    return (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
+
+
+def tf_odometry_bag(path: Path, *, ros1: bool = True, children=("base_footprint",), static_topic="/tf_static",
+                    shuffled: bool = False, odom_topic: bool = False, tf_type: str = TF) -> Path:
+    """A bag as robots that publish their odometry only to tf record it: the transform
+    /odom → each of `children` on /tf at 50 Hz along the analytic path of `ros1_laser_bag`
+    (its first child's; the others' shifted by 1 m), the mounting base_footprint → base_link →
+    laser (0.1 m forward, yaw 0.2) on `static_topic` (on /tf: repeated with every odometry
+    message, as ROS 1's static_transform_publisher did), scans at 10 Hz. `shuffled`: the /tf
+    messages out of stamp order in pairs, and each stamp published twice, the first time wrong.
+    `odom_topic`: also a nav_msgs/Odometry /odom along a different path (0.1 t, 0, 0). `tf_type`:
+    the message type of /tf and /tf_static."""
+    store = NOETIC if ros1 else HUMBLE
+    mounting = [("base_footprint", "base_link", (0.0, 0.0, 0.1), yaw_q(0.0)),
+                ("base_link", "laser", (0.1, 0.0, 0.2), yaw_q(0.2))]
+    messages: list[tuple[str, str, object]] = []
+    if static_topic == "/tf_static":
+        messages.append(("/tf_static", tf_type, tf_msg(store, mounting, msgtype=tf_type)))
+    events = []
+    for k in range(51):
+        t = 0.1 + 0.02 * k
+        ns = 1000 * NS + round(t * NS)
+        moves = [("/odom", child, (0.5 * t + i, -0.2 * t, 0.0), yaw_q(0.3 * t)) for i, child in enumerate(children)]
+        if shuffled:  # a wrong pose first, then the right one at the same stamp
+            events.append((t - 1e-6, "tf", tf_msg(store, [(p, c, (9.0, 9.0, 0.0), q) for p, c, _, q in moves], ns,
+                                                  tf_type)))
+        events.append((t, "tf", tf_msg(store, moves + (mounting if static_topic == "/tf" else []), ns, tf_type)))
+        if odom_topic:
+            events.append((t, "odom", odometry_msg(store, ns, (0.1 * t, 0.0, 0.0), "base_footprint")))
+    for k in range(13):
+        events.append((0.05 + 0.1 * k, "scan", k))
+    events.sort(key=lambda e: e[0])
+    if shuffled:  # every two stamps' tf messages swapped (each stamp's in its order): out of order
+        tf_at = [i for i, e in enumerate(events) if e[1] == "tf"]
+        for a, b in zip(tf_at[0::4], tf_at[2::4]):
+            events[a], events[b], events[a + 1], events[b + 1] = events[b], events[a], events[b + 1], events[a + 1]
+    for t, kind, value in events:
+        if kind == "tf":
+            messages.append(("/tf", tf_type, value))
+        elif kind == "odom":
+            messages.append(("/odom", ODOM, value))
+        else:
+            ns = 1000 * NS + round(t * NS)
+            messages.append(("/scan", SCAN, scan_msg(store, ns, [1.0 + 0.25 * value, 2.0, 3.0], frame="laser")))
+    return write_raw(path, messages, ros1=ros1)
+
+
+@pytest.mark.parametrize("ros1", [True, False])
+def test_odometry_read_from_tf_where_the_bag_has_no_odometry_topic(tmp_path: Path, ros1: bool) -> None:
+    # gmapping and slam_toolbox take the odometry from tf (odom → base); many robots record
+    # nothing else. The transform's own stamps, interpolated to the scans.
+    path = tf_odometry_bag(tmp_path / ("robot.bag" if ros1 else "robot"), ros1=ros1)
+    scans, messages = read_warned(path)
+    t = 0.15 + 0.1 * np.arange(10)
+    np.testing.assert_allclose(scans.timestamps, 1000 + t, rtol=0, atol=1e-9)
+    assert_poses(scans.odometry, np.column_stack([0.5 * t, -0.2 * t, 0.3 * t]), atol=1e-9)
+    assert "odom → base_footprint on /tf" in scans.odometry_rule
+    # base_footprint → base_link → laser: 0.1 m forward, yaw 0.2 (the heights dropped).
+    np.testing.assert_allclose(scans.sensor_pose, [0.1, 0.0, 0.2], rtol=0, atol=1e-12)
+    assert not any("static transform" in m for m in messages)
+
+
+def test_tf_odometry_out_of_order_and_republished_is_sorted_and_the_last_kept(tmp_path: Path) -> None:
+    scans, _ = read_warned(tf_odometry_bag(tmp_path / "robot.bag", shuffled=True))
+    t = 0.15 + 0.1 * np.arange(10)
+    assert_poses(scans.odometry, np.column_stack([0.5 * t, -0.2 * t, 0.3 * t]), atol=1e-9)
+
+
+@pytest.mark.parametrize("tf_type", [TF, OLD_TF])
+def test_mounting_repeated_on_tf_as_old_ros1_bags_have_it(tmp_path: Path, tf_type: str) -> None:
+    scans, messages = read_warned(tf_odometry_bag(tmp_path / "robot.bag", static_topic="/tf", tf_type=tf_type))
+    t = 0.15 + 0.1 * np.arange(10)
+    assert_poses(scans.odometry, np.column_stack([0.5 * t, -0.2 * t, 0.3 * t]), atol=1e-9)
+    np.testing.assert_allclose(scans.sensor_pose, [0.1, 0.0, 0.2], rtol=0, atol=1e-12)
+    assert not any("static transform" in m for m in messages)
+
+
+def test_tf_odometry_names_the_robot_frame_among_several_and_is_chosen_by_name(tmp_path: Path) -> None:
+    path = tf_odometry_bag(tmp_path / "robot.bag", children=("base_footprint", "dock"))
+    with pytest.raises(InputError) as info:
+        read_laserscan_bag(path)
+    message = str(info.value)
+    assert "odom moves several frames (base_footprint, dock)" in message and "base_frame=FRAME" in message
+    scans, _ = read_warned(path, topics=LaserTopics(base_frame="base_footprint"))
+    t = 0.15 + 0.1 * np.arange(10)
+    assert_poses(scans.odometry, np.column_stack([0.5 * t, -0.2 * t, 0.3 * t]), atol=1e-9)
+    with pytest.raises(InputError, match=r"no transform odom → base_link .*odom → base_footprint, odom → dock"):
+        read_laserscan_bag(path, topics=LaserTopics(base_frame="base_link"))
+    with pytest.raises(InputError, match=r"no transform from the frame map .*odom_frame=FRAME"):
+        read_laserscan_bag(path, topics=LaserTopics(odom_frame="map"))
+
+
+def test_an_odometry_topic_wins_unless_tf_is_named(tmp_path: Path) -> None:
+    path = tf_odometry_bag(tmp_path / "robot.bag", odom_topic=True)
+    t = 0.15 + 0.1 * np.arange(10)
+    scans, _ = read_warned(path)
+    assert_poses(scans.odometry, np.column_stack([0.1 * t, 0 * t, 0 * t]), atol=1e-9)
+    scans, _ = read_warned(path, topics=LaserTopics(odometry="/tf"))
+    assert_poses(scans.odometry, np.column_stack([0.5 * t, -0.2 * t, 0.3 * t]), atol=1e-9)
+    with pytest.raises(InputError, match=r"topic /scan has type sensor_msgs/msg/LaserScan, expected nav_msgs/msg/Odometry or"):
+        read_laserscan_bag(path, topics=LaserTopics(odometry="/scan"))
+
+
+def test_a_bag_without_any_odometry_says_where_to_name_it(tmp_path: Path) -> None:
+    path = write_raw(tmp_path / "bare.bag", [("/scan", SCAN, scan_msg(NOETIC, NS, [1.0, 2.0]))], ros1=True)
+    with pytest.raises(InputError, match=r"no odometry: .*--laser-topics odometry=TOPIC.*the bag has: /scan"):
+        read_laserscan_bag(path)
+
+
+@pytest.mark.parametrize("version", [1, 2])
+def test_laserscan_bag_with_odometry_on_tf_round_trips(tmp_path: Path, version: int) -> None:
+    rng = np.random.default_rng(5)
+    n = 12
+    scans = ScanSequence(
+        timestamps=10.0 + 0.1 * np.arange(n),
+        ranges=rng.uniform(0.5, 5.0, (n, 9)).astype(np.float32),
+        angles=np.linspace(-1.0, 1.0, 9),
+        odometry=np.column_stack([0.3 * np.arange(n), np.sin(np.arange(n)), 0.2 * np.arange(n) - 1.0]),
+        sensor_pose=np.array([0.2, -0.05, 0.1]),
+        max_range=6.0,
+    )
+    path = tmp_path / ("tf.bag" if version == 1 else "tf")
+    write_laserscan_bag(path, scans, version=version, odometry_on_tf=True)
+    assert "nav_msgs/msg/Odometry" not in bag_message_types(path)
+    back, _ = read_warned(path)
+    assert_poses(back.odometry, scans.odometry, atol=1e-9)
+    np.testing.assert_allclose(back.sensor_pose, scans.sensor_pose, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(back.ranges, scans.ranges)
+    assert "on /tf" in back.odometry_rule
+
+
 def read_warned(path: Path, **kwargs) -> tuple[ScanSequence, list[str]]:
     with warnings.catch_warnings(record=True) as record:
         warnings.simplefilter("always")
@@ -846,22 +983,23 @@ def test_topic_auto_detection(tmp_path: Path) -> None:
     with pytest.raises(InputError) as info:
         read_laserscan_bag(path)
     message = str(info.value)
-    assert str(path) in message and "/base_scan, /scan_rear" in message and "scan_topic=" in message
-    assert len(read_warned(path, scan_topic="/scan_rear")[0]) == 10
+    assert str(path) in message and "/base_scan, /scan_rear" in message and "--laser-topics scan=TOPIC" in message
+    assert len(read_warned(path, topics=LaserTopics(scan="/scan_rear"))[0]) == 10
     # The conventional name wins over others: /scan is in frame "laser", which has no tf.
     path = ros1_laser_bag(tmp_path / "conv.bag", extra_scan_topic="/scan")
     scans, messages = read_warned(path)
     assert any("no static transform base_link → laser on" in m for m in messages)
     np.testing.assert_array_equal(scans.sensor_pose, np.zeros(3))
     with pytest.raises(InputError, match="topic /nope .*missing"):
-        read_laserscan_bag(path, odom_topic="/nope")
+        read_laserscan_bag(path, topics=LaserTopics(odometry="/nope"))
 
 
 def test_laserscan_errors(tmp_path: Path) -> None:
     store = HUMBLE
     odom = [("/odom", ODOM, odometry_msg(store, k * NS, (k, 0, 0))) for k in range(3)]
     no_odom = write_raw(tmp_path / "a", [("/scan", SCAN, scan_msg(store, NS, [1.0]))])
-    with pytest.raises(InputError, match="no nav_msgs/msg/Odometry topic; the bag has: /scan"):
+    with pytest.raises(InputError, match="no odometry: no nav_msgs/msg/Odometry topic and no tf2_msgs/msg/TFMessage "
+                                         "topic /tf .* the bag has: /scan"):
         read_laserscan_bag(no_odom)
     no_range = write_raw(tmp_path / "b", odom + [
         ("/scan", SCAN, scan_msg(store, NS, [1.0, 2.0])),

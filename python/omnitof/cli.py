@@ -76,7 +76,7 @@ def cmd_slam(args: argparse.Namespace) -> int:
         scan_delay=args.scan_delay, calibration=args.calibration, height=args.height, band=args.band,
         map3d=args.map3d, map3d_every=args.map3d_every, compare_2d=args.compare_2d,
         multipath_compensation=args.multipath_compensation,
-        tof_topics=args.tof_topics, tof_depth=args.tof_distance == "depth",
+        tof_topics=args.tof_topics, tof_depth=args.tof_distance == "depth", laser_topics=args.laser_topics,
     )
     run = slam_to_folder(request, cfg, args.out, cfg_2d=cfg_2d, bar=_bar_factory(args))
     print(_summary_line(run.result.stats))
@@ -169,6 +169,15 @@ def _tof_topics(text: str):
 
     try:
         return ToFTopics.parse(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
+def _laser_topics(text: str):
+    from omnitof.io.rosbag import LaserTopics
+
+    try:
+        return LaserTopics.parse(text)
     except ValueError as err:
         raise argparse.ArgumentTypeError(str(err)) from None
 
@@ -434,6 +443,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "distances (omnitof.scan.multipath); auto: on for a simulated bag whose camera has multipath, "
                    "with that camera's figures from the sidecar")
     _add_tof_bag_options(p, "ToF bags: ")
+    p.add_argument("--laser-topics", type=_laser_topics, metavar="ROLE=NAME,...",
+                   help="LaserScan bags: where the scans and odometry are when they cannot be found by type; roles "
+                   "scan, odometry (a nav_msgs/Odometry topic, or a tf topic such as /tf for the transform "
+                   "odom_frame → base_frame), ground_truth, tf, tf_static, odom_frame, base_frame; e.g. "
+                   "scan=/base_scan,odometry=/tf,odom_frame=odom_combined")
     p.add_argument("--map3d", action="store_true", help="ToF bags: also build the 3D voxel map (map3d.ply, map3d.png)")
     p.add_argument("--map3d-every", type=_positive_int, default=5, help="ToF bags: frames between those fed to the 3D map")
     p.add_argument("--filter", choices=("2d", "3d"), default="2d",

@@ -39,7 +39,8 @@ class SlamRequest:
         default: "auto" for laser logs and LaserScan bags (they are stamped when the reading
         arrives), none for ToF bags. calibration, height, band, map3d, map3d_every, tof_topics
         (an `io.rosbag.ToFTopics`; default the simulator's topics), tof_depth (the distance
-        images hold depth z, not the radial distance): ToF bags only.
+        images hold depth z, not the radial distance): ToF bags only. laser_topics (an
+        `io.rosbag.LaserTopics`; default: found by type): LaserScan bags only.
     compare_2d: with the 3D filter (`filter3d.enabled`), also run the 2D filter on the same
         scans and record how far the two trajectories lie apart (trajectory_2d.tum, summary);
         its configuration is `slam_to_folder`'s `cfg_2d`.
@@ -62,6 +63,7 @@ class SlamRequest:
     multipath_compensation: str = "auto"
     tof_topics: Any = None
     tof_depth: bool = False
+    laser_topics: Any = None
 
 
 @dataclass
@@ -97,12 +99,18 @@ def default_preset(log: str | Path, tof_topics: Any = None) -> str:
     return DEFAULT_PRESET_TOF if _is_tof_input(Path(log), tof_topics) else DEFAULT_PRESET_LASER
 
 
+def _is_bag(log: Path) -> bool:
+    from omnitof.io.scans import is_bag
+
+    return log.exists() and is_bag(log)
+
+
 def _is_tof_input(log: Path, tof_topics: Any) -> bool:
     """Whether to read `log` as a ToF bag: one of ToF images only, or any bag whose ToF topics
     are named (a robot's bag may hold a laser's scans beside the camera's images)."""
-    from omnitof.io.scans import is_bag, is_tof_bag
+    from omnitof.io.scans import is_tof_bag
 
-    return is_tof_bag(log) or (tof_topics is not None and log.exists() and is_bag(log))
+    return is_tof_bag(log) or (tof_topics is not None and _is_bag(log))
 
 
 def slam_config(
@@ -150,6 +158,8 @@ def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *, cf
         ("--compare-2d", request.compare_2d)) if given]  # fmt: skip
     if not tof and tof_only:  # a laser log has no slice, rig or images: the option would be ignored
         raise OmnitofError(f"{log}: {', '.join(tof_only)} need{'s' if len(tof_only) == 1 else ''} a bag of ToF images")
+    if request.laser_topics is not None and (tof or not _is_bag(log)):
+        raise OmnitofError(f"{log}: --laser-topics needs a bag of LaserScan messages")
     if not tof and cfg.filter3d.enabled:
         raise OmnitofError(f"{log}: the 3D filter (--filter 3d, filter3d.enabled) needs a bag of ToF images")
     relations = None
@@ -193,7 +203,7 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
                                            "distance_images": "depth" if request.tof_depth else "radial distance",
                                            "scan": tof_data.extractor.settings.model_dump()}}
     else:
-        data = read_scans(log, skip_bad_lines=request.skip_bad_lines)
+        data = read_scans(log, skip_bad_lines=request.skip_bad_lines, laser_topics=request.laser_topics)
         scans = data.scans if request.max_scans is None else data.scans.slice(0, request.max_scans)
         extra = {"input": {"path": label, "kind": data.kind, "bad_lines_skipped": data.bad_lines}}
     extra["input"]["max_range"] = {"metres": float(scans.max_range), "rule": scans.max_range_rule or "given"}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 from pathlib import Path
 
 from omnitof.errors import InputError
@@ -36,16 +37,17 @@ def is_tof_bag(path: str | Path) -> bool:
     return "sensor_msgs/msg/Image" in types and "sensor_msgs/msg/LaserScan" not in types
 
 
-def read_scans(path: str | Path, *, skip_bad_lines: bool = False) -> ScanInput:
+def read_scans(path: str | Path, *, skip_bad_lines: bool = False, laser_topics: Any = None) -> ScanInput:
     """Read scans with odometry from a CARMEN log (plain, .gz, .bz2) or a ROS 1/2 bag holding
-    sensor_msgs/LaserScan and nav_msgs/Odometry (topics found by type)."""
+    sensor_msgs/LaserScan and odometry (nav_msgs/Odometry, or the transform odom → base on /tf;
+    topics found by type unless `laser_topics`, an `io.rosbag.LaserTopics`, names them)."""
     path = Path(path)
     if not path.exists():
         raise InputError("no such file or folder", path)
     if is_bag(path):
         from omnitof.io.rosbag import read_laserscan_bag
 
-        return ScanInput(read_laserscan_bag(path), "rosbag")
+        return ScanInput(read_laserscan_bag(path, topics=laser_topics), "rosbag")
     from omnitof.io.carmen import read_carmen
 
     log = read_carmen(path, skip_bad_lines=skip_bad_lines)

@@ -6,8 +6,9 @@ one submodule each, on shared machinery:
 - `tof`: **ToF bags** (`write_tof_bag`, `read_tof_bag` → `ToFBag`, frames as
   `ToFFrameStamped`, topic names in `ToFTopics`): a ROS 2 bag folder with distance, amplitude
   and optional raw-sample images, camera info and odometry; its docstring has the layout.
-- `laserscan`: **Laser-scan bags** (`read_laserscan_bag`, `write_laserscan_bag`): ROS 1
-  (`.bag` files) or ROS 2 bags with sensor_msgs/LaserScan and nav_msgs/Odometry, read into a
+- `laserscan`: **Laser-scan bags** (`read_laserscan_bag`, `write_laserscan_bag`, topic and
+  frame names in `LaserTopics`): ROS 1 (`.bag` files) or ROS 2 bags with sensor_msgs/LaserScan
+  and odometry (nav_msgs/Odometry, or the transform odom → base on /tf), read into a
   ScanSequence.
 - `common`: what both use: opening bags (`bag_message_types`), message types and typestores,
   time conversions (`to_ros_time`, `from_ros_time`), the sidecar `<bag>/omnitof.yaml`
@@ -30,7 +31,7 @@ from omnitof.io.rosbag.common import (
     from_ros_time,
     to_ros_time,
 )
-from omnitof.io.rosbag.laserscan import read_laserscan_bag, write_laserscan_bag
+from omnitof.io.rosbag.laserscan import LaserTopics, read_laserscan_bag, write_laserscan_bag
 from omnitof.io.rosbag.tof import (
     ToFBag,
     ToFFrameStamped,
@@ -43,6 +44,7 @@ __all__ = [
     "DEFAULT_STORAGE",
     "SIDECAR_NAME",
     "BagExistsError",
+    "LaserTopics",
     "RosbagWarning",
     "ToFBag",
     "ToFFrameStamped",

@@ -75,6 +75,8 @@ CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 ODOMETRY = "nav_msgs/msg/Odometry"
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+# The types read as tf: ROS 1 bags recorded before Hydro carry tf/tfMessage, the same fields.
+TF_TYPES = frozenset({TF_MESSAGE, "tf/msg/tfMessage"})
 
 # Frame ids written into headers (REP 105 names where there is one).
 ODOM_FRAME = "odom"
@@ -186,28 +188,48 @@ def _odometry_msg(
     )
 
 
+def _tf_msg(
+    store: Any, ns: int, pose: np.ndarray, frame_id: str, child_frame_id: str, *, ros1: bool
+) -> Any:
+    """A tf2_msgs/TFMessage of one planar transform frame_id → child_frame_id (x, y, yaw)."""
+    types = store.types
+    qx, qy, qz, qw = (float(v) for v in yaw_to_quaternion(pose[2]))
+    transform = types["geometry_msgs/msg/TransformStamped"](
+        header=_header(store, ns, frame_id, ros1=ros1),
+        child_frame_id=child_frame_id,
+        transform=types["geometry_msgs/msg/Transform"](
+            translation=types["geometry_msgs/msg/Vector3"](x=float(pose[0]), y=float(pose[1]), z=0.0),
+            rotation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+        ),
+    )
+    return types[TF_MESSAGE](transforms=[transform])
+
+
 class _PoseStream:
-    """Writes a trajectory's Odometry messages in time order, interleaved with other topics."""
+    """Writes a trajectory's messages in time order, interleaved with other topics: Odometry
+    messages, or with `as_tf` the transform frame_id → child_frame_id as tf2_msgs/TFMessage (as
+    robots that publish their odometry only on /tf record it)."""
 
     def __init__(
         self, writer: Any, connection: Any, store: Any, trajectory: Trajectory,
-        frame_id: str, child_frame_id: str, *, ros1: bool,
+        frame_id: str, child_frame_id: str, *, ros1: bool, as_tf: bool = False,
     ) -> None:  # fmt: skip
         self.writer, self.connection, self.store = writer, connection, store
         self.stamps = [_to_ns(t) for t in trajectory.timestamps]
         self.poses = trajectory.poses
         self.frame_id, self.child_frame_id, self.ros1 = frame_id, child_frame_id, ros1
+        self.make, self.msgtype = (_tf_msg, TF_MESSAGE) if as_tf else (_odometry_msg, ODOMETRY)
         self.next = 0
 
     def write_until(self, ns: int | None) -> None:
         """Write every pose stamped at or before `ns` (all that remain for None)."""
         while self.next < len(self.stamps) and (ns is None or self.stamps[self.next] <= ns):
             stamp = self.stamps[self.next]
-            msg = _odometry_msg(
+            msg = self.make(
                 self.store, stamp, self.poses[self.next], self.frame_id, self.child_frame_id,
                 ros1=self.ros1,
             )  # fmt: skip
-            data = _serialize(self.store, msg, ODOMETRY, self.ros1)
+            data = _serialize(self.store, msg, self.msgtype, self.ros1)
             self.writer.write(self.connection, stamp, data)
             self.next += 1
 
@@ -308,7 +330,7 @@ def _connections(
 
 def _pick_topic(
     reader: AnyReader, path: Path, msgtype: str, topic: str | None, conventional: str,
-    argument: str, *, exclude: Iterable[str] = (),
+    choose: str, *, exclude: Iterable[str] = (),
 ) -> list[Any]:  # fmt: skip
     """The connections of `topic`, or of the one topic of type `msgtype` when topic is None."""
     if topic is not None:
@@ -326,10 +348,28 @@ def _pick_topic(
         )
     if len(candidates) > 1:
         raise InputError(
-            f"several {msgtype} topics: {', '.join(candidates)}; choose one with {argument}=",
+            f"several {msgtype} topics: {', '.join(candidates)}; choose one with {choose}",
             path,
         )
     return [c for c in reader.connections if c.topic == candidates[0]]
+
+
+def parse_roles(cls: Any, text: str, example: str) -> Any:
+    """An instance of the dataclass `cls` from "ROLE=VALUE,ROLE=VALUE" (the roles are its
+    fields; the others keep their defaults), as `--tof-topics` and `--laser-topics` take them;
+    ValueError naming a bad item."""
+    given: dict[str, str] = {}
+    for item in filter(None, (part.strip() for part in str(text).split(","))):
+        role, eq, value = item.partition("=")
+        role, value = role.strip(), value.strip()
+        if not eq or not value:
+            raise ValueError(f"{item!r}: expected ROLE=VALUE, e.g. {example}")
+        if role not in cls.__dataclass_fields__:
+            raise ValueError(f"{item!r}: unknown role {role!r}; the roles are {', '.join(cls.__dataclass_fields__)}")
+        if role in given:
+            raise ValueError(f"{item!r}: the role {role} is given twice")
+        given[role] = value
+    return cls(**given)
 
 
 class _Trajectories(dict):

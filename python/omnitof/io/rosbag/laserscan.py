@@ -1,7 +1,9 @@
 """Laser-scan bags (`read_laserscan_bag`, `write_laserscan_bag`): planar scans and odometry.
 
-ROS 1 (`.bag` files) or ROS 2 bags with sensor_msgs/LaserScan and nav_msgs/Odometry, read into
-a ScanSequence and written from one.
+ROS 1 (`.bag` files) or ROS 2 bags with sensor_msgs/LaserScan and the robot's odometry
+(nav_msgs/Odometry, or the transform odom → base on /tf where the robot publishes it only
+there), read into a ScanSequence and written from one; `LaserTopics` names the topics and frames
+where they are not found by type.
 
 The static transform base_link → laser (tf2_msgs/TFMessage on /tf_static) carries the
 ScanSequence's sensor_pose. Opening bags, the all-or-nothing write and the time conversions are
@@ -14,6 +16,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +26,7 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import Writer as Writer2
 
 from omnitof.errors import InputError
-from omnitof.geometry import interpolate_poses, yaw_to_quaternion
+from omnitof.geometry import interpolate_poses, quaternion_to_yaw
 from omnitof.io.rosbag.common import (
     _ROSBAG2_VERSION,
     BASE_FRAME,
@@ -33,10 +36,12 @@ from omnitof.io.rosbag.common import (
     ODOM_FRAME,
     ODOMETRY,
     TF_MESSAGE,
+    TF_TYPES,
     WORLD_FRAME,
     RosbagWarning,
     _atomic_path,
     _check_written_poses,
+    _connections,
     _distinct_topics,
     _frame_name,
     _header,
@@ -51,7 +56,10 @@ from omnitof.io.rosbag.common import (
     _serialize,
     _stamp_ns,
     _storage_plugin,
+    _tf_msg,
     _to_ns,
+    _topic_listing,
+    parse_roles,
 )
 from omnitof.types import (
     FLOAT32_MAX,
@@ -62,7 +70,7 @@ from omnitof.types import (
     pad_rows,
 )
 
-__all__ = ["read_laserscan_bag", "write_laserscan_bag"]
+__all__ = ["LaserTopics", "read_laserscan_bag", "write_laserscan_bag"]
 
 # A laser whose plane is tilted more than this is still read, with a warning.
 _MAX_LASER_TILT_RAD = math.radians(5.0)
@@ -73,19 +81,48 @@ _GEOMETRY_TOLERANCE = 1e-6
 # --- reading -------------------------------------------------------------------------------
 
 
-def read_laserscan_bag(
-    path: str | Path,
-    *,
-    scan_topic: str | None = None,
-    odom_topic: str | None = None,
-    ground_truth_topic: str | None = "/ground_truth",
-    tf_static_topic: str = "/tf_static",
-) -> ScanSequence:
-    """Read sensor_msgs/LaserScan and nav_msgs/Odometry from a ROS 1 or ROS 2 bag.
+@dataclass(frozen=True)
+class LaserTopics:
+    """Where a laser-scan bag keeps what `read_laserscan_bag` reads (`--laser-topics` in the CLI).
 
-    - Topics: when not given, found by type. Several candidates are ambiguous unless one is
-      the conventional name ("/scan", "/odom"); the ground-truth topic is never taken for
-      odometry. The error lists the candidates.
+    scan: the sensor_msgs/LaserScan topic; None: the one such topic ("/scan" among several).
+    odometry: a nav_msgs/Odometry topic, or a tf2_msgs/TFMessage topic (such as "/tf") whose
+        transform odom_frame → base_frame is the odometry; None: the one Odometry topic ("/odom"
+        among several, never ground_truth), and where the bag has none, the transform on `tf`.
+    ground_truth: nav_msgs/Odometry of true poses, used where present.
+    tf, tf_static: the transform topics; the laser's mounting (base → laser) comes from
+        tf_static, and from the first of each transform on tf where tf_static lacks it (ROS 1
+        bags recorded with static_transform_publisher repeat it on /tf).
+    odom_frame: the odometry's fixed frame on tf.
+    base_frame: the robot's frame that the odometry moves; None: the Odometry messages'
+        child_frame_id, or on tf the one frame that odom_frame moves.
+    """
+
+    scan: str | None = None
+    odometry: str | None = None
+    ground_truth: str = "/ground_truth"
+    tf: str = "/tf"
+    tf_static: str = "/tf_static"
+    odom_frame: str = ODOM_FRAME
+    base_frame: str | None = None
+
+    @classmethod
+    def parse(cls, text: str) -> LaserTopics:
+        """From "ROLE=VALUE,ROLE=VALUE" (the roles are the fields), as `--laser-topics` takes
+        them; ValueError naming a bad item."""
+        return parse_roles(cls, text, "scan=/base_scan")
+
+
+def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -> ScanSequence:
+    """Read sensor_msgs/LaserScan and the robot's odometry from a ROS 1 or ROS 2 bag.
+
+    - Topics (`LaserTopics`; default: found by type): several candidates are ambiguous unless
+      one is the conventional name ("/scan", "/odom"); the ground-truth topic is never taken
+      for odometry. The error lists the candidates.
+    - Odometry: nav_msgs/Odometry messages, or where the bag has none (or `topics.odometry`
+      names a tf2_msgs/TFMessage topic) the transform odom → base on /tf, as gmapping and
+      slam_toolbox read it: x, y and the heading of each transform, by its own stamp (sorted;
+      the last of several at one stamp).
     - Ranges: NaN, ±inf, values of 0 or less and values outside [range_min, range_max] (each
       message its own) become +inf (no echo). Beam i is at angle_min + i·angle_increment; max_range = the largest
       range_max; intensities become `remissions` when every scan has one per beam. Where
@@ -97,12 +134,12 @@ def read_laserscan_bag(
       stamps must not decrease either) is interpolated to each scan's stamp (linear in x, y,
       shorter arc in θ); scans outside the odometry's time span are dropped with a
       RosbagWarning.
-    - Ground truth: Odometry messages on `ground_truth_topic`, interpolated the same way, when
+    - Ground truth: Odometry messages on `topics.ground_truth`, interpolated the same way, when
       the topic exists and covers every kept scan (else None, with a warning).
-    - sensor_pose: base → laser from the static transforms on `tf_static_topic`, where base is
-      the odometry's child_frame_id (default base_link) and laser the scans' frame_id, chained
-      through intermediate frames and projected to the plane (x, y, yaw). An upside-down laser
-      gets its angles negated. Without such a transform: zeros and a RosbagWarning.
+    - sensor_pose: base → laser from the static transforms, where base is the odometry's
+      child frame (default base_link) and laser the scans' frame_id, chained through
+      intermediate frames and projected to the plane (x, y, yaw). An upside-down laser gets its
+      angles negated. Without such a transform: zeros and a RosbagWarning.
 
     Raises:
         InputError: naming the bag and topic: not a bag, no or ambiguous topics, a range_max
@@ -110,26 +147,37 @@ def read_laserscan_bag(
             timestamps that go backwards, no scan within the odometry's span.
     """
     path = Path(path)
+    topics = topics or LaserTopics()
     with _opened(path) as reader:
-        scan_conns = _pick_topic(reader, path, LASER_SCAN, scan_topic, "/scan", "scan_topic")
-        exclude = {ground_truth_topic} if ground_truth_topic else set()
-        odom_conns = _pick_topic(
-            reader, path, ODOMETRY, odom_topic, "/odom", "odom_topic", exclude=exclude
-        )
+        scan_conns = _pick_topic(reader, path, LASER_SCAN, topics.scan, "/scan", _CHOOSE["scan"])
+        odom_conns, odom_on_tf = _odometry_connections(reader, path, topics)
+        ground_truth_topic = topics.ground_truth
         # Optional topics are used only when they carry the expected type.
         truth_conns = [
             c for c in reader.connections
             if c.topic == ground_truth_topic and c.topic != odom_conns[0].topic
             and c.msgtype == ODOMETRY
         ]  # fmt: skip
+        tf_static_topic = topics.tf_static
         tf_conns = [
-            c for c in reader.connections if c.topic == tf_static_topic and c.msgtype == TF_MESSAGE
+            c for c in reader.connections if c.topic == tf_static_topic and c.msgtype in TF_TYPES
         ]
-        scan_name, odom_name = scan_conns[0].topic, odom_conns[0].topic
-
-        trajectories = _read_trajectories(reader, path, odom_conns + truth_conns)
-        base_frame = trajectories.child_frames.get(odom_name) or BASE_FRAME
+        scan_name = scan_conns[0].topic
+        if odom_on_tf:
+            trajectories = _read_trajectories(reader, path, truth_conns)
+            odometry, base_frame = _read_tf_odometry(reader, path, odom_conns, topics.odom_frame, topics.base_frame)
+            odom_name = f"{odom_conns[0].topic} ({topics.odom_frame} → {base_frame})"
+            trajectories[odom_name] = odometry
+            odometry_rule = (f"interpolated from the transform {topics.odom_frame} → {base_frame} on "
+                             f"{odom_conns[0].topic} at each scan's timestamp")
+        else:
+            trajectories = _read_trajectories(reader, path, odom_conns + truth_conns)
+            odom_name = odom_conns[0].topic
+            base_frame = topics.base_frame or trajectories.child_frames.get(odom_name) or BASE_FRAME
+            odometry_rule = f"interpolated from {odom_name} at each scan's timestamp"
         static = _read_static_transforms(reader, path, tf_conns)
+        # ROS 1 bags recorded with static_transform_publisher repeat the mounting on /tf.
+        dynamic_conns = [c for c in reader.connections if c.topic == topics.tf and c.msgtype in TF_TYPES]
 
         stamps: list[int] = []
         ranges: list[np.ndarray] = []
@@ -169,6 +217,9 @@ def read_laserscan_bag(
             ranges.append(r)
             intensities.append(np.asarray(msg.intensities, dtype=np.float32))
             geometry.append((float(msg.angle_min), float(msg.angle_increment), len(r), range_max))
+        if stamps and dynamic_conns and not _resolves(static, base_frame, laser_frame):
+            first_seen = _read_static_transforms(reader, path, dynamic_conns, first_only=True)
+            static = {**first_seen, **static}
     if not stamps:
         raise InputError(f"topic {scan_name}: has no message", path)
 
@@ -230,7 +281,7 @@ def read_laserscan_bag(
         source=str(path),
         beam_counts=beam_counts,
         max_range_rule=rule,
-        odometry_rule=f"interpolated from {odom_name} at each scan's timestamp",
+        odometry_rule=odometry_rule,
     )
     scans = drop_repeated_scans(scans)
     if scans.repeated_scans_dropped:
@@ -243,19 +294,124 @@ def read_laserscan_bag(
     return scans
 
 
+# How the errors of `read_laserscan_bag` tell a user to choose a topic or frame.
+_CHOOSE = {
+    "scan": "--laser-topics scan=TOPIC (in Python topics=LaserTopics(scan=...))",
+    "odometry": "--laser-topics odometry=TOPIC (in Python topics=LaserTopics(odometry=...))",
+    "base_frame": "--laser-topics base_frame=FRAME (in Python topics=LaserTopics(base_frame=...))",
+}
+
+
+def _odometry_connections(reader: AnyReader, path: Path, topics: LaserTopics) -> tuple[list[Any], bool]:
+    """The connections the odometry comes from, and whether they are tf (TFMessage) rather
+    than nav_msgs/Odometry."""
+    if topics.odometry is not None:
+        conns = [c for c in reader.connections if c.topic == topics.odometry]
+        if conns and all(c.msgtype in TF_TYPES for c in conns):
+            return conns, True
+        if conns and any(c.msgtype != ODOMETRY for c in conns):
+            kinds = ", ".join(sorted({c.msgtype for c in conns}))
+            raise InputError(f"topic {topics.odometry} has type {kinds}, expected {ODOMETRY} or {TF_MESSAGE}", path)
+        found = _connections(reader, path, topics.odometry, ODOMETRY)
+        assert found is not None  # required topics are never None
+        return found, False
+    exclude = {topics.ground_truth} if topics.ground_truth else set()
+    if any(c.msgtype == ODOMETRY and c.topic not in exclude for c in reader.connections):
+        return _pick_topic(reader, path, ODOMETRY, None, "/odom", _CHOOSE["odometry"], exclude=exclude), False
+    tf = [c for c in reader.connections if c.topic == topics.tf and c.msgtype in TF_TYPES]
+    if tf:
+        return tf, True
+    raise InputError(
+        f"no odometry: no {ODOMETRY} topic and no {TF_MESSAGE} topic {topics.tf} with the transform "
+        f"{topics.odom_frame} → base; name where it is with {_CHOOSE['odometry']}; the bag has: "
+        f"{_topic_listing(reader)}",
+        path,
+    )
+
+
+def _read_tf_odometry(
+    reader: AnyReader, path: Path, connections: Sequence[Any], odom_frame: str, base_frame: str | None
+) -> tuple[Trajectory, str]:
+    """(the transform odom_frame → base as a Trajectory by the transforms' own stamps, base):
+    base is `base_frame`, or the one frame whose parent on tf is odom_frame. Out-of-order
+    transforms are sorted (tf buffers them so); of several at one stamp the last is kept."""
+    topic = connections[0].topic
+    rows: dict[str, list[tuple[int, float, float, float]]] = {}
+    pairs: set[tuple[str, str]] = set()  # (parent, child) seen, for the error that lists them
+    for _, msg in _messages(reader, path, connections):
+        for tf in msg.transforms:
+            parent, child = _frame_name(tf.header.frame_id), _frame_name(tf.child_frame_id)
+            pairs.add((parent, child))
+            if parent != odom_frame or (base_frame is not None and child != base_frame):
+                continue
+            ns = _stamp_ns(tf.header.stamp)
+            t, q = tf.transform.translation, tf.transform.rotation
+            quaternion = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+            if not (np.isfinite([t.x, t.y]).all() and np.isfinite(quaternion).all() and np.any(quaternion)):
+                raise InputError(
+                    f"topic {topic}: the transform {parent} → {child} stamped {_ns_to_s(ns):.9f} s "
+                    f"is not finite (translation {t.x}, {t.y}, rotation {q.x}, {q.y}, {q.z}, {q.w})",
+                    path,
+                )
+            rows.setdefault(child, []).append((ns, float(t.x), float(t.y), float(quaternion_to_yaw(quaternion))))
+    if not rows:
+        wanted = f"{odom_frame} → {base_frame}" if base_frame else f"from the frame {odom_frame}"
+        listed = ", ".join(f"{a} → {b}" for a, b in sorted(pairs)[:20]) or "none"
+        raise InputError(
+            f"topic {topic}: no transform {wanted} for the odometry (name the frames with "
+            f"--laser-topics odom_frame=FRAME,base_frame=FRAME); its transforms: {listed}",
+            path,
+        )
+    if len(rows) > 1:
+        raise InputError(
+            f"topic {topic}: the frame {odom_frame} moves several frames ({', '.join(sorted(rows))}); "
+            f"choose the robot's with {_CHOOSE['base_frame']}",
+            path,
+        )
+    (child, data), = rows.items()
+    stamps = np.array([row[0] for row in data], dtype=np.int64)
+    order = np.argsort(stamps, kind="stable")
+    stamps = stamps[order]
+    poses = np.array([row[1:] for row in data], dtype=np.float64)[order]
+    last = np.append(stamps[1:] != stamps[:-1], True)  # the last published at each stamp
+    seconds = np.array([_ns_to_s(int(ns)) for ns in stamps[last]], dtype=np.float64)
+    return Trajectory(seconds, poses[last]), child
+
+
 def _read_static_transforms(
-    reader: AnyReader, path: Path, connections: Sequence[Any]
+    reader: AnyReader, path: Path, connections: Sequence[Any], *, first_only: bool = False
 ) -> dict[str, tuple[str, np.ndarray]]:
-    """child frame → (parent frame, parent_T_child 4×4) from tf2_msgs/TFMessage messages."""
+    """child frame → (parent frame, parent_T_child 4×4) from tf2_msgs/TFMessage messages: the
+    last of each edge, or with `first_only` the first."""
     edges: dict[str, tuple[str, np.ndarray]] = {}
     for _, msg in _messages(reader, path, connections):
         for tf in msg.transforms:
+            child = _frame_name(tf.child_frame_id)
+            if first_only and child in edges:
+                continue
             t, q = tf.transform.translation, tf.transform.rotation
             matrix = np.eye(4)
             matrix[:3, :3] = _rotation_matrix(q.x, q.y, q.z, q.w)
             matrix[:3, 3] = (t.x, t.y, t.z)
-            edges[_frame_name(tf.child_frame_id)] = (_frame_name(tf.header.frame_id), matrix)
+            edges[child] = (_frame_name(tf.header.frame_id), matrix)
     return edges
+
+
+def _root(edges: dict[str, tuple[str, np.ndarray]], frame: str) -> tuple[str, np.ndarray]:
+    """(the root of `frame`'s chain of edges, root_T_frame 4×4)."""
+    matrix, seen = np.eye(4), {frame}
+    while frame in edges:
+        parent, parent_T_child = edges[frame]
+        if parent in seen:
+            break  # a cycle: tf is a tree, so give up on it
+        matrix, frame = parent_T_child @ matrix, parent
+        seen.add(frame)
+    return frame, matrix
+
+
+def _resolves(edges: dict[str, tuple[str, np.ndarray]], base: str, laser: str) -> bool:
+    """Whether `edges` join the laser's frame to the base's (or there is nothing to join)."""
+    return not laser or laser == base or _root(edges, laser)[0] == _root(edges, base)[0]
 
 
 def _laser_pose(
@@ -264,19 +420,8 @@ def _laser_pose(
     """(robot_T_sensor (x, y, yaw), upside down?) from static transforms; zeros if unknown."""
     if not laser or laser == base:
         return np.zeros(3), False
-
-    def to_root(frame: str) -> tuple[str, np.ndarray]:
-        matrix, seen = np.eye(4), {frame}
-        while frame in edges:
-            parent, parent_T_child = edges[frame]
-            if parent in seen:
-                break  # a cycle: tf is a tree, so give up on it
-            matrix, frame = parent_T_child @ matrix, parent
-            seen.add(frame)
-        return frame, matrix
-
-    root_laser, root_T_laser = to_root(laser)
-    root_base, root_T_base = to_root(base)
+    root_laser, root_T_laser = _root(edges, laser)
+    root_base, root_T_base = _root(edges, base)
     if root_laser != root_base:
         warnings.warn(
             f"{path}: no static transform {base} → {laser} on {topic}; the laser is assumed "
@@ -338,6 +483,8 @@ def write_laserscan_bag(
     odom_topic: str = "/odom",
     ground_truth_topic: str = "/ground_truth",
     tf_static_topic: str = "/tf_static",
+    odometry_on_tf: bool = False,
+    tf_topic: str = "/tf",
     overwrite: bool = False,
 ) -> None:
     """Write a ScanSequence as a ROS 1 (version=1) or ROS 2 (version=2) bag.
@@ -347,7 +494,9 @@ def write_laserscan_bag(
     frame "laser", range_min 0, range_max = max_range, +inf kept for no echo, intensities from
     remissions), all with the scan's stamp. One static transform base_link → laser from
     sensor_pose on /tf_static (latched in ROS 1). Readings beyond max_range stay in the bag as
-    they are; readers (this one too) take them for no echo.
+    they are; readers (this one too) take them for no echo. With `odometry_on_tf` the odometry
+    is the transform odom → base_link on `tf_topic` (tf2_msgs/TFMessage) instead of Odometry
+    messages, as robots that publish it only to tf record it.
 
     Args:
         path: a ".bag" file for version 1 (ROS 1 readers recognise bags by it); a folder not
@@ -364,7 +513,8 @@ def write_laserscan_bag(
             not finite, one topic for two roles, a bad path or version.
     """
     path = Path(path)
-    roles = {"scan_topic": scan_topic, "odom_topic": odom_topic, "tf_static_topic": tf_static_topic}
+    roles = {"scan_topic": scan_topic, "tf_static_topic": tf_static_topic}
+    roles["tf_topic" if odometry_on_tf else "odom_topic"] = tf_topic if odometry_on_tf else odom_topic
     if scans.ground_truth is not None:  # written only then
         roles["ground_truth_topic"] = ground_truth_topic
     _distinct_topics(roles)
@@ -410,11 +560,11 @@ def write_laserscan_bag(
             add = _adder(writer, store, ros1)
             conn_tf = add(tf_static_topic, TF_MESSAGE, latching=True)
             conn_scan = add(scan_topic, LASER_SCAN)
-            conn_odom = add(odom_topic, ODOMETRY)
+            conn_odom = add(tf_topic, TF_MESSAGE) if odometry_on_tf else add(odom_topic, ODOMETRY)
             streams = [
                 _PoseStream(
                     writer, conn_odom, store, Trajectory(scans.timestamps, scans.odometry),
-                    ODOM_FRAME, BASE_FRAME, ros1=ros1,
+                    ODOM_FRAME, BASE_FRAME, ros1=ros1, as_tf=odometry_on_tf,
                 )
             ]  # fmt: skip
             if scans.ground_truth is not None:
@@ -426,7 +576,7 @@ def write_laserscan_bag(
                         WORLD_FRAME, BASE_FRAME, ros1=ros1,
                     )
                 )  # fmt: skip
-            tf = _tf_static_msg(store, stamps[0], scans.sensor_pose, ros1=ros1)
+            tf = _tf_msg(store, stamps[0], scans.sensor_pose, BASE_FRAME, LASER_FRAME, ros1=ros1)
             writer.write(conn_tf, stamps[0], _serialize(store, tf, TF_MESSAGE, ros1))
             scan_cls = store.types[LASER_SCAN]
             for k, ns in enumerate(stamps):
@@ -458,22 +608,6 @@ def _adder(writer: Any, store: Any, ros1: bool) -> Any:
         return writer.add_connection(topic, msgtype, typestore=store)
 
     return add
-
-
-def _tf_static_msg(store: Any, ns: int, sensor_pose: np.ndarray, *, ros1: bool) -> Any:
-    types = store.types
-    qx, qy, qz, qw = (float(v) for v in yaw_to_quaternion(sensor_pose[2]))
-    transform = types["geometry_msgs/msg/TransformStamped"](
-        header=_header(store, ns, BASE_FRAME, ros1=ros1),
-        child_frame_id=LASER_FRAME,
-        transform=types["geometry_msgs/msg/Transform"](
-            translation=types["geometry_msgs/msg/Vector3"](
-                x=float(sensor_pose[0]), y=float(sensor_pose[1]), z=0.0
-            ),
-            rotation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
-        ),
-    )
-    return types[TF_MESSAGE](transforms=[transform])
 
 
 def _even_beams(angles: np.ndarray) -> tuple[float, float]:

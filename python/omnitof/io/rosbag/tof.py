@@ -69,6 +69,7 @@ from omnitof.io.rosbag.common import (
     _ns_to_s,
     _opened,
     _PoseStream,
+    parse_roles,
     _read_sidecar,
     _read_trajectories,
     _ros2_store,
@@ -150,18 +151,7 @@ class ToFTopics:
     def parse(cls, text: str) -> ToFTopics:
         """Topics from "ROLE=TOPIC,ROLE=TOPIC" (the roles are the fields; the others keep their
         defaults), as `--tof-topics` takes them; ValueError naming a bad item."""
-        given: dict[str, str] = {}
-        for item in filter(None, (part.strip() for part in str(text).split(","))):
-            role, eq, topic = item.partition("=")
-            role, topic = role.strip(), topic.strip()
-            if not eq or not topic:
-                raise ValueError(f"{item!r}: expected ROLE=TOPIC, e.g. distance=/camera/distance")
-            if role not in cls.__dataclass_fields__:
-                raise ValueError(f"{item!r}: unknown role {role!r}; the roles are {', '.join(cls.__dataclass_fields__)}")
-            if role in given:
-                raise ValueError(f"{item!r}: the role {role} is given twice")
-            given[role] = topic
-        return cls(**given)
+        return parse_roles(cls, text, "distance=/camera/distance")
 
 
 # --- writing ToF bags ----------------------------------------------------------------------
