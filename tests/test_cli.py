@@ -14,6 +14,7 @@ import yaml
 
 import omnitof
 from omnitof.cli import main
+from omnitof.eval.trajectory import absolute_trajectory_error
 from omnitof.eval.relations import read_relations
 from omnitof.geometry import relative
 from omnitof.io.carmen import write_carmen
@@ -198,6 +199,25 @@ def test_slam_reads_odometry_from_tf_and_a_named_scan_topic(tmp_path, corridor_l
     with pytest.raises(SystemExit) as exit_:
         main(["slam", str(bag), "--out", str(tmp_path / "x"), "--laser-topics", "scan=/front_scan,laser=/x"])
     assert exit_.value.code == 2 and "unknown role 'laser'" in capsys.readouterr().err
+
+
+def test_ignore_odometry_estimates_it_from_the_scans_and_says_so(tmp_path, corridor_loop, capsys):
+    from omnitof.io.rosbag import write_laserscan_bag
+
+    bag = tmp_path / "bag"
+    write_laserscan_bag(bag, corridor_loop.slice(0, 300))
+    assert main(["slam", str(bag), "--out", str(tmp_path / "run"), "--preset", "laser180-scanmatch", "--particles",
+                 "3", "--quiet", "--ignore-odometry"]) == 0
+    assert "odometry estimated from the scans: 299 matched, 0 by the step before" in capsys.readouterr().out
+    summary = yaml.safe_load((tmp_path / "run" / "summary.yaml").read_text())
+    assert summary["input"]["odometry"].startswith("estimated from the scans (299 matched")
+    assert summary["input"]["odometry"].endswith("none: set aside by --ignore-odometry")
+    so = summary["input"]["scan_odometry"]
+    assert (so["matched"], so["unmatched"]) == (299, 0) and 0 < so["keyframes"] < 299
+    assert summary["input"]["scan_delay"]["how"] == "none: the odometry is the scans' own"
+    # The estimate against the bag's ground truth: better than the simulated wheels it set aside.
+    wheels = absolute_trajectory_error(corridor_loop.odometry[:300], corridor_loop.ground_truth[:300])
+    assert summary["trajectory_error"]["odometry"]["mean"] < wheels.mean
 
 
 def test_laser_topics_on_a_carmen_log_is_refused(tmp_path, short_log, capsys):

@@ -921,10 +921,16 @@ def test_an_odometry_topic_wins_unless_tf_is_named(tmp_path: Path) -> None:
         read_laserscan_bag(path, topics=LaserTopics(odometry="/scan"))
 
 
-def test_a_bag_without_any_odometry_says_where_to_name_it(tmp_path: Path) -> None:
-    path = write_raw(tmp_path / "bare.bag", [("/scan", SCAN, scan_msg(NOETIC, NS, [1.0, 2.0]))], ros1=True)
-    with pytest.raises(InputError, match=r"no odometry: .*--laser-topics odometry=TOPIC.*the bag has: /scan"):
-        read_laserscan_bag(path)
+def test_a_bag_without_any_odometry_reads_with_its_odometry_unknown(tmp_path: Path) -> None:
+    # A lidar alone (Cartographer's backpack and Revo LDS bags): SLAM estimates the odometry
+    # from the scans (omnitof.slam.scan_odometry); the reader says there is none.
+    scans = [("/scan", SCAN, scan_msg(NOETIC, k * NS, [1.0, 2.0])) for k in range(1, 4)]
+    for name, messages in (("bare.bag", scans),
+                           ("static_tf_only.bag", [("/tf", TF, tf_msg(NOETIC, [("base_link", "laser", (0.1, 0, 0), yaw_q(0))]))] + scans)):
+        read, _ = read_warned(write_raw(tmp_path / name, messages, ros1=True))
+        assert len(read) == 3 and not read.odometry_known and not read.odometry.any()
+        assert read.odometry_rule.startswith("none: the bag has no nav_msgs/msg/Odometry topic")
+    np.testing.assert_allclose(read.sensor_pose, [0.1, 0.0, 0.0])  # the mounting from /tf all the same
 
 
 @pytest.mark.parametrize("version", [1, 2])
@@ -998,9 +1004,7 @@ def test_laserscan_errors(tmp_path: Path) -> None:
     store = HUMBLE
     odom = [("/odom", ODOM, odometry_msg(store, k * NS, (k, 0, 0))) for k in range(3)]
     no_odom = write_raw(tmp_path / "a", [("/scan", SCAN, scan_msg(store, NS, [1.0]))])
-    with pytest.raises(InputError, match="no odometry: no nav_msgs/msg/Odometry topic and no tf2_msgs/msg/TFMessage "
-                                         "topic /tf .* the bag has: /scan"):
-        read_laserscan_bag(no_odom)
+    assert not read_warned(no_odom)[0].odometry_known
     no_range = write_raw(tmp_path / "b", odom + [
         ("/scan", SCAN, scan_msg(store, NS, [1.0, 2.0])),
         ("/scan", SCAN, scan_msg(store, NS + 1, [1.0, 2.0, 3.0], rmax=math.nan)),

@@ -77,6 +77,7 @@ def cmd_slam(args: argparse.Namespace) -> int:
         map3d=args.map3d, map3d_every=args.map3d_every, compare_2d=args.compare_2d,
         multipath_compensation=args.multipath_compensation,
         tof_topics=args.tof_topics, tof_depth=args.tof_distance == "depth", laser_topics=args.laser_topics,
+        ignore_odometry=args.ignore_odometry,
     )
     run = slam_to_folder(request, cfg, args.out, cfg_2d=cfg_2d, bar=_bar_factory(args))
     print(_summary_line(run.result.stats))
@@ -448,6 +449,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "scan, odometry (a nav_msgs/Odometry topic, or a tf topic such as /tf for the transform "
                    "odom_frame → base_frame), ground_truth, tf, tf_static, odom_frame, base_frame; e.g. "
                    "scan=/base_scan,odometry=/tf,odom_frame=odom_combined")
+    p.add_argument("--ignore-odometry", action="store_true",
+                   help="set the input's odometry aside and estimate it from the scans, each matched against "
+                   "the scans before it (as for an input that has none, which needs no option)")
     p.add_argument("--map3d", action="store_true", help="ToF bags: also build the 3D voxel map (map3d.ply, map3d.png)")
     p.add_argument("--map3d-every", type=_positive_int, default=5, help="ToF bags: frames between those fed to the 3D map")
     p.add_argument("--filter", choices=("2d", "3d"), default="2d",

@@ -14,11 +14,14 @@ bytes, whichever way a run was started).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from omnitof.errors import OmnitofError
 from omnitof.scan.extract import ScanSettings
@@ -41,6 +44,8 @@ class SlamRequest:
         (an `io.rosbag.ToFTopics`; default the simulator's topics), tof_depth (the distance
         images hold depth z, not the radial distance): ToF bags only. laser_topics (an
         `io.rosbag.LaserTopics`; default: found by type): LaserScan bags only.
+    ignore_odometry: set the input's odometry aside and estimate it from the scans, as for an
+        input that has none (omnitof.slam.scan_odometry).
     compare_2d: with the 3D filter (`filter3d.enabled`), also run the 2D filter on the same
         scans and record how far the two trajectories lie apart (trajectory_2d.tum, summary);
         its configuration is `slam_to_folder`'s `cfg_2d`.
@@ -64,6 +69,7 @@ class SlamRequest:
     tof_topics: Any = None
     tof_depth: bool = False
     laser_topics: Any = None
+    ignore_odometry: bool = False
 
 
 @dataclass
@@ -219,12 +225,27 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
     if thinned is not None:
         extra["input"]["beams_thinned"] = thinned
         run_cfg = cfg.model_copy(update={"map": cfg.map.model_copy(update={"thin_beams": "off"})})  # done once
+    if request.ignore_odometry:  # only its first pose stays: where the estimate starts
+        scans = dataclasses.replace(scans, odometry=np.broadcast_to(scans.odometry[:1], scans.odometry.shape),
+                                    odometry_known=False, odometry_rule="none: set aside by --ignore-odometry")
+    estimated = not scans.odometry_known
+    if estimated:
+        from omnitof.slam.scan_odometry import with_scan_odometry
+
+        with bar(len(scans), "odometry from the scans", "scan") as b:
+            scans, found = with_scan_odometry(scans, run_cfg, progress=b.update)
+        echo(f"odometry estimated from the scans: {found.matched} matched, {found.unmatched} by the step before")
+        extra["input"]["odometry"] = scans.odometry_rule
+        extra["input"]["scan_odometry"] = found.to_dict()
     check_limits(scans, cfg)
-    # Laser logs are stamped when the reading arrives, so their delay is estimated by default.
+    # Laser logs are stamped when the reading arrives, so their delay is estimated by default;
+    # odometry estimated from the scans is at the scans' own stamps.
     given = request.scan_delay is not None
-    delay = request.scan_delay if given or tof else "auto"
+    delay = request.scan_delay if given or tof or estimated else "auto"
     if delay is not None:
         scans, extra["input"]["scan_delay"] = _retimed(scans, delay, given=given, echo=echo)
+    elif estimated:
+        extra["input"]["scan_delay"] = {"seconds": 0.0, "how": "none: the odometry is the scans' own"}
     voxel_paths: dict[str, Path] = {}
     if three_d:
         result, voxel_paths = _run_3d(request, run_cfg, scans, tof_data, out, extra, bar, cfg_2d or run_cfg)

@@ -62,6 +62,10 @@ class ScanSequence:
             scan before it exactly (`drop_repeated_scans`), for reports.
         odometry_rule: how the reader found each scan's odometry pose (as logged with the scan,
             or interpolated from an odometry stream at its timestamp), for reports.
+        odometry_known: False where the input has no odometry (a bag of a lidar alone) or it was
+            set aside: then only `odometry[0]` counts (where the estimate starts; zeros from a
+            reader), and SLAM estimates the odometry from the scans first
+            (omnitof.slam.scan_odometry).
     """
 
     timestamps: np.ndarray
@@ -77,6 +81,7 @@ class ScanSequence:
     max_range_rule: str = ""
     repeated_scans_dropped: int = 0
     odometry_rule: str = ""
+    odometry_known: bool = True
 
     def __post_init__(self) -> None:
         self.timestamps = np.ascontiguousarray(self.timestamps, dtype=np.float64)
@@ -201,6 +206,7 @@ class ScanSequence:
             max_range_rule=self.max_range_rule,
             repeated_scans_dropped=self.repeated_scans_dropped,
             odometry_rule=self.odometry_rule,
+            odometry_known=self.odometry_known,
         )
 
     def time_order(self) -> dict[str, int]:

@@ -24,6 +24,7 @@ from omnitof.slam.limits import MemoryWatch, check_limits, usable_cores, within_
 from omnitof.slam.config import SlamConfig
 from omnitof.slam.final_match import final_match, grid_along
 from omnitof.slam.moving import drop_moving
+from omnitof.slam.scan_odometry import with_scan_odometry
 from omnitof.slam.thinning import thin_dense_scans
 from omnitof.geometry import compose, relative
 from omnitof.types import OccupancyMap, ScanSequence, Trajectory
@@ -172,6 +173,9 @@ def run_slam(
     """
     cfg = within_cores(cfg)
     scans, _ = thin_dense_scans(scans, cfg)  # slam_run has thinned them already, and says so in its summary
+    estimated = None
+    if not scans.odometry_known:  # slam_run has estimated it already, and says so in its summary
+        scans, estimated = with_scan_odometry(scans, cfg)
     check_limits(scans, cfg)
     offset = run_offset(scans.odometry, cfg.map.resolution)  # odometry far out (slam.anchor)
     try:
@@ -182,6 +186,8 @@ def run_slam(
             f"{cfg.filter.particles} and map.resolution {cfg.map.resolution:g} m: choose fewer "
             "particles or a coarser resolution"
         ) from None
+    if estimated is not None:
+        result.stats["scan_odometry"] = estimated.to_dict()
     if not result.map.known.any():
         raise InputError(
             "no scan left a mark in the map (no beam echoed within map.max_range "

@@ -58,7 +58,6 @@ from omnitof.io.rosbag.common import (
     _storage_plugin,
     _tf_msg,
     _to_ns,
-    _topic_listing,
     parse_roles,
 )
 from omnitof.types import (
@@ -150,27 +149,40 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
     topics = topics or LaserTopics()
     with _opened(path) as reader:
         scan_conns = _pick_topic(reader, path, LASER_SCAN, topics.scan, "/scan", _CHOOSE["scan"])
-        odom_conns, odom_on_tf = _odometry_connections(reader, path, topics)
+        odom_conns, odom_kind = _odometry_connections(reader, path, topics)
         ground_truth_topic = topics.ground_truth
         # Optional topics are used only when they carry the expected type.
         truth_conns = [
             c for c in reader.connections
-            if c.topic == ground_truth_topic and c.topic != odom_conns[0].topic
-            and c.msgtype == ODOMETRY
+            if c.topic == ground_truth_topic and c.msgtype == ODOMETRY
+            and not (odom_conns and c.topic == odom_conns[0].topic)
         ]  # fmt: skip
         tf_static_topic = topics.tf_static
         tf_conns = [
             c for c in reader.connections if c.topic == tf_static_topic and c.msgtype in TF_TYPES
         ]
         scan_name = scan_conns[0].topic
-        if odom_on_tf:
+        odom_name = ""
+        if odom_kind == "tf":
             trajectories = _read_trajectories(reader, path, truth_conns)
-            odometry, base_frame = _read_tf_odometry(reader, path, odom_conns, topics.odom_frame, topics.base_frame)
-            odom_name = f"{odom_conns[0].topic} ({topics.odom_frame} → {base_frame})"
-            trajectories[odom_name] = odometry
-            odometry_rule = (f"interpolated from the transform {topics.odom_frame} → {base_frame} on "
-                             f"{odom_conns[0].topic} at each scan's timestamp")
-        else:
+            # Found by itself, a tf topic without the odometry's transform means a bag without odometry.
+            found = _read_tf_odometry(reader, path, odom_conns, topics.odom_frame, topics.base_frame,
+                                      required=topics.odometry is not None or topics.base_frame is not None
+                                      or topics.odom_frame != ODOM_FRAME)
+            if found is None:
+                odom_kind = "none"
+            else:
+                odometry, base_frame = found
+                odom_name = f"{odom_conns[0].topic} ({topics.odom_frame} → {base_frame})"
+                trajectories[odom_name] = odometry
+                odometry_rule = (f"interpolated from the transform {topics.odom_frame} → {base_frame} on "
+                                 f"{odom_conns[0].topic} at each scan's timestamp")
+        if odom_kind == "none":
+            trajectories = _read_trajectories(reader, path, truth_conns)
+            base_frame = topics.base_frame or BASE_FRAME
+            odometry_rule = (f"none: the bag has no {ODOMETRY} topic and no transform {topics.odom_frame} → base "
+                             f"on {topics.tf}")
+        elif odom_kind == "odometry":
             trajectories = _read_trajectories(reader, path, odom_conns + truth_conns)
             odom_name = odom_conns[0].topic
             base_frame = topics.base_frame or trajectories.child_frames.get(odom_name) or BASE_FRAME
@@ -224,8 +236,11 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
         raise InputError(f"topic {scan_name}: has no message", path)
 
     t = np.array([_ns_to_s(ns) for ns in stamps], dtype=np.float64)
-    odometry = trajectories[odom_name]
-    poses = interpolate_poses(odometry, t)
+    if odom_kind == "none":  # SLAM estimates it from the scans (omnitof.slam.scan_odometry)
+        poses = np.zeros((len(t), 3))
+    else:
+        odometry = trajectories[odom_name]
+        poses = interpolate_poses(odometry, t)
     keep = ~np.isnan(poses[:, 0])
     if not keep.any():
         raise InputError(
@@ -282,6 +297,7 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
         beam_counts=beam_counts,
         max_range_rule=rule,
         odometry_rule=odometry_rule,
+        odometry_known=odom_kind != "none",
     )
     scans = drop_repeated_scans(scans)
     if scans.repeated_scans_dropped:
@@ -302,39 +318,34 @@ _CHOOSE = {
 }
 
 
-def _odometry_connections(reader: AnyReader, path: Path, topics: LaserTopics) -> tuple[list[Any], bool]:
-    """The connections the odometry comes from, and whether they are tf (TFMessage) rather
-    than nav_msgs/Odometry."""
+def _odometry_connections(reader: AnyReader, path: Path, topics: LaserTopics) -> tuple[list[Any], str]:
+    """The connections the odometry comes from and their kind: "odometry" (nav_msgs/Odometry),
+    "tf" (TFMessage), or "none" (no connections: the bag has neither, and none was named)."""
     if topics.odometry is not None:
         conns = [c for c in reader.connections if c.topic == topics.odometry]
         if conns and all(c.msgtype in TF_TYPES for c in conns):
-            return conns, True
+            return conns, "tf"
         if conns and any(c.msgtype != ODOMETRY for c in conns):
             kinds = ", ".join(sorted({c.msgtype for c in conns}))
             raise InputError(f"topic {topics.odometry} has type {kinds}, expected {ODOMETRY} or {TF_MESSAGE}", path)
         found = _connections(reader, path, topics.odometry, ODOMETRY)
         assert found is not None  # required topics are never None
-        return found, False
+        return found, "odometry"
     exclude = {topics.ground_truth} if topics.ground_truth else set()
     if any(c.msgtype == ODOMETRY and c.topic not in exclude for c in reader.connections):
-        return _pick_topic(reader, path, ODOMETRY, None, "/odom", _CHOOSE["odometry"], exclude=exclude), False
+        return _pick_topic(reader, path, ODOMETRY, None, "/odom", _CHOOSE["odometry"], exclude=exclude), "odometry"
     tf = [c for c in reader.connections if c.topic == topics.tf and c.msgtype in TF_TYPES]
-    if tf:
-        return tf, True
-    raise InputError(
-        f"no odometry: no {ODOMETRY} topic and no {TF_MESSAGE} topic {topics.tf} with the transform "
-        f"{topics.odom_frame} → base; name where it is with {_CHOOSE['odometry']}; the bag has: "
-        f"{_topic_listing(reader)}",
-        path,
-    )
+    return tf, "tf" if tf else "none"
 
 
 def _read_tf_odometry(
-    reader: AnyReader, path: Path, connections: Sequence[Any], odom_frame: str, base_frame: str | None
-) -> tuple[Trajectory, str]:
+    reader: AnyReader, path: Path, connections: Sequence[Any], odom_frame: str, base_frame: str | None,
+    *, required: bool,
+) -> tuple[Trajectory, str] | None:
     """(the transform odom_frame → base as a Trajectory by the transforms' own stamps, base):
     base is `base_frame`, or the one frame whose parent on tf is odom_frame. Out-of-order
-    transforms are sorted (tf buffers them so); of several at one stamp the last is kept."""
+    transforms are sorted (tf buffers them so); of several at one stamp the last is kept. Where
+    tf holds no such transform: an InputError if `required`, else None."""
     topic = connections[0].topic
     rows: dict[str, list[tuple[int, float, float, float]]] = {}
     pairs: set[tuple[str, str]] = set()  # (parent, child) seen, for the error that lists them
@@ -354,6 +365,8 @@ def _read_tf_odometry(
                     path,
                 )
             rows.setdefault(child, []).append((ns, float(t.x), float(t.y), float(quaternion_to_yaw(quaternion))))
+    if not rows and not required:
+        return None
     if not rows:
         wanted = f"{odom_frame} → {base_frame}" if base_frame else f"from the frame {odom_frame}"
         listed = ", ".join(f"{a} → {b}" for a, b in sorted(pairs)[:20]) or "none"
