@@ -933,6 +933,44 @@ def test_a_bag_without_any_odometry_reads_with_its_odometry_unknown(tmp_path: Pa
     np.testing.assert_allclose(read.sensor_pose, [0.1, 0.0, 0.0])  # the mounting from /tf all the same
 
 
+def multi_echo_msg(store, ns: int, echoes, *, frame="horizontal_laser_link", angle_min=-1.0, inc=0.5):
+    """A sensor_msgs/MultiEchoLaserScan; `echoes` is one list of echo ranges per beam."""
+    t = store.types
+    echo = t["sensor_msgs/msg/LaserEcho"]
+    return t["sensor_msgs/msg/MultiEchoLaserScan"](
+        header=header(store, ns, frame), angle_min=angle_min, angle_max=angle_min + inc * (len(echoes) - 1),
+        angle_increment=inc, time_increment=0.0, scan_time=0.0, range_min=0.1, range_max=30.0,
+        ranges=[echo(echoes=np.asarray(e, dtype=np.float32)) for e in echoes],
+        intensities=[echo(echoes=np.asarray([100.0] * len(e), dtype=np.float32)) for e in echoes],
+    )
+
+
+@pytest.mark.parametrize("ros1", [True, False])
+def test_a_backpack_bag_of_multi_echo_scans_without_odometry(tmp_path: Path, ros1: bool) -> None:
+    # As Cartographer's backpack bags are: two MultiEchoLaserScan topics (a horizontal and a
+    # vertical laser), no odometry. Each beam's first echo is its range; the horizontal laser is
+    # named, the odometry is left to SLAM to estimate.
+    store = NOETIC if ros1 else HUMBLE
+    multi = "sensor_msgs/msg/MultiEchoLaserScan"
+    messages = []
+    for k in range(1, 4):
+        beams = [[1.0 + k, 1.5 + k], [], [2.0, 9.0], [40.0]]  # the last beyond range_max: no echo
+        messages.append(("/horizontal_laser_2d", multi, multi_echo_msg(store, k * NS, beams)))
+        messages.append(("/vertical_laser_2d", multi, multi_echo_msg(store, k * NS, [[0.5]], frame="vertical_laser_link")))
+    path = write_raw(tmp_path / ("backpack.bag" if ros1 else "backpack"), messages, ros1=ros1)
+    with pytest.raises(InputError, match="several sensor_msgs/msg/LaserScan or sensor_msgs/msg/MultiEchoLaserScan "
+                                         "topics: /horizontal_laser_2d, /vertical_laser_2d"):
+        read_laserscan_bag(path)
+    scans, _ = read_warned(path, topics=LaserTopics(scan="/horizontal_laser_2d"))
+    assert len(scans) == 3 and not scans.odometry_known
+    np.testing.assert_array_equal(scans.ranges, [[1.0 + k, np.inf, 2.0, np.inf] for k in range(1, 4)])
+    np.testing.assert_allclose(scans.angles, [-1.0, -0.5, 0.0, 0.5])
+    assert scans.remissions is None  # the empty beam has no first intensity either
+    from omnitof.io.scans import is_tof_bag
+
+    assert not is_tof_bag(path)
+
+
 @pytest.mark.parametrize("version", [1, 2])
 def test_laserscan_bag_with_odometry_on_tf_round_trips(tmp_path: Path, version: int) -> None:
     rng = np.random.default_rng(5)

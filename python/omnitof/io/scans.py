@@ -34,7 +34,8 @@ def is_tof_bag(path: str | Path) -> bool:
     from omnitof.io.rosbag import bag_message_types
 
     types = bag_message_types(path)
-    return "sensor_msgs/msg/Image" in types and "sensor_msgs/msg/LaserScan" not in types
+    return "sensor_msgs/msg/Image" in types and not types & {"sensor_msgs/msg/LaserScan",
+                                                             "sensor_msgs/msg/MultiEchoLaserScan"}
 
 
 def read_scans(path: str | Path, *, skip_bad_lines: bool = False, laser_topics: Any = None) -> ScanInput:

@@ -74,6 +74,9 @@ IMAGE = "sensor_msgs/msg/Image"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 ODOMETRY = "nav_msgs/msg/Odometry"
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
+# A laser's scans with every echo of each beam (Cartographer's backpack bags); read as its first.
+MULTI_ECHO_SCAN = "sensor_msgs/msg/MultiEchoLaserScan"
+LASER_TYPES = (LASER_SCAN, MULTI_ECHO_SCAN)
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 # The types read as tf: ROS 1 bags recorded before Hydro carry tf/tfMessage, the same fields.
 TF_TYPES = frozenset({TF_MESSAGE, "tf/msg/tfMessage"})
@@ -311,44 +314,50 @@ def _topic_listing(reader: AnyReader) -> str:
 
 
 def _connections(
-    reader: AnyReader, path: Path, topic: str, msgtype: str, *, required: bool = True
+    reader: AnyReader, path: Path, topic: str, msgtype: str | tuple[str, ...], *, required: bool = True
 ) -> list[Any] | None:
-    """The connections of `topic`, checked to carry `msgtype`; None if absent and optional."""
+    """The connections of `topic`, checked to carry `msgtype` (or one of several, all alike);
+    None if absent and optional."""
+    types = (msgtype,) if isinstance(msgtype, str) else msgtype
+    wanted = " or ".join(types)
     conns = [c for c in reader.connections if c.topic == topic]
     if not conns:
         if required:
             raise InputError(
-                f"topic {topic} ({msgtype}) is missing; the bag has: {_topic_listing(reader)}",
+                f"topic {topic} ({wanted}) is missing; the bag has: {_topic_listing(reader)}",
                 path,
             )
         return None
-    wrong = sorted({c.msgtype for c in conns if c.msgtype != msgtype})
-    if wrong:
-        raise InputError(f"topic {topic} has type {', '.join(wrong)}, expected {msgtype}", path)
+    kinds = sorted({c.msgtype for c in conns})
+    if len(kinds) > 1 or kinds[0] not in types:
+        raise InputError(f"topic {topic} has type {', '.join(kinds)}, expected {wanted}", path)
     return conns
 
 
 def _pick_topic(
-    reader: AnyReader, path: Path, msgtype: str, topic: str | None, conventional: str,
+    reader: AnyReader, path: Path, msgtype: str | tuple[str, ...], topic: str | None, conventional: str,
     choose: str, *, exclude: Iterable[str] = (),
 ) -> list[Any]:  # fmt: skip
-    """The connections of `topic`, or of the one topic of type `msgtype` when topic is None."""
+    """The connections of `topic`, or of the one topic of type `msgtype` (or one of several)
+    when topic is None."""
     if topic is not None:
         conns = _connections(reader, path, topic, msgtype)
         assert conns is not None  # required topics are never None
         return conns
+    types = (msgtype,) if isinstance(msgtype, str) else msgtype
+    wanted = " or ".join(types)
     candidates = sorted(
-        {c.topic for c in reader.connections if c.msgtype == msgtype} - set(exclude)
+        {c.topic for c in reader.connections if c.msgtype in types} - set(exclude)
     )
     if len(candidates) > 1 and conventional in candidates:
         candidates = [conventional]
     if not candidates:
         raise InputError(
-            f"no {msgtype} topic; the bag has: {_topic_listing(reader)}", path
+            f"no {wanted} topic; the bag has: {_topic_listing(reader)}", path
         )
     if len(candidates) > 1:
         raise InputError(
-            f"several {msgtype} topics: {', '.join(candidates)}; choose one with {choose}",
+            f"several {wanted} topics: {', '.join(candidates)}; choose one with {choose}",
             path,
         )
     return [c for c in reader.connections if c.topic == candidates[0]]

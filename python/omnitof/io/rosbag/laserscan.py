@@ -1,6 +1,7 @@
 """Laser-scan bags (`read_laserscan_bag`, `write_laserscan_bag`): planar scans and odometry.
 
-ROS 1 (`.bag` files) or ROS 2 bags with sensor_msgs/LaserScan and the robot's odometry
+ROS 1 (`.bag` files) or ROS 2 bags with sensor_msgs/LaserScan (or MultiEchoLaserScan, read as
+each beam's first echo) and the robot's odometry
 (nav_msgs/Odometry, or the transform odom → base on /tf where the robot publishes it only
 there), read into a ScanSequence and written from one; `LaserTopics` names the topics and frames
 where they are not found by type.
@@ -33,6 +34,8 @@ from omnitof.io.rosbag.common import (
     DEFAULT_STORAGE,
     LASER_FRAME,
     LASER_SCAN,
+    LASER_TYPES,
+    MULTI_ECHO_SCAN,
     ODOM_FRAME,
     ODOMETRY,
     TF_MESSAGE,
@@ -84,7 +87,8 @@ _GEOMETRY_TOLERANCE = 1e-6
 class LaserTopics:
     """Where a laser-scan bag keeps what `read_laserscan_bag` reads (`--laser-topics` in the CLI).
 
-    scan: the sensor_msgs/LaserScan topic; None: the one such topic ("/scan" among several).
+    scan: the sensor_msgs/LaserScan or MultiEchoLaserScan topic; None: the one such topic
+        ("/scan" among several).
     odometry: a nav_msgs/Odometry topic, or a tf2_msgs/TFMessage topic (such as "/tf") whose
         transform odom_frame → base_frame is the odometry; None: the one Odometry topic ("/odom"
         among several, never ground_truth), and where the bag has none, the transform on `tf`.
@@ -113,7 +117,8 @@ class LaserTopics:
 
 
 def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -> ScanSequence:
-    """Read sensor_msgs/LaserScan and the robot's odometry from a ROS 1 or ROS 2 bag.
+    """Read sensor_msgs/LaserScan (or MultiEchoLaserScan: each beam's first echo) and the
+    robot's odometry from a ROS 1 or ROS 2 bag.
 
     - Topics (`LaserTopics`; default: found by type): several candidates are ambiguous unless
       one is the conventional name ("/scan", "/odom"); the ground-truth topic is never taken
@@ -148,7 +153,7 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
     path = Path(path)
     topics = topics or LaserTopics()
     with _opened(path) as reader:
-        scan_conns = _pick_topic(reader, path, LASER_SCAN, topics.scan, "/scan", _CHOOSE["scan"])
+        scan_conns = _pick_topic(reader, path, LASER_TYPES, topics.scan, "/scan", _CHOOSE["scan"])
         odom_conns, odom_kind = _odometry_connections(reader, path, topics)
         ground_truth_topic = topics.ground_truth
         # Optional topics are used only when they carry the expected type.
@@ -206,7 +211,10 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
                 )
             if not stamps:
                 laser_frame = _frame_name(msg.header.frame_id)
-            r = np.array(msg.ranges, dtype=np.float32)
+            if scan_conns[0].msgtype == MULTI_ECHO_SCAN:
+                r, remission = _first_echoes(msg)
+            else:
+                r, remission = np.array(msg.ranges, dtype=np.float32), np.asarray(msg.intensities, dtype=np.float32)
             range_min, range_max = float(msg.range_min), float(msg.range_max)
             if not (math.isfinite(range_max) and range_max > 0.0):
                 raise InputError(
@@ -227,7 +235,7 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
             r[~valid] = np.inf
             stamps.append(ns)
             ranges.append(r)
-            intensities.append(np.asarray(msg.intensities, dtype=np.float32))
+            intensities.append(remission)
             geometry.append((float(msg.angle_min), float(msg.angle_increment), len(r), range_max))
         if stamps and dynamic_conns and not _resolves(static, base_frame, laser_frame):
             first_seen = _read_static_transforms(reader, path, dynamic_conns, first_only=True)
@@ -308,6 +316,17 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
             stacklevel=2,
         )
     return scans
+
+
+def _first_echoes(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(ranges, intensities) of a sensor_msgs/MultiEchoLaserScan: each beam's first echo, as
+    Cartographer reads them (+inf for a beam without one; intensities only where every beam has
+    one for its first echo, else none)."""
+    # rosbags gives each beam's echoes as a message of its own: one pass over the beams.
+    ranges = np.array([e.echoes[0] if len(e.echoes) else np.inf for e in msg.ranges], dtype=np.float32)
+    if len(msg.intensities) == len(msg.ranges) and all(len(e.echoes) for e in msg.intensities):
+        return ranges, np.array([e.echoes[0] for e in msg.intensities], dtype=np.float32)
+    return ranges, np.zeros(0, dtype=np.float32)
 
 
 # How the errors of `read_laserscan_bag` tell a user to choose a topic or frame.
