@@ -910,6 +910,16 @@ def test_tf_odometry_names_the_robot_frame_among_several_and_is_chosen_by_name(t
         read_laserscan_bag(path, topics=LaserTopics(odom_frame="map"))
 
 
+def test_a_tf_odometry_transform_that_is_not_finite_is_named(tmp_path: Path) -> None:
+    messages = [("/tf", TF, tf_msg(NOETIC, [("odom", "base_link", (k, math.nan if k == 2 else 0.0, 0.0), yaw_q(0))],
+                                  k * NS)) for k in range(1, 4)]
+    messages += [("/scan", SCAN, scan_msg(NOETIC, k * NS, [1.0, 2.0])) for k in range(1, 4)]
+    path = write_raw(tmp_path / "nan.bag", messages, ros1=True)
+    with pytest.raises(InputError, match=r"topic /tf: the transform odom → base_link stamped 2.000000000 s is not "
+                                         r"finite \(position 2.0, nan"):
+        read_laserscan_bag(path)
+
+
 def test_an_odometry_topic_wins_unless_tf_is_named(tmp_path: Path) -> None:
     path = tf_odometry_bag(tmp_path / "robot.bag", odom_topic=True)
     t = 0.15 + 0.1 * np.arange(10)

@@ -406,16 +406,9 @@ def _read_trajectories(
                 path,
             )
         previous.append(ns)
-        p, q = msg.pose.pose.position, msg.pose.pose.orientation
-        quaternion = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
-        if not (np.isfinite([p.x, p.y]).all() and np.isfinite(quaternion).all() and np.any(quaternion)):
-            raise InputError(
-                f"topic {topic}: the pose stamped {_ns_to_s(ns):.9f} s is not finite (position "
-                f"{p.x}, {p.y}, orientation {q.x}, {q.y}, {q.z}, {q.w})",
-                path,
-            )
-        yaw = float(quaternion_to_yaw(quaternion))  # any length, huge components too
-        poses.setdefault(topic, []).append((float(p.x), float(p.y), yaw))
+        pose = _planar_pose(msg.pose.pose.position, msg.pose.pose.orientation,
+                            f"topic {topic}: the pose stamped {_ns_to_s(ns):.9f} s", path)
+        poses.setdefault(topic, []).append(pose)
         result.child_frames.setdefault(topic, _frame_name(msg.child_frame_id))
     for conn in connections:
         if conn.topic not in stamps:
@@ -426,6 +419,18 @@ def _read_trajectories(
             np.array(poses[topic], dtype=np.float64),
         )
     return result
+
+
+def _planar_pose(position: Any, orientation: Any, what: str, path: Path) -> tuple[float, float, float]:
+    """(x, y, heading) of a message's position and quaternion (of any length, huge components
+    too); an InputError naming `what` where they are not finite or the quaternion is zero."""
+    p, q = position, orientation
+    quaternion = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+    if not (np.isfinite([p.x, p.y]).all() and np.isfinite(quaternion).all() and np.any(quaternion)):
+        raise InputError(
+            f"{what} is not finite (position {p.x}, {p.y}, orientation {q.x}, {q.y}, {q.z}, {q.w})", path
+        )
+    return float(p.x), float(p.y), float(quaternion_to_yaw(quaternion))
 
 
 def _frame_name(frame_id: str) -> str:

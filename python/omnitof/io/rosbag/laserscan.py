@@ -27,7 +27,7 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import Writer as Writer2
 
 from omnitof.errors import InputError
-from omnitof.geometry import interpolate_poses, quaternion_to_yaw
+from omnitof.geometry import interpolate_poses
 from omnitof.io.rosbag.common import (
     _ROSBAG2_VERSION,
     BASE_FRAME,
@@ -52,6 +52,7 @@ from omnitof.io.rosbag.common import (
     _ns_to_s,
     _opened,
     _pick_topic,
+    _planar_pose,
     _PoseStream,
     _read_trajectories,
     _ros1_store,
@@ -375,15 +376,9 @@ def _read_tf_odometry(
             if parent != odom_frame or (base_frame is not None and child != base_frame):
                 continue
             ns = _stamp_ns(tf.header.stamp)
-            t, q = tf.transform.translation, tf.transform.rotation
-            quaternion = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
-            if not (np.isfinite([t.x, t.y]).all() and np.isfinite(quaternion).all() and np.any(quaternion)):
-                raise InputError(
-                    f"topic {topic}: the transform {parent} → {child} stamped {_ns_to_s(ns):.9f} s "
-                    f"is not finite (translation {t.x}, {t.y}, rotation {q.x}, {q.y}, {q.z}, {q.w})",
-                    path,
-                )
-            rows.setdefault(child, []).append((ns, float(t.x), float(t.y), float(quaternion_to_yaw(quaternion))))
+            pose = _planar_pose(tf.transform.translation, tf.transform.rotation,
+                                f"topic {topic}: the transform {parent} → {child} stamped {_ns_to_s(ns):.9f} s", path)
+            rows.setdefault(child, []).append((ns, *pose))
     if not rows and not required:
         return None
     if not rows:
