@@ -196,6 +196,10 @@ def test_slam_reads_odometry_from_tf_and_a_named_scan_topic(tmp_path, corridor_l
     # The SLAM trajectory against the bag's ground truth: the run is a real one.
     assert summary["trajectory_error"]["slam"]["mean"] < 0.1
     capsys.readouterr()
+    # The option reaches the reader: a topic the bag lacks is named as missing.
+    assert quick_slam(bag, tmp_path / "y", "--laser-topics", "scan=/rear_scan") != 0
+    assert "topic /rear_scan (sensor_msgs/msg/LaserScan or sensor_msgs/msg/MultiEchoLaserScan) is missing" in (
+        capsys.readouterr().err)
     with pytest.raises(SystemExit) as exit_:
         main(["slam", str(bag), "--out", str(tmp_path / "x"), "--laser-topics", "scan=/front_scan,laser=/x"])
     assert exit_.value.code == 2 and "unknown role 'laser'" in capsys.readouterr().err
@@ -218,6 +222,15 @@ def test_ignore_odometry_estimates_it_from_the_scans_and_says_so(tmp_path, corri
     # The estimate against the bag's ground truth: better than the simulated wheels it set aside.
     wheels = absolute_trajectory_error(corridor_loop.odometry[:300], corridor_loop.ground_truth[:300])
     assert summary["trajectory_error"]["odometry"]["mean"] < wheels.mean
+
+
+def test_ignore_odometry_refuses_what_cannot_apply_to_an_estimate(tmp_path, short_log, capsys):
+    assert quick_slam(short_log, tmp_path / "a", "--ignore-odometry") != 0  # quick_slam gives --scan-delay 0
+    assert "--scan-delay: the odometry is estimated from the scans at their own stamps" in capsys.readouterr().err
+    assert main(["slam", str(short_log), "--out", str(tmp_path / "b"), "--ignore-odometry", "--filter", "3d",
+                 "--quiet"]) != 0
+    assert "--ignore-odometry does not work with the 3D filter" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 
 def test_laser_topics_on_a_carmen_log_is_refused(tmp_path, short_log, capsys):

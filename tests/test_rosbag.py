@@ -920,6 +920,21 @@ def test_a_tf_odometry_transform_that_is_not_finite_is_named(tmp_path: Path) -> 
         read_laserscan_bag(path)
 
 
+def test_tf_odometry_under_another_frame_is_pointed_at_and_slashed_names_are_frames(tmp_path: Path) -> None:
+    # A PR2 publishes odom_combined → base_footprint; a user copies "/odom_combined" from rosbag info.
+    messages = [("/tf", TF, tf_msg(NOETIC, [("/odom_combined", "/base_footprint", (0.1 * k, 0.0, 0.0), yaw_q(0))],
+                                  k * NS)) for k in range(1, 5)]
+    messages += [("/scan", SCAN, scan_msg(NOETIC, k * NS, [1.0, 2.0])) for k in range(1, 5)]
+    path = write_raw(tmp_path / "pr2.bag", messages, ros1=True)
+    scans, warned = read_warned(path)
+    assert not scans.odometry_known
+    assert any("may be the transform from odom_combined: name it with --laser-topics odom_frame=FRAME" in m
+               for m in warned)
+    scans, _ = read_warned(path, topics=LaserTopics(odom_frame="/odom_combined", base_frame="/base_footprint"))
+    assert scans.odometry_known and "odom_combined → base_footprint" in scans.odometry_rule
+    np.testing.assert_allclose(scans.odometry[:, 0], 0.1 * np.arange(1, 5), atol=1e-9)
+
+
 def test_an_odometry_topic_wins_unless_tf_is_named(tmp_path: Path) -> None:
     path = tf_odometry_bag(tmp_path / "robot.bag", odom_topic=True)
     t = 0.15 + 0.1 * np.arange(10)

@@ -51,6 +51,22 @@ def test_a_scan_that_finds_no_map_repeats_the_step_before(loop_start):
         np.testing.assert_allclose(relative(poses[k - 1], poses[k]), step, atol=1e-9)
 
 
+@pytest.mark.parametrize("blind", [1, 3])
+def test_blind_first_scans_do_not_hold_the_estimate_still(loop_start, blind):
+    # A lidar spinning up sends empty scans first: the failed matches join the map, so the
+    # first scan with echoes gives the next ones walls to match.
+    ranges = loop_start.ranges.copy()
+    ranges[:blind] = np.inf
+    scans = dataclasses.replace(loop_start, ranges=ranges).slice(0, 200)
+    poses, stats = estimate_odometry(scans, cfg())
+    assert stats.unmatched <= blind + 1
+    truth = scans.ground_truth
+    moved = np.linalg.norm(truth[-1, :2] - truth[0, :2])
+    assert moved > 5.0
+    # From the first scan with echoes on, as without the blind ones (1.9 cm over these 20 m).
+    assert start_aligned_error(poses[blind:], truth[blind:]).mean < 0.05  # 2.0 and 2.7 cm
+
+
 def test_run_slam_estimates_the_odometry_an_input_lacks(loop_start):
     # As `omnitof slam --ignore-odometry` gives it: only the first pose, where the estimate starts.
     first_only = np.broadcast_to(loop_start.odometry[:1], loop_start.odometry.shape)

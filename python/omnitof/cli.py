@@ -433,7 +433,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--skip-bad-lines", action="store_true", help="skip and count malformed log lines")
     p.add_argument("--scan-delay", type=_scan_delay, metavar="SECONDS|auto",
                    help="the scans were taken this long before their timestamps: take each scan's odometry "
-                   "from then; 'auto' (the default for laser logs and LaserScan bags) estimates it from the data "
+                   "from then; 'auto' (the default for laser logs and LaserScan bags with odometry) estimates it from the data "
                    "(omnitof.slam.timing), or uses 0 where the timestamps do not allow it")
     p.add_argument("--calibration", type=Path, help="ToF bags: the rig's calibration YAML (omnitof calibrate); "
                    "default: the true rig of a simulated bag")

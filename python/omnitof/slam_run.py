@@ -164,8 +164,10 @@ def slam_to_folder(request: SlamRequest, cfg: SlamConfig, out: str | Path, *, cf
         ("--compare-2d", request.compare_2d)) if given]  # fmt: skip
     if not tof and tof_only:  # a laser log has no slice, rig or images: the option would be ignored
         raise OmnitofError(f"{log}: {', '.join(tof_only)} need{'s' if len(tof_only) == 1 else ''} a bag of ToF images")
-    if request.laser_topics is not None and (tof or not _is_bag(log)):
+    if request.laser_topics is not None and log.exists() and (tof or not _is_bag(log)):
         raise OmnitofError(f"{log}: --laser-topics needs a bag of LaserScan messages")
+    if request.ignore_odometry and cfg.filter3d.enabled:  # its frames are chosen by the odometry while reading
+        raise OmnitofError(f"{log}: --ignore-odometry does not work with the 3D filter (--filter 3d)")
     if not tof and cfg.filter3d.enabled:
         raise OmnitofError(f"{log}: the 3D filter (--filter 3d, filter3d.enabled) needs a bag of ToF images")
     relations = None
@@ -229,12 +231,18 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
         scans = dataclasses.replace(scans, odometry=np.broadcast_to(scans.odometry[:1], scans.odometry.shape),
                                     odometry_known=False, odometry_rule="none: set aside by --ignore-odometry")
     estimated = not scans.odometry_known
+    if estimated and request.scan_delay is not None:
+        raise OmnitofError(f"{log}: --scan-delay: the odometry is estimated from the scans at their own stamps "
+                           f"({scans.odometry_rule}), so no delay applies to it")
     if estimated:
         from omnitof.slam.scan_odometry import with_scan_odometry
 
         with bar(len(scans), "odometry from the scans", "scan") as b:
             scans, found = with_scan_odometry(scans, run_cfg, progress=b.update)
         echo(f"odometry estimated from the scans: {found.matched} matched, {found.unmatched} by the step before")
+        if found.unmatched > 0.1 * len(scans):
+            echo(f"warning: {found.unmatched} of {len(scans)} scans found too little of the map to be matched; "
+                 "the estimated odometry, and the map, may be wrong")
         extra["input"]["odometry"] = scans.odometry_rule
         extra["input"]["scan_odometry"] = found.to_dict()
     check_limits(scans, cfg)

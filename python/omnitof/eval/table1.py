@@ -183,8 +183,8 @@ def sample_profile(
     """
     res = float(occ.resolution)
     step = res / 2.0 if step is None else float(step)
-    if not (step > 0 and half_length > 0 and n_lines >= 1 and patch_width >= 0):
-        raise ValueError("step, half_length must be > 0, n_lines >= 1 and patch_width >= 0")
+    if not (0 < step < math.inf and 0 < half_length < math.inf and n_lines >= 1 and patch_width >= 0):
+        raise ValueError("step, half_length must be finite and > 0, n_lines >= 1 and patch_width >= 0")
     samples = (2.0 * half_length / step + 1.0) * n_lines
     if not samples <= MAX_PROFILE_SAMPLES:  # rather than numpy's MemoryError, or a hang
         raise ValueError(

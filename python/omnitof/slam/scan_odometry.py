@@ -10,7 +10,7 @@ the map's range. The climb starts both where the motion of the scan before would
 robot (the same step again) and where that scan was (the robot stopped), and the better match
 is kept; after a gap in the log, or where the match finds too little of the map, it also starts
 at every 10° of heading around. Where fewer than `scan_matcher.min_matched` of its end points
-find the map all the same, the step before is repeated. The poses so found are the odometry the filter then runs on: good over a few metres,
+find the map all the same, the step before is repeated and the scan joins the map at that pose. The poses so found are the odometry the filter then runs on: good over a few metres,
 drifting over long distances as wheels do; closing loops stays the filter's and the back end's
 work.
 
@@ -133,7 +133,10 @@ def estimate_odometry(scans: ScanSequence, cfg: SlamConfig, *,
         believed = math.hypot(step[0], step[1]) <= MAX_STEP and abs(step[2]) <= MAX_TURN
         last_step = step if believed else np.zeros(3)
         last = poses[keyframes[-1]]
-        if (math.hypot(*(poses[k, :2] - last[:2])) >= KEYFRAME_DISTANCE
+        # A scan whose match failed joins the map too: where the map holds too little (a blind
+        # or sparse first scan, a lidar spinning up) the estimate would otherwise stand still
+        # for the whole log, no scan ever moving far enough to join it.
+        if (share < sm.min_matched or math.hypot(*(poses[k, :2] - last[:2])) >= KEYFRAME_DISTANCE
                 or abs(wrap_angle(poses[k, 2] - last[2])) >= KEYFRAME_ANGLE):
             keyframes.append(k)
             added += 1

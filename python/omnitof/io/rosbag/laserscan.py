@@ -110,6 +110,13 @@ class LaserTopics:
     odom_frame: str = ODOM_FRAME
     base_frame: str | None = None
 
+    def __post_init__(self) -> None:
+        # As `rosbag info` and ROS 1 bags show them, "/odom" names the frame "odom".
+        for name in ("odom_frame", "base_frame"):
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, _frame_name(value))
+
     @classmethod
     def parse(cls, text: str) -> LaserTopics:
         """From "ROLE=VALUE,ROLE=VALUE" (the roles are the fields), as `--laser-topics` takes
@@ -240,7 +247,11 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
             geometry.append((float(msg.angle_min), float(msg.angle_increment), len(r), range_max))
         if stamps and dynamic_conns and not _resolves(static, base_frame, laser_frame):
             first_seen = _read_static_transforms(reader, path, dynamic_conns, first_only=True)
+            # Only the mounting below the robot: the odometry's own edge above it moves.
+            first_seen = {child: edge for child, edge in first_seen.items()
+                          if child != base_frame and edge[0] != topics.odom_frame}
             static = {**first_seen, **static}
+            tf_static_topic = f"{tf_static_topic} or {topics.tf}"
     if not stamps:
         raise InputError(f"topic {scan_name}: has no message", path)
 
@@ -380,6 +391,13 @@ def _read_tf_odometry(
                                 f"topic {topic}: the transform {parent} → {child} stamped {_ns_to_s(ns):.9f} s", path)
             rows.setdefault(child, []).append((ns, *pose))
     if not rows and not required:
+        parents = sorted({a for a, _ in pairs if "odom" in a})
+        if parents:  # a PR2's odom_combined: say where the odometry may be, rather than estimate it
+            warnings.warn(
+                f"{path}: {topic} holds no transform from the frame {odom_frame}, so the odometry is taken as "
+                f"unknown and estimated from the scans; it may be the transform from {', '.join(parents)}: "
+                "name it with --laser-topics odom_frame=FRAME", RosbagWarning, stacklevel=3,
+            )
         return None
     if not rows:
         wanted = f"{odom_frame} → {base_frame}" if base_frame else f"from the frame {odom_frame}"
