@@ -80,3 +80,16 @@ def test_run_slam_estimates_the_odometry_an_input_lacks(loop_start):
     with_wheels = run_slam(loop_start, cfg())
     assert (absolute_trajectory_error(result.trajectory.poses, truth).mean
             < absolute_trajectory_error(with_wheels.trajectory.poses, truth).mean + 0.02)
+
+
+def test_a_log_with_nothing_to_map_is_refused_before_the_estimate(loop_start, monkeypatch):
+    import omnitof.slam.driver as driver
+    from omnitof.errors import InputError
+
+    def never(*args, **kwargs):
+        raise AssertionError("the odometry was estimated for a log with nothing to map")
+
+    monkeypatch.setattr(driver, "with_scan_odometry", never)
+    blind = dataclasses.replace(loop_start, ranges=np.full_like(loop_start.ranges, np.inf), odometry_known=False)
+    with pytest.raises(InputError, match="echo"):
+        run_slam(blind, cfg())

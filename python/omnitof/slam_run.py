@@ -39,8 +39,8 @@ class SlamRequest:
     """The input of a run and how it is scored; the fields are `omnitof slam`'s options.
 
     scan_delay: seconds, "auto" (estimated from the log, `omnitof.slam.timing`) or None for the
-        default: "auto" for laser logs and LaserScan bags (they are stamped when the reading
-        arrives), none for ToF bags. calibration, height, band, map3d, map3d_every, tof_topics
+        default: "auto" for laser logs and LaserScan bags with odometry (they are stamped when
+        the reading arrives), none for ToF bags and for odometry estimated from the scans. calibration, height, band, map3d, map3d_every, tof_topics
         (an `io.rosbag.ToFTopics`; default the simulator's topics), tof_depth (the distance
         images hold depth z, not the radial distance): ToF bags only. laser_topics (an
         `io.rosbag.LaserTopics`; default: found by type): LaserScan bags only.
@@ -237,6 +237,7 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
     if estimated:
         from omnitof.slam.scan_odometry import with_scan_odometry
 
+        check_limits(scans, cfg)  # before the estimate's work too: a log with nothing to map says so at once
         with bar(len(scans), "odometry from the scans", "scan") as b:
             scans, found = with_scan_odometry(scans, run_cfg, progress=b.update)
         echo(f"odometry estimated from the scans: {found.matched} matched, {found.unmatched} by the step before")

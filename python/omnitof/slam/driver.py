@@ -175,6 +175,7 @@ def run_slam(
     scans, _ = thin_dense_scans(scans, cfg)  # slam_run has thinned them already, and says so in its summary
     estimated = None
     if not scans.odometry_known:  # slam_run has estimated it already, and says so in its summary
+        check_limits(scans, cfg)  # a log with nothing to map says so before the estimate's work
         scans, estimated = with_scan_odometry(scans, cfg)
     check_limits(scans, cfg)
     offset = run_offset(scans.odometry, cfg.map.resolution)  # odometry far out (slam.anchor)
