@@ -19,7 +19,7 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from rosbags.highlevel import AnyReader
@@ -176,27 +176,28 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
         ]
         scan_name = scan_conns[0].topic
         odom_name = ""
+        trajectories = _read_trajectories(reader, path, (odom_conns if odom_kind == "odometry" else []) + truth_conns)
+        first_seen = None  # the first of each transform on topics.tf, where it was read for the odometry
         if odom_kind == "tf":
-            trajectories = _read_trajectories(reader, path, truth_conns)
             # Found by itself, a tf topic without the odometry's transform means a bag without odometry.
-            found = _read_tf_odometry(reader, path, odom_conns, topics.odom_frame, topics.base_frame,
-                                      required=topics.odometry is not None or topics.base_frame is not None
-                                      or topics.odom_frame != ODOM_FRAME)
-            if found is None:
+            tf_read = _read_tf_odometry(reader, path, odom_conns, topics.odom_frame, topics.base_frame,
+                                        required=topics.odometry is not None or topics.base_frame is not None
+                                        or topics.odom_frame != ODOM_FRAME)
+            if odom_conns[0].topic == topics.tf:
+                first_seen = tf_read.first_edges
+            if tf_read.trajectory is None:
                 odom_kind = "none"
             else:
-                odometry, base_frame = found
+                base_frame = tf_read.base
                 odom_name = f"{odom_conns[0].topic} ({topics.odom_frame} → {base_frame})"
-                trajectories[odom_name] = odometry
+                trajectories[odom_name] = tf_read.trajectory
                 odometry_rule = (f"interpolated from the transform {topics.odom_frame} → {base_frame} on "
                                  f"{odom_conns[0].topic} at each scan's timestamp")
         if odom_kind == "none":
-            trajectories = _read_trajectories(reader, path, truth_conns)
             base_frame = topics.base_frame or BASE_FRAME
             odometry_rule = (f"none: the bag has no {ODOMETRY} topic and no transform {topics.odom_frame} → base "
                              f"on {topics.tf}")
         elif odom_kind == "odometry":
-            trajectories = _read_trajectories(reader, path, odom_conns + truth_conns)
             odom_name = odom_conns[0].topic
             base_frame = topics.base_frame or trajectories.child_frames.get(odom_name) or BASE_FRAME
             odometry_rule = f"interpolated from {odom_name} at each scan's timestamp"
@@ -246,7 +247,8 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
             intensities.append(remission)
             geometry.append((float(msg.angle_min), float(msg.angle_increment), len(r), range_max))
         if stamps and dynamic_conns and not _resolves(static, base_frame, laser_frame):
-            first_seen = _read_static_transforms(reader, path, dynamic_conns, first_only=True)
+            if first_seen is None:
+                first_seen = _read_static_transforms(reader, path, dynamic_conns, first_only=True)
             # Only the mounting below the robot: the odometry's own edge above it moves.
             first_seen = {child: edge for child, edge in first_seen.items()
                           if child != base_frame and edge[0] != topics.odom_frame}
@@ -369,21 +371,34 @@ def _odometry_connections(reader: AnyReader, path: Path, topics: LaserTopics) ->
     return tf, "tf" if tf else "none"
 
 
+class _TfOdometry(NamedTuple):
+    """What `_read_tf_odometry` found: the odometry and its base frame (None where tf holds
+    none), and the first of each transform on the topic (for the mounting, where /tf_static
+    lacks it: one pass over tf for both)."""
+
+    trajectory: Trajectory | None
+    base: str | None
+    first_edges: dict[str, tuple[str, np.ndarray]]
+
+
 def _read_tf_odometry(
     reader: AnyReader, path: Path, connections: Sequence[Any], odom_frame: str, base_frame: str | None,
     *, required: bool,
-) -> tuple[Trajectory, str] | None:
-    """(the transform odom_frame → base as a Trajectory by the transforms' own stamps, base):
-    base is `base_frame`, or the one frame whose parent on tf is odom_frame. Out-of-order
-    transforms are sorted (tf buffers them so); of several at one stamp the last is kept. Where
-    tf holds no such transform: an InputError if `required`, else None."""
+) -> _TfOdometry:
+    """The transform odom_frame → base as a Trajectory by the transforms' own stamps, with base
+    `base_frame` or the one frame whose parent on tf is odom_frame. Out-of-order transforms are
+    sorted (tf buffers them so); of several at one stamp the last is kept. Where tf holds no such
+    transform: an InputError if `required`, else no trajectory."""
     topic = connections[0].topic
     rows: dict[str, list[tuple[int, float, float, float]]] = {}
+    first_edges: dict[str, tuple[str, np.ndarray]] = {}
     pairs: set[tuple[str, str]] = set()  # (parent, child) seen, for the error that lists them
     for _, msg in _messages(reader, path, connections):
         for tf in msg.transforms:
             parent, child = _frame_name(tf.header.frame_id), _frame_name(tf.child_frame_id)
             pairs.add((parent, child))
+            if child not in first_edges:
+                first_edges[child] = (parent, _edge_matrix(tf))
             if parent != odom_frame or (base_frame is not None and child != base_frame):
                 continue
             ns = _stamp_ns(tf.header.stamp)
@@ -398,7 +413,7 @@ def _read_tf_odometry(
                 f"unknown and estimated from the scans; it may be the transform from {', '.join(parents)}: "
                 "name it with --laser-topics odom_frame=FRAME", RosbagWarning, stacklevel=3,
             )
-        return None
+        return _TfOdometry(None, None, first_edges)
     if not rows:
         wanted = f"{odom_frame} → {base_frame}" if base_frame else f"from the frame {odom_frame}"
         listed = ", ".join(f"{a} → {b}" for a, b in sorted(pairs)[:20]) or "none"
@@ -420,7 +435,7 @@ def _read_tf_odometry(
     poses = np.array([row[1:] for row in data], dtype=np.float64)[order]
     last = np.append(stamps[1:] != stamps[:-1], True)  # the last published at each stamp
     seconds = np.array([_ns_to_s(int(ns)) for ns in stamps[last]], dtype=np.float64)
-    return Trajectory(seconds, poses[last]), child
+    return _TfOdometry(Trajectory(seconds, poses[last]), child, first_edges)
 
 
 def _read_static_transforms(
@@ -434,12 +449,17 @@ def _read_static_transforms(
             child = _frame_name(tf.child_frame_id)
             if first_only and child in edges:
                 continue
-            t, q = tf.transform.translation, tf.transform.rotation
-            matrix = np.eye(4)
-            matrix[:3, :3] = _rotation_matrix(q.x, q.y, q.z, q.w)
-            matrix[:3, 3] = (t.x, t.y, t.z)
-            edges[child] = (_frame_name(tf.header.frame_id), matrix)
+            edges[child] = (_frame_name(tf.header.frame_id), _edge_matrix(tf))
     return edges
+
+
+def _edge_matrix(tf: Any) -> np.ndarray:
+    """parent_T_child 4×4 of a geometry_msgs/TransformStamped."""
+    t, q = tf.transform.translation, tf.transform.rotation
+    matrix = np.eye(4)
+    matrix[:3, :3] = _rotation_matrix(q.x, q.y, q.z, q.w)
+    matrix[:3, 3] = (t.x, t.y, t.z)
+    return matrix
 
 
 def _root(edges: dict[str, tuple[str, np.ndarray]], frame: str) -> tuple[str, np.ndarray]:
