@@ -132,18 +132,12 @@ def off_plan_dropped(world, scans, limit: float):
     """`scans` with every reading whose end point, from the true pose, lies more than `limit`
     metres from the floor plan at the slice height turned into no echo: an oracle filter of the
     readings no real run has, to tell what the wrong readings cost."""
-    segs = np.asarray(world.segments_at(ScanSettings().height), dtype=np.float64).reshape(-1, 2, 2)
+    plan = World2D(world.segments_at(ScanSettings().height))
     gt = scans.ground_truth
     bearing = scans.angles[None, :] + gt[:, 2:3]
     r = np.where(np.isfinite(scans.ranges), scans.ranges, 0.0)
     pts = np.stack([gt[:, 0:1] + r * np.cos(bearing), gt[:, 1:2] + r * np.sin(bearing)], axis=-1).reshape(-1, 2)
-    a, d = segs[:, 0], segs[:, 1] - segs[:, 0]
-    dist = np.empty(len(pts))
-    for i in range(0, len(pts), 4096):
-        p = pts[i:i + 4096, None, :]
-        t = np.clip(((p - a) * d).sum(-1) / np.maximum((d * d).sum(-1), 1e-12), 0.0, 1.0)
-        dist[i:i + 4096] = np.linalg.norm(p - (a + t[..., None] * d), axis=-1).min(axis=1)
-    off = np.isfinite(scans.ranges) & (dist.reshape(scans.ranges.shape) > limit)
+    off = np.isfinite(scans.ranges) & (plan.distance_to_walls(pts).reshape(scans.ranges.shape) > limit)
     return dataclasses.replace(scans, ranges=np.where(off, np.inf, scans.ranges).astype(np.float32))
 
 
