@@ -108,6 +108,7 @@ def estimate_odometry(scans: ScanSequence, cfg: SlamConfig, *,
     typical_interval = float(np.median(intervals)) if len(intervals) else math.inf
     matched = unmatched = 0
     added = 1  # keyframes, the first scan's included
+    reported = 0  # scans passed to `progress`
     for k in range(1, n):  # each scan's start is the scan before it's result
         predicted = compose(poses[k - 1], last_step)
         angles, ranges = scans.scan_angles(k), np.ascontiguousarray(scans.scan_ranges(k))
@@ -121,13 +122,10 @@ def estimate_odometry(scans: ScanSequence, cfg: SlamConfig, *,
             wide = _best_match(grid, [best, *turned], angles, ranges, match, steps)
             if wide is not best:
                 best, share = wide, _share(grid, wide, angles, ranges, match, lf)
-        found = best
-        if share >= sm.min_matched:
-            poses[k] = found
-            matched += 1
-        else:
-            poses[k] = predicted
-            unmatched += 1
+        lost = share < sm.min_matched
+        poses[k] = predicted if lost else best
+        unmatched += lost
+        matched += not lost
         step = relative(poses[k - 1], poses[k])
         path[k] = path[k - 1] + math.hypot(step[0], step[1])
         believed = math.hypot(step[0], step[1]) <= MAX_STEP and abs(step[2]) <= MAX_TURN
@@ -136,7 +134,7 @@ def estimate_odometry(scans: ScanSequence, cfg: SlamConfig, *,
         # A scan whose match failed joins the map too: where the map holds too little (a blind
         # or sparse first scan, a lidar spinning up) the estimate would otherwise stand still
         # for the whole log, no scan ever moving far enough to join it.
-        if (share < sm.min_matched or math.hypot(*(poses[k, :2] - last[:2])) >= KEYFRAME_DISTANCE
+        if (lost or math.hypot(*(poses[k, :2] - last[:2])) >= KEYFRAME_DISTANCE
                 or abs(wrap_angle(poses[k, 2] - last[2])) >= KEYFRAME_ANGLE):
             keyframes.append(k)
             added += 1
@@ -147,9 +145,10 @@ def estimate_odometry(scans: ScanSequence, cfg: SlamConfig, *,
             else:
                 _integrate(grid, scans, poses, k, cfg)
         if progress is not None and k % 100 == 0:
-            progress(100)
-    if progress is not None:
-        progress(n - 1 - (n - 1) // 100 * 100 + 1)
+            progress(k + 1 - reported)
+            reported = k + 1
+    if progress is not None and reported < n:
+        progress(n - reported)
     # Matched near the origin, where the grid's cells are small numbers (a georeferenced start
     # millions of metres out is omnitof.slam.anchor's case), then moved there.
     return compose(scans.odometry[0], poses), ScanOdometry(matched, unmatched, added)
