@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
         poses, stats = estimate_odometry(scans, cfg)
         seconds = time.perf_counter() - start
         print(f"{log}: {len(scans)} scans, {stats.matched} matched, {stats.unmatched} by the step before, "
-              f"{stats.keyframes} keyframes, {seconds:.1f} s | scans: {_scored(Trajectory(scans.timestamps, poses), relations)}"
+              f"{stats.keyframes} keyframes, {stats.gaps} gaps, {seconds:.1f} s | scans: {_scored(Trajectory(scans.timestamps, poses), relations)}"
               f" | wheels: {_scored(Trajectory(scans.timestamps, scans.odometry), relations)}", flush=True)
     return 0
 

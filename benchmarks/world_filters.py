@@ -11,7 +11,7 @@ a few seeds' numbers in the last digits.)
     python benchmarks/world_filters.py --worlds corridor1 office --drives 0 1 --seeds 0 1 2 \
         [--preset tof-scanmatch] [--particles 30] [--set backend.min_score=0.65 ...] \
         [--tof-errors default|all|none|LIST] [--ideal-scans [seen]] [--odometry-scale F]
-        [--odometry-jump AT DX DY DEG] [--off-plan M]
+        [--odometry-jump AT DX DY DEG] [--off-plan M] [--ignore-odometry]
         [--max-incidence DEG] [--true-rig] [--multipath-compensation auto|on|off]
         [--multipath-max-ratio R] [--bands HEIGHT:BAND ...] [--cache DIR]
 
@@ -26,7 +26,9 @@ report 1 % too far: F = 1/1.01 takes that out, an oracle no real run has). `--od
 DX DY DEG` makes the wheels glitch once, a fraction AT through the drive (what the filters must
 repair). `--off-plan M` drops every reading whose end point, from the true pose, lies more than M
 metres off the floor plan at the slice height (an oracle filter, to tell what the wrong readings
-cost). `--max-incidence DEG`
+cost). `--ignore-odometry` sets the wheels aside and estimates the odometry from the scans
+(omnitof.slam.scan_odometry, once per drive, from the first odometry pose), as `omnitof slam
+--ignore-odometry` and a bag without odometry do. `--max-incidence DEG`
 drops the bins seen at a grazing angle (`ScanSettings.max_incidence_deg`, omnitof.scan.grazing),
 as the extraction would have as its last step. `--true-rig` extracts with the true rig, given
 the same wall-fitted distance correction as the estimate (issue 16's reference).
@@ -197,6 +199,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--odometry-jump", nargs=4, type=float, default=None, metavar=("AT", "DX", "DY", "DEG"),
                         help="a wheel glitch: the odometry jumps by DX, DY (m) and DEG (degrees) in the robot's frame "
                              "at the scan a fraction AT through the drive (e.g. 0.5 0.6 0 8)")
+    parser.add_argument("--ignore-odometry", action="store_true",
+                        help="estimate the odometry from the scans instead of the wheels")
     parser.add_argument("--max-incidence", type=float, default=90.0,
                         help="drop the bins seen more than this far from their surface's normal (degrees; "
                              "ScanSettings.max_incidence_deg, the extraction's last step, applied to the cached "
@@ -234,6 +238,17 @@ def main(argv: list[str] | None = None) -> int:
             if args.max_incidence < 90.0:
                 ranges = drop_grazing(scans.ranges, 2 * math.pi / scans.ranges.shape[1], math.radians(args.max_incidence))
                 scans = dataclasses.replace(scans, ranges=ranges)
+            estimate_s = None
+            if args.ignore_odometry:
+                from omnitof.slam.scan_odometry import with_scan_odometry
+
+                start = time.perf_counter()
+                scans = dataclasses.replace(scans, odometry=np.broadcast_to(scans.odometry[:1], scans.odometry.shape),
+                                            odometry_known=False)
+                scans, found = with_scan_odometry(scans, load_config(preset=args.preset, overrides=overrides(args.set)))
+                estimate_s = round(time.perf_counter() - start, 1)
+                print(json.dumps({"world": name, "drive": drive, "scan_odometry": found.to_dict(),
+                                  "estimate_s": estimate_s}), flush=True)
             for seed in args.seeds:
                 ov = overrides(args.set)
                 ov.setdefault("filter", {}).update({"particles": args.particles, "seed": seed})
@@ -246,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
                 row = {
                     "world": name, "drive": drive, "seed": seed, "preset": args.preset,
                     "particles": args.particles, "set": args.set, "ideal_scans": args.ideal_scans, "odometry_scale": args.odometry_scale,
-                    "odometry_jump": args.odometry_jump,
+                    "odometry_jump": args.odometry_jump, "ignore_odometry": args.ignore_odometry,
                     "true_rig": args.true_rig, "bands": args.bands,
                     "readings_median": float(np.median(np.isfinite(scans.ranges).sum(axis=1))),
                     "final_m": round(ev["trajectory"]["slam"]["final"], 3),

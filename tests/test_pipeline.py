@@ -87,6 +87,66 @@ def test_cli_slam_on_a_simulated_tof_bag(tmp_path, capsys):
         assert (out / name).exists(), name
 
 
+def test_a_tof_bag_without_odometry_maps_from_its_scans(tmp_path, capsys):
+    # A camera carried by hand records no odometry: `omnitof slam` estimates it from the scans,
+    # in a frame of its own, and compares it with the truth moved into that frame.
+    import dataclasses
+
+    from omnitof.cli import main
+    from omnitof.geometry import relative
+    from omnitof.io.rosbag import read_tof_bag, write_tof_bag
+    from omnitof.scan.tof_input import ToFInputWarning, read_tof_scans
+
+    bag = tmp_path / "room"
+    assert main(["simulate", "--world", "room", "--out", str(bag), "--max-frames", "80", "--quiet"]) == 0
+    original = read_tof_bag(bag)
+    frames = [dataclasses.replace(f, samples=None) for f in original.frames(samples=False)]
+    bare = tmp_path / "bare"
+    write_tof_bag(bare, frames, camera=original.camera, odometry=None, ground_truth=original.ground_truth,
+                  sidecar=original.sidecar)
+    out = tmp_path / "slam"
+    with pytest.warns(UserWarning, match="true rig"):
+        assert main(["slam", str(bare), "--out", str(out), "--quiet"]) == 0
+    summary = yaml.safe_load((out / "summary.yaml").read_text())
+    assert summary["input"]["odometry"].startswith("estimated from the scans")
+    assert summary["input"]["scan_odometry"]["matched"] >= 70 and "ground_truth_frame" in summary["input"]
+    assert summary["trajectory_error"]["slam"]["mean"] < 0.05  # 0.02 m with the wheels' odometry
+    # The truth written beside the trajectory is in the estimate's frame: its first pose is the
+    # trajectory's, and its motion is the true one.
+    truth, slam = read_tum(out / "ground_truth.tum").poses, read_tum(out / "trajectory.tum").poses
+    np.testing.assert_allclose(truth[0], slam[0], atol=1e-9)
+    true = original.frame_ground_truth().poses
+    np.testing.assert_allclose(relative(truth[0], truth[-1]), relative(true[0], true[-1]), atol=1e-6)
+    # The 3D filter picks its frames by the odometry: refused, with the reason.
+    capsys.readouterr()
+    assert main(["slam", str(bare), "--out", str(tmp_path / "x"), "--filter", "3d", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "has no odometry" in err and "--filter 3d" in err and "Traceback" not in err
+    # `omnitof scans` writes such a bag's scans as a LaserScan bag without odometry; a CARMEN log
+    # needs a pose per scan and is refused before anything is written.
+    with pytest.warns(UserWarning, match="true rig"):
+        assert main(["scans", str(bare), "--out", str(tmp_path / "bare.clf"), "--quiet"]) == 2
+        assert main(["scans", str(bare), "--out", str(tmp_path / "bare.bag"), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "has no odometry, and a CARMEN log" in err and not (tmp_path / "bare.clf").exists()
+    from omnitof.io.rosbag import read_laserscan_bag
+
+    assert not read_laserscan_bag(tmp_path / "bare.bag").odometry_known
+    # Wheels that start late: the frames before them are dropped, with a warning.
+    late = tmp_path / "late"
+    odometry = original.odometry
+    start = frames[10].timestamp - 1e-3
+    keep = odometry.timestamps >= start
+    write_tof_bag(late, frames, camera=original.camera, odometry=type(odometry)(odometry.timestamps[keep],
+                  odometry.poses[keep]), sidecar=original.sidecar)
+    with pytest.warns(ToFInputWarning, match=r"dropped 10 frames outside the odometry's time span .*70 kept"):
+        scans = read_tof_scans(late).scans
+    assert len(scans) == 70 and scans.odometry_known and "/odom" in scans.odometry_rule
+    # Reading only the first frames with odometry still says what was dropped before them.
+    with pytest.warns(ToFInputWarning, match=r"dropped 10 frames .*5 kept"):
+        assert len(read_tof_scans(late, max_frames=5).scans) == 5
+
+
 def test_the_configurations_scan_section_reaches_the_extraction(tmp_path, capsys):
     from omnitof.cli import main
 

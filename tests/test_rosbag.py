@@ -12,6 +12,7 @@ import re
 import warnings
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from rosbags.rosbag1 import Writer as Writer1
@@ -310,6 +311,59 @@ def test_tof_bag_without_samples_or_ground_truth(tmp_path: Path) -> None:
     np.testing.assert_array_equal(bits(got[2].amplitude), bits(frames[2].amplitude))
 
 
+def test_tof_bag_odometry_on_tf_or_none(tmp_path: Path) -> None:
+    # A camera on a robot that publishes its odometry only to tf, and one carried by hand.
+    frames = make_frames(SMALL, 4, samples=False)
+    odometry = trajectory(frames[0].timestamp - 0.05 + 0.05 * np.arange(9), seed=4)
+    write_tof_bag(tmp_path / "tf", frames, camera=SMALL, odometry=odometry, odometry_on_tf=True)
+    bag = read_tof_bag(tmp_path / "tf")
+    assert bag.odometry_source == "the transform odom → base_link on /tf"
+    np.testing.assert_allclose(bag.odometry.timestamps, odometry.timestamps, rtol=0, atol=1e-9)
+    assert_poses(bag.odometry.poses, odometry.poses)
+    assert_poses(np.array([f.odometry for f in bag.frames()]), interpolate_poses(odometry, [f.timestamp for f in frames]))
+    # Named frames that tf does not have are an error naming the option.
+    with pytest.raises(InputError, match=r"no transform odom → base_footprint .*--tof-topics odom_frame=FRAME"):
+        read_tof_bag(tmp_path / "tf", topics=ToFTopics(base_frame="base_footprint"))
+    write_tof_bag(tmp_path / "none", frames, camera=SMALL, odometry=None)
+    bag = read_tof_bag(tmp_path / "none")
+    assert bag.odometry is None and all(f.odometry is None for f in bag.frames())
+    # An Odometry topic on another name is found by its type.
+    write_tof_bag(tmp_path / "wheel", frames, camera=SMALL, odometry=odometry, topics=ToFTopics(odometry="/wheel_odom"))
+    bag = read_tof_bag(tmp_path / "wheel")
+    assert bag.odometry_source == "/wheel_odom"
+    assert_poses(bag.odometry.poses, odometry.poses)
+
+
+def test_tof_odometry_by_type_skips_empty_topics_and_can_be_left_alone(tmp_path: Path) -> None:
+    stamps = [NS, 2 * NS]
+    base = raw_tof_bag(tmp_path / "base", stamps, odom_stamps_ns=[])
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([base]) as reader:  # the frames of a bag without odometry, to copy
+        frames = [(c.topic, c.msgtype, reader.deserialize(raw, c.msgtype)) for c, _, raw in reader.messages()]
+    # Two Odometry topics, one declared but never published (ROS 2 bags record those): the other.
+    store = HUMBLE
+    writer_path = tmp_path / "two"
+    with Writer2(writer_path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        writer.add_connection("/empty_odom", ODOM, typestore=store)
+        conns = {}
+        for k, (topic, msgtype, msg) in enumerate(frames + [("/wheel", ODOM, odometry_msg(store, ns, (k, 0, 0)))
+                                                            for k, ns in enumerate(stamps)]):
+            if topic not in conns:
+                conns[topic] = writer.add_connection(topic, msgtype, typestore=store)
+            writer.write(conns[topic], (k + 1) * 1000, store.serialize_cdr(msg, msgtype))
+    bag = read_tof_bag(writer_path)
+    assert bag.odometry_source == "/wheel" and len(bag.odometry) == 2
+    # Two published Odometry topics: a choice to make, unless the odometry is not wanted (a
+    # calibration), which then reads the bag without it.
+    both = write_raw(tmp_path / "both", frames + [(t, ODOM, odometry_msg(store, NS, (0, 0, 0))) for t in ("/a", "/b")])
+    expect_error(both, "several nav_msgs/msg/Odometry topics: /a, /b", "--tof-topics odometry=TOPIC")
+    assert read_tof_bag(both, odometry=False).odometry is None
+    # A named odometry topic that is not there lists both kinds it could have been.
+    expect_error(base, "topic /tf (nav_msgs/msg/Odometry or tf2_msgs/msg/TFMessage) is missing",
+                 topics=ToFTopics(odometry="/tf"))
+
+
 def test_frames_stream_lazily(tmp_path: Path) -> None:
     """The writer pulls frames one by one; the reader hands out a frame before reading on."""
     pulled = []
@@ -495,9 +549,13 @@ def test_missing_and_mistyped_topics(tmp_path: Path) -> None:
     expect_error(path, "topic /tof/distance has type sensor_msgs/msg/Image",
                  "expected sensor_msgs/msg/CameraInfo",
                  topics=ToFTopics(camera_info="/tof/distance"))  # fmt: skip
-    # Without odometry the bag can still be read when odometry is not required.
-    bag = read_tof_bag(path, topics=ToFTopics(odometry="/gt"), require_odometry=False)
-    assert bag.odometry is None and [f.odometry for f in bag.frames()] == [None, None]
+    # A bag without odometry is read (SLAM estimates it from the scans), unless it is required.
+    bare = raw_tof_bag(tmp_path / "bare", stamps, odom_stamps_ns=[])
+    bag = read_tof_bag(bare)
+    assert bag.odometry is None and bag.odometry_source == "" and [f.odometry for f in bag.frames()] == [None, None]
+    expect_error(bare, "the bag has no odometry", "--tof-topics odometry=TOPIC", require_odometry=True)
+    with pytest.raises(InputError, match="the bag has no odometry"):
+        bag.frame_odometry()
 
 
 def test_wrong_encoding(tmp_path: Path) -> None:
@@ -541,6 +599,67 @@ def test_a_drivers_bag_depth_in_millimetres(tmp_path: Path) -> None:
     np.testing.assert_array_equal(image.amplitude, frame.amplitude)
     with pytest.raises(InputError, match="/tof/distance"):
         load_images([path])
+
+
+COMPRESSED = "sensor_msgs/msg/CompressedImage"
+
+
+def compressed_msg(ns: int, fmt: str, data: bytes):
+    return HUMBLE.types[COMPRESSED](header=header(HUMBLE, ns, "cam"), format=fmt,
+                                    data=np.frombuffer(data, dtype=np.uint8))
+
+
+def png(array: np.ndarray) -> bytes:
+    ok, buffer = cv2.imencode(".png", array)
+    assert ok
+    return buffer.tobytes()
+
+
+def test_a_drivers_bag_recorded_compressed(tmp_path: Path) -> None:
+    # image_transport's compressed topics, as a bag recorded with them holds them: the depth
+    # "compressedDepth" (a 12-byte header, then a 16-bit PNG), the amplitude a PNG or a JPEG.
+    rng = np.random.default_rng(6)
+    depth_mm = rng.integers(300, 7000, size=SMALL.shape).astype(np.uint16)
+    depth_mm[0, 3] = 0  # no reading
+    amplitude = rng.integers(0, 60000, size=SMALL.shape).astype(np.uint16)
+    header16 = np.zeros(1, dtype=[("c", "<i4"), ("a", "<f4"), ("b", "<f4")]).tobytes()
+    # 32FC1 depth goes as its quantised inverse: q = A / z + B, so that z = A / (q - B).
+    a, b = 1000.0, -1.0
+    metres = rng.uniform(0.4, 7.0, SMALL.shape).astype(np.float32)
+    q = np.round(a / metres + b).astype(np.uint16)
+    q[2, 1] = 0
+    header32 = np.array([(0, a, b)], dtype=[("c", "<i4"), ("a", "<f4"), ("b", "<f4")]).tobytes()
+    topics = ToFTopics(distance="/cam/depth/compressedDepth", amplitude="/cam/amplitude/compressed",
+                       camera_info="/cam/camera_info")
+    messages = [("/odom", ODOM, odometry_msg(HUMBLE, ns, (k, 0, 0))) for k, ns in enumerate([NS, 3 * NS])]
+    messages += [("/cam/camera_info", INFO, camera_info_msg(NS, SMALL)),
+                 (topics.distance, COMPRESSED, compressed_msg(NS, "16UC1; compressedDepth png", header16 + png(depth_mm))),
+                 (topics.amplitude, COMPRESSED, compressed_msg(NS, "mono16; png compressed mono16", png(amplitude))),
+                 ("/cam/camera_info", INFO, camera_info_msg(2 * NS, SMALL)),
+                 (topics.distance, COMPRESSED, compressed_msg(2 * NS, "32FC1; compressedDepth", header32 + png(q))),
+                 (topics.amplitude, COMPRESSED, compressed_msg(2 * NS, "png", png(amplitude)))]
+    path = write_raw(tmp_path / "compressed", messages)
+    first, second = read_tof_bag(path, topics=topics).frames()
+    expected = depth_mm * np.float32(0.001)
+    expected[0, 3] = np.nan
+    np.testing.assert_array_equal(first.distance, expected)
+    np.testing.assert_array_equal(first.amplitude, amplitude.astype(np.float32))
+    # The inverse quantisation: within half a step of q, and no reading where q is 0.
+    step = metres**2 / a
+    seen = q > 0
+    assert np.isnan(second.distance[2, 1]) and np.all(np.abs(second.distance - metres)[seen] <= 0.5 * step[seen] + 1e-5)
+    np.testing.assert_array_equal(second.amplitude, amplitude.astype(np.float32))
+    # RVL, colour, a corrupt image, JPEG distances and pixels of another bit depth are named.
+    eight_bit = png(depth_mm.astype(np.uint8))
+    for fmt, data, fragment in [("16UC1; compressedDepth rvl", header16 + b"\0" * 16, "RVL"),
+                                ("16UC1; compressedDepth png", header16 + eight_bit, "holds 8-bit pixels, not the 16-bit"),
+                                ("png", eight_bit, "holds 8-bit pixels, which are not '32FC1' or '16UC1'"),
+                                ("mono8; jpeg compressed mono8", cv2.imencode(".jpg", depth_mm.astype(np.uint8))[1].tobytes(),
+                                 "lossy JPEG"),
+                                ("bgr16; png compressed bgr16", png(np.zeros((*SMALL.shape, 3), np.uint16)), "3 channels"),
+                                ("16UC1; compressedDepth png", header16 + b"not a png", "cannot decode")]:
+        bad = messages[:3] + [(topics.distance, COMPRESSED, compressed_msg(NS, fmt, data)), messages[4]]
+        expect_error(write_raw(tmp_path / fragment.replace(" ", "_"), bad), fragment, topics.distance, topics=topics)
 
 
 def test_image_size_mismatch(tmp_path: Path) -> None:
@@ -663,6 +782,23 @@ def test_laserscan_round_trip(tmp_path: Path, version: int, name: str) -> None:
     assert_poses(back.odometry, scans.odometry)
     assert_poses(back.ground_truth, scans.ground_truth)
     assert_poses(back.sensor_pose[None], scans.sensor_pose[None])
+
+
+def test_scans_without_odometry_are_written_without_it_and_read_back_so(tmp_path: Path) -> None:
+    import dataclasses
+
+    from omnitof.io.carmen import write_carmen
+
+    scans = dataclasses.replace(scan_sequence(), odometry=np.zeros((12, 3)), odometry_known=False)
+    write_laserscan_bag(tmp_path / "bare.bag", scans, version=1)
+    back = read_laserscan_bag(tmp_path / "bare.bag")
+    assert not back.odometry_known and back.odometry_rule.startswith("none")
+    np.testing.assert_array_equal(back.ranges, scans.ranges)
+    assert_poses(back.ground_truth, scans.ground_truth)
+    # A CARMEN log holds a pose per scan: zeros would read as a robot standing still.
+    with pytest.raises(ValueError, match="no odometry, and a CARMEN log holds one pose per scan"):
+        write_carmen(tmp_path / "bare.clf", scans)
+    assert not (tmp_path / "bare.clf").exists()
 
 
 def interlaced_sequence(n: int = 12, seed: int = 0) -> ScanSequence:

@@ -187,7 +187,8 @@ def _add_tof_bag_options(p: argparse.ArgumentParser, prefix: str) -> None:
     """--tof-topics and --tof-distance: a camera driver's bag, not the simulator's."""
     p.add_argument("--tof-topics", type=_tof_topics, metavar="ROLE=TOPIC,...",
                    help=f"{prefix}the bag's topics where they are not the simulator's, e.g. "
-                   "distance=/cam/distance,amplitude=/cam/amplitude,camera_info=/cam/camera_info,odometry=/odom")
+                   "distance=/cam/distance,amplitude=/cam/amplitude,camera_info=/cam/camera_info,odometry=/odom "
+                   "(odometry=/tf: the transform odom → base; roles tf, odom_frame, base_frame too)")
     p.add_argument("--tof-distance", choices=("radial", "depth"), default="radial",
                    help=f"{prefix}what the distance images hold: the radial distance the camera measures "
                    "(the simulator's), or the depth z along the optical axis that many drivers publish")
@@ -227,6 +228,13 @@ def cmd_scans(args: argparse.Namespace) -> int:
         checked_bag_target(out, args.overwrite)
     if args.figure is not None:
         _checked_output_file(Path(args.figure), None, "the figure")
+    if carmen:
+        from omnitof.io.rosbag import ToFTopics, read_tof_bag
+
+        if read_tof_bag(args.log, topics=args.tof_topics or ToFTopics()).odometry is None:
+            raise OmnitofError(f"{args.log}: has no odometry, and a CARMEN log holds one pose per scan; write a "
+                               "LaserScan bag instead (--out NAME.bag or a folder), which can be without, or map "
+                               "it with `omnitof slam`, which estimates the odometry from the scans")
     data = read_tof_input(args.log, calibration=args.calibration, height=args.height, band=args.band,
                           multipath=args.multipath_compensation, max_frames=args.max_frames, bar=_bar_factory(args),
                           topics=args.tof_topics, depth=args.tof_distance == "depth")
@@ -241,7 +249,8 @@ def cmd_scans(args: argparse.Namespace) -> int:
 
         version = 1 if out.suffix == ".bag" else 2
         write_laserscan_bag(out, scans, version=version, overwrite=args.overwrite)
-        kind = f"ROS {version} bag (sensor_msgs/LaserScan on /scan, nav_msgs/Odometry on /odom)"
+        odometry = ", nav_msgs/Odometry on /odom" if scans.odometry_known else ", no odometry"
+        kind = f"ROS {version} bag (sensor_msgs/LaserScan on /scan{odometry})"
     if args.figure is not None:
         from omnitof.viz.scans import plot_scan
 

@@ -246,6 +246,10 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
                  "the estimated odometry, and the map, may be wrong")
         extra["input"]["odometry"] = scans.odometry_rule
         extra["input"]["scan_odometry"] = found.to_dict()
+        if scans.ground_truth is not None:  # the estimate has a frame of its own: the truth is moved into it
+            scans = dataclasses.replace(scans, ground_truth=_in_frame_of(scans.ground_truth, scans.odometry[0]))
+            extra["input"]["ground_truth_frame"] = ("the estimate's: moved so that its first pose is the estimated "
+                                                    "odometry's first (the trajectory errors and ground_truth.tum)")
     check_limits(scans, cfg)
     # Laser logs are stamped when the reading arrives, so their delay is estimated by default;
     # odometry estimated from the scans is at the scans' own stamps.
@@ -283,6 +287,14 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
         voxel_paths = write_voxel_outputs(vmap, out, trajectory=result.trajectory.poses)
     paths = write_results(out, result, cfg, title=log.name, extra=extra, ground_truth=scans.ground_truth)
     return SlamRun(result, extra, {**paths, **voxel_paths}, rel, scans)
+
+
+def _in_frame_of(truth: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """The true poses moved rigidly so that the first is `start`: an odometry estimated from the
+    scans starts where it likes, and the truth is compared with it there."""
+    from omnitof.geometry import compose, relative
+
+    return compose(np.asarray(start, dtype=np.float64), relative(truth[0], truth))
 
 
 def _run_3d(request: SlamRequest, cfg: SlamConfig, scans: ScanSequence, tof_data: Any, out: Path,
@@ -346,12 +358,14 @@ def read_tof_input(log: str | Path, *, calibration: str | Path | None = None, se
 
 
 def _topics_record(topics: Any) -> dict[str, str]:
-    """The ToF bag's topic names as summary.yaml records them."""
+    """The ToF bag's topic names as summary.yaml records them ("found by type" for those left to
+    the reader)."""
     import dataclasses
 
     from omnitof.io.rosbag import ToFTopics
 
-    return dataclasses.asdict(topics or ToFTopics())
+    return {role: "found by type" if name is None else name
+            for role, name in dataclasses.asdict(topics or ToFTopics()).items()}
 
 
 def _retimed(scans: ScanSequence, delay: str | float, *, given: bool,

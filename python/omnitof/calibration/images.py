@@ -91,7 +91,7 @@ def _npz_image(path: Path) -> AmplitudeImage:
 
 
 def _bag_images(path: Path, topics: Any = None, depth: bool = False) -> list[AmplitudeImage]:
-    bag = read_tof_bag(path, topics=topics or ToFTopics(), require_odometry=False, depth=depth)
+    bag = read_tof_bag(path, topics=topics or ToFTopics(), depth=depth, odometry=False)
     return [
         AmplitudeImage(f"{path}:frame{k}", frame.amplitude, frame.distance)
         for k, frame in enumerate(bag.frames(samples=False))

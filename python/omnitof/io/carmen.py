@@ -1107,8 +1107,8 @@ def write_carmen(path: str | Path, scans: ScanSequence, *, hostname: str = "omni
     (.gz, .bz2). The file is written atomically.
 
     Raises:
-        ValueError: for what `read_carmen` would refuse, naming the argument or the scan: no
-            scan, a scan without beams or with uneven ones, a hostname that is empty or holds
+        ValueError: for what `read_carmen` would refuse, naming the argument or the scan: scans
+            without odometry (`odometry_known` False), no scan, a scan without beams or with uneven ones, a hostname that is empty or holds
             whitespace, timestamps or poses that are not finite, a timestamp more than
             MAX_TIME_REVERSAL (1 s) before the one of the scan before, a max_range that is not a
             finite number of at least 1 mm and at most MAX_WRITTEN_RANGE (1000 km).
@@ -1116,6 +1116,11 @@ def write_carmen(path: str | Path, scans: ScanSequence, *, hostname: str = "omni
     from omnitof.geometry import compose
     from omnitof.io.atomic import atomic_write
 
+    if not scans.odometry_known:
+        raise ValueError(
+            "the scans have no odometry, and a CARMEN log holds one pose per scan: estimate it first "
+            "(omnitof.slam.scan_odometry.with_scan_odometry) or write a LaserScan bag, which can be without"
+        )
     _check_writable(scans, hostname)
     if scans.per_scan_geometry:
         geometry = [_robotlaser_geometry(scans.scan_angles(i), i) for i in range(len(scans))]

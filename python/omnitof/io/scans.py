@@ -27,15 +27,16 @@ def is_bag(path: Path) -> bool:
 
 
 def is_tof_bag(path: str | Path) -> bool:
-    """Whether `path` is a bag of ToF images (sensor_msgs/Image) rather than of LaserScans."""
+    """Whether `path` is a bag of ToF images (sensor_msgs/Image or CompressedImage) rather than
+    of LaserScans."""
     path = Path(path)
     if not (path.exists() and is_bag(path)):
         return False
     from omnitof.io.rosbag import bag_message_types
 
     types = bag_message_types(path)
-    return "sensor_msgs/msg/Image" in types and not types & {"sensor_msgs/msg/LaserScan",
-                                                             "sensor_msgs/msg/MultiEchoLaserScan"}
+    return bool(types & {"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"}) and not types & {
+        "sensor_msgs/msg/LaserScan", "sensor_msgs/msg/MultiEchoLaserScan"}
 
 
 def read_scans(path: str | Path, *, skip_bad_lines: bool = False, laser_topics: Any = None) -> ScanInput:

@@ -9,9 +9,10 @@ long bag never sits in memory; only the scans (360 floats per frame) and the kep
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -227,20 +228,61 @@ def read_tof_scans(
         raise ValueError(f"max_frames must be >= 0, got {max_frames!r}")
 
     bag = read_tof_bag(path, topics=topics or ToFTopics(), depth=depth)
+    if cloud_keyframes is not None and bag.odometry is None:
+        raise InputError("the bag has no odometry, and the 3D filter (--filter 3d) picks its frames by it; "
+                         "the 2D filter estimates the odometry from the scans", path)
     settings, multipath_rule = multipath_for_bag(bag, settings or ScanSettings(), multipath)
     extractor, rig_source = extractor_for_bag(bag, calibration, settings)
-    frames = bag.frames(samples=False)
+    dropped: list[int] = []
+    frames = _with_odometry(bag, dropped, progress)
     if max_frames is not None:
         frames = islice(frames, int(max_frames))
     out = tof_scans(frames, extractor, cloud_every=cloud_every, cloud_pixel_stride=cloud_pixel_stride,
                     cloud_keyframes=cloud_keyframes, source=str(path), progress=progress)
+    if dropped:
+        assert bag.odometry is not None
+        warnings.warn(f"{path}: dropped {len(dropped)} frames outside the odometry's time span "
+                      f"{_span(bag.odometry)} ({bag.odometry_source}), the first at {dropped[0]}; "
+                      f"{len(out.scans)} kept", ToFInputWarning, stacklevel=2)
+    if bag.odometry is None:  # SLAM estimates it from the scans (omnitof.slam.scan_odometry)
+        rule = (f"none: the bag has no odometry topic and no transform {bag.topics.odom_frame} → base on "
+                f"{bag.topics.tf}")
+        out.scans = dataclasses.replace(out.scans, odometry_known=False, odometry_rule=rule)
+    else:
+        out.scans = dataclasses.replace(
+            out.scans, odometry_rule=f"interpolated from {bag.odometry_source} at each frame's timestamp")
     out.rig_source = rig_source
     out.multipath_rule = multipath_rule
     return out
+
+
+def _with_odometry(bag: Any, dropped: list[int], progress: Callable[[int], Any] | None) -> Iterator[Any]:
+    """The bag's frames, each with an odometry pose: a bag without odometry gives every frame
+    the pose (0, 0, 0), to be estimated from the scans; a frame outside the odometry's time
+    span is skipped (cameras often start before the wheels), its index appended to `dropped`
+    (the caller warns) and counted in `progress`; an InputError where no frame is within it."""
+    kept = 0
+    for i, frame in enumerate(bag.frames(samples=False)):
+        if bag.odometry is None:
+            yield dataclasses.replace(frame, odometry=np.zeros(3))
+        elif frame.odometry is None:
+            dropped.append(i)
+            if progress is not None:
+                progress(1)
+        else:
+            kept += 1
+            yield frame
+    if dropped and not kept:
+        raise InputError(f"no frame lies within the odometry's time span {_span(bag.odometry)} "
+                         f"({bag.odometry_source})", bag.path)
+
+
+def _span(trajectory: Any) -> str:
+    return f"[{trajectory.timestamps[0]:.9f}, {trajectory.timestamps[-1]:.9f}] s"
 
 
 def frame_count(path: str | Path, topics: Any = None) -> int:
     """Frames in a ToF bag (for a progress bar)."""
     from omnitof.io.rosbag import ToFTopics, read_tof_bag
 
-    return read_tof_bag(path, topics=topics or ToFTopics()).n_frames
+    return read_tof_bag(path, topics=topics or ToFTopics(), odometry=False).n_frames

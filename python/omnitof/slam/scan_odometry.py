@@ -8,9 +8,11 @@ and to decide when to integrate. Here each scan is matched by the filter's own l
 local map of the scans of the last `LOCAL_PATH` metres of path at their estimated poses, within
 the map's range. The climb starts both where the motion of the scan before would carry the
 robot (the same step again) and where that scan was (the robot stopped), and the better match
-is kept; after a gap in the log, or where the match finds too little of the map, it also starts
-at every 10° of heading around. Where fewer than `scan_matcher.min_matched` of its end points
-find the map all the same, the step before is repeated and the scan joins the map at that pose. The poses so found are the odometry the filter then runs on: good over a few metres,
+is kept; after a gap in the log (of a second or more), or where the match finds too little of
+the map, it also starts at every 10° of heading around. Where fewer than
+`scan_matcher.min_matched` of its end points find the map all the same, the step before is
+repeated and the scan joins the map at that pose. The poses so found are the odometry the
+filter then runs on: good over a few metres,
 drifting over long distances as wheels do; closing loops stays the filter's and the back end's
 work.
 
@@ -47,9 +49,15 @@ REBUILD_PATH = 2.0
 # the step of a scan that matched badly would otherwise carry the next ones away.
 MAX_STEP = 1.0
 MAX_TURN = math.radians(45.0)
-# A scan taken this many typical intervals after the one before (a gap in the log), or whose
-# match finds too little of the map, is also matched from these headings about the pose before.
+# A scan taken this many typical intervals after the one before, and at least GAP_MIN_S later
+# (a gap in the log), or whose match finds too little of the map, is also matched from these
+# headings about the pose before. The floor is for logs whose scans come irregularly: Intel's
+# intervals run from -0.6 to 1.5 s around 0.1 s, and 3686 of its scans would otherwise count as
+# gaps (150 s of wide searches where 40 s give a better estimate: BENCHMARKS.md, "ToF bags
+# without odometry ..."). Below a second the local climb, or the search after a failed match,
+# copes with what a robot turns.
 GAP = 3.0
+GAP_MIN_S = 1.0
 WIDE_HEADINGS = np.radians(np.arange(-180.0, 180.0, 10.0))
 
 
@@ -60,6 +68,7 @@ class ScanOdometry:
     matched: int  # scans posed by their match
     unmatched: int  # scans whose match found too little of the map: the prediction (the step before) stands
     keyframes: int  # scans that went into the local map
+    gaps: int = 0  # scans after a gap in the log, matched from every heading too
 
     def to_dict(self) -> dict[str, int]:
         return dataclasses.asdict(self)
@@ -106,7 +115,7 @@ def estimate_odometry(scans: ScanSequence, cfg: SlamConfig, *,
     intervals = np.diff(scans.timestamps)
     intervals = intervals[intervals > 0]
     typical_interval = float(np.median(intervals)) if len(intervals) else math.inf
-    matched = unmatched = 0
+    matched = unmatched = gaps = 0
     added = 1  # keyframes, the first scan's included
     reported = 0  # scans passed to `progress`
     for k in range(1, n):  # each scan's start is the scan before it's result
@@ -114,7 +123,8 @@ def estimate_odometry(scans: ScanSequence, cfg: SlamConfig, *,
         angles, ranges = scans.scan_angles(k), np.ascontiguousarray(scans.scan_ranges(k))
         best = _best_match(grid, (predicted, poses[k - 1]), angles, ranges, match, steps)
         share = _share(grid, best, angles, ranges, match, lf)
-        gap = float(scans.timestamps[k] - scans.timestamps[k - 1]) > GAP * typical_interval
+        gap = float(scans.timestamps[k] - scans.timestamps[k - 1]) > max(GAP * typical_interval, GAP_MIN_S)
+        gaps += gap
         if gap or share < sm.min_matched:
             # A gap in the log (ACES turns 70° in one of 3 s) or a lost match: the local climb
             # cannot reach a turn of tens of degrees, so start it at every heading around.
@@ -151,7 +161,7 @@ def estimate_odometry(scans: ScanSequence, cfg: SlamConfig, *,
         progress(n - reported)
     # Matched near the origin, where the grid's cells are small numbers (a georeferenced start
     # millions of metres out is omnitof.slam.anchor's case), then moved there.
-    return compose(scans.odometry[0], poses), ScanOdometry(matched, unmatched, added)
+    return compose(scans.odometry[0], poses), ScanOdometry(matched, unmatched, added, gaps)
 
 
 def _best_match(grid: _core.OccupancyGrid, starts, angles: np.ndarray, ranges: np.ndarray, match: dict,

@@ -10,6 +10,8 @@ one submodule each, on shared machinery:
   frame names in `LaserTopics`): ROS 1 (`.bag` files) or ROS 2 bags with sensor_msgs/LaserScan
   and odometry (nav_msgs/Odometry, or the transform odom → base on /tf), read into a
   ScanSequence.
+- `odometry`: where a bag's odometry comes from, for both: an Odometry topic, the transform
+  odom → base on /tf, or none.
 - `common`: what both use: opening bags (`bag_message_types`), message types and typestores,
   time conversions (`to_ros_time`, `from_ros_time`), the sidecar `<bag>/omnitof.yaml`
   (`SIDECAR_NAME`), the all-or-nothing write (`BagExistsError`), odometry read into

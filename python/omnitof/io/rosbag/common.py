@@ -71,6 +71,10 @@ SIDECAR_VERSION = 1
 _ROSBAG2_VERSION: Literal[8] = 8
 
 IMAGE = "sensor_msgs/msg/Image"
+# Images as image_transport records them compressed ("compressed": PNG or JPEG;
+# "compressedDepth": a 12-byte header and a 16-bit PNG).
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 ODOMETRY = "nav_msgs/msg/Odometry"
 LASER_SCAN = "sensor_msgs/msg/LaserScan"

@@ -19,7 +19,7 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 from rosbags.highlevel import AnyReader
@@ -63,6 +63,13 @@ from omnitof.io.rosbag.common import (
     _tf_msg,
     _to_ns,
     parse_roles,
+)
+from omnitof.io.rosbag.odometry import (
+    TopicsOption,
+    edge_matrix,
+    odometry_connections,
+    read_tf_odometry,
+    tf_required,
 )
 from omnitof.types import (
     FLOAT32_MAX,
@@ -124,6 +131,10 @@ class LaserTopics:
         return parse_roles(cls, text, "scan=/base_scan")
 
 
+# How the errors of `read_laserscan_bag` tell a user to choose a topic or frame.
+_HOW = TopicsOption("--laser-topics", "LaserTopics")
+
+
 def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -> ScanSequence:
     """Read sensor_msgs/LaserScan (or MultiEchoLaserScan: each beam's first echo) and the
     robot's odometry from a ROS 1 or ROS 2 bag.
@@ -161,8 +172,9 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
     path = Path(path)
     topics = topics or LaserTopics()
     with _opened(path) as reader:
-        scan_conns = _pick_topic(reader, path, LASER_TYPES, topics.scan, "/scan", _CHOOSE["scan"])
-        odom_conns, odom_kind = _odometry_connections(reader, path, topics)
+        scan_conns = _pick_topic(reader, path, LASER_TYPES, topics.scan, "/scan", _HOW.choose("scan"))
+        odom_conns, odom_kind = odometry_connections(reader, path, odometry=topics.odometry,
+                                                     ground_truth=topics.ground_truth, tf=topics.tf, how=_HOW)
         ground_truth_topic = topics.ground_truth
         # Optional topics are used only when they carry the expected type.
         truth_conns = [
@@ -180,9 +192,8 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
         first_seen = None  # the first of each transform on topics.tf, where it was read for the odometry
         if odom_kind == "tf":
             # Found by itself, a tf topic without the odometry's transform means a bag without odometry.
-            tf_read = _read_tf_odometry(reader, path, odom_conns, topics.odom_frame, topics.base_frame,
-                                        required=topics.odometry is not None or topics.base_frame is not None
-                                        or topics.odom_frame != ODOM_FRAME)
+            tf_read = read_tf_odometry(reader, path, odom_conns, topics.odom_frame, topics.base_frame, how=_HOW,
+                                       required=tf_required(topics.odometry, topics.odom_frame, topics.base_frame))
             if odom_conns[0].topic == topics.tf:
                 first_seen = tf_read.first_edges
             if tf_read.trajectory is None:
@@ -343,101 +354,6 @@ def _first_echoes(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     return ranges, np.zeros(0, dtype=np.float32)
 
 
-# How the errors of `read_laserscan_bag` tell a user to choose a topic or frame.
-_CHOOSE = {
-    "scan": "--laser-topics scan=TOPIC (in Python topics=LaserTopics(scan=...))",
-    "odometry": "--laser-topics odometry=TOPIC (in Python topics=LaserTopics(odometry=...))",
-    "base_frame": "--laser-topics base_frame=FRAME (in Python topics=LaserTopics(base_frame=...))",
-}
-
-
-def _odometry_connections(reader: AnyReader, path: Path, topics: LaserTopics) -> tuple[list[Any], str]:
-    """The connections the odometry comes from and their kind: "odometry" (nav_msgs/Odometry),
-    "tf" (TFMessage), or "none" (no connections: the bag has neither, and none was named)."""
-    if topics.odometry is not None:
-        conns = [c for c in reader.connections if c.topic == topics.odometry]
-        if conns and all(c.msgtype in TF_TYPES for c in conns):
-            return conns, "tf"
-        if conns and any(c.msgtype != ODOMETRY for c in conns):
-            kinds = ", ".join(sorted({c.msgtype for c in conns}))
-            raise InputError(f"topic {topics.odometry} has type {kinds}, expected {ODOMETRY} or {TF_MESSAGE}", path)
-        found = _connections(reader, path, topics.odometry, ODOMETRY)
-        assert found is not None  # required topics are never None
-        return found, "odometry"
-    exclude = {topics.ground_truth} if topics.ground_truth else set()
-    if any(c.msgtype == ODOMETRY and c.topic not in exclude for c in reader.connections):
-        return _pick_topic(reader, path, ODOMETRY, None, "/odom", _CHOOSE["odometry"], exclude=exclude), "odometry"
-    tf = [c for c in reader.connections if c.topic == topics.tf and c.msgtype in TF_TYPES]
-    return tf, "tf" if tf else "none"
-
-
-class _TfOdometry(NamedTuple):
-    """What `_read_tf_odometry` found: the odometry and its base frame (None where tf holds
-    none), and the first of each transform on the topic (for the mounting, where /tf_static
-    lacks it: one pass over tf for both)."""
-
-    trajectory: Trajectory | None
-    base: str | None
-    first_edges: dict[str, tuple[str, np.ndarray]]
-
-
-def _read_tf_odometry(
-    reader: AnyReader, path: Path, connections: Sequence[Any], odom_frame: str, base_frame: str | None,
-    *, required: bool,
-) -> _TfOdometry:
-    """The transform odom_frame → base as a Trajectory by the transforms' own stamps, with base
-    `base_frame` or the one frame whose parent on tf is odom_frame. Out-of-order transforms are
-    sorted (tf buffers them so); of several at one stamp the last is kept. Where tf holds no such
-    transform: an InputError if `required`, else no trajectory."""
-    topic = connections[0].topic
-    rows: dict[str, list[tuple[int, float, float, float]]] = {}
-    first_edges: dict[str, tuple[str, np.ndarray]] = {}
-    pairs: set[tuple[str, str]] = set()  # (parent, child) seen, for the error that lists them
-    for _, msg in _messages(reader, path, connections):
-        for tf in msg.transforms:
-            parent, child = _frame_name(tf.header.frame_id), _frame_name(tf.child_frame_id)
-            pairs.add((parent, child))
-            if child not in first_edges:
-                first_edges[child] = (parent, _edge_matrix(tf))
-            if parent != odom_frame or (base_frame is not None and child != base_frame):
-                continue
-            ns = _stamp_ns(tf.header.stamp)
-            pose = _planar_pose(tf.transform.translation, tf.transform.rotation,
-                                f"topic {topic}: the transform {parent} → {child} stamped {_ns_to_s(ns):.9f} s", path)
-            rows.setdefault(child, []).append((ns, *pose))
-    if not rows and not required:
-        parents = sorted({a for a, _ in pairs if "odom" in a})
-        if parents:  # a PR2's odom_combined: say where the odometry may be, rather than estimate it
-            warnings.warn(
-                f"{path}: {topic} holds no transform from the frame {odom_frame}, so the odometry is taken as "
-                f"unknown and estimated from the scans; it may be the transform from {', '.join(parents)}: "
-                "name it with --laser-topics odom_frame=FRAME", RosbagWarning, stacklevel=3,
-            )
-        return _TfOdometry(None, None, first_edges)
-    if not rows:
-        wanted = f"{odom_frame} → {base_frame}" if base_frame else f"from the frame {odom_frame}"
-        listed = ", ".join(f"{a} → {b}" for a, b in sorted(pairs)[:20]) or "none"
-        raise InputError(
-            f"topic {topic}: no transform {wanted} for the odometry (name the frames with "
-            f"--laser-topics odom_frame=FRAME,base_frame=FRAME); its transforms: {listed}",
-            path,
-        )
-    if len(rows) > 1:
-        raise InputError(
-            f"topic {topic}: the frame {odom_frame} moves several frames ({', '.join(sorted(rows))}); "
-            f"choose the robot's with {_CHOOSE['base_frame']}",
-            path,
-        )
-    (child, data), = rows.items()
-    stamps = np.array([row[0] for row in data], dtype=np.int64)
-    order = np.argsort(stamps, kind="stable")
-    stamps = stamps[order]
-    poses = np.array([row[1:] for row in data], dtype=np.float64)[order]
-    last = np.append(stamps[1:] != stamps[:-1], True)  # the last published at each stamp
-    seconds = np.array([_ns_to_s(int(ns)) for ns in stamps[last]], dtype=np.float64)
-    return _TfOdometry(Trajectory(seconds, poses[last]), child, first_edges)
-
-
 def _read_static_transforms(
     reader: AnyReader, path: Path, connections: Sequence[Any], *, first_only: bool = False
 ) -> dict[str, tuple[str, np.ndarray]]:
@@ -449,17 +365,8 @@ def _read_static_transforms(
             child = _frame_name(tf.child_frame_id)
             if first_only and child in edges:
                 continue
-            edges[child] = (_frame_name(tf.header.frame_id), _edge_matrix(tf))
+            edges[child] = (_frame_name(tf.header.frame_id), edge_matrix(tf))
     return edges
-
-
-def _edge_matrix(tf: Any) -> np.ndarray:
-    """parent_T_child 4×4 of a geometry_msgs/TransformStamped."""
-    t, q = tf.transform.translation, tf.transform.rotation
-    matrix = np.eye(4)
-    matrix[:3, :3] = _rotation_matrix(q.x, q.y, q.z, q.w)
-    matrix[:3, 3] = (t.x, t.y, t.z)
-    return matrix
 
 
 def _root(edges: dict[str, tuple[str, np.ndarray]], frame: str) -> tuple[str, np.ndarray]:
@@ -513,24 +420,6 @@ def _laser_pose(
     return np.array([base_T_laser[0, 3], base_T_laser[1, 3], yaw]), bool(flipped)
 
 
-def _rotation_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
-    """The rotation of a quaternion of any length (zero: none; not finite: NaN, refused later)."""
-    q = np.array([x, y, z, w], dtype=np.float64)
-    if not np.isfinite(q).all():
-        return np.full((3, 3), np.nan)
-    if not q.any():
-        return np.eye(3)
-    q /= np.abs(q).max()  # first, so that the norm of huge components does not overflow
-    x, y, z, w = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def _span(trajectory: Trajectory) -> str:
     return f"[{trajectory.timestamps[0]:.9f}, {trajectory.timestamps[-1]:.9f}] s"
 
@@ -561,7 +450,8 @@ def write_laserscan_bag(
     sensor_pose on /tf_static (latched in ROS 1). Readings beyond max_range stay in the bag as
     they are; readers (this one too) take them for no echo. With `odometry_on_tf` the odometry
     is the transform odom → base_link on `tf_topic` (tf2_msgs/TFMessage) instead of Odometry
-    messages, as robots that publish it only to tf record it.
+    messages, as robots that publish it only to tf record it. Scans without odometry
+    (`odometry_known` False) are written without it, and read back so.
 
     Args:
         path: a ".bag" file for version 1 (ROS 1 readers recognise bags by it); a folder not
@@ -579,7 +469,8 @@ def write_laserscan_bag(
     """
     path = Path(path)
     roles = {"scan_topic": scan_topic, "tf_static_topic": tf_static_topic}
-    roles["tf_topic" if odometry_on_tf else "odom_topic"] = tf_topic if odometry_on_tf else odom_topic
+    if scans.odometry_known:
+        roles["tf_topic" if odometry_on_tf else "odom_topic"] = tf_topic if odometry_on_tf else odom_topic
     if scans.ground_truth is not None:  # written only then
         roles["ground_truth_topic"] = ground_truth_topic
     _distinct_topics(roles)
@@ -625,13 +516,15 @@ def write_laserscan_bag(
             add = _adder(writer, store, ros1)
             conn_tf = add(tf_static_topic, TF_MESSAGE, latching=True)
             conn_scan = add(scan_topic, LASER_SCAN)
-            conn_odom = add(tf_topic, TF_MESSAGE) if odometry_on_tf else add(odom_topic, ODOMETRY)
-            streams = [
-                _PoseStream(
-                    writer, conn_odom, store, Trajectory(scans.timestamps, scans.odometry),
-                    ODOM_FRAME, BASE_FRAME, ros1=ros1, as_tf=odometry_on_tf,
-                )
-            ]  # fmt: skip
+            streams = []
+            if scans.odometry_known:
+                conn_odom = add(tf_topic, TF_MESSAGE) if odometry_on_tf else add(odom_topic, ODOMETRY)
+                streams.append(
+                    _PoseStream(
+                        writer, conn_odom, store, Trajectory(scans.timestamps, scans.odometry),
+                        ODOM_FRAME, BASE_FRAME, ros1=ros1, as_tf=odometry_on_tf,
+                    )
+                )  # fmt: skip
             if scans.ground_truth is not None:
                 conn_truth = add(ground_truth_topic, ODOMETRY)
                 streams.append(

@@ -12,7 +12,9 @@ distributions for the types used here); the reader takes ROS 1 bags too. Default
                                               pixel, channel k = A_k (one topic, not four)
     /tof/camera_info  sensor_msgs/CameraInfo  one per frame: width, height, K, R = I, P = [K|0],
                                               D "plumb_bob" (k1, k2, p1, p2, k3): OpenCV's order
-    /odom             nav_msgs/Odometry       odom → base_link, at the trajectory's own timestamps
+    /odom             nav_msgs/Odometry       odom → base_link, at the trajectory's own timestamps;
+                                              or the transform odom → base on /tf, or none
+                                              (`omnitof.io.rosbag.odometry`)
     /ground_truth     nav_msgs/Odometry       world → base_link, optional (simulation)
 
 The images and the camera info of one frame share one header stamp: that stamp *is* the frame's
@@ -25,7 +27,9 @@ orientation the quaternion of a rotation by θ about +z, covariances and twist l
 
 A camera driver's bag (read only) may name its topics otherwise (`ToFTopics`, `omnitof slam
 --tof-topics`), carry distances as 16UC1 millimetres (REP 118; 0 = no reading) instead of 32FC1
-metres, amplitudes as 16UC1 / mono16 / mono8, and give the depth z along the optical axis
+metres, amplitudes as 16UC1 / mono16 / mono8, hold any of them as sensor_msgs/CompressedImage as
+image_transport records them ("compressedDepth" PNG for the depth, PNG or JPEG otherwise;
+`_decompressed`), and give the depth z along the optical axis
 instead of the radial distance (`read_tof_bag(..., depth=True)`, `--tof-distance depth`): each
 pixel's z is then divided by its unit ray's z component, which undoes what the driver did.
 
@@ -53,17 +57,21 @@ from omnitof.io.rosbag.common import (
     BASE_FRAME,
     CAMERA_FRAME,
     CAMERA_INFO,
+    COMPRESSED_IMAGE,
     DEFAULT_STORAGE,
     IMAGE,
+    IMAGE_TYPES,
     ODOM_FRAME,
     ODOMETRY,
     SIDECAR_NAME,
+    TF_MESSAGE,
     WORLD_FRAME,
     RosbagWarning,
     _atomic_path,
     _check_written_poses,
     _connections,
     _distinct_topics,
+    _frame_name,
     _header,
     _messages,
     _ns_to_s,
@@ -78,6 +86,7 @@ from omnitof.io.rosbag.common import (
     _storage_plugin,
     _to_ns,
 )
+from omnitof.io.rosbag.odometry import TopicsOption, odometry_connections, read_tf_odometry, tf_required
 from omnitof.sensor.camera import Camera, CameraParameterError
 from omnitof.sensor.rig import Rig
 from omnitof.types import Trajectory, first_non_finite
@@ -138,14 +147,38 @@ class ToFFrameStamped:
 
 @dataclass(frozen=True)
 class ToFTopics:
-    """Topic names of a ToF bag (the defaults are what `write_tof_bag` writes)."""
+    """Where a ToF bag keeps what `read_tof_bag` reads (`--tof-topics` in the CLI); the defaults
+    are what `write_tof_bag` writes.
+
+    distance, amplitude, samples, camera_info: the images and the camera's intrinsics.
+    odometry: a nav_msgs/Odometry topic, or a tf2_msgs/TFMessage topic (such as "/tf") whose
+        transform odom_frame → base_frame is the odometry; None: the one Odometry topic ("/odom"
+        among several, never ground_truth), and where the bag has none, the transform on `tf`,
+        and where tf has none either, no odometry (SLAM estimates it from the scans). The writer
+        writes "/odom" for None.
+    ground_truth: nav_msgs/Odometry of true poses, used where present.
+    tf: the transform topic the odometry may be on.
+    odom_frame: the odometry's fixed frame on tf.
+    base_frame: the robot's frame that the odometry moves on tf; None: the one frame that
+        odom_frame moves.
+    """
 
     distance: str = "/tof/distance"
     amplitude: str = "/tof/amplitude"
     samples: str = "/tof/samples"
     camera_info: str = "/tof/camera_info"
-    odometry: str = "/odom"
+    odometry: str | None = None
     ground_truth: str = "/ground_truth"
+    tf: str = "/tf"
+    odom_frame: str = ODOM_FRAME
+    base_frame: str | None = None
+
+    def __post_init__(self) -> None:
+        # As `rosbag info` and ROS 1 bags show them, "/odom" names the frame "odom".
+        for name in ("odom_frame", "base_frame"):
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, _frame_name(value))
 
     @classmethod
     def parse(cls, text: str) -> ToFTopics:
@@ -162,11 +195,12 @@ def write_tof_bag(
     frames: Iterable[ToFFrameStamped],
     *,
     camera: Camera,
-    odometry: Trajectory,
+    odometry: Trajectory | None,
     ground_truth: Trajectory | None = None,
     sidecar: dict | None = None,
     storage: str = DEFAULT_STORAGE,
     topics: ToFTopics = ToFTopics(),
+    odometry_on_tf: bool = False,
     overwrite: bool = False,
 ) -> int:
     """Write a ToF sequence as a ROS 2 bag folder (layout in the module docstring).
@@ -180,12 +214,16 @@ def write_tof_bag(
             readers take for a ROS 1 bag file).
         frames: ToFFrameStamped with strictly increasing timestamps, images of camera.shape.
         camera: the intrinsics written to every camera_info message.
-        odometry: odometry poses (odom → base_link) with non-decreasing timestamps.
+        odometry: odometry poses (odom → base_link) with non-decreasing timestamps, or None for
+            a bag without odometry (a camera carried by hand).
         ground_truth: true poses (world → base_link), or None.
         sidecar: a YAML-serialisable dict (numpy arrays and scalars are converted) written to
             `<bag>/omnitof.yaml`, or None for no sidecar.
         storage: "mcap" or "sqlite3".
-        topics: topic names.
+        topics: topic names (the odometry on `topics.odometry`, "/odom" where it is None).
+        odometry_on_tf: write the odometry as the transform `topics.odom_frame` →
+            `topics.base_frame` (base_link where None) on `topics.tf` (tf2_msgs/TFMessage)
+            instead of Odometry messages, as robots that publish it only to tf record it.
         overwrite: replace an existing bag at `path` (the old one is moved aside only once the
             new one is complete, and restored if the final rename fails).
 
@@ -198,13 +236,19 @@ def write_tof_bag(
             left at `path`).
     """
     path = Path(path)
-    _distinct_topics({f"topics.{role}": getattr(topics, role) for role in ToFTopics.__dataclass_fields__})
+    odometry_topic = topics.tf if odometry_on_tf else (topics.odometry or "/odom")
+    written = ("distance", "amplitude", "samples", "camera_info", "ground_truth")
+    roles = {f"topics.{role}": getattr(topics, role) for role in written}
+    if odometry is not None:
+        roles["topics.tf" if odometry_on_tf else "topics.odometry"] = odometry_topic
+    _distinct_topics(roles)
     plugin = _storage_plugin(storage)
     if path.suffix == ".bag":
         raise ValueError(
             f"{path}: a ROS 2 bag folder must not end in '.bag' (readers take that for ROS 1)"
         )
-    odometry = _checked_trajectory(odometry, "odometry")
+    if odometry is not None:
+        odometry = _checked_trajectory(odometry, "odometry")
     if ground_truth is not None:
         ground_truth = _checked_trajectory(ground_truth, "ground_truth")
     sidecar_text = None if sidecar is None else _sidecar_text(sidecar)
@@ -217,13 +261,16 @@ def write_tof_bag(
             conn_amplitude = writer.add_connection(topics.amplitude, IMAGE, typestore=store)
             conn_info = writer.add_connection(topics.camera_info, CAMERA_INFO, typestore=store)
             conn_samples = None
-            pose_streams = [
-                _PoseStream(
-                    writer,
-                    writer.add_connection(topics.odometry, ODOMETRY, typestore=store),
-                    store, odometry, ODOM_FRAME, BASE_FRAME, ros1=False,
-                )
-            ]  # fmt: skip
+            pose_streams = []
+            if odometry is not None:
+                msgtype = TF_MESSAGE if odometry_on_tf else ODOMETRY
+                pose_streams.append(
+                    _PoseStream(
+                        writer, writer.add_connection(odometry_topic, msgtype, typestore=store),
+                        store, odometry, topics.odom_frame, topics.base_frame or BASE_FRAME, ros1=False,
+                        as_tf=odometry_on_tf,
+                    )
+                )  # fmt: skip
             if ground_truth is not None:
                 conn_truth = writer.add_connection(topics.ground_truth, ODOMETRY, typestore=store)
                 pose_streams.append(
@@ -345,7 +392,7 @@ class ToFBag:
         path: the bag.
         camera: intrinsics from the first camera_info message.
         odometry: the odometry poses as recorded (their own timestamps), or None when the bag
-            has none and read_tof_bag was told not to require it.
+            has none.
         ground_truth: the ground-truth poses as recorded, or None.
         sidecar: the sidecar dict (`<bag>/omnitof.yaml`), or None when there is none.
         topics: the topic names used.
@@ -353,6 +400,8 @@ class ToFBag:
         has_samples: whether the bag has the raw-samples topic.
         depth: the distance images hold the depth z along the optical axis, which the frames
             turn into the radial distance (module docstring).
+        odometry_source: where the odometry came from, in words (its topic, or the transform on
+            tf), "" without odometry.
     """
 
     path: Path
@@ -364,6 +413,7 @@ class ToFBag:
     n_frames: int
     has_samples: bool
     depth: bool = False
+    odometry_source: str = ""
     _timestamps: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
@@ -417,7 +467,8 @@ class ToFBag:
                         self.path,
                     )
                 last_ns[role] = ns
-                image = _decode_image(msg, self.path, conn.topic, IMAGE_FORMATS[role], shape, self.topics.camera_info)
+                image = _decode_image(msg, self.path, conn.topic, IMAGE_FORMATS[role], shape, self.topics.camera_info,
+                                      compressed=conn.msgtype == COMPRESSED_IMAGE, lossy=role != "distance")
                 if role == "distance" and ray_z is not None:
                     image = image / ray_z
                 key = _frame_key(pending, role, ns)
@@ -480,23 +531,23 @@ class ToFBag:
 
     def frame_odometry(self) -> Trajectory:
         """The odometry pose at every frame's timestamp, interpolated (InputError outside)."""
-        return self._at_frames(self.odometry, self.topics.odometry)
+        if self.odometry is None:
+            raise InputError("the bag has no odometry", self.path)
+        return self._at_frames(self.odometry, f"the odometry ({self.odometry_source})")
 
     def frame_ground_truth(self) -> Trajectory | None:
         """The true pose at every frame's timestamp, interpolated; None without ground truth."""
         if self.ground_truth is None:
             return None
-        return self._at_frames(self.ground_truth, self.topics.ground_truth)
+        return self._at_frames(self.ground_truth, f"topic {self.topics.ground_truth}")
 
-    def _at_frames(self, trajectory: Trajectory | None, topic: str) -> Trajectory:
-        if trajectory is None:
-            raise InputError(f"topic {topic}: the bag has no odometry", self.path)
+    def _at_frames(self, trajectory: Trajectory, what: str) -> Trajectory:
         t = self.frame_timestamps()
         poses = interpolate_poses(trajectory, t)
         outside = np.flatnonzero(np.isnan(poses[:, 0]))
         if outside.size:
             raise InputError(
-                f"topic {topic}: frame {outside[0]} at {t[outside[0]]:.9f} s is outside the "
+                f"{what}: frame {outside[0]} at {t[outside[0]]:.9f} s is outside the "
                 f"poses' time span [{trajectory.timestamps[0]:.9f}, "
                 f"{trajectory.timestamps[-1]:.9f}] s",
                 self.path,
@@ -529,37 +580,51 @@ def _frame_key(pending: OrderedDict[int, dict[str, np.ndarray]], role: str, ns: 
     return min(near, key=lambda s: abs(s - ns)) if near else ns
 
 
+# How the errors of `read_tof_bag` tell a user to choose a topic or frame.
+_HOW = TopicsOption("--tof-topics", "ToFTopics")
+
+
 def read_tof_bag(
-    path: str | Path, *, topics: ToFTopics = ToFTopics(), require_odometry: bool = True, depth: bool = False
+    path: str | Path, *, topics: ToFTopics = ToFTopics(), require_odometry: bool = False, depth: bool = False,
+    odometry: bool = True,
 ) -> ToFBag:
     """Open a ToF bag: read its camera, trajectories and sidecar; stream frames on demand.
 
     Reads any ROS 1 or ROS 2 bag with the topics of `topics` (the layout of the module
-    docstring). Reading the frames is left to `ToFBag.frames()`, which streams them.
+    docstring). Reading the frames is left to `ToFBag.frames()`, which streams them. The
+    odometry is the Odometry topic, else the transform odom → base on /tf, else none
+    (`ToFTopics.odometry`; `ToFBag.odometry_source` says which).
 
     Args:
         path: a ROS 2 bag folder (or bare .mcap/.db3 file), or a ROS 1 .bag file.
-        topics: topic names.
-        require_odometry: when False, a bag without the odometry topic is accepted (odometry
-            None), e.g. a recording of a calibration target.
+        topics: topic and frame names.
+        require_odometry: refuse a bag without odometry (by default it is read with odometry
+            None: a recording of a calibration target, a camera carried by hand).
         depth: the distance topic holds depth images (z along the optical axis), as many
             camera drivers publish them; the frames get the radial distance.
+        odometry: False: do not look for the odometry at all (a calibration, a frame count):
+            no topic choice to make, no pass over /tf.
 
     Raises:
         InputError: naming the bag (and the topic): not a bag, a missing topic or one of the
             wrong type, a camera_info omnitof's Camera cannot represent, odometry timestamps
-            that go backwards, an unreadable sidecar.
+            that go backwards, an unreadable sidecar, no odometry where it is required.
     """
     path = Path(path)
     with _opened(path) as reader:
-        _connections(reader, path, topics.distance, IMAGE)
-        _connections(reader, path, topics.amplitude, IMAGE)
+        _connections(reader, path, topics.distance, IMAGE_TYPES)
+        _connections(reader, path, topics.amplitude, IMAGE_TYPES)
         info = _connections(reader, path, topics.camera_info, CAMERA_INFO) or []
         samples = _connections(reader, path, topics.samples, IMAGE, required=False)
-        odometry = _connections(
-            reader, path, topics.odometry, ODOMETRY, required=require_odometry
-        )
-        truth = _connections(reader, path, topics.ground_truth, ODOMETRY, required=False)
+        odom_conns, odom_kind = [], "none"
+        if odometry or require_odometry:
+            odom_conns, odom_kind = odometry_connections(reader, path, odometry=topics.odometry,
+                                                         ground_truth=topics.ground_truth, tf=topics.tf, how=_HOW)
+        truth = [
+            c for c in reader.connections
+            if c.topic == topics.ground_truth and c.msgtype == ODOMETRY
+            and not (odom_kind == "odometry" and c.topic == odom_conns[0].topic)
+        ]  # fmt: skip
         n_frames = sum(c.msgcount for c in reader.connections if c.topic == topics.distance)
         camera = None
         for _, msg in _messages(reader, path, info):
@@ -567,17 +632,35 @@ def read_tof_bag(
             break
         if camera is None:
             raise InputError(f"topic {topics.camera_info}: has no message", path)
-        trajectories = _read_trajectories(reader, path, (odometry or []) + (truth or []))
+        # One pass over the bag for the Odometry messages and the ground truth.
+        trajectories = _read_trajectories(reader, path, (odom_conns if odom_kind == "odometry" else []) + truth)
+        poses, source = None, ""
+        if odom_kind == "odometry":
+            source = odom_conns[0].topic
+            poses = trajectories[source]
+        elif odom_kind == "tf":
+            found = read_tf_odometry(reader, path, odom_conns, topics.odom_frame, topics.base_frame, how=_HOW,
+                                     required=tf_required(topics.odometry, topics.odom_frame, topics.base_frame))
+            if found.trajectory is not None:
+                poses = found.trajectory
+                source = f"the transform {topics.odom_frame} → {found.base} on {odom_conns[0].topic}"
+    if poses is None and require_odometry:
+        raise InputError(
+            f"the bag has no odometry: no {ODOMETRY} topic and no transform {topics.odom_frame} → base on "
+            f"{topics.tf} (name them with {_HOW.choose('odometry')})",
+            path,
+        )
     return ToFBag(
         path=path,
         camera=camera,
-        odometry=trajectories.get(topics.odometry) if odometry else None,
+        odometry=poses,
         ground_truth=trajectories.get(topics.ground_truth) if truth else None,
         sidecar=_read_sidecar(path),
         topics=topics,
         n_frames=n_frames,
         has_samples=samples is not None,
         depth=bool(depth),
+        odometry_source=source,
     )
 
 
@@ -594,17 +677,22 @@ IMAGE_FORMATS: dict[str, dict[str, tuple[str, int, float, bool]]] = {
 
 def _decode_image(
     msg: Any, path: Path, topic: str, formats: dict[str, tuple[str, int, float, bool]],
-    shape: tuple[int, int], info_topic: str,
+    shape: tuple[int, int], info_topic: str, *, compressed: bool = False, lossy: bool = True,
 ) -> np.ndarray:  # fmt: skip
-    """(H, W) or (H, W, channels) float32 pixels of a sensor_msgs/Image in one of `formats`
+    """(H, W) or (H, W, channels) float32 pixels of a sensor_msgs/Image (or with `compressed` a
+    CompressedImage: `_decompressed`, JPEG only where `lossy`) in one of `formats`
     (IMAGE_FORMATS), scaled to the role's unit, checked."""
-    encoding = str(msg.encoding)
+    if compressed:
+        encoding, raw = _decompressed(msg, path, topic, formats, lossy)
+        height, width = raw.shape[:2]
+    else:
+        encoding = str(msg.encoding)
+        height, width = int(msg.height), int(msg.width)
     if encoding not in formats:
         raise InputError(
             f"topic {topic}: image encoding {encoding!r}, expected {' or '.join(repr(e) for e in formats)}", path
         )
     kind, channels, scale, zero_is_none = formats[encoding]
-    height, width = int(msg.height), int(msg.width)
     if (height, width) != shape:
         raise InputError(
             f"topic {topic}: image of {width}×{height} pixels at "
@@ -612,22 +700,84 @@ def _decode_image(
             f"{shape[1]}×{shape[0]}",
             path,
         )
-    row = width * np.dtype(kind).itemsize * channels
-    data = np.asarray(msg.data, dtype=np.uint8)
-    if msg.step < row or data.size != msg.step * height:
-        raise InputError(
-            f"topic {topic}: image step {msg.step} and {data.size} data bytes do not fit "
-            f"{width}×{height} {encoding} pixels",
-            path,
-        )
-    rows = data.reshape(height, msg.step)[:, :row].copy()  # copy: detach from the bag's buffer
-    raw = rows.view((">" if msg.is_bigendian else "<") + kind)
+    if not compressed:
+        row = width * np.dtype(kind).itemsize * channels
+        data = np.asarray(msg.data, dtype=np.uint8)
+        if msg.step < row or data.size != msg.step * height:
+            raise InputError(
+                f"topic {topic}: image step {msg.step} and {data.size} data bytes do not fit "
+                f"{width}×{height} {encoding} pixels",
+                path,
+            )
+        rows = data.reshape(height, msg.step)[:, :row].copy()  # copy: detach from the bag's buffer
+        raw = rows.view((">" if msg.is_bigendian else "<") + kind)
     pixels = raw.astype(np.float32, copy=False)
     if scale != 1.0:
         pixels = pixels * np.float32(scale)
     if zero_is_none:
         pixels[raw == 0] = np.nan
     return pixels.reshape((height, width) if channels == 1 else (height, width, channels))
+
+
+# image_transport's compressedDepth header: the kind of quantisation (image_transport writes 0,
+# inverse depth), then its figures for a 32FC1 depth (depth = A / (q - B), q = 0 no reading),
+# little-endian. PNG or RVL coding is said by the format string.
+_DEPTH_HEADER = np.dtype([("compression", "<i4"), ("quant_a", "<f4"), ("quant_b", "<f4")])
+# Plain image_transport formats ("png", "jpeg") name no pixel encoding: it follows from the pixels.
+_BY_DTYPE = {np.dtype(np.uint16): ("16UC1", "mono16"), np.dtype(np.uint8): ("mono8",)}
+
+
+def _decompressed(
+    msg: Any, path: Path, topic: str, formats: dict[str, tuple[str, int, float, bool]], lossy: bool
+) -> tuple[str, np.ndarray]:
+    """(pixel encoding, pixels) of a sensor_msgs/CompressedImage as image_transport writes it:
+    "ENCODING; compressedDepth [png]" (a depth image: `_DEPTH_HEADER`, then a 16-bit PNG: 16UC1
+    as it is, 32FC1 as quantised inverse depth), "ENCODING; png|jpeg compressed ..." or a bare
+    "png"/"jpeg". Decoded with OpenCV; single-channel only, of the bit depth its encoding says.
+    InputError naming the topic for a format it cannot read (RVL, colour, a corrupt image, JPEG
+    where not `lossy`) or pixels that are not what the format string says."""
+    import cv2
+
+    fmt = str(msg.format)
+    encoding, _, transport = (part.strip() for part in fmt.partition(";"))
+    data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
+    stamp = f"{_ns_to_s(_stamp_ns(msg.header.stamp)):.9f} s"
+    depth = "compresseddepth" in transport.lower()
+    if depth:
+        if data.size < _DEPTH_HEADER.itemsize:
+            raise InputError(f"topic {topic}: the compressedDepth image at {stamp} holds {data.size} bytes", path)
+        header = data[: _DEPTH_HEADER.itemsize].view(_DEPTH_HEADER)[0]
+        if "rvl" in transport.lower():
+            raise InputError(f"topic {topic}: compressedDepth images in RVL ({fmt!r}) are not read; record the "
+                             "depth with its png format (compressed_depth_image_transport's default)", path)
+        data = data[_DEPTH_HEADER.itemsize:]
+    if not lossy and any(word in fmt.lower() for word in ("jpeg", "jpg")):
+        raise InputError(f"topic {topic}: {fmt!r} is lossy JPEG, which cannot carry distances; record them "
+                         "as compressedDepth or png", path)
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if image is None:
+        raise InputError(f"topic {topic}: cannot decode the {fmt!r} image at {stamp}", path)
+    if image.ndim != 2:
+        raise InputError(f"topic {topic}: the {fmt!r} image at {stamp} has {image.shape[2]} channels; a ToF "
+                         "image has one", path)
+    bits = f"{image.dtype.itemsize * 8}-bit"
+    if encoding.lower() in ("png", "jpeg", "jpg") and not transport:
+        inferred = [e for e in _BY_DTYPE.get(image.dtype, ()) if e in formats]
+        if not inferred:
+            raise InputError(f"topic {topic}: the {fmt!r} image at {stamp} holds {bits} pixels, which are not "
+                             f"{' or '.join(repr(e) for e in formats)}", path)
+        encoding = inferred[0]
+    if encoding in formats and not (depth and encoding == "32FC1"):
+        kind = np.dtype(formats[encoding][0])
+        if image.dtype != kind:
+            raise InputError(f"topic {topic}: the {fmt!r} image at {stamp} holds {bits} pixels, not the "
+                             f"{kind.itemsize * 8}-bit ones of {encoding}", path)
+    if depth and encoding == "32FC1":
+        q = image.astype(np.float32)
+        with np.errstate(divide="ignore"):
+            metres = np.float32(header["quant_a"]) / (q - np.float32(header["quant_b"]))
+        return encoding, np.where(image == 0, np.float32(np.nan), metres).astype(np.float32)
+    return encoding, image
 
 
 def _camera_from_info(msg: Any, path: Path, topic: str) -> Camera:

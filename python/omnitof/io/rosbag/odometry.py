@@ -1,0 +1,190 @@
+"""Where a bag's odometry comes from, shared by ToF bags (`tof`) and LaserScan bags (`laserscan`).
+
+Robots record their odometry in one of three ways, and both readers take all three:
+
+- nav_msgs/Odometry messages on a topic ("/odom" by convention);
+- only the transform odom → base on /tf (tf2_msgs/TFMessage, or tf/tfMessage before ROS Hydro),
+  which is what gmapping and slam_toolbox read;
+- not at all (a lidar or camera carried by hand): the reader says so, and SLAM estimates the
+  odometry from the scans (`omnitof.slam.scan_odometry`).
+
+`odometry_connections` decides which (from the topic names a user gave, else by type), and
+`read_tf_odometry` turns the transforms into a Trajectory. The 4×4 matrix of a transform
+(`edge_matrix`) is here too, since the tf pass keeps the first of each transform for the
+laser's mounting.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+from rosbags.highlevel import AnyReader
+
+from omnitof.errors import InputError
+from omnitof.io.rosbag.common import (
+    ODOM_FRAME,
+    ODOMETRY,
+    TF_MESSAGE,
+    TF_TYPES,
+    RosbagWarning,
+    _connections,
+    _frame_name,
+    _messages,
+    _ns_to_s,
+    _pick_topic,
+    _planar_pose,
+    _stamp_ns,
+)
+from omnitof.types import Trajectory
+
+Edges = dict[str, tuple[str, np.ndarray]]  # child frame → (parent frame, parent_T_child 4×4)
+
+
+class TopicsOption(NamedTuple):
+    """How a reader's errors tell a user to name a topic or frame: the CLI option
+    ("--laser-topics") and the Python class ("LaserTopics")."""
+
+    option: str
+    api: str
+
+    def choose(self, role: str, value: str = "TOPIC") -> str:
+        return f"{self.option} {role}={value} (in Python topics={self.api}({role}=...))"
+
+
+def odometry_connections(
+    reader: AnyReader, path: Path, *, odometry: str | None, ground_truth: str | None, tf: str, how: TopicsOption
+) -> tuple[list[Any], str]:
+    """The connections the odometry comes from and their kind: "odometry" (nav_msgs/Odometry),
+    "tf" (a TFMessage topic), or "none" (no connections: the bag has neither, and none was
+    named).
+
+    `odometry` names the topic (an Odometry or a TFMessage topic); None: the one Odometry topic
+    ("/odom" among several, never `ground_truth`, never one without messages), and where the bag
+    has none, `tf`."""
+    if odometry is not None:
+        conns = [c for c in reader.connections if c.topic == odometry]
+        if not conns:  # missing: the error lists what the bag has
+            _connections(reader, path, odometry, (ODOMETRY, TF_MESSAGE))
+        if all(c.msgtype in TF_TYPES for c in conns):
+            return conns, "tf"
+        if any(c.msgtype != ODOMETRY for c in conns):
+            kinds = ", ".join(sorted({c.msgtype for c in conns}))
+            raise InputError(f"topic {odometry} has type {kinds}, expected {ODOMETRY} or {TF_MESSAGE}", path)
+        found = _connections(reader, path, odometry, ODOMETRY)
+        assert found is not None  # required topics are never None
+        return found, "odometry"
+    # A topic declared but never published (ROS 2 bags record those) holds no odometry.
+    counts: dict[str, int] = {}
+    for c in reader.connections:
+        counts[c.topic] = counts.get(c.topic, 0) + c.msgcount
+    exclude = {ground_truth} if ground_truth else set()
+    exclude |= {topic for topic, n in counts.items() if n == 0}
+    if any(c.msgtype == ODOMETRY and c.topic not in exclude for c in reader.connections):
+        return _pick_topic(reader, path, ODOMETRY, None, "/odom", how.choose("odometry"), exclude=exclude), "odometry"
+    conns = [c for c in reader.connections if c.topic == tf and c.msgtype in TF_TYPES]
+    return conns, "tf" if conns else "none"
+
+
+class TfOdometry(NamedTuple):
+    """What `read_tf_odometry` found: the odometry and its base frame (None where tf holds
+    none), and the first of each transform on the topic (for a laser's mounting, where
+    /tf_static lacks it: one pass over tf for both)."""
+
+    trajectory: Trajectory | None
+    base: str | None
+    first_edges: Edges
+
+
+def read_tf_odometry(
+    reader: AnyReader, path: Path, connections: Sequence[Any], odom_frame: str, base_frame: str | None,
+    *, required: bool, how: TopicsOption,
+) -> TfOdometry:
+    """The transform odom_frame → base as a Trajectory by the transforms' own stamps, with base
+    `base_frame` or the one frame whose parent on tf is odom_frame. Out-of-order transforms are
+    sorted (tf buffers them so); of several at one stamp the last is kept. Where tf holds no such
+    transform: an InputError if `required`, else no trajectory (with a RosbagWarning where
+    another frame named like an odometry frame is there)."""
+    topic = connections[0].topic
+    rows: dict[str, list[tuple[int, float, float, float]]] = {}
+    first_edges: Edges = {}
+    pairs: set[tuple[str, str]] = set()  # (parent, child) seen, for the error that lists them
+    for _, msg in _messages(reader, path, connections):
+        for tf in msg.transforms:
+            parent, child = _frame_name(tf.header.frame_id), _frame_name(tf.child_frame_id)
+            pairs.add((parent, child))
+            if child not in first_edges:
+                first_edges[child] = (parent, edge_matrix(tf))
+            if parent != odom_frame or (base_frame is not None and child != base_frame):
+                continue
+            ns = _stamp_ns(tf.header.stamp)
+            pose = _planar_pose(tf.transform.translation, tf.transform.rotation,
+                                f"topic {topic}: the transform {parent} → {child} stamped {_ns_to_s(ns):.9f} s", path)
+            rows.setdefault(child, []).append((ns, *pose))
+    if not rows and not required:
+        parents = sorted({a for a, _ in pairs if "odom" in a})
+        if parents:  # a PR2's odom_combined: say where the odometry may be, rather than estimate it
+            warnings.warn(
+                f"{path}: {topic} holds no transform from the frame {odom_frame}, so the odometry is taken as "
+                f"unknown and estimated from the scans; it may be the transform from {', '.join(parents)}: "
+                f"name it with {how.option} odom_frame=FRAME", RosbagWarning, stacklevel=3,
+            )
+        return TfOdometry(None, None, first_edges)
+    if not rows:
+        wanted = f"{odom_frame} → {base_frame}" if base_frame else f"from the frame {odom_frame}"
+        listed = ", ".join(f"{a} → {b}" for a, b in sorted(pairs)[:20]) or "none"
+        raise InputError(
+            f"topic {topic}: no transform {wanted} for the odometry (name the frames with "
+            f"{how.option} odom_frame=FRAME,base_frame=FRAME); its transforms: {listed}",
+            path,
+        )
+    if len(rows) > 1:
+        raise InputError(
+            f"topic {topic}: the frame {odom_frame} moves several frames ({', '.join(sorted(rows))}); "
+            f"choose the robot's with {how.choose('base_frame', 'FRAME')}",
+            path,
+        )
+    (child, data), = rows.items()
+    stamps = np.array([row[0] for row in data], dtype=np.int64)
+    order = np.argsort(stamps, kind="stable")
+    stamps = stamps[order]
+    poses = np.array([row[1:] for row in data], dtype=np.float64)[order]
+    last = np.append(stamps[1:] != stamps[:-1], True)  # the last published at each stamp
+    seconds = np.array([_ns_to_s(int(ns)) for ns in stamps[last]], dtype=np.float64)
+    return TfOdometry(Trajectory(seconds, poses[last]), child, first_edges)
+
+
+def tf_required(odometry: str | None, odom_frame: str, base_frame: str | None) -> bool:
+    """Whether a tf topic without the odometry's transform is an error: where the user named
+    the odometry's topic or frames. Found by itself, it means a bag without odometry."""
+    return odometry is not None or base_frame is not None or odom_frame != ODOM_FRAME
+
+
+def edge_matrix(tf: Any) -> np.ndarray:
+    """parent_T_child 4×4 of a geometry_msgs/TransformStamped."""
+    t, q = tf.transform.translation, tf.transform.rotation
+    matrix = np.eye(4)
+    matrix[:3, :3] = rotation_matrix(q.x, q.y, q.z, q.w)
+    matrix[:3, 3] = (t.x, t.y, t.z)
+    return matrix
+
+
+def rotation_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
+    """The rotation of a quaternion of any length (zero: none; not finite: NaN, refused later)."""
+    q = np.array([x, y, z, w], dtype=np.float64)
+    if not np.isfinite(q).all():
+        return np.full((3, 3), np.nan)
+    if not q.any():
+        return np.eye(3)
+    q /= np.abs(q).max()  # first, so that the norm of huge components does not overflow
+    x, y, z, w = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
