@@ -615,6 +615,38 @@ def png(array: np.ndarray) -> bytes:
     return buffer.tobytes()
 
 
+def rvl(pixels: np.ndarray) -> bytes:
+    """compressed_depth_image_transport's RVL payload (after its 12-byte header): width and
+    height as uint32, then the pixels coded as Wilson's RVL paper gives the coder (runs of zeros
+    and of readings, zigzag differences, 3-bit groups in 4-bit codes, eight codes per
+    little-endian 32-bit word, the first in the top bits)."""
+    codes: list[int] = []
+
+    def put(value: int) -> None:
+        while True:
+            code, value = value & 7, value >> 3
+            codes.append(code | (8 if value else 0))
+            if not value:
+                return
+
+    flat = [int(p) for p in pixels.ravel()]
+    i, previous = 0, 0
+    while i < len(flat):
+        zeros = next((k for k, p in enumerate(flat[i:]) if p), len(flat) - i)
+        put(zeros)
+        i += zeros
+        readings = next((k for k, p in enumerate(flat[i:]) if not p), len(flat) - i)
+        put(readings)
+        for p in flat[i:i + readings]:
+            delta = p - previous
+            put(2 * delta if delta >= 0 else -2 * delta - 1)  # zigzag: (d << 1) ^ (d >> 31)
+            previous = p
+        i += readings
+    codes += [0] * (-len(codes) % 8)
+    words = [sum(c << (28 - 4 * k) for k, c in enumerate(codes[j:j + 8])) for j in range(0, len(codes), 8)]
+    return np.array(pixels.shape[::-1], "<u4").tobytes() + np.array(words, "<u4").tobytes()
+
+
 def test_a_drivers_bag_recorded_compressed(tmp_path: Path) -> None:
     # image_transport's compressed topics, as a bag recorded with them holds them: the depth
     # "compressedDepth" (a 12-byte header, then a 16-bit PNG), the amplitude a PNG or a JPEG.
@@ -637,9 +669,12 @@ def test_a_drivers_bag_recorded_compressed(tmp_path: Path) -> None:
                  (topics.amplitude, COMPRESSED, compressed_msg(NS, "mono16; png compressed mono16", png(amplitude))),
                  ("/cam/camera_info", INFO, camera_info_msg(2 * NS, SMALL)),
                  (topics.distance, COMPRESSED, compressed_msg(2 * NS, "32FC1; compressedDepth", header32 + png(q))),
-                 (topics.amplitude, COMPRESSED, compressed_msg(2 * NS, "png", png(amplitude)))]
+                 (topics.amplitude, COMPRESSED, compressed_msg(2 * NS, "png", png(amplitude))),
+                 ("/cam/camera_info", INFO, camera_info_msg(3 * NS, SMALL)),
+                 (topics.distance, COMPRESSED, compressed_msg(3 * NS, "16UC1; compressedDepth rvl", header16 + rvl(depth_mm))),
+                 (topics.amplitude, COMPRESSED, compressed_msg(3 * NS, "mono16; png compressed mono16", png(amplitude)))]
     path = write_raw(tmp_path / "compressed", messages)
-    first, second = read_tof_bag(path, topics=topics).frames()
+    first, second, third = read_tof_bag(path, topics=topics).frames()
     expected = depth_mm * np.float32(0.001)
     expected[0, 3] = np.nan
     np.testing.assert_array_equal(first.distance, expected)
@@ -649,9 +684,13 @@ def test_a_drivers_bag_recorded_compressed(tmp_path: Path) -> None:
     seen = q > 0
     assert np.isnan(second.distance[2, 1]) and np.all(np.abs(second.distance - metres)[seen] <= 0.5 * step[seen] + 1e-5)
     np.testing.assert_array_equal(second.amplitude, amplitude.astype(np.float32))
-    # RVL, colour, a corrupt image, JPEG distances and pixels of another bit depth are named.
+    # RVL (the core's decoder against the paper's coder above): the same millimetres.
+    np.testing.assert_array_equal(third.distance, expected)
+    # A broken RVL stream or one of another size, colour, a corrupt image, JPEG distances and
+    # pixels of another bit depth are named.
     eight_bit = png(depth_mm.astype(np.uint8))
-    for fmt, data, fragment in [("16UC1; compressedDepth rvl", header16 + b"\0" * 16, "RVL"),
+    for fmt, data, fragment in [("16UC1; compressedDepth rvl", header16 + rvl(depth_mm)[:-8], "RVL: the stream ends early"),
+                                ("16UC1; compressedDepth rvl", header16 + rvl(depth_mm[:2]), "says 8×2 pixels, the camera 8×6"),
                                 ("16UC1; compressedDepth png", header16 + eight_bit, "holds 8-bit pixels, not the 16-bit"),
                                 ("png", eight_bit, "holds 8-bit pixels, which are not '32FC1' or '16UC1'"),
                                 ("mono8; jpeg compressed mono8", cv2.imencode(".jpg", depth_mm.astype(np.uint8))[1].tobytes(),

@@ -15,6 +15,7 @@ mod multipath_bindings;
 pub mod raycast;
 pub mod render;
 mod render_bindings;
+pub mod rvl;
 pub mod scan_match;
 pub mod sensor_model;
 #[cfg(test)]
@@ -1029,6 +1030,14 @@ fn low_variance_resample<'py>(py: Python<'py>, weights: PyReadonlyArray1<f64>, s
     Ok(PyArray1::from_vec(py, idx.into_iter().map(|i| i as u64).collect()))
 }
 
+/// The pixels of an RVL-coded depth image (rvl::decode); ValueError for a broken stream.
+#[pyfunction]
+fn rvl_decode<'py>(py: Python<'py>, data: PyReadonlyArray1<u8>, pixels: usize) -> PyResult<Bound<'py, PyArray1<u16>>> {
+    let bytes = data.c_slice("data")?;
+    let decoded = py.detach(|| rvl::decode(bytes, pixels)).map_err(|e| PyValueError::new_err(format!("RVL: {e}")))?;
+    Ok(decoded.into_pyarray(py))
+}
+
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyParticleFilter>()?;
@@ -1038,6 +1047,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(beam_likelihood, m)?)?;
     m.add_function(wrap_pyfunction!(neff, m)?)?;
     m.add_function(wrap_pyfunction!(low_variance_resample, m)?)?;
+    m.add_function(wrap_pyfunction!(rvl_decode, m)?)?;
     render_bindings::register(m)?;
     multipath_bindings::register(m)?;
     loop_closure_bindings::register(m)?;

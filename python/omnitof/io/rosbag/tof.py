@@ -28,7 +28,7 @@ orientation the quaternion of a rotation by θ about +z, covariances and twist l
 A camera driver's bag (read only) may name its topics otherwise (`ToFTopics`, `omnitof slam
 --tof-topics`), carry distances as 16UC1 millimetres (REP 118; 0 = no reading) instead of 32FC1
 metres, amplitudes as 16UC1 / mono16 / mono8, hold any of them as sensor_msgs/CompressedImage as
-image_transport records them ("compressedDepth" PNG for the depth, PNG or JPEG otherwise;
+image_transport records them ("compressedDepth" PNG or RVL for the depth, PNG or JPEG otherwise;
 `_decompressed`), and give the depth z along the optical axis
 instead of the radial distance (`read_tof_bag(..., depth=True)`, `--tof-distance depth`): each
 pixel's z is then divided by its unit ray's z component, which undoes what the driver did.
@@ -683,7 +683,7 @@ def _decode_image(
     CompressedImage: `_decompressed`, JPEG only where `lossy`) in one of `formats`
     (IMAGE_FORMATS), scaled to the role's unit, checked."""
     if compressed:
-        encoding, raw = _decompressed(msg, path, topic, formats, lossy)
+        encoding, raw = _decompressed(msg, path, topic, formats, lossy, shape)
         height, width = raw.shape[:2]
     else:
         encoding = str(msg.encoding)
@@ -728,14 +728,16 @@ _BY_DTYPE = {np.dtype(np.uint16): ("16UC1", "mono16"), np.dtype(np.uint8): ("mon
 
 
 def _decompressed(
-    msg: Any, path: Path, topic: str, formats: dict[str, tuple[str, int, float, bool]], lossy: bool
+    msg: Any, path: Path, topic: str, formats: dict[str, tuple[str, int, float, bool]], lossy: bool,
+    shape: tuple[int, int],
 ) -> tuple[str, np.ndarray]:
     """(pixel encoding, pixels) of a sensor_msgs/CompressedImage as image_transport writes it:
-    "ENCODING; compressedDepth [png]" (a depth image: `_DEPTH_HEADER`, then a 16-bit PNG: 16UC1
+    "ENCODING; compressedDepth [png|rvl]" (a depth image: `_DEPTH_HEADER`, then a 16-bit PNG, or
+    the width and height (uint32) and an RVL stream, decoded by the core's `rvl_decode`: 16UC1
     as it is, 32FC1 as quantised inverse depth), "ENCODING; png|jpeg compressed ..." or a bare
-    "png"/"jpeg". Decoded with OpenCV; single-channel only, of the bit depth its encoding says.
-    InputError naming the topic for a format it cannot read (RVL, colour, a corrupt image, JPEG
-    where not `lossy`) or pixels that are not what the format string says."""
+    "png"/"jpeg" (decoded with OpenCV); single-channel only, of the bit depth its encoding says,
+    an RVL image of `shape`. InputError naming the topic for a format it cannot read (colour, a
+    corrupt image, JPEG where not `lossy`) or pixels that are not what the format string says."""
     import cv2
 
     fmt = str(msg.format)
@@ -747,14 +749,14 @@ def _decompressed(
         if data.size < _DEPTH_HEADER.itemsize:
             raise InputError(f"topic {topic}: the compressedDepth image at {stamp} holds {data.size} bytes", path)
         header = data[: _DEPTH_HEADER.itemsize].view(_DEPTH_HEADER)[0]
-        if "rvl" in transport.lower():
-            raise InputError(f"topic {topic}: compressedDepth images in RVL ({fmt!r}) are not read; record the "
-                             "depth with its png format (compressed_depth_image_transport's default)", path)
         data = data[_DEPTH_HEADER.itemsize:]
-    if not lossy and any(word in fmt.lower() for word in ("jpeg", "jpg")):
+    if depth and "rvl" in transport.lower():
+        image = _rvl_image(data, path, topic, stamp, shape)
+    elif not lossy and any(word in fmt.lower() for word in ("jpeg", "jpg")):
         raise InputError(f"topic {topic}: {fmt!r} is lossy JPEG, which cannot carry distances; record them "
                          "as compressedDepth or png", path)
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    else:
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if image is None:
         raise InputError(f"topic {topic}: cannot decode the {fmt!r} image at {stamp}", path)
     if image.ndim != 2:
@@ -778,6 +780,23 @@ def _decompressed(
             metres = np.float32(header["quant_a"]) / (q - np.float32(header["quant_b"]))
         return encoding, np.where(image == 0, np.float32(np.nan), metres).astype(np.float32)
     return encoding, image
+
+
+def _rvl_image(data: np.ndarray, path: Path, topic: str, stamp: str, shape: tuple[int, int]) -> np.ndarray:
+    """The uint16 pixels of compressed_depth_image_transport's RVL payload: width and height
+    (uint32, little-endian), then the RVL stream (rust/src/rvl.rs)."""
+    from omnitof import _core
+
+    if data.size < 8:
+        raise InputError(f"topic {topic}: the RVL image at {stamp} holds {data.size} bytes", path)
+    width, height = (int(v) for v in data[:8].view("<u4"))
+    if (height, width) != shape:  # checked first: the size decides how much memory the decoder takes
+        raise InputError(f"topic {topic}: the RVL image at {stamp} says {width}×{height} pixels, the camera "
+                         f"{shape[1]}×{shape[0]}", path)
+    try:
+        return _core.rvl_decode(np.ascontiguousarray(data[8:]), height * width).reshape(height, width)
+    except ValueError as err:
+        raise InputError(f"topic {topic}: the image at {stamp}: {err}", path) from err
 
 
 def _camera_from_info(msg: Any, path: Path, topic: str) -> Camera:
