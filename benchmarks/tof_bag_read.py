@@ -9,8 +9,8 @@ with the same camera_info and odometry. Both bags are then read (`ToFBag.frames`
 samples), alternately, `--runs` times each. Prints each bag's size, frames per second of each
 run and their medians, and how far the compressed distances lie from the raw ones (the 1 mm
 quantisation). Then the first frame's millimetres are RVL-coded once (compressed_depth_image_transport's
-other format; the coder below is the paper's) and decoded by the core (`_core.rvl_decode`) 200
-times: frames per second of that alone.
+other format, `_core.rvl_encode`) and decoded by the core (`_core.rvl_decode`) 200 times:
+frames per second of that alone.
 """
 
 from __future__ import annotations
@@ -73,37 +73,6 @@ def _png(pixels: np.ndarray) -> bytes:
     return buffer.tobytes()
 
 
-def rvl_stream(pixels: np.ndarray) -> bytes:
-    """Wilson's RVL coding of uint16 pixels (runs of zeros and of readings, zigzag differences,
-    3-bit groups in 4-bit codes, eight codes per little-endian word, the first in its top bits).
-    A per-pixel Python loop: run once, to make the stream the decoder is timed on."""
-    codes: list[int] = []
-
-    def put(value: int) -> None:
-        while True:
-            code, value = value & 7, value >> 3
-            codes.append(code | (8 if value else 0))
-            if not value:
-                return
-
-    flat = [int(p) for p in pixels.ravel()]
-    i, previous = 0, 0
-    while i < len(flat):
-        zeros = next((k for k, p in enumerate(flat[i:]) if p), len(flat) - i)
-        put(zeros)
-        i += zeros
-        readings = next((k for k, p in enumerate(flat[i:]) if not p), len(flat) - i)
-        put(readings)
-        for p in flat[i:i + readings]:
-            delta = p - previous
-            put(2 * delta if delta >= 0 else -2 * delta - 1)
-            previous = p
-        i += readings
-    codes += [0] * (-len(codes) % 8)
-    words = [sum(c << (28 - 4 * k) for k, c in enumerate(codes[j:j + 8])) for j in range(0, len(codes), 8)]
-    return np.array(words, "<u4").tobytes()
-
-
 def frames_per_second(path: Path, **kwargs) -> float:
     bag = read_tof_bag(path, **kwargs)
     start = time.perf_counter()
@@ -144,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     from omnitof import _core
 
     millimetres = np.where(np.isfinite(raw[0].distance), np.round(raw[0].distance * 1000.0), 0).astype(np.uint16)
-    stream = np.frombuffer(rvl_stream(millimetres), dtype=np.uint8)
+    stream = _core.rvl_encode(millimetres.ravel())
     assert np.array_equal(_core.rvl_decode(stream, millimetres.size), millimetres.ravel())
     start = time.perf_counter()
     for _ in range(200):

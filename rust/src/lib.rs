@@ -1038,6 +1038,14 @@ fn rvl_decode<'py>(py: Python<'py>, data: PyReadonlyArray1<u8>, pixels: usize) -
     Ok(decoded.into_pyarray(py))
 }
 
+/// The RVL stream of uint16 pixels (rvl::encode), for test data and benchmarks.
+#[pyfunction]
+fn rvl_encode<'py>(py: Python<'py>, pixels: PyReadonlyArray1<u16>) -> PyResult<Bound<'py, PyArray1<u8>>> {
+    let values = pixels.c_slice("pixels")?;
+    let encoded = py.detach(|| rvl::encode(values));
+    Ok(encoded.into_pyarray(py))
+}
+
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyParticleFilter>()?;
@@ -1048,6 +1056,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(neff, m)?)?;
     m.add_function(wrap_pyfunction!(low_variance_resample, m)?)?;
     m.add_function(wrap_pyfunction!(rvl_decode, m)?)?;
+    m.add_function(wrap_pyfunction!(rvl_encode, m)?)?;
     render_bindings::register(m)?;
     multipath_bindings::register(m)?;
     loop_closure_bindings::register(m)?;

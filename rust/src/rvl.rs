@@ -41,6 +41,52 @@ pub fn decode(data: &[u8], pixels: usize) -> Result<Vec<u16>, String> {
     Ok(out)
 }
 
+/// The RVL stream of `pixels`, coded as the paper gives it: for test data and benchmarks (the
+/// project reads RVL images; it writes none).
+pub fn encode(pixels: &[u16]) -> Vec<u8> {
+    let mut words: Vec<u32> = Vec::new();
+    let (mut word, mut written) = (0u32, 0u32);
+    let mut put = |value: u64| {
+        let mut value = value;
+        loop {
+            let mut code = (value & 0x7) as u32;
+            value >>= 3;
+            if value != 0 {
+                code |= 0x8;
+            }
+            word = (word << 4) | code;
+            written += 1;
+            if written == 8 {
+                words.push(word);
+                word = 0;
+                written = 0;
+            }
+            if value == 0 {
+                break;
+            }
+        }
+    };
+    let (mut i, mut previous) = (0usize, 0i64);
+    while i < pixels.len() {
+        let zeros = pixels[i..].iter().take_while(|&&p| p == 0).count();
+        put(zeros as u64);
+        i += zeros;
+        let nonzeros = pixels[i..].iter().take_while(|&&p| p != 0).count();
+        put(nonzeros as u64);
+        for &p in &pixels[i..i + nonzeros] {
+            let delta = (p as i64 - previous) as i32;
+            put(((delta << 1) ^ (delta >> 31)) as u32 as u64);
+            previous = p as i64;
+        }
+        i += nonzeros;
+    }
+    if written > 0 {
+        words.push(word << (4 * (8 - written)));
+    }
+    words.iter().flat_map(|w| w.to_le_bytes()).collect()
+}
+
+
 /// The 4-bit codes of the stream, in order.
 struct Codes<'a> {
     data: &'a [u8],
@@ -86,50 +132,6 @@ impl Codes<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// The coder as the paper gives it, to test the decoder against.
-    fn encode(pixels: &[u16]) -> Vec<u8> {
-        let mut words: Vec<u32> = Vec::new();
-        let (mut word, mut written) = (0u32, 0u32);
-        let mut put = |value: u64| {
-            let mut value = value;
-            loop {
-                let mut code = (value & 0x7) as u32;
-                value >>= 3;
-                if value != 0 {
-                    code |= 0x8;
-                }
-                word = (word << 4) | code;
-                written += 1;
-                if written == 8 {
-                    words.push(word);
-                    word = 0;
-                    written = 0;
-                }
-                if value == 0 {
-                    break;
-                }
-            }
-        };
-        let (mut i, mut previous) = (0usize, 0i64);
-        while i < pixels.len() {
-            let zeros = pixels[i..].iter().take_while(|&&p| p == 0).count();
-            put(zeros as u64);
-            i += zeros;
-            let nonzeros = pixels[i..].iter().take_while(|&&p| p != 0).count();
-            put(nonzeros as u64);
-            for &p in &pixels[i..i + nonzeros] {
-                let delta = (p as i64 - previous) as i32;
-                put(((delta << 1) ^ (delta >> 31)) as u32 as u64);
-                previous = p as i64;
-            }
-            i += nonzeros;
-        }
-        if written > 0 {
-            words.push(word << (4 * (8 - written)));
-        }
-        words.iter().flat_map(|w| w.to_le_bytes()).collect()
-    }
 
     #[test]
     fn decodes_a_stream_worked_by_hand() {

@@ -67,6 +67,7 @@ from omnitof.io.rosbag.common import (
 from omnitof.io.rosbag.odometry import (
     TopicsOption,
     edge_matrix,
+    frames_without_slash,
     odometry_connections,
     read_tf_odometry,
     tf_required,
@@ -118,11 +119,7 @@ class LaserTopics:
     base_frame: str | None = None
 
     def __post_init__(self) -> None:
-        # As `rosbag info` and ROS 1 bags show them, "/odom" names the frame "odom".
-        for name in ("odom_frame", "base_frame"):
-            value = getattr(self, name)
-            if value is not None:
-                object.__setattr__(self, name, _frame_name(value))
+        frames_without_slash(self)
 
     @classmethod
     def parse(cls, text: str) -> LaserTopics:

@@ -55,6 +55,15 @@ class TopicsOption(NamedTuple):
         return f"{self.option} {role}={value} (in Python topics={self.api}({role}=...))"
 
 
+def frames_without_slash(topics: Any) -> None:
+    """Strip a leading slash from a frozen topics dataclass's `odom_frame` and `base_frame`: as
+    `rosbag info` and ROS 1 bags show them, "/odom" names the frame "odom"."""
+    for name in ("odom_frame", "base_frame"):
+        value = getattr(topics, name)
+        if value is not None:
+            object.__setattr__(topics, name, _frame_name(value))
+
+
 def odometry_connections(
     reader: AnyReader, path: Path, *, odometry: str | None, ground_truth: str | None, tf: str, how: TopicsOption
 ) -> tuple[list[Any], str]:

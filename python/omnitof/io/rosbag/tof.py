@@ -71,7 +71,6 @@ from omnitof.io.rosbag.common import (
     _check_written_poses,
     _connections,
     _distinct_topics,
-    _frame_name,
     _header,
     _messages,
     _ns_to_s,
@@ -86,7 +85,13 @@ from omnitof.io.rosbag.common import (
     _storage_plugin,
     _to_ns,
 )
-from omnitof.io.rosbag.odometry import TopicsOption, odometry_connections, read_tf_odometry, tf_required
+from omnitof.io.rosbag.odometry import (
+    TopicsOption,
+    frames_without_slash,
+    odometry_connections,
+    read_tf_odometry,
+    tf_required,
+)
 from omnitof.sensor.camera import Camera, CameraParameterError
 from omnitof.sensor.rig import Rig
 from omnitof.types import Trajectory, first_non_finite
@@ -174,11 +179,7 @@ class ToFTopics:
     base_frame: str | None = None
 
     def __post_init__(self) -> None:
-        # As `rosbag info` and ROS 1 bags show them, "/odom" names the frame "odom".
-        for name in ("odom_frame", "base_frame"):
-            value = getattr(self, name)
-            if value is not None:
-                object.__setattr__(self, name, _frame_name(value))
+        frames_without_slash(self)
 
     @classmethod
     def parse(cls, text: str) -> ToFTopics:
