@@ -242,7 +242,7 @@ def read_tof_scans(
     if dropped:
         assert bag.odometry is not None
         warnings.warn(f"{path}: dropped {len(dropped)} frames outside the odometry's time span "
-                      f"{_span(bag.odometry)} ({bag.odometry_source}), the first at {dropped[0]}; "
+                      f"{_span(bag.odometry)} ({bag.odometry_source}), the first of them frame {dropped[0]}; "
                       f"{len(out.scans)} kept", ToFInputWarning, stacklevel=2)
     if bag.odometry is None:  # SLAM estimates it from the scans (omnitof.slam.scan_odometry)
         rule = (f"none: the bag has no odometry topic and no transform {bag.topics.odom_frame} → base on "

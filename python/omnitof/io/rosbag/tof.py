@@ -617,7 +617,8 @@ def read_tof_bag(
         _connections(reader, path, topics.amplitude, IMAGE_TYPES)
         info = _connections(reader, path, topics.camera_info, CAMERA_INFO) or []
         samples = _connections(reader, path, topics.samples, IMAGE, required=False)
-        odom_conns, odom_kind = [], "none"
+        odom_conns: list[Any] = []
+        odom_kind = "none"
         if odometry or require_odometry:
             odom_conns, odom_kind = odometry_connections(reader, path, odometry=topics.odometry,
                                                          ground_truth=topics.ground_truth, tf=topics.tf, how=_HOW)
@@ -751,6 +752,7 @@ def _decompressed(
             raise InputError(f"topic {topic}: the compressedDepth image at {stamp} holds {data.size} bytes", path)
         header = data[: _DEPTH_HEADER.itemsize].view(_DEPTH_HEADER)[0]
         data = data[_DEPTH_HEADER.itemsize:]
+    image: np.ndarray | None
     if depth and "rvl" in transport.lower():
         image = _rvl_image(data, path, topic, stamp, shape)
     elif not lossy and any(word in fmt.lower() for word in ("jpeg", "jpg")):
