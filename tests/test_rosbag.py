@@ -840,6 +840,30 @@ def test_scans_without_odometry_are_written_without_it_and_read_back_so(tmp_path
     assert not (tmp_path / "bare.clf").exists()
 
 
+@pytest.mark.parametrize("mode", ["FILE", "MESSAGE"])
+def test_a_ros2_bag_compressed_with_zstd_reads_as_the_plain_one(tmp_path: Path, mode: str) -> None:
+    # `ros2 bag record --compression-mode file|message --compression-format zstd`, as users
+    # record long logs: the same scans come back.
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode
+
+    scans = scan_sequence()
+    write_laserscan_bag(tmp_path / "plain", scans, version=2)
+    packed = tmp_path / "packed"
+    with AnyReader([tmp_path / "plain"]) as reader:
+        writer = Writer2(packed, version=8, storage_plugin=StoragePlugin.SQLITE3)
+        writer.set_compression(CompressionMode[mode], CompressionFormat.ZSTD)
+        with writer:
+            conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=reader.typestore)
+                     for c in reader.connections}
+            for conn, stamp, raw in reader.messages():
+                writer.write(conns[conn.id], stamp, raw)
+    back, plain = read_laserscan_bag(packed), read_laserscan_bag(tmp_path / "plain")
+    np.testing.assert_array_equal(back.ranges, plain.ranges)
+    assert_poses(back.odometry, plain.odometry)
+    assert_poses(back.sensor_pose[None], scans.sensor_pose[None])
+
+
 def interlaced_sequence(n: int = 12, seed: int = 0) -> ScanSequence:
     """scan_sequence's scans with per-scan geometry: 181 beams from -90°, then 180 beams from
     -89.75°, -89.5°, -89.25° in turn, all at 1° (an interlaced SICK)."""
