@@ -223,6 +223,7 @@ def read_tof_scans(
     from itertools import islice
 
     from omnitof.io.rosbag import ToFTopics, read_tof_bag
+    from omnitof.io.rosbag.odometry import odometry_rule, time_span
 
     if max_frames is not None and int(max_frames) < 0:
         raise ValueError(f"max_frames must be >= 0, got {max_frames!r}")
@@ -242,15 +243,11 @@ def read_tof_scans(
     if dropped:
         assert bag.odometry is not None
         warnings.warn(f"{path}: dropped {len(dropped)} frames outside the odometry's time span "
-                      f"{_span(bag.odometry)} ({bag.odometry_source}), the first of them frame {dropped[0]}; "
+                      f"{time_span(bag.odometry)} ({bag.odometry_source}), the first of them frame {dropped[0]}; "
                       f"{len(out.scans)} kept", ToFInputWarning, stacklevel=2)
-    if bag.odometry is None:  # SLAM estimates it from the scans (omnitof.slam.scan_odometry)
-        rule = (f"none: the bag has no odometry topic and no transform {bag.topics.odom_frame} → base on "
-                f"{bag.topics.tf}")
-        out.scans = dataclasses.replace(out.scans, odometry_known=False, odometry_rule=rule)
-    else:
-        out.scans = dataclasses.replace(
-            out.scans, odometry_rule=f"interpolated from {bag.odometry_source} at each frame's timestamp")
+    # Without odometry, SLAM estimates it from the scans (omnitof.slam.scan_odometry).
+    out.scans = dataclasses.replace(out.scans, odometry_known=bag.odometry is not None, odometry_rule=odometry_rule(
+        bag.odometry_source, "frame", bag.topics.odom_frame, bag.topics.tf))
     out.rig_source = rig_source
     out.multipath_rule = multipath_rule
     return out
@@ -261,6 +258,8 @@ def _with_odometry(bag: Any, dropped: list[int], progress: Callable[[int], Any] 
     the pose (0, 0, 0), to be estimated from the scans; a frame outside the odometry's time
     span is skipped (cameras often start before the wheels), its index appended to `dropped`
     (the caller warns) and counted in `progress`; an InputError where no frame is within it."""
+    from omnitof.io.rosbag.odometry import time_span
+
     kept = 0
     for i, frame in enumerate(bag.frames(samples=False)):
         if bag.odometry is None:
@@ -273,12 +272,8 @@ def _with_odometry(bag: Any, dropped: list[int], progress: Callable[[int], Any] 
             kept += 1
             yield frame
     if dropped and not kept:
-        raise InputError(f"no frame lies within the odometry's time span {_span(bag.odometry)} "
+        raise InputError(f"no frame lies within the odometry's time span {time_span(bag.odometry)} "
                          f"({bag.odometry_source})", bag.path)
-
-
-def _span(trajectory: Any) -> str:
-    return f"[{trajectory.timestamps[0]:.9f}, {trajectory.timestamps[-1]:.9f}] s"
 
 
 def frame_count(path: str | Path, topics: Any = None) -> int:

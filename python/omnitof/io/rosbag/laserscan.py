@@ -54,7 +54,6 @@ from omnitof.io.rosbag.common import (
     _pick_topic,
     _planar_pose,
     _PoseStream,
-    _read_trajectories,
     _ros1_store,
     _ros2_store,
     _serialize,
@@ -68,9 +67,8 @@ from omnitof.io.rosbag.odometry import (
     TopicsOption,
     edge_matrix,
     frames_without_slash,
-    odometry_connections,
-    read_tf_odometry,
-    tf_required,
+    read_bag_odometry,
+    time_span,
 )
 from omnitof.types import (
     FLOAT32_MAX,
@@ -170,45 +168,17 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
     topics = topics or LaserTopics()
     with _opened(path) as reader:
         scan_conns = _pick_topic(reader, path, LASER_TYPES, topics.scan, "/scan", _HOW.choose("scan"))
-        odom_conns, odom_kind = odometry_connections(reader, path, odometry=topics.odometry,
-                                                     ground_truth=topics.ground_truth, tf=topics.tf, how=_HOW)
-        ground_truth_topic = topics.ground_truth
-        # Optional topics are used only when they carry the expected type.
-        truth_conns = [
-            c for c in reader.connections
-            if c.topic == ground_truth_topic and c.msgtype == ODOMETRY
-            and not (odom_conns and c.topic == odom_conns[0].topic)
-        ]  # fmt: skip
+        found = read_bag_odometry(reader, path, odometry=topics.odometry, ground_truth=topics.ground_truth,
+                                  tf=topics.tf, odom_frame=topics.odom_frame, base_frame=topics.base_frame, how=_HOW)
+        odometry, odom_name = found.trajectory, found.name
+        base_frame = found.base or BASE_FRAME
+        odometry_rule = found.rule("scan", topics.odom_frame, topics.tf)
+        first_seen = found.first_edges  # the first of each transform on topics.tf, where it was read
         tf_static_topic = topics.tf_static
         tf_conns = [
             c for c in reader.connections if c.topic == tf_static_topic and c.msgtype in TF_TYPES
         ]
         scan_name = scan_conns[0].topic
-        odom_name = ""
-        trajectories = _read_trajectories(reader, path, (odom_conns if odom_kind == "odometry" else []) + truth_conns)
-        first_seen = None  # the first of each transform on topics.tf, where it was read for the odometry
-        if odom_kind == "tf":
-            # Found by itself, a tf topic without the odometry's transform means a bag without odometry.
-            tf_read = read_tf_odometry(reader, path, odom_conns, topics.odom_frame, topics.base_frame, how=_HOW,
-                                       required=tf_required(topics.odometry, topics.odom_frame, topics.base_frame))
-            if odom_conns[0].topic == topics.tf:
-                first_seen = tf_read.first_edges
-            if tf_read.trajectory is None:
-                odom_kind = "none"
-            else:
-                base_frame = tf_read.base
-                odom_name = f"{odom_conns[0].topic} ({topics.odom_frame} → {base_frame})"
-                trajectories[odom_name] = tf_read.trajectory
-                odometry_rule = (f"interpolated from the transform {topics.odom_frame} → {base_frame} on "
-                                 f"{odom_conns[0].topic} at each scan's timestamp")
-        if odom_kind == "none":
-            base_frame = topics.base_frame or BASE_FRAME
-            odometry_rule = (f"none: the bag has no {ODOMETRY} topic and no transform {topics.odom_frame} → base "
-                             f"on {topics.tf}")
-        elif odom_kind == "odometry":
-            odom_name = odom_conns[0].topic
-            base_frame = topics.base_frame or trajectories.child_frames.get(odom_name) or BASE_FRAME
-            odometry_rule = f"interpolated from {odom_name} at each scan's timestamp"
         static = _read_static_transforms(reader, path, tf_conns)
         # ROS 1 bags recorded with static_transform_publisher repeat the mounting on /tf.
         dynamic_conns = [c for c in reader.connections if c.topic == topics.tf and c.msgtype in TF_TYPES]
@@ -266,33 +236,32 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
         raise InputError(f"topic {scan_name}: has no message", path)
 
     t = np.array([_ns_to_s(ns) for ns in stamps], dtype=np.float64)
-    if odom_kind == "none":  # SLAM estimates it from the scans (omnitof.slam.scan_odometry)
+    if odometry is None:  # SLAM estimates it from the scans (omnitof.slam.scan_odometry)
         poses = np.zeros((len(t), 3))
     else:
-        odometry = trajectories[odom_name]
         poses = interpolate_poses(odometry, t)
     keep = ~np.isnan(poses[:, 0])
     if not keep.any():
         raise InputError(
             f"topic {odom_name}: no scan on {scan_name} lies within the odometry's time span "
-            f"{_span(odometry)}",
+            f"{time_span(odometry)}",
             path,
         )
     if not keep.all():
         warnings.warn(
             f"{path}: dropped {int((~keep).sum())} of {len(t)} scans on {scan_name} that lie "
-            f"outside the odometry's time span {_span(odometry)} (topic {odom_name})",
+            f"outside the odometry's time span {time_span(odometry)} (topic {odom_name})",
             RosbagWarning,
             stacklevel=2,
         )
     ground_truth = None
-    if truth_conns:
-        truth = trajectories[truth_conns[0].topic]
+    truth = found.ground_truth
+    if truth is not None:
         ground_truth = interpolate_poses(truth, t[keep])
         if np.isnan(ground_truth[:, 0]).any():
             warnings.warn(
-                f"{path}: topic {ground_truth_topic} does not cover every scan "
-                f"(its span is {_span(truth)}); ground truth left out",
+                f"{path}: topic {topics.ground_truth} does not cover every scan "
+                f"(its span is {time_span(truth)}); ground truth left out",
                 RosbagWarning,
                 stacklevel=2,
             )
@@ -327,7 +296,7 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
         beam_counts=beam_counts,
         max_range_rule=rule,
         odometry_rule=odometry_rule,
-        odometry_known=odom_kind != "none",
+        odometry_known=odometry is not None,
     )
     scans = drop_repeated_scans(scans)
     if scans.repeated_scans_dropped:
@@ -415,10 +384,6 @@ def _laser_pose(
         )
     yaw = math.atan2(rotation[1, 0], rotation[0, 0])  # the laser's x axis, in the plane
     return np.array([base_T_laser[0, 3], base_T_laser[1, 3], yaw]), bool(flipped)
-
-
-def _span(trajectory: Trajectory) -> str:
-    return f"[{trajectory.timestamps[0]:.9f}, {trajectory.timestamps[-1]:.9f}] s"
 
 
 # --- writing -------------------------------------------------------------------------------

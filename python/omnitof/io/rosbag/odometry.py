@@ -8,8 +8,9 @@ Robots record their odometry in one of three ways, and both readers take all thr
 - not at all (a lidar or camera carried by hand): the reader says so, and SLAM estimates the
   odometry from the scans (`omnitof.slam.scan_odometry`).
 
-`odometry_connections` decides which (from the topic names a user gave, else by type), and
-`read_tf_odometry` turns the transforms into a Trajectory. The 4×4 matrix of a transform
+`read_bag_odometry` does it all in one call: `odometry_connections` decides which (from the
+topic names a user gave, else by type), the Odometry messages are read in one pass with the
+ground truth, and `read_tf_odometry` turns the transforms into a Trajectory. The 4×4 matrix of a transform
 (`edge_matrix`) is here too, since the tf pass keeps the first of each transform for the
 laser's mounting.
 """
@@ -37,6 +38,7 @@ from omnitof.io.rosbag.common import (
     _ns_to_s,
     _pick_topic,
     _planar_pose,
+    _read_trajectories,
     _stamp_ns,
 )
 from omnitof.types import Trajectory
@@ -53,6 +55,75 @@ class TopicsOption(NamedTuple):
 
     def choose(self, role: str, value: str = "TOPIC") -> str:
         return f"{self.option} {role}={value} (in Python topics={self.api}({role}=...))"
+
+
+class BagOdometry(NamedTuple):
+    """What `read_bag_odometry` found.
+
+    trajectory: the odometry by its own stamps, None where the bag has none.
+    name: what errors call it: the topic, or "/tf (odom → base_link)"; "" without odometry.
+    source: where it came from, in words: the topic, or "the transform odom → base_link on /tf".
+    base: the robot's frame it moves (the Odometry messages' child_frame_id, the transform's
+        child), None where unknown.
+    ground_truth: the ground-truth topic's poses, where it has the Odometry type.
+    first_edges: the first of each transform on the tf topic, where it was read (else None).
+    """
+
+    trajectory: Trajectory | None
+    name: str
+    source: str
+    base: str | None
+    ground_truth: Trajectory | None
+    first_edges: Edges | None
+
+    def rule(self, at: str, odom_frame: str, tf: str) -> str:
+        """The odometry rule for a summary (`odometry_rule`)."""
+        return odometry_rule(self.source, at, odom_frame, tf)
+
+
+def odometry_rule(source: str, at: str, odom_frame: str, tf: str) -> str:
+    """How each `at` ("scan", "frame") got its odometry pose, for a summary: interpolated from
+    `source` (`BagOdometry.source`), or none where it is ""."""
+    if not source:
+        return f"none: the bag has no {ODOMETRY} topic and no transform {odom_frame} → base on {tf}"
+    return f"interpolated from {source} at each {at}'s timestamp"
+
+
+def read_bag_odometry(
+    reader: AnyReader, path: Path, *, odometry: str | None, ground_truth: str, tf: str, odom_frame: str,
+    base_frame: str | None, how: TopicsOption, find: bool = True,
+) -> BagOdometry:
+    """The bag's odometry (`odometry_connections`: an Odometry topic, the transform odom_frame →
+    base on `tf`, or none; not looked for at all unless `find`) and its ground truth (Odometry
+    messages on `ground_truth`, never the odometry's own topic), the Odometry messages of both
+    read in one pass."""
+    conns: list[Any] = []
+    kind = "none"
+    if find:
+        conns, kind = odometry_connections(reader, path, odometry=odometry, ground_truth=ground_truth, tf=tf, how=how)
+    truth = [c for c in reader.connections if c.topic == ground_truth and c.msgtype == ODOMETRY
+             and not (kind == "odometry" and c.topic == conns[0].topic)]
+    trajectories = _read_trajectories(reader, path, (conns if kind == "odometry" else []) + truth)
+    ground = trajectories.get(ground_truth) if truth else None
+    if kind == "odometry":
+        topic = conns[0].topic
+        return BagOdometry(trajectories[topic], topic, topic, base_frame or trajectories.child_frames.get(topic),
+                           ground, None)
+    if kind == "tf":
+        found = read_tf_odometry(reader, path, conns, odom_frame, base_frame, how=how,
+                                 required=tf_required(odometry, odom_frame, base_frame))
+        first = found.first_edges if conns[0].topic == tf else None
+        if found.trajectory is not None:
+            topic = conns[0].topic
+            return BagOdometry(found.trajectory, f"{topic} ({odom_frame} → {found.base})",
+                               f"the transform {odom_frame} → {found.base} on {topic}", found.base, ground, first)
+        return BagOdometry(None, "", "", base_frame, ground, first)
+    return BagOdometry(None, "", "", base_frame, ground, None)
+
+
+def time_span(trajectory: Trajectory) -> str:
+    """A trajectory's time span for messages: "[first, last] s"."""
+    return f"[{trajectory.timestamps[0]:.9f}, {trajectory.timestamps[-1]:.9f}] s"
 
 
 def frames_without_slash(topics: Any) -> None:
@@ -139,7 +210,7 @@ def read_tf_odometry(
             warnings.warn(
                 f"{path}: {topic} holds no transform from the frame {odom_frame}, so the odometry is taken as "
                 f"unknown and estimated from the scans; it may be the transform from {', '.join(parents)}: "
-                f"name it with {how.option} odom_frame=FRAME", RosbagWarning, stacklevel=3,
+                f"name it with {how.option} odom_frame=FRAME", RosbagWarning, stacklevel=4,
             )
         return TfOdometry(None, None, first_edges)
     if not rows:

@@ -78,20 +78,13 @@ from omnitof.io.rosbag.common import (
     _PoseStream,
     parse_roles,
     _read_sidecar,
-    _read_trajectories,
     _ros2_store,
     _sidecar_text,
     _stamp_ns,
     _storage_plugin,
     _to_ns,
 )
-from omnitof.io.rosbag.odometry import (
-    TopicsOption,
-    frames_without_slash,
-    odometry_connections,
-    read_tf_odometry,
-    tf_required,
-)
+from omnitof.io.rosbag.odometry import TopicsOption, frames_without_slash, read_bag_odometry
 from omnitof.sensor.camera import Camera, CameraParameterError
 from omnitof.sensor.rig import Rig
 from omnitof.types import Trajectory, first_non_finite
@@ -617,16 +610,6 @@ def read_tof_bag(
         _connections(reader, path, topics.amplitude, IMAGE_TYPES)
         info = _connections(reader, path, topics.camera_info, CAMERA_INFO) or []
         samples = _connections(reader, path, topics.samples, IMAGE, required=False)
-        odom_conns: list[Any] = []
-        odom_kind = "none"
-        if odometry or require_odometry:
-            odom_conns, odom_kind = odometry_connections(reader, path, odometry=topics.odometry,
-                                                         ground_truth=topics.ground_truth, tf=topics.tf, how=_HOW)
-        truth = [
-            c for c in reader.connections
-            if c.topic == topics.ground_truth and c.msgtype == ODOMETRY
-            and not (odom_kind == "odometry" and c.topic == odom_conns[0].topic)
-        ]  # fmt: skip
         n_frames = sum(c.msgcount for c in reader.connections if c.topic == topics.distance)
         camera = None
         for _, msg in _messages(reader, path, info):
@@ -634,19 +617,10 @@ def read_tof_bag(
             break
         if camera is None:
             raise InputError(f"topic {topics.camera_info}: has no message", path)
-        # One pass over the bag for the Odometry messages and the ground truth.
-        trajectories = _read_trajectories(reader, path, (odom_conns if odom_kind == "odometry" else []) + truth)
-        poses, source = None, ""
-        if odom_kind == "odometry":
-            source = odom_conns[0].topic
-            poses = trajectories[source]
-        elif odom_kind == "tf":
-            found = read_tf_odometry(reader, path, odom_conns, topics.odom_frame, topics.base_frame, how=_HOW,
-                                     required=tf_required(topics.odometry, topics.odom_frame, topics.base_frame))
-            if found.trajectory is not None:
-                poses = found.trajectory
-                source = f"the transform {topics.odom_frame} → {found.base} on {odom_conns[0].topic}"
-    if poses is None and require_odometry:
+        found = read_bag_odometry(reader, path, odometry=topics.odometry, ground_truth=topics.ground_truth,
+                                  tf=topics.tf, odom_frame=topics.odom_frame, base_frame=topics.base_frame,
+                                  how=_HOW, find=odometry or require_odometry)
+    if found.trajectory is None and require_odometry:
         raise InputError(
             f"the bag has no odometry: no {ODOMETRY} topic and no transform {topics.odom_frame} → base on "
             f"{topics.tf} (name them with {_HOW.choose('odometry')})",
@@ -655,14 +629,14 @@ def read_tof_bag(
     return ToFBag(
         path=path,
         camera=camera,
-        odometry=poses,
-        ground_truth=trajectories.get(topics.ground_truth) if truth else None,
+        odometry=found.trajectory,
+        ground_truth=found.ground_truth,
         sidecar=_read_sidecar(path),
         topics=topics,
         n_frames=n_frames,
         has_samples=samples is not None,
         depth=bool(depth),
-        odometry_source=source,
+        odometry_source=found.source,
     )
 
 
