@@ -67,31 +67,57 @@ def test_blind_first_scans_do_not_hold_the_estimate_still(loop_start, blind):
     assert start_aligned_error(poses[blind:], truth[blind:]).mean < 0.05  # 2.0 and 2.7 cm
 
 
-def test_a_gap_in_the_log_during_a_turn_is_bridged_and_jittery_stamps_are_not_gaps(corridor_loop, monkeypatch):
-    from omnitof.slam import scan_odometry
-
+@pytest.mark.parametrize("rate_hz", [10.0, 40.0])
+@pytest.mark.parametrize(("lost", "turned_deg"), [((215, 225), 36), ((212, 228), 55)])
+def test_a_gap_in_the_log_during_a_turn_is_bridged(corridor_loop, rate_hz, lost, turned_deg):
     scans = corridor_loop.slice(0, 320)  # 32 m, one corner: a 90° turn over scans 208-234
+    # The same scans restamped as a lidar at `rate_hz` would send them (the estimate steps per
+    # scan, so only the gap rule sees the rate): at 40 Hz the lost scans are 0.28 and 0.43 s.
+    t = scans.timestamps
+    scans = dataclasses.replace(scans, timestamps=t[0] + (t - t[0]) * (10.0 / rate_hz))
     truth = scans.ground_truth
-    # 1.1 s of scans lost in the middle of the turn: the robot turned 36° meanwhile, beyond
-    # the local climb's reach; the climb from every heading finds it.
-    gapped = scans.take(np.r_[0:215, 225:320])
+    first, after = lost
+    # Scans lost in the middle of the turn: the robot turned 36° (or 55°, and went on 0.65 m
+    # round the corner) meanwhile, beyond the local climb's reach; the climbs from every heading
+    # about the pose before, and about where its motion may have carried it, find it.
+    gapped = scans.take(np.r_[0:first, after:320])
+    turn = np.degrees(relative(truth[first - 1], truth[after])[2])
+    assert turn > turned_deg
     poses, stats = estimate_odometry(gapped, cfg())
     assert stats.gaps == 1 and stats.unmatched == 0
-    turn = np.degrees(relative(truth[214], truth[225])[2])
-    assert turn > 30
     error = start_aligned_error(poses, gapped.ground_truth)
-    assert error.heading_final_deg < 1.0 and error.mean < 0.05
+    assert error.heading_final_deg < 1.0 and error.mean < 0.05  # 0.16-0.18° and 3.3-3.4 cm
+
+
+def test_jittery_stamps_are_not_gaps(corridor_loop, monkeypatch):
+    from omnitof.slam import scan_odometry
+
+    scans = corridor_loop.slice(0, 320)
+    truth = scans.ground_truth
     # Scans that come irregularly (as Intel's do; here a tenth of the stamps 0.5 s late, so
-    # that intervals of 0.6 s follow 0.1 s steps) are no gaps below a second: the wide search
-    # is not run for them. Three median intervals alone would count them.
+    # that intervals of 0.6 s follow 0.1 s steps) are no gaps: the wide search is not run for
+    # them. Three median intervals alone would count them.
     rng = np.random.default_rng(0)
     late = 0.5 * (rng.random(len(scans)) < 0.1)
     jittery = dataclasses.replace(scans, timestamps=scans.timestamps + late)
     poses, stats = estimate_odometry(jittery, cfg())
     assert stats.gaps == 0 and stats.unmatched == 0
     assert start_aligned_error(poses, truth).mean < 0.05
-    monkeypatch.setattr(scan_odometry, "GAP_MIN_S", 0.0)
+    monkeypatch.setattr(scan_odometry, "GAP_QUANTILE", 0.5)
     assert estimate_odometry(jittery.slice(0, 100), cfg())[1].gaps > 5
+
+
+@pytest.mark.parametrize(("intervals", "expected"), [
+    (np.full(1000, 0.025), 0.075),  # a regular lidar at 40 Hz: three intervals
+    (np.r_[np.full(900, 0.1), np.full(100, 0.6)], 0.9),  # a tenth of the scans 0.5 s late: 1.5 × 0.6 s
+    (np.r_[np.full(900, 0.1), np.full(100, 1.5)], 1.0),  # more irregular still (Intel): at most a second
+    (np.r_[np.full(990, 0.2), np.full(10, 5.0)], 0.6),  # a few real gaps do not raise the bar
+    (np.zeros(0), np.inf),  # no interval: no gap
+])
+def test_the_gap_threshold_follows_the_logs_rhythm(intervals, expected):
+    from omnitof.slam.scan_odometry import gap_threshold
+
+    assert gap_threshold(intervals) == pytest.approx(expected)
 
 
 def test_run_slam_estimates_the_odometry_an_input_lacks(loop_start):
