@@ -195,12 +195,14 @@ def tf_msg(store, transforms, ns: int = 0, msgtype: str = TF):
     )
 
 
-def write_raw(path: Path, messages: list[tuple[str, str, object]], *, ros1: bool = False) -> Path:
-    """A bag of (topic, msgtype, message), in this order (log times 1, 2, 3, … µs)."""
+def write_raw(path: Path, messages: list[tuple[str, str, object]], *, ros1: bool = False,
+              declared: list[tuple[str, str]] = ()) -> Path:  # fmt: skip
+    """A bag of (topic, msgtype, message), in this order (log times 1, 2, 3, … µs), and the
+    topics `declared` (topic, msgtype) without a message."""
     store = NOETIC if ros1 else HUMBLE
     writer = Writer1(path) if ros1 else Writer2(path, version=9, storage_plugin=StoragePlugin.MCAP)
     with writer:
-        conns = {}
+        conns = {topic: writer.add_connection(topic, msgtype, typestore=store) for topic, msgtype in declared}
         for k, (topic, msgtype, msg) in enumerate(messages):
             if topic not in conns:
                 conns[topic] = writer.add_connection(topic, msgtype, typestore=store)
@@ -486,8 +488,10 @@ def test_writer_rejects_bad_arguments(tmp_path: Path) -> None:
     ("given", "message"),
     [
         ({"distance": "/odom"}, "topics.distance and topics.odometry are both '/odom'"),
-        ({"amplitude": "/tof/distance"}, "topics.distance and topics.amplitude are both '/tof/distance'"),
-        ({"samples": "/cam", "ground_truth": "/cam"}, "topics.samples and topics.ground_truth are both '/cam'"),
+        # Refused by ToFTopics itself, for the reader as for the writer.
+        ({"amplitude": "/tof/distance"}, "distance and amplitude are both '/tof/distance'"),
+        ({"samples": "/cam", "ground_truth": "/cam"}, "samples and ground_truth are both '/cam'"),
+        ({"odometry": "/ground_truth"}, "ground_truth and odometry are both '/ground_truth'"),
     ],
 )
 def test_tof_writer_refuses_one_topic_for_two_roles(tmp_path: Path, given: dict, message: str) -> None:
@@ -546,9 +550,11 @@ def test_missing_and_mistyped_topics(tmp_path: Path) -> None:
                  topics=ToFTopics(samples="/x", distance="/tof/samples"))  # fmt: skip
     expect_error(path, "topic /gt", "missing", "/tof/distance (sensor_msgs/msg/Image)",
                  topics=ToFTopics(odometry="/gt"))  # fmt: skip
-    expect_error(path, "topic /tof/distance has type sensor_msgs/msg/Image",
+    expect_error(path, "topic /odom has type nav_msgs/msg/Odometry",
                  "expected sensor_msgs/msg/CameraInfo",
-                 topics=ToFTopics(camera_info="/tof/distance"))  # fmt: skip
+                 topics=ToFTopics(camera_info="/odom"))  # fmt: skip
+    with pytest.raises(ValueError, match="distance and camera_info are both '/tof/distance'"):
+        ToFTopics(camera_info="/tof/distance")
     # A bag without odometry is read (SLAM estimates it from the scans), unless it is required.
     bare = raw_tof_bag(tmp_path / "bare", stamps, odom_stamps_ns=[])
     bag = read_tof_bag(bare)
@@ -647,7 +653,12 @@ def rvl(pixels: np.ndarray) -> bytes:
     return np.array(pixels.shape[::-1], "<u4").tobytes() + np.array(words, "<u4").tobytes()
 
 
-def test_a_drivers_bag_recorded_compressed(tmp_path: Path) -> None:
+def quantised(a: float, b: float) -> bytes:
+    """compressedDepth's 12-byte header for a 32FC1 depth quantised as z = a / (q - b)."""
+    return np.array([(0, a, b)], dtype=[("c", "<i4"), ("a", "<f4"), ("b", "<f4")]).tobytes()
+
+
+def test_a_drivers_bag_recorded_compressed(tmp_path: Path, capfd) -> None:
     # image_transport's compressed topics, as a bag recorded with them holds them: the depth
     # "compressedDepth" (a 12-byte header, then a 16-bit PNG), the amplitude a PNG or a JPEG.
     rng = np.random.default_rng(6)
@@ -696,9 +707,17 @@ def test_a_drivers_bag_recorded_compressed(tmp_path: Path) -> None:
                                 ("mono8; jpeg compressed mono8", cv2.imencode(".jpg", depth_mm.astype(np.uint8))[1].tobytes(),
                                  "lossy JPEG"),
                                 ("bgr16; png compressed bgr16", png(np.zeros((*SMALL.shape, 3), np.uint16)), "3 channels"),
-                                ("16UC1; compressedDepth png", header16 + b"not a png", "cannot decode")]:
+                                ("16UC1; compressedDepth png", header16 + b"not a png", "cannot decode"),
+                                ("16UC1; compressedDepth png", header16 + png(depth_mm)[:-20], "is a truncated PNG"),
+                                # The quantisation of a 32FC1 depth, which would make distances of nothing.
+                                ("32FC1; compressedDepth png", header32 + eight_bit, "its quantised depth is 16-bit"),
+                                ("32FC1; compressedDepth png", quantised(0.0, -1.0) + png(q), "A = 0, B = -1"),
+                                ("32FC1; compressedDepth png", quantised(np.nan, -1.0) + png(q), "A = nan"),
+                                ("32FC1; compressedDepth png", quantised(1000.0, 5.0) + png(q), "needs A > 0 and B < 1")]:
         bad = messages[:3] + [(topics.distance, COMPRESSED, compressed_msg(NS, fmt, data)), messages[4]]
-        expect_error(write_raw(tmp_path / fragment.replace(" ", "_"), bad), fragment, topics.distance, topics=topics)
+        expect_error(write_raw(tmp_path / fragment.replace(" ", "_").replace("/", "_"), bad), fragment,
+                     topics.distance, topics=topics)
+    assert "libpng" not in capfd.readouterr().err  # one message, omnitof's, for the truncated PNG
 
 
 def test_image_size_mismatch(tmp_path: Path) -> None:
@@ -731,6 +750,78 @@ def test_unsupported_camera_info(tmp_path: Path) -> None:
     expect_error(path, "topic /tof/camera_info", "equidistant")
 
 
+def test_a_ros1_tof_bag(tmp_path: Path) -> None:
+    # ROS 1's CameraInfo names its matrices K and D (ROS 2: k and d); headers carry a seq.
+    t = NOETIC.types
+    info = t[INFO](header=header(NOETIC, NS, "cam"), height=SMALL.height, width=SMALL.width,
+                   distortion_model="plumb_bob", D=np.array(SMALL.dist), K=SMALL.K.reshape(-1),
+                   R=np.eye(3).reshape(-1), P=np.zeros(12), binning_x=0, binning_y=0,
+                   roi=t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
+                                                              do_rectify=False))
+    messages = []
+    for k in (1, 2):
+        image = np.full(SMALL.shape, float(k), np.float32)
+        msg = t[IMG](header=header(NOETIC, k * NS, "cam"), height=SMALL.height, width=SMALL.width, encoding="32FC1",
+                     is_bigendian=0, step=SMALL.width * 4, data=image.reshape(-1).view(np.uint8))
+        messages += [("/odom", ODOM, odometry_msg(NOETIC, k * NS, (k, 0, 0))), ("/tof/camera_info", INFO, info),
+                     ("/tof/distance", IMG, msg), ("/tof/amplitude", IMG, msg)]
+    bag = read_tof_bag(write_raw(tmp_path / "b.bag", messages, ros1=True))
+    assert bag.camera == SMALL
+    frames = list(bag.frames())
+    assert [f.timestamp for f in frames] == [1.0, 2.0] and float(frames[1].distance[0, 0]) == 2.0
+    assert_poses(np.array([f.odometry for f in frames]), np.array([[1.0, 0, 0], [2.0, 0, 0]]))
+
+
+def test_an_uncalibrated_camera_info_gives_the_image_size_alone(tmp_path: Path) -> None:
+    # Drivers publish K all zeros for a camera never calibrated (as for a calibration's own
+    # recording): the frames are read, the intrinsics come from the rig's calibration.
+    info = camera_info_msg(NS, SMALL)
+    info.k = np.zeros(9)
+    info.d = np.zeros(5)
+    image = np.full(SMALL.shape, 2.0, np.float32)
+    path = write_raw(tmp_path / "b", [("/tof/camera_info", INFO, info), ("/tof/distance", IMG, image_msg(NS, image)),
+                                      ("/tof/amplitude", IMG, image_msg(NS, image))])
+    bag = read_tof_bag(path)
+    assert bag.camera is None and bag.shape == SMALL.shape
+    (frame,) = bag.frames()
+    np.testing.assert_array_equal(frame.distance, image)
+    # Depth images cannot be turned into distances without the intrinsics.
+    expect_error(path, "topic /tof/camera_info", "K is all zeros", depth=True)
+
+
+def test_an_image_sent_twice_is_read_once(tmp_path: Path) -> None:
+    messages = [("/odom", ODOM, odometry_msg(HUMBLE, k * NS, (k, 0, 0))) for k in (1, 2)]
+    for k in (1, 2):
+        image = image_msg(k * NS, np.full(SMALL.shape, float(k), np.float32))
+        messages += [("/tof/camera_info", INFO, camera_info_msg(k * NS, SMALL)), ("/tof/distance", IMG, image),
+                     ("/tof/amplitude", IMG, image)]
+        if k == 1:
+            messages.append(("/tof/distance", IMG, image))  # the same stamp again
+    path = write_raw(tmp_path / "b", messages)
+    with pytest.warns(RosbagWarning, match=r"1 image\(s\) repeat the stamp .*\(first at 1\.0+ s\); each read once"):
+        frames = list(read_tof_bag(path).frames())
+    assert [f.timestamp for f in frames] == [1.0, 2.0]
+
+
+def test_images_that_never_pair_and_a_topic_without_messages_are_named(tmp_path: Path) -> None:
+    # The amplitude stamped 20 ms after the distance (beyond the 5 ms that make one frame).
+    messages = [("/odom", ODOM, odometry_msg(HUMBLE, k * NS, (k, 0, 0))) for k in (1, 2, 3)]
+    for k in (1, 2, 3):
+        image = np.full(SMALL.shape, float(k), np.float32)
+        messages += [("/tof/camera_info", INFO, camera_info_msg(k * NS, SMALL)),
+                     ("/tof/distance", IMG, image_msg(k * NS, image)),
+                     ("/tof/amplitude", IMG, image_msg(k * NS + 20_000_000, image))]
+    path = write_raw(tmp_path / "late", messages)
+    with pytest.raises(InputError, match=r"no frame is complete: no image of /tof/amplitude lies within 5 ms of any "
+                                         r"of the 3 images of /tof/distance") as info:
+        list(read_tof_bag(path).frames())
+    assert info.value.path == path
+    # A topic declared in the bag but never published (ROS 2 bags record such topics).
+    empty = write_raw(tmp_path / "empty", [m for m in messages if m[0] != "/tof/amplitude"],
+                      declared=[("/tof/amplitude", IMG)])
+    expect_error(empty, "topic /tof/amplitude: has no message")
+
+
 def test_incomplete_frame_is_skipped(tmp_path: Path) -> None:
     path = raw_tof_bag(tmp_path / "b", [NS, 2 * NS, 3 * NS], skip_amplitude={2 * NS})
     bag = read_tof_bag(path)
@@ -753,7 +844,8 @@ def test_images_stamped_a_little_apart_are_one_frame(tmp_path: Path) -> None:
         if dt > 0:
             messages.append(("/tof/amplitude", IMG, image_msg(ns + dt, np.full(SMALL.shape, 7.0, np.float32))))
     path = write_raw(tmp_path / "b", messages)
-    with pytest.warns(RosbagWarning, match="skipped 2 frame"):
+    # One frame's distance without its amplitude, and that amplitude's image of no frame.
+    with pytest.warns(RosbagWarning, match=r"skipped 1 frame\(s\) .*\(first at 3\.0+ s\), and 1 image\(s\) of no frame"):
         got = list(read_tof_bag(path).frames())
     # The frames take the distance image's stamp, as frame_timestamps() does.
     assert [f.timestamp for f in got] == [1.0, 2.0]

@@ -239,6 +239,8 @@ def cmd_scans(args: argparse.Namespace) -> int:
                           multipath=args.multipath_compensation, max_frames=args.max_frames, bar=_bar_factory(args),
                           topics=args.tof_topics, depth=args.tof_distance == "depth")
     scans = data.scans
+    if len(scans) == 0:
+        raise OmnitofError(f"{args.log}: no frame gave a scan (see the warnings above); nothing written to {out}")
     if carmen:
         from omnitof.io.carmen import write_carmen
 

@@ -184,10 +184,10 @@ def extractor_for_bag(
         from omnitof.calibration import load_calibration
 
         cal = load_calibration(calibration)
-        if cal.camera.shape != bag.camera.shape:
+        if cal.camera.shape != bag.shape:
             raise InputError(
                 f"the calibration is for {cal.camera.width}×{cal.camera.height} images, the bag has "
-                f"{bag.camera.width}×{bag.camera.height}", calibration,
+                f"{bag.shape[1]}×{bag.shape[0]}", calibration,
             )
         return ScanExtractor.from_calibration(cal, settings=settings), f"calibration {calibration}"
     rig = bag.rig
@@ -223,7 +223,7 @@ def read_tof_scans(
     from itertools import islice
 
     from omnitof.io.rosbag import ToFTopics, read_tof_bag
-    from omnitof.io.rosbag.odometry import odometry_rule, time_span
+    from omnitof.io.rosbag.odometry import odometry_coverage, odometry_rule
 
     if max_frames is not None and int(max_frames) < 0:
         raise ValueError(f"max_frames must be >= 0, got {max_frames!r}")
@@ -242,8 +242,8 @@ def read_tof_scans(
                     cloud_keyframes=cloud_keyframes, source=str(path), progress=progress)
     if dropped:
         assert bag.odometry is not None
-        warnings.warn(f"{path}: dropped {len(dropped)} frames outside the odometry's time span "
-                      f"{time_span(bag.odometry)} ({bag.odometry_source}), the first of them frame {dropped[0]}; "
+        warnings.warn(f"{path}: dropped {len(dropped)} frames outside {odometry_coverage(bag.odometry)} "
+                      f"({bag.odometry_source}), the first of them frame {dropped[0]}; "
                       f"{len(out.scans)} kept", ToFInputWarning, stacklevel=2)
     # Without odometry, SLAM estimates it from the scans (omnitof.slam.scan_odometry).
     out.scans = dataclasses.replace(out.scans, odometry_known=bag.odometry is not None, odometry_rule=odometry_rule(
@@ -256,15 +256,20 @@ def read_tof_scans(
 def _with_odometry(bag: Any, dropped: list[int], progress: Callable[[int], Any] | None) -> Iterator[Any]:
     """The bag's frames, each with an odometry pose: a bag without odometry gives every frame
     the pose (0, 0, 0), to be estimated from the scans; a frame outside the odometry's time
-    span is skipped (cameras often start before the wheels), its index appended to `dropped`
-    (the caller warns) and counted in `progress`; an InputError where no frame is within it."""
-    from omnitof.io.rosbag.odometry import time_span
+    span (cameras often start before the wheels) or inside a hole in it (`odometry_gaps`: a
+    pose interpolated across it would be made up) is skipped, its index appended to `dropped`
+    (the caller warns) and counted in `progress`; an InputError where no frame is within it, or
+    where the odometry spans no time and a frame lies at another (`spans_no_time`)."""
+    from omnitof.io.rosbag.odometry import no_time_span, odometry_coverage, spans_no_time
 
     kept = 0
     for i, frame in enumerate(bag.frames(samples=False)):
         if bag.odometry is None:
             yield dataclasses.replace(frame, odometry=np.zeros(3))
-        elif frame.odometry is None:
+        elif frame.odometry is None:  # outside the odometry's span or in a hole (ToFBag.odometry_at)
+            if spans_no_time(bag.odometry):  # not a late start of the wheels: the stamps are broken
+                raise no_time_span(f"the odometry ({bag.odometry_source})", bag.odometry,
+                                   f"frame {i} at {frame.timestamp:.9f} s", bag.path)
             dropped.append(i)
             if progress is not None:
                 progress(1)
@@ -272,8 +277,8 @@ def _with_odometry(bag: Any, dropped: list[int], progress: Callable[[int], Any] 
             kept += 1
             yield frame
     if dropped and not kept:
-        raise InputError(f"no frame lies within the odometry's time span {time_span(bag.odometry)} "
-                         f"({bag.odometry_source})", bag.path)
+        raise InputError(f"no frame lies within {odometry_coverage(bag.odometry)} ({bag.odometry_source})",
+                         bag.path)
 
 
 def frame_count(path: str | Path, topics: Any = None) -> int:

@@ -83,7 +83,8 @@ MULTI_ECHO_SCAN = "sensor_msgs/msg/MultiEchoLaserScan"
 LASER_TYPES = (LASER_SCAN, MULTI_ECHO_SCAN)
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 # The types read as tf: ROS 1 bags recorded before Hydro carry tf/tfMessage, the same fields.
-TF_TYPES = frozenset({TF_MESSAGE, "tf/msg/tfMessage"})
+TF_TYPE_NAMES = (TF_MESSAGE, "tf/msg/tfMessage")  # in the order errors list them
+TF_TYPES = frozenset(TF_TYPE_NAMES)
 
 # Frame ids written into headers (REP 105 names where there is one).
 ODOM_FRAME = "odom"
@@ -91,6 +92,12 @@ WORLD_FRAME = "world"
 BASE_FRAME = "base_link"
 CAMERA_FRAME = "tof_optical_frame"
 LASER_FRAME = "laser"
+
+# The readers' default topics for the ground truth and the transforms. A topic set to anything
+# else was named by the user, and must be in the bag; a default one may be absent.
+GROUND_TRUTH_TOPIC = "/ground_truth"
+TF_TOPIC = "/tf"
+TF_STATIC_TOPIC = "/tf_static"
 
 _NS = 1_000_000_000
 _LISTED_TOPICS = 20  # how many topics an error message lists
@@ -430,10 +437,11 @@ def _planar_pose(position: Any, orientation: Any, what: str, path: Path) -> tupl
     too); an InputError naming `what` where they are not finite or the quaternion is zero."""
     p, q = position, orientation
     quaternion = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
-    if not (np.isfinite([p.x, p.y]).all() and np.isfinite(quaternion).all() and np.any(quaternion)):
-        raise InputError(
-            f"{what} is not finite (position {p.x}, {p.y}, orientation {q.x}, {q.y}, {q.z}, {q.w})", path
-        )
+    values = f"(position {p.x}, {p.y}, orientation {q.x}, {q.y}, {q.z}, {q.w})"
+    if not (np.isfinite([p.x, p.y]).all() and np.isfinite(quaternion).all()):
+        raise InputError(f"{what} is not finite {values}", path)
+    if not quaternion.any():  # finite, but of length 0: no rotation, so no heading
+        raise InputError(f"{what} has a zero quaternion (length 0), which gives no heading {values}", path)
     return float(p.x), float(p.y), float(quaternion_to_yaw(quaternion))
 
 

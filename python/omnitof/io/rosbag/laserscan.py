@@ -32,6 +32,7 @@ from omnitof.io.rosbag.common import (
     _ROSBAG2_VERSION,
     BASE_FRAME,
     DEFAULT_STORAGE,
+    GROUND_TRUTH_TOPIC,
     LASER_FRAME,
     LASER_SCAN,
     LASER_TYPES,
@@ -39,6 +40,9 @@ from omnitof.io.rosbag.common import (
     ODOM_FRAME,
     ODOMETRY,
     TF_MESSAGE,
+    TF_STATIC_TOPIC,
+    TF_TOPIC,
+    TF_TYPE_NAMES,
     TF_TYPES,
     WORLD_FRAME,
     RosbagWarning,
@@ -67,7 +71,11 @@ from omnitof.io.rosbag.odometry import (
     TopicsOption,
     edge_matrix,
     frames_without_slash,
+    no_time_span,
+    odometry_coverage,
+    outside_odometry,
     read_bag_odometry,
+    spans_no_time,
     time_span,
 )
 from omnitof.types import (
@@ -110,9 +118,9 @@ class LaserTopics:
 
     scan: str | None = None
     odometry: str | None = None
-    ground_truth: str = "/ground_truth"
-    tf: str = "/tf"
-    tf_static: str = "/tf_static"
+    ground_truth: str = GROUND_TRUTH_TOPIC
+    tf: str = TF_TOPIC
+    tf_static: str = TF_STATIC_TOPIC
     odom_frame: str = ODOM_FRAME
     base_frame: str | None = None
 
@@ -136,7 +144,8 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
 
     - Topics (`LaserTopics`; default: found by type): several candidates are ambiguous unless
       one is the conventional name ("/scan", "/odom"); the ground-truth topic is never taken
-      for odometry. The error lists the candidates.
+      for odometry. The error lists the candidates. A topic named in `topics` (other than its
+      default) that the bag lacks is an InputError listing the bag's topics.
     - Odometry: nav_msgs/Odometry messages, or where the bag has none (or `topics.odometry`
       names a tf2_msgs/TFMessage topic) the transform odom → base on /tf, as gmapping and
       slam_toolbox read it: x, y and the heading of each transform, by its own stamp (sorted;
@@ -150,10 +159,12 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
       before it exactly (stamp, readings, pose) is dropped with a RosbagWarning
       (`omnitof.types.drop_repeated_scans`); one stamped alike but reading differently is kept. The odometry (its header
       stamps must not decrease either) is interpolated to each scan's stamp (linear in x, y,
-      shorter arc in θ); scans outside the odometry's time span are dropped with a
-      RosbagWarning.
+      shorter arc in θ); scans outside the odometry's time span, or inside a hole in it
+      (`odometry.odometry_gaps`), are dropped with a RosbagWarning; where all its poses share
+      one stamp, scans at other times are an InputError instead.
     - Ground truth: Odometry messages on `topics.ground_truth`, interpolated the same way, when
-      the topic exists and covers every kept scan (else None, with a warning).
+      the topic has messages and covers every kept scan (else None; with a warning where it
+      does not cover them).
     - sensor_pose: base → laser from the static transforms, where base is the odometry's
       child frame (default base_link) and laser the scans' frame_id, chained through
       intermediate frames and projected to the plane (x, y, yaw). An upside-down laser gets its
@@ -175,6 +186,8 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
         odometry_rule = found.rule("scan", topics.odom_frame, topics.tf)
         first_seen = found.first_edges  # the first of each transform on topics.tf, where it was read
         tf_static_topic = topics.tf_static
+        if tf_static_topic != TF_STATIC_TOPIC:  # named: it must be there
+            _connections(reader, path, tf_static_topic, TF_TYPE_NAMES)
         tf_conns = [
             c for c in reader.connections if c.topic == tf_static_topic and c.msgtype in TF_TYPES
         ]
@@ -236,24 +249,25 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
         raise InputError(f"topic {scan_name}: has no message", path)
 
     t = np.array([_ns_to_s(ns) for ns in stamps], dtype=np.float64)
-    if odometry is None:  # SLAM estimates it from the scans (omnitof.slam.scan_odometry)
-        poses = np.zeros((len(t), 3))
-    else:
+    poses = np.zeros((len(t), 3))  # without odometry: SLAM estimates it from the scans (slam.scan_odometry)
+    keep = np.ones(len(t), dtype=bool)
+    if odometry is not None:
         poses = interpolate_poses(odometry, t)
-    keep = ~np.isnan(poses[:, 0])
-    if not keep.any():
-        raise InputError(
-            f"topic {odom_name}: no scan on {scan_name} lies within the odometry's time span "
-            f"{time_span(odometry)}",
-            path,
-        )
-    if not keep.all():
-        warnings.warn(
-            f"{path}: dropped {int((~keep).sum())} of {len(t)} scans on {scan_name} that lie "
-            f"outside the odometry's time span {time_span(odometry)} (topic {odom_name})",
-            RosbagWarning,
-            stacklevel=2,
-        )
+        keep = ~outside_odometry(odometry, t)  # a pose across a hole in the odometry is no pose
+        outside = int((~keep).sum())
+        if outside and spans_no_time(odometry):
+            raise no_time_span(f"the odometry (topic {odom_name})", odometry,
+                               f"the scans on {scan_name} at other times ({outside} of {len(t)})", path)
+        if not keep.any():
+            raise InputError(f"topic {odom_name}: no scan on {scan_name} lies within {odometry_coverage(odometry)}",
+                             path)
+        if outside:
+            warnings.warn(
+                f"{path}: dropped {outside} of {len(t)} scans on {scan_name} that lie outside "
+                f"{odometry_coverage(odometry)} (topic {odom_name})",
+                RosbagWarning,
+                stacklevel=2,
+            )
     ground_truth = None
     truth = found.ground_truth
     if truth is not None:

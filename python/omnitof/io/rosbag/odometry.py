@@ -27,9 +27,12 @@ from rosbags.highlevel import AnyReader
 
 from omnitof.errors import InputError
 from omnitof.io.rosbag.common import (
+    GROUND_TRUTH_TOPIC,
     ODOM_FRAME,
     ODOMETRY,
     TF_MESSAGE,
+    TF_TOPIC,
+    TF_TYPE_NAMES,
     TF_TYPES,
     RosbagWarning,
     _connections,
@@ -44,6 +47,13 @@ from omnitof.io.rosbag.common import (
 from omnitof.types import Trajectory
 
 Edges = dict[str, tuple[str, np.ndarray]]  # child frame → (parent frame, parent_T_child 4×4)
+
+# A hole in the odometry longer than both of these is taken for no odometry (a stale transform
+# stamped long before the rest, a recording paused): frames in it are dropped like those outside
+# its span, not given a pose interpolated across it. 10 intervals let a few lost messages pass
+# (wheel odometry runs at 10-100 Hz); the 1 s floor keeps a sparse odometry (1 Hz) whole.
+GAP_INTERVALS = 10
+GAP_MIN_S = 1.0
 
 
 class TopicsOption(NamedTuple):
@@ -96,19 +106,30 @@ def read_bag_odometry(
     """The bag's odometry (`odometry_connections`: an Odometry topic, the transform odom_frame →
     base on `tf`, or none; not looked for at all unless `find`) and its ground truth (Odometry
     messages on `ground_truth`, never the odometry's own topic), the Odometry messages of both
-    read in one pass."""
+    read in one pass. A `ground_truth` or `tf` other than the default (`GROUND_TRUTH_TOPIC`,
+    `TF_TOPIC`) was named by the user and must be in the bag; a default ground truth without
+    messages is left out. Without odometry, `point_at_other_tf` says where it may be."""
+    # A topic the user named must be there (a typo would silently lose it); a default may be absent.
+    named_truth = ground_truth != GROUND_TRUTH_TOPIC
+    if named_truth:
+        _connections(reader, path, ground_truth, ODOMETRY)
+    if tf != TF_TOPIC:
+        _connections(reader, path, tf, TF_TYPE_NAMES)
     conns: list[Any] = []
     kind = "none"
     if find:
         conns, kind = odometry_connections(reader, path, odometry=odometry, ground_truth=ground_truth, tf=tf, how=how)
     truth = [c for c in reader.connections if c.topic == ground_truth and c.msgtype == ODOMETRY
              and not (kind == "odometry" and c.topic == conns[0].topic)]
+    if not named_truth and not sum(c.msgcount for c in truth):
+        truth = []  # declared but never published (ROS 2 bags record those): no ground truth
     trajectories = _read_trajectories(reader, path, (conns if kind == "odometry" else []) + truth)
     ground = trajectories.get(ground_truth) if truth else None
     if kind == "odometry":
         topic = conns[0].topic
         return BagOdometry(trajectories[topic], topic, topic, base_frame or trajectories.child_frames.get(topic),
                            ground, None)
+    first = None
     if kind == "tf":
         found = read_tf_odometry(reader, path, conns, odom_frame, base_frame, how=how,
                                  required=tf_required(odometry, odom_frame, base_frame))
@@ -117,8 +138,43 @@ def read_bag_odometry(
             topic = conns[0].topic
             return BagOdometry(found.trajectory, f"{topic} ({odom_frame} → {found.base})",
                                f"the transform {odom_frame} → {found.base} on {topic}", found.base, ground, first)
-        return BagOdometry(None, "", "", base_frame, ground, first)
-    return BagOdometry(None, "", "", base_frame, ground, None)
+    if find:
+        point_at_other_tf(reader, path, tf, odom_frame, how)
+    return BagOdometry(None, "", "", base_frame, ground, first)
+
+
+def spans_no_time(trajectory: Trajectory) -> bool:
+    """Whether the odometry's poses all share one stamp (one message, or stamps left unset): it
+    gives a pose at that instant only, so a frame at any other time is an InputError
+    (`no_time_span`), not a frame to drop."""
+    return bool(trajectory.timestamps[0] == trajectory.timestamps[-1])
+
+
+def no_time_span(what: str, trajectory: Trajectory, at: str, path: Path) -> InputError:
+    """The error for an odometry that spans no time (`spans_no_time`): `what` names it ("the
+    odometry (/odom)"), `at` the frames it cannot give a pose for."""
+    return InputError(f"{what} spans no time (every pose is stamped {trajectory.timestamps[0]:.9f} s: one message, "
+                      f"or stamps left unset), so it gives no pose for {at}", path)
+
+
+def point_at_other_tf(reader: AnyReader, path: Path, tf: str, odom_frame: str, how: TopicsOption) -> None:
+    """Where the bag gave no odometry: a RosbagWarning if a transform topic other than `tf` holds a
+    transform from odom_frame (or a frame named like it), as a robot recording its odometry on
+    /tf_odom has it, rather than let SLAM estimate an odometry the bag holds."""
+    others = sorted({c.topic for c in reader.connections if c.topic != tf and c.msgtype in TF_TYPES and c.msgcount})
+    for topic in others:
+        for _, msg in _messages(reader, path, [c for c in reader.connections if c.topic == topic]):
+            for transform in msg.transforms:
+                parent, child = _frame_name(transform.header.frame_id), _frame_name(transform.child_frame_id)
+                if parent == odom_frame or "odom" in parent:
+                    option = f"odometry={topic}" + ("" if parent == odom_frame else f",odom_frame={parent}")
+                    warnings.warn(
+                        f"{path}: no {ODOMETRY} topic and no transform from the frame {odom_frame} on {tf}, so the "
+                        f"odometry is taken as unknown and estimated from the scans; it may be the transform "
+                        f"{parent} → {child} on {topic}: name it with {how.option} {option}",
+                        RosbagWarning, stacklevel=4,
+                    )
+                    return
 
 
 def time_span(trajectory: Trajectory) -> str:
@@ -126,13 +182,51 @@ def time_span(trajectory: Trajectory) -> str:
     return f"[{trajectory.timestamps[0]:.9f}, {trajectory.timestamps[-1]:.9f}] s"
 
 
+def odometry_gaps(trajectory: Trajectory) -> np.ndarray:
+    """(K, 2) [start, end] s of the odometry's holes: intervals between its stamps longer than
+    GAP_MIN_S and GAP_INTERVALS times its median interval."""
+    t = np.unique(trajectory.timestamps)
+    if len(t) < 3:  # two stamps: the one interval is the usual one
+        return np.zeros((0, 2))
+    dt = np.diff(t)
+    hole = np.flatnonzero(dt > max(GAP_MIN_S, GAP_INTERVALS * float(np.median(dt))))
+    return np.column_stack([t[hole], t[hole + 1]])
+
+
+def outside_odometry(trajectory: Trajectory, timestamps: np.ndarray) -> np.ndarray:
+    """(N,) bool: the times outside the odometry's span or inside one of its holes
+    (`odometry_gaps`), where it gives no pose."""
+    t = np.asarray(timestamps, dtype=np.float64)
+    outside = (t < trajectory.timestamps[0]) | (t > trajectory.timestamps[-1])
+    for start, end in odometry_gaps(trajectory):
+        outside |= (t > start) & (t < end)
+    return outside
+
+
+def odometry_coverage(trajectory: Trajectory) -> str:
+    """Where the odometry gives poses, for messages: its time span, and its holes if any."""
+    text = f"the odometry's time span {time_span(trajectory)}"
+    gaps = odometry_gaps(trajectory)
+    if len(gaps):
+        listed = ", ".join(f"({a:.9f}, {b:.9f})" for a, b in gaps[:3]) + (", …" if len(gaps) > 3 else "")
+        text += f" less its {len(gaps)} hole(s) without poses {listed} s"
+    return text
+
+
 def frames_without_slash(topics: Any) -> None:
     """Strip a leading slash from a frozen topics dataclass's `odom_frame` and `base_frame`: as
-    `rosbag info` and ROS 1 bags show them, "/odom" names the frame "odom"."""
+    `rosbag info` and ROS 1 bags show them, "/odom" names the frame "odom". ValueError naming
+    the role where nothing is left of a name, or where both name one frame."""
     for name in ("odom_frame", "base_frame"):
         value = getattr(topics, name)
         if value is not None:
-            object.__setattr__(topics, name, _frame_name(value))
+            frame = _frame_name(value)
+            if not frame:
+                raise ValueError(f"{name}={value!r} names no frame: nothing is left after its leading slashes")
+            object.__setattr__(topics, name, frame)
+    if topics.odom_frame == topics.base_frame:
+        raise ValueError(f"odom_frame and base_frame are both {topics.odom_frame!r}: the odometry is the transform "
+                         "from the one frame to the other")
 
 
 def odometry_connections(
@@ -198,8 +292,8 @@ def read_tf_odometry(
             pairs.add((parent, child))
             if child not in first_edges:
                 first_edges[child] = (parent, edge_matrix(tf))
-            if parent != odom_frame or (base_frame is not None and child != base_frame):
-                continue
+            if parent != odom_frame or child == parent or (base_frame is not None and child != base_frame):
+                continue  # not the odometry's (a frame to itself is no motion: tf2 ignores it too)
             ns = _stamp_ns(tf.header.stamp)
             pose = _planar_pose(tf.transform.translation, tf.transform.rotation,
                                 f"topic {topic}: the transform {parent} → {child} stamped {_ns_to_s(ns):.9f} s", path)

@@ -39,6 +39,7 @@ of `omnitof.io.rosbag.common`.
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections import OrderedDict
 from collections.abc import Iterable, Iterator
@@ -59,12 +60,14 @@ from omnitof.io.rosbag.common import (
     CAMERA_INFO,
     COMPRESSED_IMAGE,
     DEFAULT_STORAGE,
+    GROUND_TRUTH_TOPIC,
     IMAGE,
     IMAGE_TYPES,
     ODOM_FRAME,
     ODOMETRY,
     SIDECAR_NAME,
     TF_MESSAGE,
+    TF_TOPIC,
     WORLD_FRAME,
     RosbagWarning,
     _atomic_path,
@@ -84,7 +87,14 @@ from omnitof.io.rosbag.common import (
     _storage_plugin,
     _to_ns,
 )
-from omnitof.io.rosbag.odometry import TopicsOption, frames_without_slash, read_bag_odometry
+from omnitof.io.rosbag.odometry import (
+    TopicsOption,
+    frames_without_slash,
+    odometry_coverage,
+    odometry_gaps,
+    read_bag_odometry,
+    time_span,
+)
 from omnitof.sensor.camera import Camera, CameraParameterError
 from omnitof.sensor.rig import Rig
 from omnitof.types import Trajectory, first_non_finite
@@ -143,6 +153,10 @@ class ToFFrameStamped:
                 )
 
 
+# The raw samples' topic; another one named must be in the bag, this one may be absent.
+SAMPLES_TOPIC = "/tof/samples"
+
+
 @dataclass(frozen=True)
 class ToFTopics:
     """Where a ToF bag keeps what `read_tof_bag` reads (`--tof-topics` in the CLI); the defaults
@@ -163,16 +177,23 @@ class ToFTopics:
 
     distance: str = "/tof/distance"
     amplitude: str = "/tof/amplitude"
-    samples: str = "/tof/samples"
+    samples: str = SAMPLES_TOPIC
     camera_info: str = "/tof/camera_info"
     odometry: str | None = None
-    ground_truth: str = "/ground_truth"
-    tf: str = "/tf"
+    ground_truth: str = GROUND_TRUTH_TOPIC
+    tf: str = TF_TOPIC
     odom_frame: str = ODOM_FRAME
     base_frame: str | None = None
 
     def __post_init__(self) -> None:
         frames_without_slash(self)
+        # The reader takes each topic for one role: the same topic for two would read one
+        # role's messages as the other's.
+        roles = {role: getattr(self, role) for role in ("distance", "amplitude", "samples", "camera_info",
+                                                         "ground_truth")}
+        if self.odometry is not None and self.odometry != self.tf:
+            roles["odometry"] = self.odometry
+        _distinct_topics(roles)
 
     @classmethod
     def parse(cls, text: str) -> ToFTopics:
@@ -236,6 +257,9 @@ def write_tof_bag(
     if odometry is not None:
         roles["topics.tf" if odometry_on_tf else "topics.odometry"] = odometry_topic
     _distinct_topics(roles)
+    if odometry is not None and odometry_on_tf and topics.odom_frame == (topics.base_frame or BASE_FRAME):
+        raise ValueError(f"topics.odom_frame and the base frame are both {topics.odom_frame!r}: the odometry is "
+                         "the transform from the one frame to the other")
     plugin = _storage_plugin(storage)
     if path.suffix == ".bag":
         raise ValueError(
@@ -384,7 +408,8 @@ class ToFBag:
 
     Attributes:
         path: the bag.
-        camera: intrinsics from the first camera_info message.
+        camera: intrinsics from the first camera_info message; None where it holds none (K all
+            zeros, as drivers publish an uncalibrated camera: a calibration gives them).
         odometry: the odometry poses as recorded (their own timestamps), or None when the bag
             has none.
         ground_truth: the ground-truth poses as recorded, or None.
@@ -399,7 +424,7 @@ class ToFBag:
     """
 
     path: Path
-    camera: Camera
+    camera: Camera | None
     odometry: Trajectory | None
     ground_truth: Trajectory | None
     sidecar: dict | None
@@ -408,7 +433,9 @@ class ToFBag:
     has_samples: bool
     depth: bool = False
     odometry_source: str = ""
+    shape: tuple[int, int] = (0, 0)  # (height, width) of the images, from camera_info
     _timestamps: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
+    _odometry_gaps: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def rig(self) -> Rig | None:
@@ -441,20 +468,25 @@ class ToFBag:
         roles = {self.topics.distance: "distance", self.topics.amplitude: "amplitude"}
         if samples and self.has_samples:
             roles[self.topics.samples] = "samples"
-        shape = self.camera.shape
+        shape = self.shape
         last_ns = dict.fromkeys(roles.values(), -1)
         pending: OrderedDict[int, dict[str, np.ndarray]] = OrderedDict()
         distance_ns: dict[int, int] = {}  # a pending frame's distance image's own stamp
         # Depth z = radial distance × the z component of the pixel's unit ray.
-        ray_z = self.camera.pixel_grid_rays()[..., 2].astype(np.float32) if self.depth else None
+        ray_z = self.camera.pixel_grid_rays()[..., 2].astype(np.float32) if self.depth and self.camera else None
         emitted_ns = -1
-        dropped: list[int] = []
+        dropped: list[int] = []  # distance images without the frame's other images
+        orphans = 0  # other images without a distance image
+        repeated: list[int] = []  # images whose stamp repeats the one before on their topic
         with _opened(self.path) as reader:
             connections = [c for c in reader.connections if c.topic in roles]
             for conn, msg in _messages(reader, self.path, connections):
                 role = roles[conn.topic]
                 ns = _stamp_ns(msg.header.stamp)
-                if ns <= last_ns[role]:
+                if ns == last_ns[role]:  # the same image twice (a bag recorded from two sources)
+                    repeated.append(ns)
+                    continue
+                if ns < last_ns[role]:
                     raise InputError(
                         f"topic {conn.topic}: timestamps go backwards: an image stamped "
                         f"{_ns_to_s(ns):.9f} s follows one stamped {_ns_to_s(last_ns[role]):.9f} s",
@@ -477,7 +509,10 @@ class ToFBag:
                     del pending[key]
                     stamp = distance_ns.pop(key, key)
                     if missing:
-                        dropped.append(stamp)
+                        if "distance" in parts:
+                            dropped.append(stamp)
+                        else:
+                            orphans += 1
                         continue
                     if stamp <= emitted_ns:
                         raise InputError(
@@ -497,11 +532,25 @@ class ToFBag:
                         "the images of one frame must share one header stamp (or lie within 5 ms of it)",
                         self.path,
                     )
-        dropped.extend(pending)
+        for key, parts in pending.items():
+            if "distance" in parts:
+                dropped.append(distance_ns.get(key, key))
+            else:
+                orphans += 1
+        if repeated:
+            warnings.warn(f"{self.path}: {len(repeated)} image(s) repeat the stamp of the one before on their "
+                          f"topic (first at {_ns_to_s(repeated[0]):.9f} s); each read once", RosbagWarning,
+                          stacklevel=2)
+        if dropped and emitted_ns < 0:
+            others = ", ".join(t for t, r in roles.items() if r != "distance")
+            raise InputError(f"no frame is complete: no image of {others} lies within "
+                             f"{_PAIRING_NS / 1e6:g} ms of any of the {len(dropped)} images of {self.topics.distance}",
+                             self.path)
         if dropped:
             warnings.warn(
                 f"{self.path}: skipped {len(dropped)} frame(s) whose images were incomplete "
-                f"(first at {_ns_to_s(dropped[0]):.9f} s)",
+                f"(first at {_ns_to_s(dropped[0]):.9f} s)"
+                + (f", and {orphans} image(s) of no frame" if orphans else ""),
                 RosbagWarning,
                 stacklevel=2,
             )
@@ -518,16 +567,25 @@ class ToFBag:
         return self._timestamps
 
     def odometry_at(self, timestamps: np.ndarray | float) -> np.ndarray:
-        """Odometry poses (N, 3) at `timestamps` (see interpolate_poses); NaN outside its span."""
+        """Odometry poses (N, 3) at `timestamps` (see interpolate_poses); NaN outside its span
+        and in its holes (`odometry.odometry_gaps`: a pose interpolated across one is made up)."""
         if self.odometry is None:
             return np.full((np.size(timestamps), 3), np.nan)
-        return interpolate_poses(self.odometry, timestamps)
+        if self._odometry_gaps is None:
+            self._odometry_gaps = odometry_gaps(self.odometry)
+        t = np.atleast_1d(np.asarray(timestamps, dtype=np.float64))
+        poses = interpolate_poses(self.odometry, t)
+        for start, end in self._odometry_gaps:
+            poses[(t > start) & (t < end)] = np.nan
+        return poses
 
     def frame_odometry(self) -> Trajectory:
-        """The odometry pose at every frame's timestamp, interpolated (InputError outside)."""
+        """The odometry pose at every frame's timestamp, interpolated (InputError outside its
+        span or in a hole)."""
         if self.odometry is None:
             raise InputError("the bag has no odometry", self.path)
-        return self._at_frames(self.odometry, f"the odometry ({self.odometry_source})")
+        t = self.frame_timestamps()
+        return self._at_frames(self.odometry, f"the odometry ({self.odometry_source})", self.odometry_at(t))
 
     def frame_ground_truth(self) -> Trajectory | None:
         """The true pose at every frame's timestamp, interpolated; None without ground truth."""
@@ -535,15 +593,15 @@ class ToFBag:
             return None
         return self._at_frames(self.ground_truth, f"topic {self.topics.ground_truth}")
 
-    def _at_frames(self, trajectory: Trajectory, what: str) -> Trajectory:
+    def _at_frames(self, trajectory: Trajectory, what: str, poses: np.ndarray | None = None) -> Trajectory:
         t = self.frame_timestamps()
-        poses = interpolate_poses(trajectory, t)
+        poses = interpolate_poses(trajectory, t) if poses is None else poses
         outside = np.flatnonzero(np.isnan(poses[:, 0]))
         if outside.size:
             raise InputError(
-                f"{what}: frame {outside[0]} at {t[outside[0]]:.9f} s is outside the "
-                f"poses' time span [{trajectory.timestamps[0]:.9f}, "
-                f"{trajectory.timestamps[-1]:.9f}] s",
+                f"{what}: frame {outside[0]} at {t[outside[0]]:.9f} s is outside "
+                + (odometry_coverage(trajectory) if trajectory is self.odometry
+                   else f"its time span {time_span(trajectory)}"),
                 self.path,
             )
         return Trajectory(t, poses)
@@ -555,7 +613,7 @@ class ToFBag:
             samples = np.ascontiguousarray(np.moveaxis(samples, -1, 0))
         odometry = ground_truth = None
         if self.odometry is not None:
-            pose = interpolate_poses(self.odometry, t)[0]
+            pose = self.odometry_at(t)[0]
             odometry = None if np.isnan(pose[0]) else pose
         if self.ground_truth is not None:
             pose = interpolate_poses(self.ground_truth, t)[0]
@@ -609,14 +667,20 @@ def read_tof_bag(
         _connections(reader, path, topics.distance, IMAGE_TYPES)
         _connections(reader, path, topics.amplitude, IMAGE_TYPES)
         info = _connections(reader, path, topics.camera_info, CAMERA_INFO) or []
-        samples = _connections(reader, path, topics.samples, IMAGE, required=False)
+        samples = _connections(reader, path, topics.samples, IMAGE, required=topics.samples != SAMPLES_TOPIC)
         n_frames = sum(c.msgcount for c in reader.connections if c.topic == topics.distance)
-        camera = None
+        for topic in (topics.distance, topics.amplitude):
+            if not any(c.msgcount for c in reader.connections if c.topic == topic):
+                raise InputError(f"topic {topic}: has no message", path)
+        shape = None
         for _, msg in _messages(reader, path, info):
-            camera = _camera_from_info(msg, path, topics.camera_info)
+            shape, camera = _camera_from_info(msg, path, topics.camera_info)
             break
-        if camera is None:
+        if shape is None:
             raise InputError(f"topic {topics.camera_info}: has no message", path)
+        if camera is None and depth:
+            raise InputError(f"topic {topics.camera_info}: K is all zeros (an uncalibrated camera), and depth "
+                             "images need the intrinsics to give distances", path)
         found = read_bag_odometry(reader, path, odometry=topics.odometry, ground_truth=topics.ground_truth,
                                   tf=topics.tf, odom_frame=topics.odom_frame, base_frame=topics.base_frame,
                                   how=_HOW, find=odometry or require_odometry)
@@ -637,6 +701,7 @@ def read_tof_bag(
         has_samples=samples is not None,
         depth=bool(depth),
         odometry_source=found.source,
+        shape=shape,
     )
 
 
@@ -699,6 +764,9 @@ def _decode_image(
 # inverse depth), then its figures for a 32FC1 depth (depth = A / (q - B), q = 0 no reading),
 # little-endian. PNG or RVL coding is said by the format string.
 _DEPTH_HEADER = np.dtype([("compression", "<i4"), ("quant_a", "<f4"), ("quant_b", "<f4")])
+# A PNG file's first 8 bytes, and its last 12 (the empty IEND chunk and its CRC).
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
 # Plain image_transport formats ("png", "jpeg") name no pixel encoding: it follows from the pixels.
 _BY_DTYPE = {np.dtype(np.uint16): ("16UC1", "mono16"), np.dtype(np.uint8): ("mono8",)}
 
@@ -732,6 +800,10 @@ def _decompressed(
     elif not lossy and any(word in fmt.lower() for word in ("jpeg", "jpg")):
         raise InputError(f"topic {topic}: {fmt!r} is lossy JPEG, which cannot carry distances; record them "
                          "as compressedDepth or png", path)
+    elif data[:8].tobytes() == _PNG_SIGNATURE and data[-12:].tobytes() != _PNG_END:
+        # Checked here: OpenCV would print libpng's own complaint before failing.
+        raise InputError(f"topic {topic}: the {fmt!r} image at {stamp} is a truncated PNG ({data.size} bytes, "
+                         "no end chunk)", path)
     else:
         image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if image is None:
@@ -752,6 +824,15 @@ def _decompressed(
             raise InputError(f"topic {topic}: the {fmt!r} image at {stamp} holds {bits} pixels, not the "
                              f"{kind.itemsize * 8}-bit ones of {encoding}", path)
     if depth and encoding == "32FC1":
+        # image_transport's figures give every q >= 1 a positive depth (A > 0, B < 1: A = d(d+1),
+        # B = 1 - d for its depth_quantization d); others would make distances out of nothing.
+        if image.dtype != np.uint16:
+            raise InputError(f"topic {topic}: the compressedDepth image at {stamp} holds {bits} pixels; its "
+                             "quantised depth is 16-bit", path)
+        a, b = float(header["quant_a"]), float(header["quant_b"])
+        if not (math.isfinite(a) and math.isfinite(b) and a > 0 and b < 1):
+            raise InputError(f"topic {topic}: the compressedDepth image at {stamp} has quantisation A = {a:g}, "
+                             f"B = {b:g}; depth = A / (q - B) needs A > 0 and B < 1", path)
         q = image.astype(np.float32)
         with np.errstate(divide="ignore"):
             metres = np.float32(header["quant_a"]) / (q - np.float32(header["quant_b"]))
@@ -776,10 +857,18 @@ def _rvl_image(data: np.ndarray, path: Path, topic: str, stamp: str, shape: tupl
         raise InputError(f"topic {topic}: the image at {stamp}: {err}", path) from err
 
 
-def _camera_from_info(msg: Any, path: Path, topic: str) -> Camera:
-    """omnitof's Camera from a sensor_msgs/CameraInfo (plumb_bob, no skew)."""
-    k = np.asarray(msg.k, dtype=np.float64)
-    d = [float(v) for v in msg.d]
+def _camera_from_info(msg: Any, path: Path, topic: str) -> tuple[tuple[int, int], Camera | None]:
+    """The (height, width) of the images and omnitof's Camera from a sensor_msgs/CameraInfo
+    (plumb_bob, no skew), None for the camera where K is all zeros (a driver's uncalibrated
+    camera: the rig's calibration has the intrinsics); ROS 1 names its fields K and D, ROS 2 k
+    and d."""
+    k = np.asarray(msg.k if hasattr(msg, "k") else msg.K, dtype=np.float64)
+    d = [float(v) for v in (msg.d if hasattr(msg, "d") else msg.D)]
+    width, height = int(msg.width), int(msg.height)
+    if width <= 0 or height <= 0:
+        raise InputError(f"topic {topic}: images of {width}×{height} pixels", path)
+    if not k.any():
+        return (height, width), None
     model = str(msg.distortion_model)
     if model in ("plumb_bob", "rational_polynomial") and len(d) in (5, 8):
         if any(d[5:]):
@@ -802,8 +891,6 @@ def _camera_from_info(msg: Any, path: Path, topic: str) -> Camera:
             f"topic {topic}: K = {k.tolist()} is not [fx 0 cx; 0 fy cy; 0 0 1] (no skew)", path
         )
     try:
-        return Camera(
-            int(msg.width), int(msg.height), k[0], k[4], k[2], k[5], dist  # type: ignore[arg-type]
-        )
+        return (height, width), Camera(width, height, k[0], k[4], k[2], k[5], dist)  # type: ignore[arg-type]
     except CameraParameterError as err:
         raise InputError(f"topic {topic}: {err}", path) from None
