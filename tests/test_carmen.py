@@ -369,12 +369,35 @@ def test_beam_angles_beyond_a_turn_are_refused(tmp_path, start, res):
     assert excinfo.value.line == 2
 
 
-def test_a_zero_angular_resolution_is_refused(tmp_path):
+@pytest.mark.parametrize("res", [0.0, 1e-300, -1e-9])
+def test_a_zero_angular_resolution_is_refused(tmp_path, res):
     # Every beam at one angle: the scans would draw a single ray and the filter weigh nonsense.
-    lines = [robotlaser([1.0, 2.0, 3.0], [], 1.0, (0, 0, 0), (0, 0, 0), res=0.0)]
-    with pytest.raises(InputError, match=r"angular_resolution is '0\.0+': it would put all 3 beams") as excinfo:
+    lines = [robotlaser([1.0, 2.0, 3.0], [], 1.0, (0, 0, 0), (0, 0, 0), res=res)]
+    with pytest.raises(InputError, match=r"angular_resolution is '.*': it would put all 3 beams") as excinfo:
         read_carmen(write(tmp_path, lines))
     assert excinfo.value.line == 1
+
+
+@pytest.mark.parametrize(("lines", "line", "words"), [
+    # A laser 1000 km from the robot (an offset in another unit, a broken logger): the map's
+    # cells cannot hold its end points, and the core refused them mid-run with a traceback.
+    (["PARAM robot_frontlaser_offset 1e9 nohost 0", flaser([1.0, 2.0], 1.0)], 1,
+     ["PARAM robot_frontlaser_offset puts the front laser 1e+09 m", "within 100 m"]),
+    (["PARAM robot_frontlaser_side_offset -150 nohost 0", flaser([1.0, 2.0], 1.0)], 1,
+     ["PARAM robot_frontlaser_side_offset puts the front laser 150 m"]),
+    ([flaser([1.0, 2.0], 1.0, laser_pose=(500.0, 0, 0), odom=(0, 0, 0)),
+      flaser([1.0, 2.0], 2.0, laser_pose=(501.0, 0, 0), odom=(1.0, 0, 0))], 1,
+     ["FLASER laser poses lie 500 m from the robot poses"]),
+    # Poses beyond a million kilometres (the trajectory files hold no more).
+    ([flaser([1.0, 2.0], 1.0, laser_pose=(1e300, 0, 0), odom=(0, 0, 0))], 1, ["laser_x, laser_y = 1e+300, 0 m"]),
+    ([odom(0.0, 2e9, 0.0, 1.0), rawlaser([1.0, 2.0], 1.1)], 1, ["x, y = 0, 2e+09 m lie beyond ±1e+09 m"]),
+    ([robotlaser([1.0, 2.0], [], 1.0, (0, 0, 0), (-3e9, 0, 0))], 1, ["robot_x, robot_y = -3e+09, 0 m"]),
+])
+def test_a_laser_far_from_the_robot_or_poses_beyond_a_million_km_are_refused(tmp_path, lines, line, words):
+    path = write(tmp_path, lines)
+    with pytest.raises(InputError) as excinfo:
+        read_carmen(path)
+    rejects(excinfo, path, line, *words)
 
 
 def test_a_reading_that_rounds_to_the_maximum_in_float32_is_no_echo(tmp_path):

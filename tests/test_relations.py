@@ -285,6 +285,14 @@ def test_read_relations(tmp_path: Path) -> None:
     np.testing.assert_array_equal(rel.delta[1], [-0.153130, -0.051420, -2.405850])
 
 
+def test_a_byte_order_mark_before_the_first_row_is_dropped(tmp_path: Path) -> None:
+    # Windows editors write one; it read as part of the first number (or the '#').
+    path = tmp_path / "r.relations"
+    path.write_bytes("\ufeff# made in Notepad\r\n1 2 0.1 0.2 0 0 0 0.3\r\n".encode())
+    rel = read_relations(path)
+    assert len(rel) == 1 and rel.t1[0] == 1.0
+
+
 def test_a_bad_row_after_a_form_feed_is_named_by_its_own_line(tmp_path: Path) -> None:
     path = tmp_path / "r.relations"
     path.write_text("# made by a tool\x0cthat pages its output\n1 2 0.1 0.2 0 0 0 0.3\n1 2 0.1 x 0 0 0 0.3\n")

@@ -1007,6 +1007,34 @@ def test_laserscan_bag_with_changing_beams_and_range_max(tmp_path: Path) -> None
     assert scans.max_range == 4.0 and scans.max_range_rule == "LaserScan range_max (2.5 to 4 m)"
 
 
+def test_laserscan_beams_that_are_no_lasers_are_refused_and_a_wrong_angle_max_warned_of(tmp_path: Path) -> None:
+    def bag(name, **geometry):
+        messages = []
+        for k in range(2):
+            ns = 1000 * NS + k * NS // 10
+            messages += [("/odom", ODOM, odometry_msg(HUMBLE, ns, (0.1 * k, 0, 0))),
+                         ("/scan", SCAN, scan_msg(HUMBLE, ns, [3.0] * 5, **geometry))]
+        return write_raw(tmp_path / name, messages)
+
+    # As the CARMEN reader refuses them: every beam at one bearing, beams beyond ±2π.
+    expect = [("zero", {"inc": 0.0}, "angle_increment 0: it would put all 5 beams at one bearing"),
+              ("tiny", {"inc": 1e-300}, "it would put all 5 beams at one bearing"),
+              ("beyond", {"angle_min": -100.0}, "put its 5 beams at -100 .. -98 rad; a laser's beams lie within ±2π"),
+              ("wide", {"inc": 10.0}, "-1 .. 39 rad; a laser's beams lie within ±2π")]
+    for name, geometry, fragment in expect:
+        with pytest.raises(InputError, match=re.escape(fragment)) as info:
+            read_laserscan_bag(bag(name, **geometry))
+        assert "topic /scan: the scan at 1000.000000000 s" in str(info.value)
+    # An angle_max that disagrees with the beams: they are placed as LaserScan defines them.
+    messages = [("/odom", ODOM, odometry_msg(HUMBLE, 1000 * NS, (0, 0, 0))),
+                ("/scan", SCAN, scan_msg(HUMBLE, 1000 * NS, [3.0] * 5))]
+    messages[1][2].angle_max = -0.5  # the last of 5 beams from -1 rad every 0.5 rad is at 1 rad
+    with pytest.warns(RosbagWarning, match=r"1 scan\(s\) end elsewhere than their angle_max says; .* the last at 1 "
+                                           r"rad, but angle_max -0\.5 rad"):
+        scans = read_laserscan_bag(write_raw(tmp_path / "odd_max", messages))
+    np.testing.assert_allclose(scans.scan_angles(0), -1.0 + 0.5 * np.arange(5), atol=1e-7)
+
+
 def test_laserscan_writer_checks(tmp_path: Path) -> None:
     scans = scan_sequence(n=3)
     with pytest.raises(ValueError, match="'.bag'"):

@@ -219,6 +219,14 @@ def test_line_numbers_count_newlines_only(tmp_path: Path, separator: str) -> Non
     assert info.value.line == 3 and f"{path}:3: " in str(info.value)
 
 
+def test_a_byte_order_mark_before_the_header_is_dropped(tmp_path: Path) -> None:
+    # Windows editors write one; the header then read as a row of 9 fields.
+    path = tmp_path / "t.tum"
+    path.write_bytes("\ufeff# timestamp x y z qx qy qz qw\r\n0 1 2 0 0 0 0 1\r\n".encode())
+    traj = read_tum(path)
+    assert len(traj) == 1 and traj.poses[0, 0] == 1.0
+
+
 def test_line_numbers_after_crlf_and_cr(tmp_path: Path) -> None:
     path = tmp_path / "t.tum"
     path.write_bytes(b"0 1 2 0 0 0 0 1\r\n1 1 2 0 0 0 0 1\r2 1 2 0 0 0 0 1\nbad\n")

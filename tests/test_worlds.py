@@ -204,6 +204,8 @@ BAD_FILES = [
     ("name: x\nceiling_height: 2.5\n", ["walls", "at least one wall or box"]),
     ("name: x\nceiling_height: 2.5\nwalls:\n  - points: [[0, 0], [3, 0]]\npath:\n  waypoints: [[1, 1], [2, 1]]\n"
      "  laps: 1000000000000\n", ["path.laps", "less than or equal to 10000"]),
+    ("name: x\nceiling_height: 2.5\nwalls:\n  - points: [[0, 0], [3, 0]]\npath:\n  waypoints: [[1, 1], [1, 1], [2, 1]]\n",
+     ["path", "waypoints 0 and 1 are both [1.0, 1.0]: consecutive waypoints must differ"]),
     ("name: x\nceiling_height: 2.5\nwalls: [[0, 0], [1, 0]\n", ["not valid YAML"]),
     # A box 1e300 m wide made the path's clearance NaN, and the robot drove through it.
     ("name: x\nceiling_height: 2.5\nboxes:\n  - {centre: [3, 1], size: [1.0e300, 0.2], height: 1}\n",

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import errno
 import os
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -32,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from omnitof.errors import OutputError, dump_yaml
+from omnitof.errors import OmnitofWarning, OutputError, dump_yaml
 from omnitof.interrupts import pause_point
 from omnitof.slam.config import SlamConfig
 from omnitof.io.atomic import atomic_folder, atomic_write
@@ -127,6 +128,10 @@ def write_results(
     }
     # Poses that share a timestamp share a TUM row (io.tum.write_tum): counted in the summary.
     merged = write_tum(paths["trajectory"], result.trajectory, sort=True)
+    if merged:
+        warnings.warn(f"trajectory.tum: {merged} of {len(result.trajectory)} poses share their timestamp (to the "
+                      "microsecond) with another; a TUM file holds one pose per timestamp, the latest estimate "
+                      "(summary.yaml: tum_poses_merged)", OmnitofWarning, stacklevel=2)
     write_tum(paths["odometry"], result.odometry, sort=True)
     pause_point("write")  # half of the files are written (the fault-injection tests stop here)
     with atomic_write(paths["config"]) as f:

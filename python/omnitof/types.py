@@ -6,6 +6,7 @@ counter-clockwise from +x; a range of +inf means "no echo / no reading" (never z
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -248,6 +249,14 @@ def drop_repeated_scans(scans: ScanSequence) -> ScanSequence:
     kept = scans.take(np.concatenate([[True], ~same]))
     kept.repeated_scans_dropped = scans.repeated_scans_dropped + int(same.sum())
     return kept
+
+
+# Beam angles beyond this (rad) are no laser's (first and last beam; ±2π admits both the
+# [-π, π) and the [0, 2π) conventions). The readers refuse them.
+MAX_BEAM_ANGLE = 2.0 * math.pi + 1e-9
+# Beams closer than this (rad) are one bearing: 2π in 6e8 beams (the densest scans read here
+# hold 2e6: BENCHMARKS.md, "A log of very dense scans"). The readers refuse them.
+MIN_BEAM_STEP = 1e-8
 
 
 def evenly_spaced_beams(

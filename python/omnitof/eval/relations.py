@@ -103,8 +103,8 @@ def read_relations(path: str | Path) -> Relations:
     """
     try:
         # "\n" only (read_text folds "\r\n" and "\r" into it): splitlines() also breaks at form
-        # feeds, \x1c-\x1e, \x85 and \u2028, and every line number after them would be wrong.
-        lines = Path(path).read_text(encoding="utf-8").split("\n")
+        # feeds, \x1c-\x1e, \x85 and \u2028, and every line number after them would be wrong. utf-8-sig drops the byte order mark that Windows editors write first.
+        lines = Path(path).read_text(encoding="utf-8-sig").split("\n")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"cannot read the relations file: {read_problem(exc)}", path) from None
     rows = [

@@ -43,6 +43,8 @@ from omnitof.errors import ConfigError, InputError, OmnitofWarning, read_problem
 from omnitof.io.text import is_decimal, quote
 from omnitof.geometry import interpolate_poses, relative, wrap_angle
 from omnitof.types import (
+    MAX_BEAM_ANGLE,
+    MIN_BEAM_STEP,
     ScanSequence,
     Trajectory,
     drop_repeated_scans,
@@ -75,13 +77,16 @@ OFFSET_TOLERANCE_RAD = math.radians(0.5)
 # Laser poses count as a mount when this share of the scans agree with their median offset.
 MOUNT_MIN_SHARE = 0.9
 
-# New-format beam angles beyond this (rad) are no laser's (start and last beam; ±2π admits both
-# the [-π, π) and the [0, 2π) conventions).
-_MAX_BEAM_ANGLE = 2.0 * math.pi + 1e-9
 # Scans whose first and last beams agree with the first scan's to this (rad) share its geometry.
 GEOMETRY_TOLERANCE = 1e-6
 # The largest max_range write_carmen writes (m): no laser reaches 1000 km.
 MAX_WRITTEN_RANGE = 1e6
+# Poses beyond a million kilometres come from a broken logger, not a robot (georeferenced logs
+# lie within 2e7 m); the trajectory files (io.tum) hold no more either.
+MAX_POSITION = 1e9
+# A laser mounted farther than this from the robot's centre is a mistaken offset (a PARAM in
+# millimetres, a pose in another frame); the maps' cells could not hold its end points.
+MAX_MOUNT = 100.0
 # read_carmen's default for the largest backwards step of scan timestamps (seconds) it accepts.
 MAX_TIME_REVERSAL = 1.0
 
@@ -504,7 +509,15 @@ def _parse_odom(tokens: list[str]) -> tuple[float, np.ndarray]:
     if len(tokens) != 10:
         raise _Malformed(f"ODOM has {len(tokens) - 1} values, not 9; {_ODOM_LAYOUT.expected}")
     values = _floats(tokens, 1, 7, _ODOM_LAYOUT)
-    return _timestamp(tokens, _ODOM_LAYOUT), values[:3]
+    return _timestamp(tokens, _ODOM_LAYOUT), _near(values[:3], "x, y")
+
+
+def _near(pose: np.ndarray, what: str) -> np.ndarray:
+    """`pose` (x, y, theta), checked to lie within ±MAX_POSITION."""
+    if np.abs(pose[:2]).max() > MAX_POSITION:
+        raise _Malformed(f"{what} = {pose[0]:.6g}, {pose[1]:.6g} m lie beyond ±{MAX_POSITION:g} m, where no robot "
+                         "drives")
+    return pose
 
 
 def _old_laser_fields(n: int | None) -> list[tuple[str, int | None]]:
@@ -529,8 +542,8 @@ def _parse_old_laser(tokens: list[str]) -> _Scan:
         line=0,
         stamp=_timestamp(tokens, layout),
         ranges=values[:n],
-        laser_pose=values[n : n + 3],
-        robot_pose=values[n + 3 : n + 6],
+        laser_pose=_near(values[n : n + 3], "laser_x, laser_y"),
+        robot_pose=_near(values[n + 3 : n + 6], "odom_x, odom_y"),
     )
 
 
@@ -557,13 +570,13 @@ def _parse_new_laser(tokens: list[str], with_pose: bool) -> _Scan:
     start, resolution, max_range = config[1], config[3], config[4]
     if not max_range > 0.0:
         raise _Malformed(f"maximum_range is {tokens[5]!r}; it must be positive")
-    if n > 1 and resolution == 0.0:
+    if n > 1 and abs(resolution) < MIN_BEAM_STEP:
         raise _Malformed(
             f"angular_resolution is {tokens[4]!r}: it would put all {n} beams at one angle "
             f"(field_of_view is {tokens[3]!r})"
         )
     last = start + max(n - 1, 0) * resolution
-    if not (abs(start) <= _MAX_BEAM_ANGLE and abs(last) <= _MAX_BEAM_ANGLE):
+    if not (abs(start) <= MAX_BEAM_ANGLE and abs(last) <= MAX_BEAM_ANGLE):
         raise _Malformed(
             f"start_angle {tokens[2]!r} and angular_resolution {tokens[4]!r} put the beams at "
             f"{start:.6g} .. {last:.6g} rad; a laser's beams lie within ±2π"
@@ -577,7 +590,7 @@ def _parse_new_laser(tokens: list[str], with_pose: bool) -> _Scan:
     )
     if with_pose:
         poses = _floats(tokens, 10 + n + m, 21 + n + m, layout)  # with tv, rv, safety, turn
-        scan.laser_pose, scan.robot_pose = poses[:3], poses[3:6]
+        scan.laser_pose, scan.robot_pose = _near(poses[:3], "laser_x, laser_y"), _near(poses[3:6], "robot_x, robot_y")
     return scan
 
 
@@ -820,6 +833,11 @@ def _param_sensor_pose(
     if offset is None and side is None and angle is None:
         return None
     pose = np.array([offset or 0.0, side or 0.0, angle or 0.0])
+    if math.hypot(pose[0], pose[1]) > MAX_MOUNT:
+        name = names[0] if offset is not None else names[1]
+        raise ctx.error(f"PARAM {name} puts the {laser} laser {math.hypot(pose[0], pose[1]):.6g} m from the "
+                        f"robot's centre; a laser on the robot is within {MAX_MOUNT:g} m of it (in metres)",
+                        params[name][1])
     if laser == "rear" and angle is None:
         # Older CARMEN knew only robot_rearlaser_offset and mounted the rear laser facing
         # backwards, the offset measured along its own heading (localize: theta + pi).
@@ -885,6 +903,9 @@ def _sensor_pose(
                 stacklevel=4,
             )
             return fallback
+    if math.hypot(first[0], first[1]) > MAX_MOUNT:
+        raise ctx.error(f"the {kind} laser poses lie {math.hypot(first[0], first[1]):.6g} m from the robot poses, "
+                        f"one fixed offset; a laser on the robot is within {MAX_MOUNT:g} m of it", scans[0].line)
     if from_params is not None and not _same_offset(from_params[None, :], first)[0]:
         warnings.warn(
             f"{ctx.path}: the PARAMs put the {laser} laser at {_fmt_pose(from_params)} on the "

@@ -127,9 +127,9 @@ def read_tum(path: str | Path) -> Trajectory:
 def _read_lines(path: str | Path) -> list[str]:
     # Split on "\n" only (read_text folds "\r\n" and "\r" into it): splitlines() would also
     # break at form feeds, \x1c-\x1e, \x85 and \u2028, and every line number after them would be
-    # wrong.
+    # wrong. utf-8-sig drops the byte order mark that Windows editors write first.
     try:
-        return Path(path).read_text(encoding="utf-8").split("\n")
+        return Path(path).read_text(encoding="utf-8-sig").split("\n")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"cannot read the TUM trajectory: {read_problem(exc)}", path) from None
 

@@ -213,6 +213,15 @@ class PathSpec(_Strict):
     # 10 000 laps of a 10 m loop are 100 km, a million frames at 10 Hz: more is a typo.
     laps: Annotated[int, Field(ge=1, le=10_000)] = 1
 
+    @model_validator(mode="after")
+    def _legs(self) -> PathSpec:
+        # A leg of no length has no heading (the first one also sets where a closed loop ends).
+        for k in range(1, len(self.waypoints)):
+            if tuple(self.waypoints[k]) == tuple(self.waypoints[k - 1]):
+                raise ValueError(f"waypoints {k - 1} and {k} are both {list(self.waypoints[k])}: consecutive "
+                                 "waypoints must differ")
+        return self
+
 
 class WorldSpec(_Strict):
     name: str

@@ -80,6 +80,8 @@ from omnitof.io.rosbag.odometry import (
 )
 from omnitof.types import (
     FLOAT32_MAX,
+    MAX_BEAM_ANGLE,
+    MIN_BEAM_STEP,
     ScanSequence,
     Trajectory,
     drop_repeated_scans,
@@ -200,6 +202,7 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
         ranges: list[np.ndarray] = []
         intensities: list[np.ndarray] = []
         geometry: list[tuple[float, float, int, float]] = []  # angle_min, increment, beams, range_max
+        odd_ends: list[str] = []  # scans whose angle_max disagrees with their beams (warned once)
         laser_frame = ""
         for _, msg in _messages(reader, path, scan_conns):
             ns = _stamp_ns(msg.header.stamp)
@@ -229,6 +232,7 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
                     "finite",
                     path,
                 )
+            _check_beams(msg, len(r), f"topic {scan_name}: the scan at {_ns_to_s(ns):.9f} s", path, odd_ends)
             with np.errstate(invalid="ignore"):
                 # False for NaN; a range of 0 or less is no reading, whatever range_min says.
                 valid = (r >= range_min) & (r <= range_max) & (r > 0.0)
@@ -237,6 +241,10 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
             ranges.append(r)
             intensities.append(remission)
             geometry.append((float(msg.angle_min), float(msg.angle_increment), len(r), range_max))
+        if odd_ends:
+            warnings.warn(f"{path}: {len(odd_ends)} scan(s) end elsewhere than their angle_max says; their beams are "
+                          f"placed by angle_min and angle_increment, as LaserScan defines them (first: {odd_ends[0]})",
+                          RosbagWarning, stacklevel=2)
         if stamps and dynamic_conns and not _resolves(static, base_frame, laser_frame):
             if first_seen is None:
                 first_seen = _read_static_transforms(reader, path, dynamic_conns, first_only=True)
@@ -321,6 +329,23 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
             stacklevel=2,
         )
     return scans
+
+
+def _check_beams(msg: Any, beams: int, where: str, path: Path, odd_ends: list[str]) -> None:
+    """InputError where the beams' angles are no laser's: all at one bearing, or beyond ±2π (as
+    the CARMEN reader refuses them); `where` is appended to `odd_ends` where angle_max is more
+    than an increment off the last beam, which omnitof places at angle_min + (beams - 1)·increment
+    as LaserScan defines it (the caller warns once)."""
+    start, step = float(msg.angle_min), float(msg.angle_increment)
+    if beams > 1 and abs(step) < MIN_BEAM_STEP:
+        raise InputError(f"{where} has angle_increment {step:g}: it would put all {beams} beams at one bearing", path)
+    last = start + (beams - 1) * step
+    if not (abs(start) <= MAX_BEAM_ANGLE and abs(last) <= MAX_BEAM_ANGLE):
+        raise InputError(f"{where} has angle_min {start:g} and angle_increment {step:g}, which put its {beams} beams at "
+                         f"{start:.6g} .. {last:.6g} rad; a laser's beams lie within ±2π", path)
+    if beams > 1 and not abs(float(msg.angle_max) - last) <= 1.5 * abs(step):  # False for NaN too
+        odd_ends.append(f"{where} has {beams} beams from {start:.6g} rad every {step:.6g} rad, the last at "
+                        f"{last:.6g} rad, but angle_max {float(msg.angle_max):.6g} rad")
 
 
 def _first_echoes(msg: Any) -> tuple[np.ndarray, np.ndarray]:
