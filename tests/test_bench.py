@@ -330,11 +330,17 @@ def test_a_complete_run_of_another_configuration_is_not_taken_for_this_one(grid_
     ("inputs: [{name: a, log: LOG, scan_delay: soon}]", "inputs[0].scan_delay: expected seconds"),
     ("inputs: [{name: a/b, log: LOG}]", "inputs[0].name"),
     ("inputs: [{name: a, log: LOG}, {name: a, log: LOG}]", "inputs[1].name: 'a' is given twice"),
+    # These three passed validation and failed after experiment.yaml and runs/ were written.
+    ("inputs: [{name: a, log: LOG, relations: .}]", "inputs[0].relations: not a file"),
+    ("inputs: [{name: a, log: LOG, calibration: .}]", "inputs[0].calibration: not a file"),
+    (f"inputs: [{{name: {'a' * 300}, log: LOG}}]", "inputs[0].name: the run folder aaaa"),
     ("inputs: []", "inputs: List should have at least 1 item"),
     ("inputs: [{name: a, log: LOG}]\npresets: [nope]", "presets[0]: unknown preset 'nope'"),
     ("inputs: [{name: a, world: offic}]", "inputs[0].world: no bundled world 'offic'"),
     ("inputs: [{name: a, log: LOG}]\ngrid: {filter.particles: 10}", "grid.filter.particles: Input should be a valid list"),
     ("inputs: [{name: a, log: LOG}]\ngrid: {particles: [10]}", "grid: 'particles': expected SECTION.FIELD"),
+    ("inputs: [{name: a, log: LOG}]\ngrid: {filter.particles: [[10]]}",
+     "grid: filter.particles: expected a list of single values (numbers, text, true/false), got [10]"),
     ("inputs: [{name: a, log: LOG}]\ngrid: {filter.particles: [10, 0]}", "filter.particles=0, preset laser180-scanmatch: filter.particles"),
     ("inputs: [{name: a, log: LOG}]\ngrid: {filter.partcles: [10]}", "filter.partcles: Extra inputs are not permitted"),
     ("inputs: [{name: a, log: LOG}]\nseeds: [1, 1]", "seeds: expected distinct seeds"),
@@ -355,6 +361,20 @@ def test_a_malformed_experiment_is_one_line_naming_the_field(data, tmp_path, cap
     err = capsys.readouterr().err
     assert message in err and str(path) in err, err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_world_whose_drive_cannot_be_planned_is_refused_before_anything_is_written(tmp_path, capsys):
+    # It loaded, so it passed validation; a worker then failed to plan the drive.
+    from omnitof.errors import dump_yaml, load_yaml
+
+    world = load_yaml((ROOT / "python/omnitof/worlds/room.yaml").read_text())
+    world["path"]["waypoints"] = [[1.5, 1.5], [4.5, 1.5], [1.5, 1.6]]  # turns back on itself
+    (tmp_path / "w.yaml").write_text(dump_yaml(world))
+    path = _experiment(tmp_path, "bad", "inputs: [{name: a, world: w.yaml}]\n")
+    assert main(["bench", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "inputs[0].world:" in err and "turns back on the path" in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "out").exists()
 
 
@@ -439,6 +459,29 @@ def test_the_table_reads_table1_and_failures_from_the_folders(tmp_path):
     assert table.rows[0]["particle_scans_per_s"] == 300.0 and "table1_worst_cm" in table.columns
     (agg,) = aggregates(table)
     assert (agg["runs"], agg["ok"]) == (3, 2) and agg["wall_s"] == (2.0, 2.0, 2.0)
+
+
+@pytest.mark.parametrize("name, text, message", [
+    ("bench.yaml", b"garbage: [\n", "bench.yaml:2: not valid YAML"),
+    ("bench.yaml", b"\x00\xff" * 20, "bench.yaml: cannot read it: not UTF-8 text"),
+    ("bench.yaml", b"- 1\n", "bench.yaml: expected a YAML mapping, got list"),
+    ("bench.yaml", b"status: ok\ncell: x\n", "bench.yaml: cell: expected a mapping, got 'x'"),
+    ("bench.yaml", b"status: ok\ncell: {seed: 0}\nmetrics_collected: x\n", "bench.yaml: metrics_collected: expected a list"),
+    ("summary.yaml", b"x: [\n", "summary.yaml:2: not valid YAML"),
+    ("summary.yaml", b"run: {seconds: 1.0, particles: many, integrated: 10}\n", "has a field missing or of the wrong type"),
+])
+def test_a_damaged_run_folder_is_one_error_naming_the_file(tmp_path, capsys, name, text, message):
+    # Each was a traceback (a YAML error, UnicodeDecodeError, AttributeError) from `bench report`.
+    from omnitof.bench.folders import write_run
+
+    record = {"status": "ok", "cell": {"input": "a", "preset": "tof", "point": {}, "seed": 0, "index": 0}}
+    summary = yaml.safe_dump({"run": {"seconds": 1.0, "particles": 30, "integrated": 10, "scans": 50}})
+    folder = write_run(tmp_path, "a", {"summary.yaml": summary.encode()}, record)
+    (folder / name).write_bytes(text)
+    assert main(["bench", "report", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and str(folder) in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "table.csv").exists()
 
 
 def test_scratch_folders_of_dead_processes_are_swept_and_no_others(tmp_path):

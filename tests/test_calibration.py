@@ -86,6 +86,65 @@ def test_bad_file_names_file_and_field(rig, tmp_path, edit, message):
     assert str(path) in str(err.value) and message in str(err.value)
 
 
+def _set(*keys, value):
+    """An edit of the calibration's YAML data: the field at `keys` set to `value`."""
+    def edit(data):
+        for key in keys[:-1]:
+            data = data[key]
+        data[keys[-1]] = value
+    return edit
+
+
+def _turn_mirror0(normal):
+    return _set("mirrors", 0, "normal", value=normal)
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (_set("quality", value="good"), "quality: expected a mapping, got 'good'"),
+        (_set("quality", value=5), "quality: expected a mapping, got 5"),
+        (_set("quality", value=[1, 2]), "quality: expected a mapping"),
+        (_set("provenance", value="me"), "provenance: expected a mapping, got 'me'"),
+        (_set("mirrors", 0, "quality", value="good"), r"mirrors\[0\].quality: expected a mapping"),
+        (_set("masks", "rows", 0, value="0*99999999999999999999"), r"masks.rows\[0\]: runs cover more than"),
+        (_set("masks", "rows", 0, value="0*1000000000"), r"masks.rows\[0\]: runs cover more than"),
+        (_set("masks", "polygons", value={"front": [[0, 0], [1], [2, 2]]}), "masks.polygons.front: expected"),
+        (_set("mirrors", 0, "name", value=None), r"mirrors\[0\].name: expected a text, got None"),
+        (_set("mirrors", 0, "name", value=5), r"mirrors\[0\].name: expected a text"),
+        (_set("mirrors", 0, "name", value=["a"]), r"mirrors\[0\].name: expected a text"),
+        (_set("mirrors", 0, "d", value="0.08"), r"mirrors\[0\].d: expected a number"),
+        (_set("omnitof_calibration", value=True), "omnitof_calibration: expected format version 1, got True"),
+        (_turn_mirror0([0.0, 0.0, 1.0]), r"mirrors\[0\] \(.*\): the normal is 0.0° from the optical axis, within 5°"),
+        (_turn_mirror0([0.0, 1.0, 0.0]), "within 5° of perpendicular"),
+        (_turn_mirror0([0.0, 0.56, -0.83]), "behind the camera"),
+    ],
+)
+def test_wrong_typed_or_impossible_fields_name_the_field(rig, tmp_path, edit, message):
+    from omnitof.errors import dump_yaml, load_yaml
+
+    cal = Calibration.from_rig(rig)
+    cal.polygons = {"front": np.array([[0.0, 0.0], [175.0, 0.0], [88.0, 70.0]])}
+    path = save_calibration(cal, tmp_path / "cal.yaml")
+    data = load_yaml(path.read_text())
+    edit(data)
+    path.write_text(dump_yaml(data))
+    with pytest.raises(CalibrationError, match=message) as err:
+        load_calibration(path)
+    assert str(path) in str(err.value)
+
+
+def test_mirrors_facing_the_same_way_are_no_pyramid(rig, tmp_path):
+    from omnitof.errors import dump_yaml, load_yaml
+
+    path = save_calibration(Calibration.from_rig(rig), tmp_path / "cal.yaml")
+    data = load_yaml(path.read_text())
+    data["mirrors"][2]["normal"] = data["mirrors"][0]["normal"]
+    path.write_text(dump_yaml(data))
+    with pytest.raises(CalibrationError, match=r"mirrors\[2\] \(.*\) faces the same way as mirrors\[0\]"):
+        load_calibration(path)
+
+
 # --- shared simulated data -----------------------------------------------------------------
 
 PLACEMENTS = 8  # dot-target placements per mirror in the accuracy tests
@@ -255,7 +314,7 @@ def test_intrinsics_reads_png_and_rejects_too_few_boards(rig, tmp_path):
         calibrate_intrinsics(images)
 
 
-def test_a_truncated_npz_a_tiny_image_and_a_tiny_board_are_user_mistakes(tmp_path, capsys):
+def test_a_truncated_npz_a_tiny_image_and_a_tiny_board_are_user_mistakes(tmp_path, capfd):
     # Each was a traceback (zipfile.BadZipFile; cv2.error from the detector's thresholding;
     # cv2.error from findChessboardCorners).
     from omnitof.calibration.images import load_images
@@ -270,11 +329,17 @@ def test_a_truncated_npz_a_tiny_image_and_a_tiny_board_are_user_mistakes(tmp_pat
         load_images([cut])
     with pytest.raises(CalibrationError, match="gone.png: no such file or folder"):
         load_images([tmp_path / "gone.png"])  # was OpenCV's own warning, then "cannot read the image"
+    garbage = tmp_path / "garbage.png"
+    garbage.write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 10)
+    capfd.readouterr()
+    with pytest.raises(CalibrationError, match="garbage.png: cannot read the image"):
+        load_images([garbage])
+    assert capfd.readouterr().err == ""  # OpenCV's [ WARN ] and [ERROR] lines held back: one message
     for side in (1, 3, 14):
         assert detect_checkerboard(np.random.default_rng(0).random((side, 40)), (7, 5)) is None
     for board in ("3x3", "1x8", "8x0"):
         assert main(["calibrate", "intrinsics", "--out", str(tmp_path / "c.yaml"), "--board", board, str(whole)]) == 2
-        err = capsys.readouterr().err
+        err = capfd.readouterr().err
         assert "--board: needs at least 4x4 squares" in err and err.count("\n") == 1
     assert not (tmp_path / "c.yaml").exists()
 
@@ -425,6 +490,35 @@ def test_masks_from_planes_and_polygons(rig, tmp_path):
     assert (hand == 0).sum() == 121 and (hand == 0)[10:21, 10:21].all()
     with pytest.raises(CalibrationError, match="nowhere"):
         labels_from_polygons(camera, names, {"nowhere": square["front"]})
+
+
+@pytest.mark.parametrize("polygon, message", [
+    # 1e30 wrote a calibration whose mirrors all had 0 pixels, with exit status 0.
+    ([[0.0, 0.0], [10.0, 0.0], [1e30, 10.0]], r"polygon 'front': point 2 \(1e\+30, 10\) lies more than the image's size"),
+    ([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0]], "polygon 'front' keeps no pixel"),  # a line holds no pixel
+])
+def test_a_polygon_far_outside_the_image_or_without_pixels_is_refused(rig, tmp_path, capsys, polygon, message):
+    from omnitof.calibration.masks import labels_from_polygons
+    from omnitof.cli import main
+
+    with pytest.raises(CalibrationError, match=message):
+        labels_from_polygons(rig.camera, rig.names, {"front": np.array(polygon)}, 2.0)
+    cal = save_calibration(Calibration.from_rig(rig), tmp_path / "cal.yaml")
+    before = cal.read_bytes()
+    regions = tmp_path / "regions.yaml"
+    regions.write_text(f"front: {polygon}\n")
+    assert main(["calibrate", "masks", str(cal), "--polygons", str(regions)]) == 2
+    assert "regions.yaml: polygon 'front'" in capsys.readouterr().err and cal.read_bytes() == before
+
+
+def test_check_refuses_a_band_whose_near_end_is_beyond_its_far_end(rig, tmp_path, capsys):
+    # It measured nothing and exited 0.
+    from omnitof.cli import main
+
+    cal = save_calibration(Calibration.from_rig(rig), tmp_path / "cal.yaml")
+    assert main(["calibrate", "check", str(cal), "--band", "3", "1"]) == 2
+    captured = capsys.readouterr()
+    assert "--band NEAR FAR: NEAR must be less than FAR, got 3 1" in captured.err and captured.out == ""
 
 
 # --- the check of paper Fig. 6 ---------------------------------------------------------------

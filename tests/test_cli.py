@@ -165,6 +165,20 @@ def test_design_reports_the_default_rig_and_draws_it(tmp_path, capsys):
     assert isinstance(camera, Camera)
 
 
+@pytest.mark.parametrize("argv, message", [
+    # Each printed the table, then a ValueError traceback or a table of nan.
+    (["design", "--figure", "."], ".: is a folder; the figure is a file"),
+    (["design", "--mirrors", "100"], "--mirrors 100 --tilt 56: mirror 'back-176.4deg' keeps no pixel"),
+    (["design", "--tilt", "0.001"], "--mirrors 4 --tilt 0.001: mirror 'front' keeps no pixel"),
+])
+def test_design_refuses_what_it_cannot_measure_or_draw_before_printing(tmp_path, monkeypatch, capsys, argv, message):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    assert message in captured.err and "Traceback" not in captured.err
+    assert captured.out == "" and list(tmp_path.iterdir()) == []
+
+
 def test_slam_reads_a_laserscan_ros2_bag(tmp_path, corridor_loop, capsys):
     from omnitof.io.rosbag import write_laserscan_bag
 
@@ -416,6 +430,7 @@ def test_only_omnitofs_own_warnings_read_as_omnitof_warnings():
     (["design", "--yaw", "1e308"], "--yaw: expected a number of at most 360"),
     # These three named the library's fields (n_mirrors, tilt_deg, elev_band_deg), not the options.
     (["design", "--mirrors", "2"], "--mirrors: expected at least 3"),
+    (["design", "--mirrors", "1000"], "--mirrors: expected at most 360"),  # a table of nan before
     (["design", "--tilt", "90"], "--tilt: expected a number below 90"),
     (["design", "--band", "-5"], "--band: expected a number of at least 0"),
     (["simulate", "--out", "OUT", "--speed", "inf"], "--speed: expected a finite number"),

@@ -107,8 +107,8 @@ def _scan_delay(text: str) -> str | float:
     return value
 
 
-def _whole(at_least: int):
-    """An argparse type for whole numbers of at least `at_least`."""
+def _whole(at_least: int, at_most: int | None = None):
+    """An argparse type for whole numbers of at least `at_least` (and at most `at_most`)."""
 
     def parse(text: str) -> int:
         try:
@@ -117,6 +117,8 @@ def _whole(at_least: int):
             raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
         if value < at_least:
             raise argparse.ArgumentTypeError(f"expected at least {at_least}, got {value}")
+        if at_most is not None and value > at_most:
+            raise argparse.ArgumentTypeError(f"expected at most {at_most}, got {value}")
         return value
 
     return parse
@@ -392,6 +394,9 @@ def cmd_design(args: argparse.Namespace) -> int:
     from omnitof.viz.sensor import plot_mirror_regions, plot_sweep
 
     lenses = {"standard": Camera.sr4000(), "wide": Camera.sr4000_wide()}
+    for path in (args.sweep, args.figure):  # before the work, not after the table is printed
+        if path is not None:
+            _checked_output_file(path, None, "the figure")
     if args.sweep is not None:
         rows = sweep(lenses, tilts_deg=range(40, 66, 2), yaws_deg=(0.0, 45.0), n_mirrors=(3, 4, 6),
                      elev_band_deg=args.band)
@@ -405,7 +410,17 @@ def cmd_design(args: argparse.Namespace) -> int:
 
     camera = lenses[args.lens]
     mirrors = pyramid(args.mirrors, args.tilt, yaw_deg=args.yaw, camera=camera)
-    print(design_report(camera, mirrors, elev_band_deg=args.band).format())
+    report = design_report(camera, mirrors, elev_band_deg=args.band)
+    # A mirror without a pixel has no elevations or bearings to report (its rows were nan): too
+    # many mirrors split the image into wedges narrower than the edge margins, too small a tilt
+    # turns the faces edge-on to the camera.
+    empty = next((m for m in report.mirrors if m.pixels == 0), None)
+    if empty is not None:
+        raise OmnitofError(
+            f"--mirrors {args.mirrors} --tilt {args.tilt:g}: mirror {empty.name!r} keeps no pixel of the {args.lens} "
+            f"lens's {camera.width}×{camera.height} image beyond the {report.edge_margin_px:g} px edge margin, so "
+            "there is nothing to measure: every mirror must keep a pixel; use fewer mirrors or a larger tilt")
+    print(report.format())
     leds = ToFErrors.realistic()
     share = lit_share(camera, mirrors, leds, DEFAULT_LIT_DISTANCE)
     print(f"lit by the camera's LEDs ({leds.led_count} on a {100 * leds.led_radius:g} cm ring, surface at "
@@ -527,7 +542,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("design", help="measure a mirror-pyramid rig: bearing coverage, elevation bands")
     p.add_argument("--lens", choices=["standard", "wide"], default="wide", help="SR4000 lens (43.8° or 69°)")
-    p.add_argument("--mirrors", type=_whole(3), default=4, help="number of mirrors (at least 3)")
+    # More mirrors than the design's 360 one-degree bearing bins (design.BEARING_BINS) cannot be
+    # told apart; the bound also keeps a typo such as 10000000 from building that many mirrors.
+    p.add_argument("--mirrors", type=_whole(3, at_most=360), default=4,
+                   help="number of mirrors (3 to 360; each must keep a pixel of the image)")
     p.add_argument("--tilt", type=_number(above=0, below=90), default=56.0, help="mirror tilt from the optical axis (deg)")
     p.add_argument("--yaw", type=_number(at_least=-360, at_most=360), default=0.0, help="pyramid yaw against the driving direction (deg)")
     p.add_argument("--band", type=_number(at_least=0, at_most=90), default=10.0,

@@ -418,8 +418,11 @@ def cmd_check(args: argparse.Namespace) -> int:
     from omnitof.calibration import load_calibration
     from omnitof.calibration.check import edge_heights, plane_errors, render_check_frame
     from omnitof.viz.calibration import plot_side_view
+    from omnitof.errors import OmnitofError
     from omnitof.sensor.design import default_rig
 
+    if args.band is not None and not args.band[0] < args.band[1]:  # else nothing is measured, and it said so with exit 0
+        raise OmnitofError(f"--band NEAR FAR: NEAR must be less than FAR, got {args.band[0]:g} {args.band[1]:g}")
     cal = load_calibration(args.calibration)
     truth = load_calibration(args.truth) if args.truth is not None else None
     if args.frame is not None:

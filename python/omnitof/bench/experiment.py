@@ -41,6 +41,9 @@ from omnitof.errors import ConfigError, OmnitofError, dump_yaml, leading_problem
 
 METRICS = ("relations", "trajectory", "floorplan", "table1")
 # Runs of one experiment: planning takes about 1 ms a run, a run seconds to hours.
+# A run folder's name (INPUT__PRESET__FIELD=VALUE...__seedS): file systems allow 255 bytes, and
+# the folder is built under a hidden name that is about 30 bytes longer (omnitof.io.atomic).
+MAX_RUN_NAME = 200
 MAX_RUNS = 10_000
 # A run's folder name is built from these; anything else in a value becomes "_".
 _SAFE = re.compile(r"[^A-Za-z0-9_.+-]")
@@ -157,6 +160,12 @@ class ExperimentSpec(_Strict):
             _check_dotted(key)
             if not values:
                 raise ValueError(f"{key}: expected at least one value")
+            # Every setting is one value; a list or mapping here is a typo ([[10]]) and cannot
+            # name a run's folder.
+            nested = next((v for v in values if isinstance(v, (list, dict))), None)
+            if nested is not None:
+                raise ValueError(f"{key}: expected a list of single values (numbers, text, true/false), "
+                                 f"got {nested!r} among them")
         return grid
 
 
@@ -293,10 +302,13 @@ def _resolved(spec: ExperimentSpec, source: Path) -> ExperimentSpec:
             value = getattr(item, key)
             if value is not None:
                 updates[key] = str(_path(value, source, f"inputs[{k}].{key}"))
+                # A log may be a folder (a ROS 2 bag); these two are read as one file each.
+                if key != "log" and not Path(updates[key]).is_file():
+                    raise ExperimentError(f"{source}: inputs[{k}].{key}: not a file: {updates[key]}")
         if item.world is not None:
             if item.world.endswith((".yaml", ".yml")):
                 updates["world"] = str(_path(item.world, source, f"inputs[{k}].world"))
-            _check_world(updates.get("world", item.world), source, f"inputs[{k}].world")
+            _check_world(updates.get("world", item.world), item.speed, source, f"inputs[{k}].world")
         inputs.append(item.model_copy(update=updates))
     return spec.model_copy(update={"inputs": inputs})
 
@@ -314,11 +326,14 @@ def _path(value: str, source: Path, name: str) -> Path:
     return path
 
 
-def _check_world(world: str, source: Path, name: str) -> None:
+def _check_world(world: str, speed: float, source: Path, name: str) -> None:
+    """Load the world and plan the robot's drive through it, as the worker will: a path that
+    turns back or grazes a wall is found here, before anything is written, not on a worker."""
+    from omnitof.sim.sequence import MotionSettings, robot_path
     from omnitof.sim.worlds import load_world
 
     try:
-        load_world(world)
+        robot_path(load_world(world), MotionSettings(speed=speed))
     except OmnitofError as err:
         raise ExperimentError(f"{source}: {name}: {err}") from None
 
@@ -376,6 +391,12 @@ def plan_runs(exp: Experiment) -> list[RunSpec]:
                         digests[key] = _config_digest(exp, preset, settings, seed, point)
                     run_id = "__".join([item.name, preset, *(f"{k}={_folder_value(v)}" for k, v in point.items()),
                                         f"seed{seed}"])
+                    if len(run_id.encode()) > MAX_RUN_NAME:
+                        raise ExperimentError(
+                            f"{exp.source}: inputs[{spec.inputs.index(item)}].name: the run folder "
+                            f"{run_id[:50]}... would be named by {len(run_id.encode())} characters, more than the "
+                            f"{MAX_RUN_NAME} a folder name may have here: shorten the input's name or the grid's "
+                            "fields and values")
                     runs.append(RunSpec(id=run_id, index=len(runs), input=item, preset=preset, point=point,
                                         seed=seed, settings=settings, threads=spec.threads, metrics=metrics,
                                         config_digest=digests[key]))

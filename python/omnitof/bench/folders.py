@@ -25,7 +25,7 @@ from typing import Any
 import yaml
 
 from omnitof.bench.experiment import ExperimentError, RunSpec
-from omnitof.errors import dump_yaml
+from omnitof.errors import InputError, dump_yaml, load_yaml, read_problem, yaml_problem
 from omnitof.io.atomic import atomic_folder, atomic_write, sweep_leftovers
 from omnitof.io.plain import to_plain
 from omnitof.results import SUMMARY, is_complete
@@ -43,11 +43,41 @@ def run_is_complete(folder: Path) -> bool:
     return is_complete(folder) and (folder / RECORD).is_file()
 
 
+# The record's fields that the report and a rerun read, with their types.
+_RECORD_TYPES = {"cell": dict, "status": str, "error": str, "metrics": dict, "metrics_collected": list}
+
+
 def read_record(folder: Path) -> dict[str, Any] | None:
+    """The run's bench.yaml, None if there is none; InputError naming it if it is damaged or
+    was edited into something else (the runs write it whole, so only a hand can)."""
     path = folder / RECORD
     if not path.is_file():
         return None
-    return yaml.safe_load(path.read_text(encoding="utf-8"))
+    record = read_mapping(path)
+    cell = record.get("cell", {})
+    fields = [(key, record[key], kind) for key, kind in _RECORD_TYPES.items() if key in record]
+    if isinstance(cell, dict) and "point" in cell:
+        fields.append(("cell.point", cell["point"], dict))
+    for key, value, kind in fields:
+        if not isinstance(value, kind):
+            raise InputError(f"{key}: expected {'a mapping' if kind is dict else 'a list' if kind is list else 'a text'}, "
+                             f"got {repr(value)[:40]}", path)
+    return record
+
+
+def read_mapping(path: Path) -> dict[str, Any]:
+    """A YAML file of a run (bench.yaml, summary.yaml) that must hold a mapping; InputError
+    naming it otherwise."""
+    try:
+        data = load_yaml(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(f"cannot read it: {read_problem(err)}", path) from None
+    except yaml.YAMLError as err:
+        problem, line = yaml_problem(err)
+        raise InputError(problem, path, line) from None
+    if not isinstance(data, dict):
+        raise InputError(f"expected a YAML mapping, got {type(data).__name__}", path)
+    return data
 
 
 def prepare(out: Path, experiment_text: str, runs: list[RunSpec]) -> list[RunSpec]:

@@ -24,9 +24,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from omnitof.bench import folders
+from omnitof.errors import InputError
 from omnitof.io.atomic import atomic_write
 from omnitof.results import SUMMARY
 
@@ -82,8 +81,12 @@ def read_table(out: str | Path) -> Table:
         cell = record.get("cell", {})
         summary = None
         if record.get("status") == "ok" and folders.run_is_complete(folder):
-            summary = yaml.safe_load((folder / SUMMARY).read_text(encoding="utf-8"))
-        rows.append(_row(record, summary))
+            summary = folders.read_mapping(folder / SUMMARY)
+        try:
+            rows.append(_row(record, summary))
+        except (AttributeError, KeyError, TypeError, ValueError) as err:  # a hand-edited file
+            raise InputError(f"{folders.RECORD} or {SUMMARY} has a field missing or of the wrong type "
+                             f"({type(err).__name__}: {err})", folder) from None
         for key in cell.get("point", {}):
             if key not in parameters:
                 parameters.append(key)

@@ -223,6 +223,11 @@ def decode_rows(rows: Sequence[str], shape: tuple[int, int], path: str | Path | 
                 n = int(count)
                 if n <= 0:
                     raise ValueError
+                # Bounded before expanding: a count of 1e9 would allocate gigabytes first.
+                if n > width - len(values):
+                    raise CalibrationError(
+                        f"masks.rows[{r}]: runs cover more than the image's {width} pixels", path
+                    )
                 values.extend([int(value)] * n)
         except ValueError:
             raise CalibrationError(
@@ -313,13 +318,56 @@ def _field(data: Mapping, key: str, where: str, path: Path) -> Any:
     return data[key]
 
 
+def _mapping(value: Any, where: str, path: Path) -> dict[str, Any]:
+    """An optional free-form record (quality, provenance): a mapping, or absent."""
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        raise CalibrationError(f"{where}: expected a mapping, got {repr(value)[:40]}", path)
+    return dict(value)
+
+
+# A pyramid face's normal must lie this far from the optical axis and from perpendicular to it,
+# and two faces' normals this far apart: nearer, the masks and scans come out degenerate.
+PYRAMID_TOLERANCE_DEG = 5.0
+
+
+def _check_pyramid(planes: Sequence[MirrorPlane], names: Sequence[str], path: Path) -> None:
+    """CalibrationError unless the planes can be a mirror pyramid around the optical axis (z):
+    each in front of the camera, tilted from the axis, and no two facing the same way."""
+    tol = PYRAMID_TOLERANCE_DEG
+    for k, (plane, name) in enumerate(zip(planes, names)):
+        where = f"mirrors[{k}] ({name})"
+        angle = math.degrees(math.acos(max(-1.0, min(1.0, float(plane.normal[2])))))
+        if angle >= 90.0 + tol:
+            raise CalibrationError(
+                f"{where}: the plane lies behind the camera (its normal points {angle:.1f}° from the "
+                "optical axis); a mirror's normal points away from the camera, up the optical axis", path)
+        if angle > 90.0 - tol:
+            raise CalibrationError(
+                f"{where}: the normal is {angle:.1f}° from the optical axis, within {tol:g}° of "
+                "perpendicular: the plane runs along the axis and the camera sees it edge-on", path)
+        if angle < tol:
+            raise CalibrationError(
+                f"{where}: the normal is {angle:.1f}° from the optical axis, within {tol:g}° of it: "
+                "the mirror faces the camera and reflects it into itself, not out to the sides", path)
+    for k in range(len(planes)):
+        for j in range(k):
+            cos = max(-1.0, min(1.0, float(planes[j].normal @ planes[k].normal)))
+            if math.degrees(math.acos(cos)) < tol:
+                raise CalibrationError(
+                    f"mirrors[{k}] ({names[k]}) faces the same way as mirrors[{j}] ({names[j]}) "
+                    f"(normals within {tol:g}°): a pyramid's mirrors are distinct planes facing "
+                    "different ways", path)
+
+
 def calibration_from_dict(data: Any, path: str | Path = "<calibration>") -> Calibration:
     """Parse the YAML document (plain data) of a calibration; errors name `path` and the field."""
     path = Path(path)
     if not isinstance(data, Mapping):
         raise CalibrationError("expected a YAML mapping (an omnitof calibration file)", path)
     version = data.get("omnitof_calibration")
-    if version != FORMAT_VERSION:
+    if type(version) is not int or version != FORMAT_VERSION:  # `true` and 1.0 equal 1 in Python
         raise CalibrationError(
             f"omnitof_calibration: expected format version {FORMAT_VERSION}, got {version!r}", path
         )
@@ -328,9 +376,10 @@ def calibration_from_dict(data: Any, path: str | Path = "<calibration>") -> Cali
     except RigError as err:
         raise CalibrationError(err.reason, path) from None
     camera, planes, names = rig.camera, list(rig.planes), list(rig.names)
+    _check_pyramid(planes, names, path)
     mirror_quality = {
-        str(entry["name"]): entry["quality"]
-        for entry in data["mirrors"] if isinstance(entry, Mapping) and entry.get("quality")
+        name: _mapping(entry.get("quality"), f"mirrors[{k}].quality", path)
+        for k, (name, entry) in enumerate(zip(names, data["mirrors"])) if entry.get("quality") is not None
     }
     mask = _field(data, "masks", "", path)
     if not isinstance(mask, Mapping):
@@ -346,7 +395,10 @@ def calibration_from_dict(data: Any, path: str | Path = "<calibration>") -> Cali
     if not isinstance(raw_polygons, Mapping):
         raise CalibrationError("masks.polygons: expected a mapping from mirror name to [[u, v], ...]", path)
     for key, poly in raw_polygons.items():
-        arr = np.asarray(poly, dtype=np.float64) if isinstance(poly, list) else np.zeros((0,))
+        try:
+            arr = np.asarray(poly, dtype=np.float64) if isinstance(poly, list) else np.zeros((0,))
+        except (TypeError, ValueError):  # a point such as [1] or ["a", 2]
+            arr = np.zeros((0,))
         if arr.ndim != 2 or arr.shape[1] != 2 or len(arr) < 3 or not np.all(np.isfinite(arr)):
             raise CalibrationError(f"masks.polygons.{key}: expected >= 3 points [u, v]", path)
         if str(key) not in names:
@@ -365,7 +417,7 @@ def calibration_from_dict(data: Any, path: str | Path = "<calibration>") -> Cali
             correction = DistanceCorrection.from_dict(data["distance_correction"], camera.shape, path)
         except DistanceCorrectionError as err:
             raise CalibrationError(err.reason, path) from None
-    quality = dict(data.get("quality") or {})
+    quality = _mapping(data.get("quality"), "quality", path)
     if mirror_quality:
         quality["mirrors"] = mirror_quality
     try:
@@ -375,7 +427,7 @@ def calibration_from_dict(data: Any, path: str | Path = "<calibration>") -> Cali
             polygons=polygons,
             edge_margin_px=margin,
             quality=quality,
-            provenance=dict(data.get("provenance") or {}),
+            provenance=_mapping(data.get("provenance"), "provenance", path),
             distance_correction=correction,
         )
     except CalibrationError as err:

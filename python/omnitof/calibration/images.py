@@ -61,7 +61,7 @@ def load_images(paths: Iterable[str | Path], *, topics: Any = None, depth: bool 
         elif path.suffix.lower() == ".npz":
             out.append(_npz_image(path))
         elif path.suffix.lower() in IMAGE_SUFFIXES:
-            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            image = _read_image(path)
             if image is None:
                 raise CalibrationError("cannot read the image", path)
             if image.ndim == 3:
@@ -88,6 +88,19 @@ def _npz_image(path: Path) -> AmplitudeImage:
     if amplitude.ndim != 2 or (distance is not None and distance.shape != amplitude.shape):
         raise CalibrationError("npz images must be (H, W), amplitude and distance alike", path)
     return AmplitudeImage(str(path), amplitude, distance)
+
+
+def _read_image(path: Path) -> np.ndarray | None:
+    """The image at `path` as OpenCV reads it, or None where it cannot; OpenCV's own log lines
+    about a broken file are held back (the caller's one error says it)."""
+    from cv2.utils import logging as cv_logging
+
+    level = cv_logging.getLogLevel()
+    cv_logging.setLogLevel(cv_logging.LOG_LEVEL_SILENT)
+    try:
+        return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    finally:
+        cv_logging.setLogLevel(level)
 
 
 def _bag_images(path: Path, topics: Any = None, depth: bool = False) -> list[AmplitudeImage]:

@@ -89,7 +89,8 @@ def labels_from_polygons(
 ) -> np.ndarray:
     """(H, W) int32 labels from hand-drawn image polygons, one per mirror name (see above).
 
-    Mirrors without a polygon get no pixels; a polygon named after no mirror is an error.
+    Mirrors without a polygon get no pixels; a polygon named after no mirror, a vertex more than
+    an image's width or height outside the image, and a polygon that keeps no pixel are errors.
     """
     h, w = camera.shape
     labels = np.full((h, w), -1, dtype=np.int32)
@@ -104,11 +105,25 @@ def labels_from_polygons(
         poly = np.asarray(polygons[name], dtype=np.float64)
         if poly.ndim != 2 or poly.shape[1] != 2 or len(poly) < 3 or not np.all(np.isfinite(poly)):
             raise CalibrationError(f"polygon {name!r}: expected >= 3 points [u, v]", path)
+        # A vertex may lie outside the image (a region reaching its edge), but not far: 1e30
+        # is a typo, and the point-in-polygon test loses every pixel to rounding there.
+        far = np.flatnonzero((poly[:, 0] < -w) | (poly[:, 0] > 2 * w) | (poly[:, 1] < -h) | (poly[:, 1] > 2 * h))
+        if far.size:
+            u_far, v_far = poly[far[0]]
+            raise CalibrationError(
+                f"polygon {name!r}: point {far[0]} ({u_far:g}, {v_far:g}) lies more than the image's size "
+                f"outside the {w}×{h} image (u in [{-w}, {2 * w}], v in [{-h}, {2 * h}])", path)
         # radius: pixel centres on the outline count as inside.
         inside = MplPath(poly).contains_points(centres, radius=1e-9).reshape(h, w)
         inside |= MplPath(poly[::-1]).contains_points(centres, radius=1e-9).reshape(h, w)
         labels[inside & (labels < 0)] = index
-    return erode_labels(labels, edge_margin_px)
+    labels = erode_labels(labels, edge_margin_px)
+    for index, name in enumerate(names):
+        if name in polygons and not (labels == index).any():  # a mask that silently drops the mirror
+            raise CalibrationError(
+                f"polygon {name!r} keeps no pixel: it holds no pixel centre, or only ones of an earlier "
+                f"polygon or within the {edge_margin_px:g} px edge margin", path)
+    return labels
 
 
 def polygons_from_labels(

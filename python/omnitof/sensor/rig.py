@@ -172,10 +172,15 @@ class Rig:
         planes, names, outlines = [], [], []
         for k, entry in enumerate(entries):
             where = f"mirrors[{k}]"
-            name = str(_required(entry, "name", where + ".", source))
+            name = _required(entry, "name", where + ".", source)
+            if not isinstance(name, str) or not name:  # str() would make `null` the name "None"
+                raise RigError(f"{where}.name: expected a text, got {name!r}", source)
             normal = _numbers(_required(entry, "normal", where + ".", source), (3,), where + ".normal", source)
+            d = _required(entry, "d", where + ".", source)
+            if not isinstance(d, numbers.Real) or isinstance(d, bool):  # float() would read "0.08"
+                raise RigError(f"{where}.d: expected a number of metres, got {d!r}", source)
             try:
-                planes.append(MirrorPlane(normal, float(_required(entry, "d", where + ".", source))))
+                planes.append(MirrorPlane(normal, float(d)))
             except (MirrorParameterError, TypeError, ValueError) as err:
                 raise RigError(f"{where} ({name}): {err}", source) from None
             names.append(name)
