@@ -125,6 +125,25 @@ def load_yaml(text: str) -> Any:
         raise yaml.YAMLError(f"a value that cannot be read ({' '.join(str(err).split(';')[0].split())})") from None
 
 
+def read_yaml_mapping(path: Any, what: str, not_a_mapping: str) -> dict[str, Any]:
+    """The YAML file at `path`, which must hold a mapping; else one InputError naming it: a file
+    that cannot be read ("cannot read `what`: ..."), not YAML (with its line), or holding
+    something else (`not_a_mapping`, ", got list")."""
+    from pathlib import Path
+
+    path = Path(path)
+    try:
+        data = load_yaml(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(f"cannot read {what}: {read_problem(err)}", path) from None
+    except yaml.YAMLError as err:
+        problem, line = yaml_problem(err)
+        raise InputError(problem, path, line) from None
+    if not isinstance(data, dict):
+        raise InputError(f"{not_a_mapping}, got {type(data).__name__}", path)
+    return data
+
+
 def yaml_problem(err: Exception) -> tuple[str, int | None]:
     """What a YAML parser found wrong, on one line ("not valid YAML: ..."), and the 1-based line
     of the file where it found it (None where the parser does not say): PyYAML's own message

@@ -22,10 +22,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from omnitof.bench.experiment import ExperimentError, RunSpec
-from omnitof.errors import InputError, dump_yaml, load_yaml, read_problem, yaml_problem
+from omnitof.errors import InputError, dump_yaml, read_yaml_mapping
 from omnitof.io.atomic import atomic_folder, atomic_write, sweep_leftovers
 from omnitof.io.plain import to_plain
 from omnitof.results import SUMMARY, is_complete
@@ -68,16 +66,7 @@ def read_record(folder: Path) -> dict[str, Any] | None:
 def read_mapping(path: Path) -> dict[str, Any]:
     """A YAML file of a run (bench.yaml, summary.yaml) that must hold a mapping; InputError
     naming it otherwise."""
-    try:
-        data = load_yaml(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as err:
-        raise InputError(f"cannot read it: {read_problem(err)}", path) from None
-    except yaml.YAMLError as err:
-        problem, line = yaml_problem(err)
-        raise InputError(problem, path, line) from None
-    if not isinstance(data, dict):
-        raise InputError(f"expected a YAML mapping, got {type(data).__name__}", path)
-    return data
+    return read_yaml_mapping(path, "it", "expected a YAML mapping")
 
 
 def prepare(out: Path, experiment_text: str, runs: list[RunSpec]) -> list[RunSpec]:

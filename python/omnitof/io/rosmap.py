@@ -21,9 +21,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
-from omnitof.errors import InputError, OutputError, dump_yaml, load_yaml, read_problem, yaml_problem
+from omnitof.errors import InputError, OutputError, dump_yaml, read_problem, read_yaml_mapping
 from omnitof.io.atomic import atomic_write
 from omnitof.types import OccupancyMap
 
@@ -195,18 +194,8 @@ def read_ros_map(yaml_path: str | Path, *, log_odds: float = DEFAULT_LOG_ODDS) -
 
 
 def _load_yaml(path: Path) -> dict[str, Any]:
-    try:
-        meta = load_yaml(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read the map description: {read_problem(exc)}", path) from None
-    except yaml.YAMLError as exc:
-        problem, line = yaml_problem(exc)
-        raise InputError(problem, path, line) from None
-    if not isinstance(meta, dict):
-        raise InputError(
-            "a map description must be a YAML mapping with image, resolution, ...", path
-        )
-    return meta
+    return read_yaml_mapping(path, "the map description",
+                             "a map description must be a YAML mapping with image, resolution, ...")
 
 
 def _field(meta: dict[str, Any], key: str, path: Path) -> Any:
