@@ -114,6 +114,8 @@ def _turn_mirror0(normal):
         (_set("mirrors", 0, "name", value=5), r"mirrors\[0\].name: expected a text"),
         (_set("mirrors", 0, "name", value=["a"]), r"mirrors\[0\].name: expected a text"),
         (_set("mirrors", 0, "d", value="0.08"), r"mirrors\[0\].d: expected a number"),
+        (_set("camera", "dist", value=[True, 0, 0, 0, 0]), "camera.dist: True is not a number"),
+        (_set("mirrors", 0, "normal", value=["0.5", 0.5, 0.7]), r"mirrors\[0\].normal: '0.5' is not a number"),
         (_set("omnitof_calibration", value=True), "omnitof_calibration: expected format version 1, got True"),
         (_turn_mirror0([0.0, 0.0, 1.0]), r"mirrors\[0\] \(.*\): the normal is 0.0° from the optical axis, within 5°"),
         (_turn_mirror0([0.0, 1.0, 0.0]), "within 5° of perpendicular"),

@@ -238,9 +238,14 @@ def _numbers(value: Any, shape: tuple[int, ...], where: str, source: str | Path 
              error: type[InputError] = RigError) -> np.ndarray:
     """Finite float64 numbers of `shape` (−1: any length)."""
     try:
+        # numpy reads `true` as 1 and "0.08" as 0.08: in a YAML file those are typos, not numbers.
+        items = [] if isinstance(value, np.ndarray) else np.asarray(value, dtype=object).ravel()
+        odd = next((v for v in items if isinstance(v, (bool, str, bytes))), None)
         out = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise error(f"{where}: expected numbers of shape {shape}", source) from None
+    if odd is not None:
+        raise error(f"{where}: {odd!r} is not a number", source)
     fits = out.ndim == len(shape) and all(w in (-1, s) for w, s in zip(shape, out.shape))
     if not fits:
         raise error(f"{where}: expected finite numbers of shape {shape}, got shape {out.shape}", source)
