@@ -468,6 +468,40 @@ def test_a_submap_refuses_a_resolution_too_coarse_and_a_window_too_wide_for_its_
         shallow.match_scan(ranges, angles, np.zeros(3), 20.0, 4.0, 0.0)
 
 
+def _room_ranges(pose, angles, half_x=3.0, half_y=1.6):
+    """Exact ranges from `pose` (x, y, heading) to the walls of a 6 x 3.2 m room centred on the origin."""
+    x, y, th = pose
+    c, s = np.cos(angles + th), np.sin(angles + th)
+    with np.errstate(divide="ignore"):
+        tx = np.where(c > 0, (half_x - x) / c, (-half_x - x) / c)
+        ty = np.where(s > 0, (half_y - y) / s, (-half_y - y) / s)
+    return np.minimum(np.abs(tx), np.abs(ty)).astype(np.float32)
+
+
+def test_the_best_of_many_starts_is_the_best_of_their_matches_for_any_thread_count():
+    angles = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    grid = _core.OccupancyGrid(0.05, 0.9, -0.4, -2.0, 3.5)
+    for pose in ((0.0, 0.0, 0.0), (1.5, 0.5, 0.3), (-1.5, -0.5, -0.3)):
+        grid.integrate(np.array(pose), angles, _room_ranges(pose, angles), 10.0)
+    truth = np.array([0.42, -0.23, 0.35])
+    ranges = _room_ranges(truth, angles)
+    starts = np.array([[0.3, -0.1, 0.2], [-2.0, 1.0, 2.5], [0.5, -0.3, 0.45], [1.0, 0.8, -1.0]])
+    options = dict(max_range=10.0)
+    one_by_one = [grid.match_scan(s, angles, ranges, **options) for s in starts]
+    scores = [score for _, score in one_by_one]
+    expected = one_by_one[int(np.argmax(scores))]  # argmax: the first of equal scores
+    for threads in (1, 2):
+        pose, score = grid.match_best(starts, angles, ranges, threads=threads, **options)
+        assert score == expected[1]
+        np.testing.assert_array_equal(pose, expected[0])
+    assert np.hypot(*(np.asarray(expected[0])[:2] - truth[:2])) < 0.02
+    assert abs(expected[0][2] - truth[2]) < np.radians(0.5)
+    with pytest.raises(ValueError, match="starts"):
+        grid.match_best(np.zeros((0, 3)), angles, ranges, **options)
+    with pytest.raises(ValueError, match="starts"):
+        grid.match_best(np.array([[0.0, np.nan, 0.0]]), angles, ranges, **options)
+
+
 @pytest.mark.parametrize("fallback", ["prediction", "draw"])
 def test_a_scan_that_cannot_be_matched_leaves_the_particles_at_the_prediction_unless_told_to_draw(fallback):
     from omnitof.geometry import compose, relative

@@ -100,6 +100,23 @@ class OccupancyGrid:
         refinements: int = 3,
         gauss_newton: int = 10,
     ) -> tuple[list[float], float]: ...
+    def match_best(
+        self,
+        starts: _F64,
+        angles: _F64,
+        ranges: _F32,
+        *,
+        sensor_pose: _F64 | None = None,
+        sigma: float = 0.05,
+        window: int = 3,
+        max_range: float = 20.0,
+        occupied_threshold: float = 0.0,
+        step_xy: float = 0.05,
+        step_theta: float = 0.035,
+        refinements: int = 3,
+        gauss_newton: int = 10,
+        threads: int | None = None,
+    ) -> tuple[list[float], float]: ...
     def match_each(
         self,
         starts: _F64,

@@ -80,6 +80,21 @@ pub(crate) fn log_odds_model(l_occ: f32, l_free: f32, l_min: f32, l_max: f32) ->
     Ok(LogOddsModel { l_occ, l_free, l_min, l_max })
 }
 
+/// The local climb of `OccupancyGrid.match_scan`: hill climbing in steps of `step_xy` and
+/// `step_theta`, halved `refinements` times, then `gauss_newton` Gauss-Newton steps.
+fn climb_params(step_xy: f64, step_theta: f64, refinements: u32, gauss_newton: u32) -> PyResult<MatcherParams> {
+    if !(step_xy.is_finite() && step_xy > 0.0 && step_theta.is_finite() && step_theta > 0.0) {
+        return Err(PyValueError::new_err("step_xy and step_theta must be positive and finite"));
+    }
+    if refinements > MAX_MATCH_ITERATIONS || gauss_newton > MAX_MATCH_ITERATIONS {
+        return Err(PyValueError::new_err(format!("refinements and gauss_newton must not exceed {MAX_MATCH_ITERATIONS}")));
+    }
+    Ok(MatcherParams {
+        step_xy, step_theta, refinements, gauss_newton, sample_xy: 0.01, sample_theta: 0.005,
+        min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, check: OdometryCheck::OFF,
+    })
+}
+
 /// A rayon pool of `threads` workers, or None (rayon's global pool) when not given.
 pub(crate) fn optional_pool(threads: Option<usize>) -> PyResult<Option<rayon::ThreadPool>> {
     match threads {
@@ -730,22 +745,68 @@ impl PyOccupancyGrid {
             return Err(PyValueError::new_err("start must be a finite pose"));
         }
         field_settings(sigma, max_range, window, "")?;
-        if !(step_xy.is_finite() && step_xy > 0.0 && step_theta.is_finite() && step_theta > 0.0) {
-            return Err(PyValueError::new_err("step_xy and step_theta must be positive and finite"));
-        }
-        if refinements > MAX_MATCH_ITERATIONS || gauss_newton > MAX_MATCH_ITERATIONS {
-            return Err(PyValueError::new_err(format!("refinements and gauss_newton must not exceed {MAX_MATCH_ITERATIONS}")));
-        }
         let (angles, ranges) = (angles.c_slice("angles")?, ranges.c_slice("ranges")?);
         let geom = scan_geometry(angles, ranges, sensor_pose)?;
         let lf = LikelihoodField::new(sigma, 0.9, 0.1, max_range, window, occupied_threshold, false);
-        let m = MatcherParams {
-            step_xy, step_theta, refinements, gauss_newton, sample_xy: 0.01, sample_theta: 0.005,
-            min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, check: OdometryCheck::OFF,
-        };
+        let m = climb_params(step_xy, step_theta, refinements, gauss_newton)?;
         let pts = scan_match::endpoints(&geom, ranges, 1, max_range);
         let (pose, _, _) = scan_match::local_match(&scan_match::FieldView::new(&lf, &self.grid), &m, &geom, &pts, start, None);
         Ok((pose, lf.score(&self.grid, geom.sensor_pose(pose), &pts).0))
+    }
+
+    /// `match_scan` started from each row of `starts` (N, 3), the matches in parallel on
+    /// `threads` workers (rayon's pool when None). Returns the pose and score of the best, the
+    /// first of equal scores, so the same for any thread count.
+    #[pyo3(signature = (starts, angles, ranges, *, sensor_pose=None, sigma=0.05, window=3, max_range=20.0,
+        occupied_threshold=0.0, step_xy=0.05, step_theta=0.035, refinements=3, gauss_newton=10, threads=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn match_best(
+        &self,
+        py: Python<'_>,
+        starts: PyReadonlyArray2<f64>,
+        angles: PyReadonlyArray1<f64>,
+        ranges: PyReadonlyArray1<f32>,
+        sensor_pose: Option<PyReadonlyArray1<f64>>,
+        sigma: f64,
+        window: i32,
+        max_range: f64,
+        occupied_threshold: f32,
+        step_xy: f64,
+        step_theta: f64,
+        refinements: u32,
+        gauss_newton: u32,
+        threads: Option<usize>,
+    ) -> PyResult<([f64; 3], f64)> {
+        use rayon::prelude::*;
+        let starts = points3(&starts, "starts")?;
+        if starts.is_empty() || !starts.iter().flatten().all(|v| v.is_finite()) {
+            return Err(PyValueError::new_err("starts must be one or more finite poses"));
+        }
+        field_settings(sigma, max_range, window, "")?;
+        let m = climb_params(step_xy, step_theta, refinements, gauss_newton)?;
+        let (angles, ranges) = (angles.c_slice("angles")?, ranges.c_slice("ranges")?);
+        let geom = scan_geometry(angles, ranges, sensor_pose)?;
+        let pool = optional_pool(threads)?;
+        let lf = LikelihoodField::new(sigma, 0.9, 0.1, max_range, window, occupied_threshold, false);
+        let pts = scan_match::endpoints(&geom, ranges, 1, max_range);
+        let grid = &self.grid;
+        let climb = |start: &[f64; 3]| {
+            let (pose, _, _) = scan_match::local_match(&scan_match::FieldView::new(&lf, grid), &m, &geom, &pts, *start, None);
+            (pose, lf.score(grid, geom.sensor_pose(pose), &pts).0)
+        };
+        let run = || -> Vec<([f64; 3], f64)> { starts.par_iter().map(climb).collect() };
+        let found = py.detach(|| match &pool {
+            Some(p) => p.install(run),
+            None => run(),
+        });
+        // Sequential and strict: a later start must score more to win, as in a loop over them.
+        let mut best = found[0];
+        for &(pose, score) in &found[1..] {
+            if score > best.1 {
+                best = (pose, score);
+            }
+        }
+        Ok(best)
     }
 
     /// Re-pose many scans in this (finished) map, each by Gauss-Newton alone from its own row of

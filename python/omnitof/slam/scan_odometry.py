@@ -116,7 +116,7 @@ def estimate_odometry(scans: ScanSequence, cfg: SlamConfig, *,
     match = dict(sensor_pose=scans.sensor_pose, sigma=lf.sigma, window=lf.window_cells, max_range=max_range,
                  occupied_threshold=m.occupied_threshold)
     steps = dict(step_xy=sm.step_xy, step_theta=math.radians(sm.step_deg), refinements=sm.refinements,
-                 gauss_newton=sm.gauss_newton)
+                 gauss_newton=sm.gauss_newton, threads=cfg.filter.threads or None)
     path = np.zeros(n)  # estimated path length up to each scan
     keyframes = [0]
     grid = _local_map(scans, poses, keyframes, cfg)
@@ -152,8 +152,7 @@ def estimate_odometry(scans: ScanSequence, cfg: SlamConfig, *,
                 carried, carried_score = _best_match(grid, arcs, angles, ranges, match, steps)
                 if carried_score > score + ARC_MARGIN:
                     wide = carried
-            if wide is not best:
-                best, share = wide, _share(grid, wide, angles, ranges, match, lf)
+            best, share = wide, _share(grid, wide, angles, ranges, match, lf)
         lost = share < sm.min_matched
         poses[k] = predicted if lost else best
         unmatched += lost
@@ -214,14 +213,10 @@ def _arcs(pose: np.ndarray, step: np.ndarray, steps: float) -> list[np.ndarray]:
 def _best_match(grid: _core.OccupancyGrid, starts, angles: np.ndarray, ranges: np.ndarray, match: dict,
                 steps: dict) -> tuple[np.ndarray, float]:
     """The pose and score of the best-scoring local match among those started at each of
-    `starts` (at least one; the first of equal scores)."""
-    best, best_score = None, -math.inf
-    for start in starts:
-        found, score = grid.match_scan(np.asarray(start, dtype=np.float64), angles, ranges, **match, **steps)
-        if best is None or score > best_score:
-            best, best_score = np.asarray(found), score
-    assert best is not None, "no start to match from"
-    return best, best_score
+    `starts` (at least one; the first of equal scores, whatever the thread count)."""
+    found, score = grid.match_best(np.asarray(starts, dtype=np.float64).reshape(-1, 3), angles, ranges,
+                                   **match, **steps)
+    return np.asarray(found), score
 
 
 def _share(grid: _core.OccupancyGrid, pose: np.ndarray, angles: np.ndarray, ranges: np.ndarray, match: dict,
