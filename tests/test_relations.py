@@ -315,6 +315,7 @@ def test_a_bad_row_after_a_form_feed_is_named_by_its_own_line(tmp_path: Path) ->
         ("1 1e400 0.1 0.2 0 0 0 0.3", "t2 is '1e400', not a finite"),
         # Values a broken writer leaves: their statistics printed as 300-digit numbers.
         ("1 2 1e308 0.2 0 0 0 0.3", r"x is 1e\+308, beyond ±1e\+09"),
+        ("1 1.7e18 0.1 0.2 0 0 0 0.3", r"t2 1.7e\+18 is beyond ±1e\+12 s: relation timestamps are seconds"),
         ("1 2 0.1 0.2 0 0 0 1e200", r"yaw is 1e\+200, beyond ±1000"),
         ("5 5 0.1 0.2 0 0 0 0.3", "t1 and t2 are both 5.000000: a relation joins two different times"),
         # A field of 5000 digits is quoted, not echoed whole.

@@ -15,10 +15,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from omnitof.sensor.camera import Camera
 from omnitof.errors import InputError
@@ -40,21 +38,25 @@ from omnitof.io.rosbag import (
     write_tof_bag,
 )
 from omnitof.types import ScanSequence, Trajectory
-
-HUMBLE = get_typestore(Stores.ROS2_HUMBLE)
-NOETIC = get_typestore(Stores.ROS1_NOETIC)
-NOETIC.register(
-    get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage")
+from bag_messages import (
+    HUMBLE,
+    NOETIC,
+    NS,
+    ODOM,
+    OLD_TF,
+    SCAN,
+    TF,
+    header,
+    odometry_msg,
+    read_warned,
+    scan_msg,
+    tf_msg,
+    write_raw,
 )
-OLD_TF = "tf/msg/tfMessage"  # ROS 1 before Hydro: the same fields
-NOETIC.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", OLD_TF))
+
 IMG = "sensor_msgs/msg/Image"
 INFO = "sensor_msgs/msg/CameraInfo"
-ODOM = "nav_msgs/msg/Odometry"
-SCAN = "sensor_msgs/msg/LaserScan"
-TF = "tf2_msgs/msg/TFMessage"
 SMALL = Camera(8, 6, 10.0, 11.0, 3.5, 2.5, (-0.1, 0.01, 0.001, -0.002, 0.0003))
-NS = 1_000_000_000
 
 
 def angle_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -94,18 +96,7 @@ def trajectory(t: np.ndarray, seed: int) -> Trajectory:
     return Trajectory(t, poses)
 
 
-# --- raw bags written with rosbags directly ------------------------------------------------
-
-
-def ros_time(store, ns: int):
-    return store.types["builtin_interfaces/msg/Time"](sec=ns // NS, nanosec=ns % NS)
-
-
-def header(store, ns: int, frame_id: str):
-    cls = store.types["std_msgs/msg/Header"]
-    if store is NOETIC:
-        return cls(seq=0, stamp=ros_time(store, ns), frame_id=frame_id)
-    return cls(stamp=ros_time(store, ns), frame_id=frame_id)
+# --- raw bags written with rosbags directly (their other messages: bag_messages) -----------
 
 
 def image_msg(ns: int, array: np.ndarray, encoding: str = "32FC1"):
@@ -139,76 +130,6 @@ def camera_info_msg(ns: int, camera: Camera):
             x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
         ),
     )
-
-
-def odometry_msg(store, ns: int, pose, child: str = "base_link"):
-    t = store.types
-    vec = t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
-    return t[ODOM](
-        header=header(store, ns, "odom"),
-        child_frame_id=child,
-        pose=t["geometry_msgs/msg/PoseWithCovariance"](
-            pose=t["geometry_msgs/msg/Pose"](
-                position=t["geometry_msgs/msg/Point"](x=pose[0], y=pose[1], z=0.0),
-                orientation=t["geometry_msgs/msg/Quaternion"](
-                    x=0.0, y=0.0, z=math.sin(pose[2] / 2), w=math.cos(pose[2] / 2)
-                ),
-            ),
-            covariance=np.zeros(36),
-        ),
-        twist=t["geometry_msgs/msg/TwistWithCovariance"](
-            twist=t["geometry_msgs/msg/Twist"](linear=vec, angular=vec), covariance=np.zeros(36)
-        ),
-    )
-
-
-def scan_msg(store, ns: int, ranges, *, frame="laser", angle_min=-1.0, inc=0.5, rmin=0.1, rmax=4.0):
-    return store.types[SCAN](
-        header=header(store, ns, frame),
-        angle_min=angle_min,
-        angle_max=angle_min + inc * (len(ranges) - 1),
-        angle_increment=inc,
-        time_increment=0.0,
-        scan_time=0.0,
-        range_min=rmin,
-        range_max=rmax,
-        ranges=np.asarray(ranges, dtype=np.float32),
-        intensities=np.zeros(0, dtype=np.float32),
-    )
-
-
-def tf_msg(store, transforms, ns: int = 0, msgtype: str = TF):
-    """transforms: (parent, child, (x, y, z), (qx, qy, qz, qw)) tuples, all stamped `ns`."""
-    t = store.types
-    return t[msgtype](
-        transforms=[
-            t["geometry_msgs/msg/TransformStamped"](
-                header=header(store, ns, parent),
-                child_frame_id=child,
-                transform=t["geometry_msgs/msg/Transform"](
-                    translation=t["geometry_msgs/msg/Vector3"](x=xyz[0], y=xyz[1], z=xyz[2]),
-                    rotation=t["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
-                ),
-            )
-            for parent, child, xyz, q in transforms
-        ]
-    )
-
-
-def write_raw(path: Path, messages: list[tuple[str, str, object]], *, ros1: bool = False,
-              declared: list[tuple[str, str]] = ()) -> Path:  # fmt: skip
-    """A bag of (topic, msgtype, message), in this order (log times 1, 2, 3, … µs), and the
-    topics `declared` (topic, msgtype) without a message."""
-    store = NOETIC if ros1 else HUMBLE
-    writer = Writer1(path) if ros1 else Writer2(path, version=9, storage_plugin=StoragePlugin.MCAP)
-    with writer:
-        conns = {topic: writer.add_connection(topic, msgtype, typestore=store) for topic, msgtype in declared}
-        for k, (topic, msgtype, msg) in enumerate(messages):
-            if topic not in conns:
-                conns[topic] = writer.add_connection(topic, msgtype, typestore=store)
-            data = store.serialize_ros1(msg, msgtype) if ros1 else store.serialize_cdr(msg, msgtype)
-            writer.write(conns[topic], (k + 1) * 1000, data)
-    return path
 
 
 def raw_tof_bag(path: Path, stamps_ns, *, camera=SMALL, shape=None, encoding="32FC1",
@@ -1065,6 +986,27 @@ def test_laserscan_writer_refuses_one_topic_for_two_roles(tmp_path: Path, topics
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize(
+    ("given", "message"),
+    [
+        ({"scan": "/odom", "odometry": "/odom"}, "scan and odometry are both '/odom'"),
+        ({"odometry": "/ground_truth"}, "ground_truth and odometry are both '/ground_truth'"),
+        ({"scan": "/tf_static"}, "scan and tf_static are both '/tf_static'"),
+        ({"tf_static": "/gt", "ground_truth": "/gt"}, "ground_truth and tf_static are both '/gt'"),
+    ],
+)
+def test_laser_topics_refuse_one_topic_for_two_roles(given: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=f"{re.escape(message)}: each needs a topic of its own"):
+        LaserTopics(**given)
+    with pytest.raises(ValueError, match=re.escape(message)):
+        LaserTopics.parse(",".join(f"{role}={topic}" for role, topic in given.items()))
+
+
+def test_laser_topics_may_share_tf_where_it_carries_the_odometry_or_the_mounting() -> None:
+    assert LaserTopics(odometry="/tf").odometry == "/tf"
+    assert LaserTopics(tf_static="/tf").tf_static == "/tf"  # a ROS 1 bag's mounting repeated on /tf
+
+
 def test_a_topic_for_ground_truth_the_scans_do_not_have_clashes_with_nothing(tmp_path: Path) -> None:
     scans = scan_sequence(n=3)
     scans.ground_truth = None  # no ground truth topic is written
@@ -1335,14 +1277,6 @@ def test_laserscan_bag_with_odometry_on_tf_round_trips(tmp_path: Path, version: 
     np.testing.assert_allclose(back.sensor_pose, scans.sensor_pose, rtol=0, atol=1e-9)
     np.testing.assert_array_equal(back.ranges, scans.ranges)
     assert "on /tf" in back.odometry_rule
-
-
-def read_warned(path: Path, **kwargs) -> tuple[ScanSequence, list[str]]:
-    with warnings.catch_warnings(record=True) as record:
-        warnings.simplefilter("always")
-        scans = read_laserscan_bag(path, **kwargs)
-    assert all(issubclass(w.category, RosbagWarning) for w in record)
-    return scans, [str(w.message) for w in record]
 
 
 def test_upside_down_laser(tmp_path: Path) -> None:

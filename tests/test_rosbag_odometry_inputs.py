@@ -15,9 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rosbags.rosbag2 import StoragePlugin
-from rosbags.rosbag2 import Writer as Writer2
-from rosbags.typesys import Stores, get_typestore
 
 from omnitof.errors import InputError
 from omnitof.io.rosbag import (
@@ -32,12 +29,7 @@ from omnitof.io.rosbag import (
 )
 from omnitof.scan.tof_input import ToFInputWarning, read_tof_scans
 from omnitof.types import ScanSequence, Trajectory
-
-HUMBLE = get_typestore(Stores.ROS2_HUMBLE)
-ODOM = "nav_msgs/msg/Odometry"
-SCAN = "sensor_msgs/msg/LaserScan"
-TF = "tf2_msgs/msg/TFMessage"
-NS = 1_000_000_000
+from bag_messages import HUMBLE, NS, ODOM, SCAN, TF, odometry_msg, read_warned, scan_msg, tf_msg, write_raw
 
 
 # --- bags ----------------------------------------------------------------------------------
@@ -78,62 +70,8 @@ def laser_scans(n: int, t0: float = 100.0, dt: float = 0.1, odometry: bool = Tru
     )
 
 
-def read_laser(path: Path, **kwargs) -> tuple[ScanSequence, list[str]]:
-    with warnings.catch_warnings(record=True) as record:
-        warnings.simplefilter("always")
-        scans = read_laserscan_bag(path, **kwargs)
-    return scans, [str(w.message) for w in record]
-
-
-def header(ns: int, frame_id: str):
-    stamp = HUMBLE.types["builtin_interfaces/msg/Time"](sec=ns // NS, nanosec=ns % NS)
-    return HUMBLE.types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
-
-
-def odometry_msg(ns: int, x: float, q=(0.0, 0.0, 0.0, 1.0)):
-    t = HUMBLE.types
-    zero = t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
-    return t[ODOM](
-        header=header(ns, "odom"), child_frame_id="base_link",
-        pose=t["geometry_msgs/msg/PoseWithCovariance"](
-            pose=t["geometry_msgs/msg/Pose"](position=t["geometry_msgs/msg/Point"](x=x, y=0.0, z=0.0),
-                                            orientation=t["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])),
-            covariance=np.zeros(36)),
-        twist=t["geometry_msgs/msg/TwistWithCovariance"](
-            twist=t["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36)),
-    )
-
-
-def tf_msg(ns: int, parent: str, child: str, x: float, q=(0.0, 0.0, 0.0, 1.0)):
-    t = HUMBLE.types
-    return t[TF](transforms=[t["geometry_msgs/msg/TransformStamped"](
-        header=header(ns, parent), child_frame_id=child,
-        transform=t["geometry_msgs/msg/Transform"](
-            translation=t["geometry_msgs/msg/Vector3"](x=x, y=0.0, z=0.0),
-            rotation=t["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])))])
-
-
-def scan_msg(ns: int):
-    return HUMBLE.types[SCAN](
-        header=header(ns, "laser"), angle_min=-1.0, angle_max=1.0, angle_increment=1.0, time_increment=0.0,
-        scan_time=0.0, range_min=0.1, range_max=4.0, ranges=np.full(3, 2.0, np.float32),
-        intensities=np.zeros(0, np.float32))
-
-
-def raw_bag(path: Path, messages, *, declared=()) -> Path:
-    """A ROS 2 bag of (topic, msgtype, message) in this order, and (topic, msgtype) `declared`
-    without any message (as ROS 2 records a topic nobody published on)."""
-    with Writer2(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conns = {topic: writer.add_connection(topic, msgtype, typestore=HUMBLE) for topic, msgtype in declared}
-        for k, (topic, msgtype, msg) in enumerate(messages):
-            if topic not in conns:
-                conns[topic] = writer.add_connection(topic, msgtype, typestore=HUMBLE)
-            writer.write(conns[topic], (k + 1) * 1000, HUMBLE.serialize_cdr(msg, msgtype))
-    return path
-
-
 def scans_at(seconds) -> list:
-    return [("/scan", SCAN, scan_msg(round(s * NS))) for s in seconds]
+    return [("/scan", SCAN, scan_msg(HUMBLE, round(s * NS), [2.0, 2.0, 2.0], inc=1.0)) for s in seconds]
 
 
 # --- A: an odometry spanning no time -------------------------------------------------------
@@ -158,12 +96,14 @@ def test_a_tof_odometry_spanning_no_time_is_an_error_for_frames_at_other_times(t
 
 
 def test_a_laserscan_odometry_spanning_no_time_is_an_error(tmp_path: Path):
-    one_message = raw_bag(tmp_path / "odom", [("/odom", ODOM, odometry_msg(2 * NS, 0.0))] + scans_at([1, 2, 3]))
+    one_message = write_raw(tmp_path / "odom", [("/odom", ODOM, odometry_msg(HUMBLE, 2 * NS, (0, 0, 0)))]
+                            + scans_at([1, 2, 3]))
     with pytest.raises(InputError, match=r"the odometry \(topic /odom\) spans no time \(every pose is stamped "
                                          r"2\.000000000 s.*the scans on /scan at other times \(2 of 3\)"):
         read_laserscan_bag(one_message)
-    same_stamp = raw_bag(tmp_path / "tf", [("/tf", TF, tf_msg(2 * NS, "odom", "base_link", x)) for x in (0.0, 1.0)]
-                         + scans_at([1, 2, 3]))
+    same_stamp = write_raw(tmp_path / "tf", [
+        ("/tf", TF, tf_msg(HUMBLE, [("odom", "base_link", (x, 0, 0), (0, 0, 0, 1))], 2 * NS)) for x in (0.0, 1.0)
+    ] + scans_at([1, 2, 3]))
     with pytest.raises(InputError, match=r"the odometry \(topic /tf \(odom → base_link\)\) spans no time"):
         read_laserscan_bag(same_stamp)
 
@@ -184,9 +124,9 @@ def test_empty_or_equal_frame_names_are_refused_naming_the_roles(topics):
 
 def test_a_transform_from_a_frame_to_itself_is_no_odometry(tmp_path: Path):
     # tf2 ignores a self transform: odom → odom moves nothing.
-    path = raw_bag(tmp_path / "b", [("/tf", TF, tf_msg(k * NS, "odom", "odom", float(k))) for k in range(1, 4)]
-                   + scans_at([1, 2, 3]))
-    scans, _ = read_laser(path)
+    path = write_raw(tmp_path / "b", [("/tf", TF, tf_msg(HUMBLE, [("odom", "odom", (k, 0, 0), (0, 0, 0, 1))], k * NS))
+                                      for k in range(1, 4)] + scans_at([1, 2, 3]))
+    scans, _ = read_warned(path)
     assert not scans.odometry_known and not scans.odometry.any()
 
 
@@ -215,7 +155,7 @@ def test_a_named_topic_the_bag_lacks_is_an_error_listing_its_topics(tmp_path: Pa
     assert not (tmp_path / "same").exists()
     laser = tmp_path / "laser"
     write_laserscan_bag(laser, laser_scans(3))
-    assert read_laser(laser)[0].ground_truth is None
+    assert read_warned(laser)[0].ground_truth is None
     for role in ("ground_truth", "tf", "tf_static"):
         with pytest.raises(InputError, match=r"topic /nope \(.*\) is missing; the bag has: .*/scan "):
             read_laserscan_bag(laser, topics=LaserTopics(**{role: "/nope"}))
@@ -238,15 +178,15 @@ def test_odometry_on_another_tf_topic_is_pointed_at(tmp_path: Path):
                                   odometry.poses)
     laser = tmp_path / "laser"
     write_laserscan_bag(laser, laser_scans(3), odometry_on_tf=True, tf_topic="/tf_odom")
-    scans, warned = read_laser(laser)
+    scans, warned = read_warned(laser)
     assert not scans.odometry_known
     assert any("on /tf_odom: name it with --laser-topics odometry=/tf_odom" in m for m in warned)
-    scans, _ = read_laser(laser, topics=LaserTopics(odometry="/tf_odom"))
+    scans, _ = read_warned(laser, topics=LaserTopics(odometry="/tf_odom"))
     np.testing.assert_allclose(scans.odometry[:, 0], [0.0, 0.1, 0.2], atol=1e-9)
     # A bag without odometry whose only other transforms are the mounting: no hint.
     bare = tmp_path / "bare"
     write_laserscan_bag(bare, laser_scans(3, odometry=False))
-    scans, warned = read_laser(bare)
+    scans, warned = read_warned(bare)
     assert not scans.odometry_known and not warned
 
 
@@ -254,9 +194,9 @@ def test_odometry_on_another_tf_topic_is_pointed_at(tmp_path: Path):
 
 
 def test_a_ground_truth_declared_but_never_published_is_left_out_unless_named(tmp_path: Path):
-    odom = [("/odom", ODOM, odometry_msg(k * NS, float(k))) for k in (1, 2, 3)]
-    path = raw_bag(tmp_path / "b", odom + scans_at([1, 2, 3]), declared=[("/ground_truth", ODOM), ("/gt", ODOM)])
-    scans, warned = read_laser(path)
+    odom = [("/odom", ODOM, odometry_msg(HUMBLE, k * NS, (k, 0, 0))) for k in (1, 2, 3)]
+    path = write_raw(tmp_path / "b", odom + scans_at([1, 2, 3]), declared=[("/ground_truth", ODOM), ("/gt", ODOM)])
+    scans, warned = read_warned(path)
     assert scans.ground_truth is None and len(scans) == 3
     assert all("no static transform" in m for m in warned)  # the bag has no mounting: nothing else
     np.testing.assert_allclose(scans.odometry[:, 0], [1.0, 2.0, 3.0])
@@ -276,11 +216,11 @@ def test_a_tof_ground_truth_declared_but_never_published_is_left_out(tmp_path: P
     assert written == 3
     with AnyReader([tmp_path / "w"]) as reader:  # the same messages, and a /ground_truth without any
         messages = [(c.topic, c.msgtype, reader.deserialize(raw, c.msgtype)) for c, _, raw in reader.messages()]
-    path = raw_bag(tmp_path / "b", messages, declared=[("/ground_truth", ODOM)])
+    path = write_raw(tmp_path / "b", messages, declared=[("/ground_truth", ODOM)])
     bag = read_tof_bag(path)
     assert bag.ground_truth is None and len(list(bag.frames())) == 3
     with pytest.raises(InputError, match="topic /truth: has no message"):
-        read_tof_bag(raw_bag(tmp_path / "named", messages, declared=[("/truth", ODOM)]),
+        read_tof_bag(write_raw(tmp_path / "named", messages, declared=[("/truth", ODOM)]),
                      topics=ToFTopics(ground_truth="/truth"))
 
 
@@ -289,20 +229,22 @@ def test_a_tof_ground_truth_declared_but_never_published_is_left_out(tmp_path: P
 
 def test_a_zero_quaternion_is_said_to_be_zero(tmp_path: Path):
     zero = (0.0, 0.0, 0.0, 0.0)
-    odom = raw_bag(tmp_path / "odom", [("/odom", ODOM, odometry_msg(k * NS, float(k), zero if k == 2 else (0, 0, 0, 1)))
-                                       for k in (1, 2, 3)] + scans_at([1, 2, 3]))
+    odom = write_raw(tmp_path / "odom", [
+        ("/odom", ODOM, odometry_msg(HUMBLE, k * NS, (k, 0, 0), q=zero if k == 2 else None)) for k in (1, 2, 3)
+    ] + scans_at([1, 2, 3]))
     with pytest.raises(InputError) as info:
         read_laserscan_bag(odom)
     assert "topic /odom: the pose stamped 2.000000000 s has a zero quaternion (length 0)" in str(info.value)
     assert "not finite" not in str(info.value)
-    tf = raw_bag(tmp_path / "tf", [("/tf", TF, tf_msg(k * NS, "odom", "base_link", float(k), zero if k == 2 else
-                                                      (0, 0, 0, 1))) for k in (1, 2, 3)] + scans_at([1, 2, 3]))
+    tf = write_raw(tmp_path / "tf", [("/tf", TF, tf_msg(HUMBLE, [("odom", "base_link", (k, 0, 0), zero if k == 2 else
+                                                                   (0, 0, 0, 1))], k * NS)) for k in (1, 2, 3)]
+                   + scans_at([1, 2, 3]))
     with pytest.raises(InputError, match=r"topic /tf: the transform odom → base_link stamped 2\.000000000 s has a "
                                          r"zero quaternion \(length 0\)"):
         read_laserscan_bag(tf)
     # Not finite stays not finite.
-    nan = raw_bag(tmp_path / "nan", [("/odom", ODOM, odometry_msg(k * NS, float(k), (0, 0, math.nan, 1)))
-                                     for k in (1, 2)] + scans_at([1, 2]))
+    nan = write_raw(tmp_path / "nan", [("/odom", ODOM, odometry_msg(HUMBLE, k * NS, (k, 0, 0), q=(0, 0, math.nan, 1)))
+                                       for k in (1, 2)] + scans_at([1, 2]))
     with pytest.raises(InputError, match="stamped 1.000000000 s is not finite"):
         read_laserscan_bag(nan)
 
@@ -339,18 +281,19 @@ def test_tof_frames_in_a_hole_of_the_odometry_are_dropped_not_interpolated(tmp_p
 def test_laser_scans_in_a_hole_of_the_odometry_are_dropped_and_short_holes_kept(tmp_path: Path):
     scans = laser_scans(10)
     odometry = stale_odometry(100.4, 101.0)
-    odom = [("/odom", ODOM, odometry_msg(round(t * NS), x)) for t, x in zip(odometry.timestamps, odometry.poses[:, 0])]
+    odom = [("/odom", ODOM, odometry_msg(HUMBLE, round(t * NS), (x, 0, 0)))
+            for t, x in zip(odometry.timestamps, odometry.poses[:, 0])]
     stamps = list(scans.timestamps)
-    path = raw_bag(tmp_path / "b", odom + scans_at(stamps))
-    read, warned = read_laser(path)
+    path = write_raw(tmp_path / "b", odom + scans_at(stamps))
+    read, warned = read_warned(path)
     np.testing.assert_allclose(read.timestamps, scans.timestamps[4:], atol=1e-9)
     np.testing.assert_allclose(read.odometry[:, 0], 1.0 + scans.timestamps[4:] - 100.4, atol=1e-9)
     assert any("dropped 4 of 10 scans on /scan" in m and "hole(s) without poses (0.000000000, 100.400000000)" in m
                for m in warned)
     # A hole of 0.8 s in an odometry at 50 Hz is under the 1 s floor: interpolated across.
     t = np.concatenate([100.0 + 0.02 * np.arange(5), 100.9 + 0.02 * np.arange(5)])
-    short = raw_bag(tmp_path / "short", [("/odom", ODOM, odometry_msg(round(s * NS), s - 100.0)) for s in t]
-                    + scans_at(stamps))
-    read, warned = read_laser(short)
+    short = write_raw(tmp_path / "short", [("/odom", ODOM, odometry_msg(HUMBLE, round(s * NS), (s - 100.0, 0, 0)))
+                                           for s in t] + scans_at(stamps))
+    read, warned = read_warned(short)
     assert len(read) == 10 and all("no static transform" in m for m in warned)
     np.testing.assert_allclose(read.odometry[:, 0], scans.timestamps - 100.0, atol=1e-9)

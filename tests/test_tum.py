@@ -89,6 +89,10 @@ def test_bad_row_names_file_line_and_format(tmp_path: Path, row: str) -> None:
         ("1.0 2 \u0661\u0662 4 0 0 0 1", "y is '\u0661\u0662', not a finite decimal number"),  # float() reads 12
         ("1.0 1e200 3 4 0 0 0 1", "x is 1e+200, beyond ±1e+09: not a plausible value"),
         ("1.0 2 3 4 0 0 1e300 1", "qz is 1e+300, beyond ±1000: not a plausible value"),
+        ("1e300 2 3 4 0 0 0 1", "timestamp 1e+300 is beyond ±1e+12 s: TUM timestamps are seconds"),
+        ("1.7e12 2 3 4 0 0 0 1", "timestamp 1.7e+12 is beyond ±1e+12 s"),  # Unix milliseconds
+        ("1.7e18 2 3 4 0 0 0 1", "divided by 1e3 or 1e9"),  # Unix nanoseconds
+        ("inf 2 3 4 0 0 0 1", "timestamp is 'inf', not a finite decimal number"),
     ],
 )
 def test_a_bad_field_is_named_with_its_value(tmp_path: Path, row: str, message: str) -> None:
@@ -97,6 +101,14 @@ def test_a_bad_field_is_named_with_its_value(tmp_path: Path, row: str, message: 
     with pytest.raises(InputError) as info:
         read_tum(path)
     assert info.value.line == 2 and message in str(info.value)
+
+
+def test_counted_and_unix_timestamps_are_read(tmp_path: Path) -> None:
+    path = tmp_path / "t.tum"
+    path.write_text("0 0 0 0 0 0 0 1\n1 1 0 0 0 0 0 1\n2 2 0 0 0 0 0 1\n")
+    assert read_tum(path).timestamps.tolist() == [0.0, 1.0, 2.0]
+    path.write_text("1700000000.123456 0 0 0 0 0 0 1\n999999999999.5 1 0 0 0 0 0 1\n")
+    assert read_tum(path).timestamps.tolist() == [1700000000.123456, 999999999999.5]
 
 
 def test_non_increasing_timestamps(tmp_path: Path) -> None:
@@ -191,6 +203,7 @@ def test_write_sorted_keeps_each_pose_with_its_timestamp(tmp_path):
         ([0.0, 1.0], [[0.0, 0.0, 0.0], [np.nan, 0.0, 0.0]], r"trajectory pose 1 is not finite: timestamp 1.0, pose \[nan, 0.0, 0.0\]"),
         ([0.0, 1.0], [[0.0, 0.0, -np.inf], [0.0, 0.0, 0.0]], "trajectory pose 0 is not finite"),
         ([0.0, 1.0], [[0.0, 0.0, 0.0], [0.0, 2e9, 0.0]], r"trajectory pose 1 lies beyond ±1e\+09 m: \[0.0, 2000000000.0\]"),
+        ([0.0, 1.7e12], np.zeros((2, 3)), r"trajectory pose 1 has timestamp 1.7e\+12, beyond ±1e\+12 s"),
     ],
 )
 @pytest.mark.parametrize("sort", [False, True])

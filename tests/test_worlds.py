@@ -170,6 +170,16 @@ def test_path_through_a_box_has_no_clearance():
     assert world.path_clearance() == 0.0
 
 
+def test_waypoints_on_the_outline_or_under_a_high_box_are_kept():
+    # A table top at 1.2 m is above the robot; the outline itself is inside the world (the
+    # drive's clearance check keeps the robot off it).
+    world = parse_world(box_room(
+        boxes=[{"centre": [2.0, 1.5], "size": [0.4, 0.4], "bottom": 1.2, "height": 1.3}],
+        path={"waypoints": [[2.0, 1.5], [4.0, 1.5], [0.0, 3.0]]},
+    ))
+    np.testing.assert_array_equal(world.waypoints, [[2.0, 1.5], [4.0, 1.5], [0.0, 3.0]])
+
+
 def test_extends_takes_over_and_replaces_keys(tmp_path):
     write(tmp_path, "name: base\nceiling_height: 2.5\nwalls:\n  - points: [[0, 0], [4, 0]]\n", "_base.yaml")
     child = write(tmp_path, "extends: _base\nname: child\nceiling_height: 3.0\n", "child.yaml")
@@ -207,6 +217,15 @@ BAD_FILES = [
     ("name: x\nceiling_height: 2.5\nwalls:\n  - points: [[0, 0], [3, 0]]\npath:\n  waypoints: [[1, 1], [1, 1], [2, 1]]\n",
      ["path", "waypoints 0 and 1 are both [1.0, 1.0]: consecutive waypoints must differ"]),
     ("name: x\nceiling_height: 2.5\nwalls: [[0, 0], [1, 0]\n", ["not valid YAML"]),
+    # Paths the drive's clearance check let through: out of a room open to the east, beyond its
+    # walls (the robot drove through nowhere), and round a sharp corner whose arc passes 2.7 m
+    # from the box around its waypoint.
+    ("name: x\nceiling_height: 2.5\nwalls:\n  - points: [[4, 0], [0, 0], [0, 3], [4, 3]]\n"
+     "path:\n  waypoints: [[1, 0.75], [6, 0.75], [6, 2.25], [1, 2.25]]\n",
+     ["path.waypoints[1]: (6, 0.75) lies outside the world, whose walls and boxes span x 0 .. 4 m, y 0 .. 3 m"]),
+    ("name: x\nceiling_height: 2.5\nwalls:\n  - {points: [[0, 0], [20, 0], [20, 10], [0, 10]], closed: true}\n"
+     "boxes:\n  - {centre: [18, 5], size: [0.5, 0.5], height: 0.7}\npath:\n  waypoints: [[2, 8], [18, 5], [2, 2]]\n",
+     ["path.waypoints[1]: (18, 5) lies inside boxes[0], which reaches below 1 m: the robot cannot pass it"]),
     # A box 1e300 m wide made the path's clearance NaN, and the robot drove through it.
     ("name: x\nceiling_height: 2.5\nboxes:\n  - {centre: [3, 1], size: [1.0e300, 0.2], height: 1}\n",
      ["boxes[0].size[0]", "less than or equal to 100000"]),

@@ -257,6 +257,10 @@ MAX_BEAM_ANGLE = 2.0 * math.pi + 1e-9
 # Beams closer than this (rad) are one bearing: 2π in 6e8 beams (the densest scans read here
 # hold 2e6: BENCHMARKS.md, "A log of very dense scans"). The readers refuse them.
 MIN_BEAM_STEP = 1e-8
+# Timestamps are seconds, a count from 0 or Unix times (~1.7e9): beyond 1e12 s (31 700 years)
+# they are another unit (Unix milliseconds ~1.7e12, nanoseconds ~1.7e18) or a broken clock, and
+# every tolerance in seconds would be read in that unit. The readers refuse them.
+MAX_TIMESTAMP = 1e12
 
 
 def evenly_spaced_beams(

@@ -49,7 +49,7 @@ import numpy as np
 from omnitof.errors import InputError, OmnitofWarning, read_problem
 from omnitof.io.text import parse_float_row
 from omnitof.geometry import relative, wrap_angle
-from omnitof.types import Trajectory, first_non_finite
+from omnitof.types import MAX_TIMESTAMP, Trajectory, first_non_finite
 
 ROW_MESSAGE = "relation rows need 8 numbers: t1 t2 x y z roll pitch yaw"
 _FIELDS = ("t1", "t2", "x", "y", "z", "roll", "pitch", "yaw")
@@ -120,6 +120,10 @@ def read_relations(path: str | Path) -> Relations:
 
 def _parse_relation(text: str, path: str | Path, number: int) -> list[float]:
     row = parse_float_row(text, 8, ROW_MESSAGE, path, number, names=_FIELDS, limits=_LIMITS)
+    for name, t in zip(("t1", "t2"), row[:2]):
+        if abs(t) > MAX_TIMESTAMP:
+            raise InputError(f"{name} {t:g} is beyond ±{MAX_TIMESTAMP:g} s: relation timestamps are seconds", path,
+                             number)
     if row[0] == row[1]:
         raise InputError(f"t1 and t2 are both {row[0]:.6f}: a relation joins two different times", path, number)
     if max(abs(v) for v in row[4:7]) > _PLANAR_TOLERANCE:

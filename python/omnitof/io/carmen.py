@@ -41,9 +41,10 @@ import numpy as np
 
 from omnitof.errors import ConfigError, InputError, OmnitofWarning, read_problem
 from omnitof.io.text import is_decimal, quote
-from omnitof.geometry import interpolate_poses, relative, wrap_angle
+from omnitof.geometry import MAX_HEADING, interpolate_poses, relative, wrap_angle
 from omnitof.types import (
     MAX_BEAM_ANGLE,
+    MAX_TIMESTAMP,
     MIN_BEAM_STEP,
     ScanSequence,
     Trajectory,
@@ -480,6 +481,9 @@ def _timestamp(tokens: list[str], layout: _Layout) -> float:
         raise _Malformed(
             f"logger_timestamp is {quote(logger_stamp)}, not a finite decimal number; {layout.expected}"
         )
+    if abs(float(stamp)) > MAX_TIMESTAMP:
+        raise _Malformed(f"ipc_timestamp {float(stamp):g} is beyond ±{MAX_TIMESTAMP:g} s: CARMEN timestamps are "
+                         "seconds")
     return float(stamp)
 
 
@@ -509,14 +513,20 @@ def _parse_odom(tokens: list[str]) -> tuple[float, np.ndarray]:
     if len(tokens) != 10:
         raise _Malformed(f"ODOM has {len(tokens) - 1} values, not 9; {_ODOM_LAYOUT.expected}")
     values = _floats(tokens, 1, 7, _ODOM_LAYOUT)
-    return _timestamp(tokens, _ODOM_LAYOUT), _near(values[:3], "x, y")
+    return _timestamp(tokens, _ODOM_LAYOUT), _near(values[:3], "")
 
 
-def _near(pose: np.ndarray, what: str) -> np.ndarray:
-    """`pose` (x, y, theta), checked to lie within ±MAX_POSITION."""
+def _near(pose: np.ndarray, prefix: str) -> np.ndarray:
+    """`pose` (x, y, theta), logged as the fields `prefix`x, `prefix`y, `prefix`theta, checked
+    to lie within ±MAX_POSITION and to turn within ±MAX_HEADING."""
     if np.abs(pose[:2]).max() > MAX_POSITION:
-        raise _Malformed(f"{what} = {pose[0]:.6g}, {pose[1]:.6g} m lie beyond ±{MAX_POSITION:g} m, where no robot "
-                         "drives")
+        raise _Malformed(f"{prefix}x, {prefix}y = {pose[0]:.6g}, {pose[1]:.6g} m lie beyond ±{MAX_POSITION:g} m, "
+                         "where no robot drives")
+    # Headings are read unwrapped (some loggers add up the turns), but beyond MAX_HEADING (1e6 rad,
+    # 160 000 turns) they come from a broken logger, and wrapped they give any angle at all.
+    if abs(pose[2]) > MAX_HEADING:
+        raise _Malformed(f"{prefix}theta = {pose[2]:.6g} rad lies beyond ±{MAX_HEADING:g} rad, more turns than "
+                         "any robot makes")
     return pose
 
 
@@ -542,8 +552,8 @@ def _parse_old_laser(tokens: list[str]) -> _Scan:
         line=0,
         stamp=_timestamp(tokens, layout),
         ranges=values[:n],
-        laser_pose=_near(values[n : n + 3], "laser_x, laser_y"),
-        robot_pose=_near(values[n + 3 : n + 6], "odom_x, odom_y"),
+        laser_pose=_near(values[n : n + 3], "laser_"),
+        robot_pose=_near(values[n + 3 : n + 6], "odom_"),
     )
 
 
@@ -590,7 +600,7 @@ def _parse_new_laser(tokens: list[str], with_pose: bool) -> _Scan:
     )
     if with_pose:
         poses = _floats(tokens, 10 + n + m, 21 + n + m, layout)  # with tv, rv, safety, turn
-        scan.laser_pose, scan.robot_pose = _near(poses[:3], "laser_x, laser_y"), _near(poses[3:6], "robot_x, robot_y")
+        scan.laser_pose, scan.robot_pose = _near(poses[:3], "laser_"), _near(poses[3:6], "robot_")
     return scan
 
 
@@ -838,6 +848,9 @@ def _param_sensor_pose(
         raise ctx.error(f"PARAM {name} puts the {laser} laser {math.hypot(pose[0], pose[1]):.6g} m from the "
                         f"robot's centre; a laser on the robot is within {MAX_MOUNT:g} m of it (in metres)",
                         params[name][1])
+    if abs(pose[2]) > MAX_HEADING:
+        raise ctx.error(f"PARAM {names[2]} is {pose[2]:.6g} rad, beyond ±{MAX_HEADING:g} rad: no mount turns "
+                        "the laser so far", params[names[2]][1])
     if laser == "rear" and angle is None:
         # Older CARMEN knew only robot_rearlaser_offset and mounted the rear laser facing
         # backwards, the offset measured along its own heading (localize: theta + pi).

@@ -16,13 +16,14 @@ from omnitof.errors import InputError, read_problem
 from omnitof.io.text import parse_float_row
 from omnitof.geometry import check_headings, quaternion_to_yaw, yaw_to_quaternion
 from omnitof.io.atomic import atomic_write
-from omnitof.types import Trajectory, first_non_finite
+from omnitof.types import MAX_TIMESTAMP, Trajectory, first_non_finite
 
 HEADER = "# timestamp x y z qx qy qz qw"
 ROW_MESSAGE = "TUM trajectory rows need 8 numbers: timestamp x y z qx qy qz qw"
 _FIELDS = ("timestamp", "x", "y", "z", "qx", "qy", "qz", "qw")
-# Positions beyond a million kilometres and quaternions far from unit length come from a broken
-# writer; the statistics over them overflow or print as hundreds of digits.
+# Positions beyond a million kilometres (io.carmen's MAX_POSITION) and quaternions far from unit
+# length come from a broken writer; the statistics over them overflow or print as hundreds of
+# digits.
 _LIMITS = {"x": 1e9, "y": 1e9, "z": 1e9, "qx": 1e3, "qy": 1e3, "qz": 1e3, "qw": 1e3}
 
 # Unix times (~1e9 s) at microsecond precision need 6 decimals; positions to the micrometre, and
@@ -76,6 +77,10 @@ def _check_poses(traj: Trajectory) -> None:
             f"pose {traj.poses[i].tolist()}"
         )
     check_headings(traj.poses, "trajectory")
+    late = np.flatnonzero(np.abs(traj.timestamps) > MAX_TIMESTAMP)
+    if late.size:
+        i = int(late[0])
+        raise ValueError(f"trajectory pose {i} has timestamp {traj.timestamps[i]:g}, beyond ±{MAX_TIMESTAMP:g} s")
     far = np.flatnonzero(np.abs(traj.poses[:, :2]).max(axis=1) > _LIMITS["x"])
     if far.size:
         i = int(far[0])
@@ -98,9 +103,10 @@ def read_tum(path: str | Path) -> Trajectory:
     """Read a TUM trajectory file; yaw comes from the quaternion.
 
     Raises:
-        InputError: naming the file and line for a row that is not 8 finite numbers, a zero
-            quaternion, or a timestamp that does not increase; naming the file if it cannot be
-            read or holds no pose.
+        InputError: naming the file and line for a row that is not 8 finite numbers, a
+            timestamp beyond ±1e12 s or position beyond ±1e9 m, a zero quaternion, or a
+            timestamp that does not increase; naming the file if it cannot be read or holds no
+            pose.
     """
     rows: list[list[float]] = []
     previous: tuple[float, int] | None = None  # (timestamp, line number) of the last row
@@ -136,6 +142,9 @@ def _read_lines(path: str | Path) -> list[str]:
 
 def _parse_row(text: str, path: str | Path, number: int) -> list[float]:
     row = parse_float_row(text, 8, ROW_MESSAGE, path, number, names=_FIELDS, limits=_LIMITS)
+    if abs(row[0]) > MAX_TIMESTAMP:
+        raise InputError(f"timestamp {row[0]:g} is beyond ±{MAX_TIMESTAMP:g} s: TUM timestamps are seconds "
+                         "(milliseconds or nanoseconds must be divided by 1e3 or 1e9)", path, number)
     if max(abs(v) for v in row[4:8]) < 1e-9:
         raise InputError("the quaternion qx qy qz qw has zero length", path, number)
     return row

@@ -18,6 +18,7 @@ A world file (`omnitof/worlds/<name>.yaml`, package data) describes one floor of
 - `landmarks`: places where the distance between two opposite walls is known (the paper's
   Table I): `position`, `direction_deg` of the measurement, true `distance`, `height`;
 - `path`: the robot's loop as `waypoints` (closed unless `closed: false`), driven `laps` times (1 to 10 000);
+  each waypoint within the walls' and boxes' extent and outside the boxes the robot cannot pass;
 - `extends`: another world file (name in the same folder, without .yaml) whose keys this one
   takes over and may replace, key by key; a name starting with "_" is a shared part, not a world.
 
@@ -603,7 +604,7 @@ def _compile(spec: WorldSpec, source: Path | None) -> World:
         raise WorldError("landmarks: names must be unique", source)
     path = spec.path
     waypoints = np.array(path.waypoints, dtype=np.float64) if path else np.zeros((0, 2))
-    return World(
+    world = World(
         name=spec.name,
         description=spec.description,
         source=source,
@@ -622,6 +623,28 @@ def _compile(spec: WorldSpec, source: Path | None) -> World:
         path_closed=path.closed if path else True,
         laps=path.laps if path else 1,
     )
+    _check_waypoints(world, source)
+    return world
+
+
+def _check_waypoints(world: World, source: Path | None) -> None:
+    """WorldError naming the first waypoint outside everything the world holds, or inside a box
+    the robot cannot pass. The drive's clearance check (sim.sequence.robot_path) misses both: a
+    loop beyond the walls keeps clear of them, and a corner's arc may cut past a small box."""
+    xmin, xmax, ymin, ymax = world.bounds
+    low = [j for j in range(len(world.boxes)) if world.boxes[j, 5] < ROBOT_HEIGHT]
+    for k, (x, y) in enumerate(world.waypoints):
+        if not (xmin <= x <= xmax and ymin <= y <= ymax):
+            raise WorldError(
+                f"path.waypoints[{k}]: ({x:g}, {y:g}) lies outside the world, whose walls and boxes span "
+                f"x {xmin:g} .. {xmax:g} m, y {ymin:g} .. {ymax:g} m", source,
+            )
+        for j in low:
+            if _inside_boxes(np.array([[x, y]]), world.boxes[j : j + 1])[0]:
+                raise WorldError(
+                    f"path.waypoints[{k}]: ({x:g}, {y:g}) lies inside boxes[{j}], which reaches below "
+                    f"{ROBOT_HEIGHT:g} m: the robot cannot pass it", source,
+                )
 
 
 def _wall_pieces(

@@ -128,6 +128,14 @@ class LaserTopics:
 
     def __post_init__(self) -> None:
         frames_without_slash(self)
+        # As in ToFTopics: the same topic for two roles would read one role's messages as the
+        # other's. tf may also be tf_static (a ROS 1 bag's mounting repeated on /tf).
+        roles = {"ground_truth": self.ground_truth, "tf_static": self.tf_static}
+        if self.scan is not None:
+            roles = {"scan": self.scan, **roles}
+        if self.odometry is not None and self.odometry != self.tf:
+            roles["odometry"] = self.odometry
+        _distinct_topics(roles)
 
     @classmethod
     def parse(cls, text: str) -> LaserTopics:
