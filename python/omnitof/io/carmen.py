@@ -1214,6 +1214,15 @@ def _check_writable(scans: ScanSequence, hostname: str) -> None:
         )
     if not np.isfinite(scans.sensor_pose).all():
         raise ValueError(f"sensor_pose is not finite: {scans.sensor_pose.tolist()}")
+    for what, beyond, bound in (
+        ("timestamp", np.abs(scans.timestamps) > MAX_TIMESTAMP, f"{MAX_TIMESTAMP:g} s"),
+        ("position", np.abs(scans.odometry[:, :2]).max(axis=1) > MAX_POSITION, f"{MAX_POSITION:g} m"),
+        ("heading", np.abs(scans.odometry[:, 2]) > MAX_HEADING, f"{MAX_HEADING:g} rad"),
+    ):
+        if beyond.any():
+            i = int(np.flatnonzero(beyond)[0])
+            raise ValueError(f"scan {i}: its {what} is beyond ±{bound}, which read_carmen refuses: timestamp "
+                             f"{scans.timestamps[i]:g}, odometry {scans.odometry[i].tolist()}")
     steps = np.diff(scans.timestamps)
     back = np.flatnonzero(steps < -MAX_TIME_REVERSAL)
     if back.size:
