@@ -230,6 +230,15 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
     if request.ignore_odometry:  # only its first pose stays: where the estimate starts
         scans = dataclasses.replace(scans, odometry=np.broadcast_to(scans.odometry[:1], scans.odometry.shape),
                                     odometry_known=False, odometry_rule="none: set aside by --ignore-odometry")
+    else:
+        from omnitof.slam.odometry_faults import repair_odometry
+
+        scans, repair = repair_odometry(scans, label)
+        if repair:
+            extra["input"]["odometry_repair"] = repair
+        if three_d and not scans.odometry_known:
+            raise OmnitofError(f"{log}: the odometry never moves, and the 3D filter chooses its frames by it; "
+                               "run the 2D filter (without --filter 3d), which estimates the odometry from the scans")
     estimated = not scans.odometry_known
     if estimated and request.scan_delay is not None:
         raise OmnitofError(f"{log}: --scan-delay: the odometry is estimated from the scans at their own stamps "
