@@ -681,7 +681,14 @@ def test_timestamps_going_backwards(tmp_path):
     path = write(tmp_path, lines)
     with pytest.raises(InputError) as excinfo:
         read_carmen(path)
-    rejects(excinfo, path, 5, "timestamps go backwards: 8.000000 follows 10.400000 (line 4)")
+    rejects(excinfo, path, 5, "timestamps go backwards: 8.000000 follows 10.400000 (line 4)",
+            "the clock was set back: split the log before line 5")
+    # One stamp written hours ahead: the line to mend is named, not the one after it.
+    (tmp_path / "spike").mkdir()
+    with pytest.raises(InputError) as excinfo:
+        read_carmen(write(tmp_path / "spike", [flaser([1.0], t) for t in (10.0, 10.1, 9999.0, 10.3, 10.4)]))
+    assert "line 3's stamp lies ahead of the scans on both sides of it: correct or delete that line" in str(
+        excinfo.value)
     with pytest.raises(InputError) as excinfo:
         read_carmen(path, max_time_reversal=0.0)
     rejects(excinfo, path, 3, "10.100000 follows 10.200000")

@@ -1110,10 +1110,17 @@ def _check_time_order(
     too_far = backwards[-steps[backwards] > max_time_reversal]
     if too_far.size:
         i = int(too_far[0]) + 1
+        # What to do differs: one stamp written wrong is a line to mend; a clock set back is a
+        # log of two runs.
+        if i >= 2 and stamps[i - 2] <= stamps[i] + max_time_reversal:
+            advice = (f"line {scans[i - 1].line}'s stamp lies ahead of the scans on both sides of it: correct or "
+                      "delete that line")
+        else:
+            advice = f"the clock was set back: split the log before line {scans[i].line} and map each part"
         raise ctx.error(
             f"{kind} timestamps go backwards: {_fixed(stamps[i], 6)} follows {_fixed(stamps[i - 1], 6)} "
             f"(line {scans[i - 1].line}), {_fixed(stamps[i - 1] - stamps[i], 6)} s earlier; at most "
-            f"{max_time_reversal} s is tolerated (max_time_reversal)",
+            f"{max_time_reversal} s is tolerated; {advice}",
             scans[i].line,
         )
     first = int(backwards[0]) + 1
