@@ -207,6 +207,23 @@ seeds: [0, 1]
     assert "## Failed runs" in (out / "table.md").read_text()
 
 
+def test_a_warning_is_recorded_once_though_its_check_runs_twice(data, cluster, tmp_path):
+    # map.max_range 1 m: most of the loop's echoes lie beyond it, which the limits warn of, and
+    # they are checked before the filter and again inside run_slam.
+    path = _experiment(tmp_path, "far", f"""
+inputs: [{{name: first, log: {data['first']}, scan_delay: 0}}]
+presets: [sim2d]
+set: {{map.max_range: 1.0}}
+seeds: [0]
+""")
+    out = tmp_path / "out"
+    outcome = run_experiment(load_experiment(path), out, scheduler=cluster.scheduler_address, progress=False,
+                             echo=lambda _: None)
+    record = yaml.safe_load((run_dir(out, outcome.done[0]) / "bench.yaml").read_text())
+    far = [w for w in record["warnings"] if "lie beyond map.max_range 1 m" in w]
+    assert len(far) == 1, record["warnings"]
+
+
 def _kill_a_worker_mid_run(data, scheduler: str, tmp_path: Path, runs: int):
     """Run a `runs`-seed experiment on `scheduler` and SIGKILL (as the OOM killer would) the
     worker of a run 0.5 s into its work. Returns (outcome, the killed process's pid, out)."""

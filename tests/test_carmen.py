@@ -7,6 +7,7 @@ import functools
 import gzip
 import math
 import os
+import re
 import warnings
 from pathlib import Path
 
@@ -166,6 +167,26 @@ def test_old_format_max_range(tmp_path, param, expected, rule):
     np.testing.assert_array_equal(scans.ranges[0], want)
 
 
+@pytest.mark.parametrize("readings, message", [
+    ([0.0] * 6, "every one of the 12 readings of the 2 FLASER scans is 0 m, which is no reading: there is nothing "
+                "to map"),
+    ([-1.0, 0.0, -0.5, 0.0, 0.0, 0.0], "every one of the 12 readings of the 2 FLASER scans is 0 m or less (-1 to 0 "
+                                       "m), which is no reading: there is nothing to map"),
+    ([0.0, 0.0, 81.91, 0.0, 80.0, 0.0], "no reading of the 2 FLASER scans is an echo: 8 of the 12 are 0 m, which is "
+                                        "no reading, and the other 4 lie at or beyond the maximum range 80 m: there "
+                                        "is nothing to map"),
+])
+def test_a_log_without_a_reading_says_what_its_readings_are(tmp_path, readings, message):
+    # Readings of 0 m or less were reported as "every range is beyond the sensor's 80 m or missing".
+    path = write(tmp_path, [flaser(readings, 1.0), flaser(readings, 2.0)])
+    with pytest.raises(InputError) as info:
+        read_carmen(path)
+    assert str(info.value) == f"{path}: {message}"
+    # One echo among them is a log to read: the rest are no echo.
+    scans = read_carmen(write(tmp_path, [flaser(readings, 1.0), flaser([*readings[:-1], 3.0], 2.0)])).scans
+    assert np.isfinite(scans.ranges).sum() == 1 and scans.ranges[1, -1] == 3.0
+
+
 def walls_log(tmp_path, *, code=None, share=0.03, seed=0, extra=()):
     """60 FLASER scans of 180 readings at 1 cm: walls anywhere in 0.5 … 49.99 m, the SICK code
     81.83 now and then, and (if given) the laser's own no-echo `code` in `share` of the beams."""
@@ -178,14 +199,16 @@ def walls_log(tmp_path, *, code=None, share=0.03, seed=0, extra=()):
     return write(tmp_path, lines), ranges
 
 
-def test_a_repeated_top_value_is_the_lasers_no_echo(tmp_path):
-    path, raw = walls_log(tmp_path, code=50.0)
-    count = int(np.sum(raw == 50.0))
-    with pytest.warns(CarmenWarning, match=f"{count} readings of exactly 50.00 m"):
+@pytest.mark.parametrize("code, shown", [(50.0, "50.00"), (50.005, "50.005")])
+def test_a_repeated_top_value_is_the_lasers_no_echo(tmp_path, code, shown):
+    # A code with more digits than centimetres is printed with them (0.001 m read "0.00 m").
+    path, raw = walls_log(tmp_path, code=code)
+    count = int(np.sum(raw == code))
+    with pytest.warns(CarmenWarning, match=f"{count} readings of exactly {re.escape(shown)} m"):
         scans = read_carmen(path).scans
-    assert scans.max_range == 50.0
-    assert scans.max_range_rule == f"repeated top value 50.00 m ({count} readings)"
-    walls = raw < 50.0
+    assert scans.max_range == code
+    assert scans.max_range_rule == f"repeated top value {shown} m ({count} readings)"
+    walls = raw < code
     np.testing.assert_array_equal(scans.ranges[walls], raw[walls].astype(np.float32))  # kept
     assert np.isinf(scans.ranges[~walls]).all()  # the code and SICK's 81.83
 

@@ -3,6 +3,7 @@ mistakes reported as one line with exit status 2 (no traceback)."""
 
 from __future__ import annotations
 
+import errno
 import os
 import subprocess
 import sys
@@ -332,21 +333,41 @@ def test_a_second_run_replaces_the_whole_folder(tmp_path, short_log, corridor_lo
     ("foreign folder", "holds files that are not results of omnitof (notes.txt)"),
     ("unwritable", "cannot create the results folder"),
     ("name too long", "cannot be the results folder: File name too long"),  # was a raw OSError
+    # These three failed only after the whole run, when the finished folder was to replace them.
+    ("mount point", "results: is a mount point: results are written by replacing the folder; give a folder "
+                    "inside it, e.g. "),
+    ("bind mount", "results: is a mount point"),  # os.path.ismount misses one within a file system
+    ("immutable", "results: the folder cannot be replaced (Operation not permitted), and results are written "
+                  "by replacing it: give another folder for the results"),
 ])
-def test_an_output_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys, case, message):
+def test_an_output_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys, monkeypatch, case, message):
     # The log is malformed too: the output is checked first, so its error is the one reported.
     log = tmp_path / "bad.clf"
     log.write_text("ODOM 0 0 0 0 0 0 1.0 host 0\nFLASER 3 1.0 2.0 0 0 0 0 0 0 2.0 host 0\n")
     (tmp_path / "taken").write_text("a file")
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "notes.txt").write_text("keep me")
+    (tmp_path / "results").mkdir()  # a Docker volume, say; mounting needs privileges tests lack
+    if case == "mount point":
+        monkeypatch.setattr(os.path, "ismount", lambda p: Path(p) == tmp_path / "results")
+    if case in ("bind mount", "immutable"):
+        code = errno.EBUSY if case == "bind mount" else errno.EPERM
+        rename = os.rename
+
+        def refused(src, dst):
+            if Path(src) == tmp_path / "results":
+                raise OSError(code, os.strerror(code), str(src), None, str(dst))
+            rename(src, dst)
+
+        monkeypatch.setattr(os, "rename", refused)
     out = {"file": tmp_path / "taken", "under a file": tmp_path / "taken" / "run",
            "foreign folder": tmp_path / "mine", "unwritable": Path("/proc/omnitof-run"),
-           "name too long": tmp_path / ("a" * 300)}[case]
+           "name too long": tmp_path / ("a" * 300)}.get(case, tmp_path / "results")
     assert quick_slam(log, out) == 2
     err = capsys.readouterr().err
     assert message in err and "bad.clf" not in err and err.count("\n") == 1
     assert (tmp_path / "taken").read_text() == "a file" and (tmp_path / "mine" / "notes.txt").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.clf", "mine", "results", "taken"]
 
 
 def test_a_path_the_file_system_refuses_is_named_once_before_its_problem(tmp_path, short_log, capsys):

@@ -101,6 +101,40 @@ def test_non_finite_odometry_is_refused(loop):
         check_limits(bad, load_config(preset="sim2d"))
 
 
+def test_echoes_beyond_map_max_range_are_refused_or_warned_of(loop):
+    # Readings beyond map.max_range clear free space only: with every echo beyond it, a hall
+    # logged at 20.5-70 m made a map without a wall, exit 0; with most beyond, most walls went
+    # without a word.
+    import dataclasses
+    import warnings
+
+    from omnitof.slam.limits import MapRangeWarning
+
+    beams = loop.ranges.shape[1]
+    ranges = np.tile(np.linspace(2.5, 6.5, beams, dtype=np.float32), (40, 1))
+    ranges[:, 1::10] = np.inf  # no echo: neither within nor beyond
+    far = dataclasses.replace(loop.slice(0, 40), ranges=ranges, source="hall.clf")
+    for clear in (False, True):  # no-echo beams clearing free space make no wall either
+        cfg = load_config(preset="sim2d", overrides={"map": {"max_range": 2.0, "clear_no_echo": clear}})
+        with pytest.raises(ConfigError) as info:
+            check_limits(far, cfg)
+        assert str(info.value) == (
+            "map.max_range 2 m: every echo of the 40 scans of hall.clf lies beyond it (the nearest at 2.5 m), and "
+            "readings beyond it clear free space only: the map would have no wall; raise it, e.g. "
+            "--set map.max_range=5 (half of the echoes lie within)")
+    echoes = ranges[np.isfinite(ranges)]
+    with pytest.warns(MapRangeWarning) as record:
+        check_limits(far, load_config(preset="sim2d", overrides={"map": {"max_range": 4.0}}))
+    share = int(100 * np.mean(echoes > 4.0))
+    assert share == 62 and len(record) == 1 and str(record[0].message) == (
+        f"hall.clf: {share} % of the echoes lie beyond map.max_range 4 m and leave no wall in the map (they "
+        "clear free space only); --set map.max_range=5 keeps half of them")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_limits(far, load_config(preset="sim2d", overrides={"map": {"max_range": 5.0}}))  # 38 % beyond
+        check_limits(loop, load_config(preset="sim2d"))  # the simulated corridors, within 8 m
+
+
 def test_odometry_whose_extent_overflows_is_refused_as_too_big(loop, monkeypatch):
     # Finite poses 3.4e308 m apart: the extent is infinite, and so is the memory the map needs,
     # whether the machine's memory is known or not. (check_limits refuses such odometry sooner,

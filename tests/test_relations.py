@@ -259,6 +259,10 @@ def test_single_relation_std_is_nan_and_dict_is_serialisable() -> None:
     json.dumps(d, allow_nan=False)
     assert yaml.safe_load(yaml.safe_dump(d)) == d
     assert len(result.to_dict(include_errors=True)["trans_errors"]) == 1
+    # The printed table shows no "nan" either: a dash where summary.yaml has null.
+    rows = result.format().splitlines()[2:]
+    assert [row.split()[-1] for row in rows] == ["–"] * 4 and "nan" not in result.format()
+    assert float(rows[0].split()[-2]) == pytest.approx(result.trans_mean, abs=1e-6)
 
 
 def test_format_is_a_short_table() -> None:

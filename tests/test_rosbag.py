@@ -724,6 +724,16 @@ def test_an_image_sent_twice_is_read_once(tmp_path: Path) -> None:
     assert [f.timestamp for f in frames] == [1.0, 2.0]
 
 
+def test_images_whose_stamps_were_left_unset_are_refused(tmp_path: Path) -> None:
+    # A driver with use_sim_time and no /clock stamps every image 0. Before, each image after
+    # the first read as the first recorded again (a warning), and SLAM ran on one frame.
+    path = raw_tof_bag(tmp_path / "b", [0, 0, 0], odom_stamps_ns=[0, NS])
+    expect_error(path, "topic /tof/distance: the 3 images span no time (every one is stamped 0.000000000 s): "
+                       "their header stamps were left unset, as by a node with use_sim_time and no /clock")
+    # One frame spans no time and needs none.
+    assert len(list(read_tof_bag(raw_tof_bag(tmp_path / "one", [0], odom_stamps_ns=[0, NS])).frames())) == 1
+
+
 def test_images_that_never_pair_and_a_topic_without_messages_are_named(tmp_path: Path) -> None:
     # The amplitude stamped 20 ms after the distance (beyond the 5 ms that make one frame).
     messages = [("/odom", ODOM, odometry_msg(HUMBLE, k * NS, (k, 0, 0))) for k in (1, 2, 3)]
@@ -969,7 +979,20 @@ def test_laserscan_writer_checks(tmp_path: Path) -> None:
     back.timestamps = back.timestamps[::-1].copy()
     with pytest.raises(ValueError, match="must not decrease"):
         write_laserscan_bag(tmp_path / "x", back)
+    # What read_laserscan_bag refuses: scans that span no time.
+    still = scans.slice()
+    still.timestamps = np.full(3, still.timestamps[0])
+    with pytest.raises(ValueError, match=r"all 3 scans are stamped .* s; read_laserscan_bag refuses scans that span "
+                                         r"no time"):
+        write_laserscan_bag(tmp_path / "x", still)
     assert list(tmp_path.iterdir()) == []
+    # Readings of NaN or 0 m or less, no reading to a reader, are written as no echo (+inf): a
+    # ScanSequence of nothing else reads back, as it did, as beams without an echo.
+    blind = scans.slice()
+    row = np.where(np.arange(blind.ranges.shape[1]) % 2 == 0, 0.0, np.nan)
+    blind.ranges = np.tile(row, (len(blind), 1)).astype(np.float32)
+    write_laserscan_bag(tmp_path / "blind", blind)
+    assert np.isposinf(read_warned(tmp_path / "blind")[0].ranges).all()
 
 
 @pytest.mark.parametrize(
@@ -1339,6 +1362,43 @@ def test_laserscan_errors(tmp_path: Path) -> None:
     ])  # fmt: skip
     with pytest.raises(InputError, match="topic /odom: no scan on /scan lies within"):
         read_laserscan_bag(outside)
+
+
+@pytest.mark.parametrize("odometry_ns", [[0, 0], [NS, 2 * NS], []], ids=["odometry at 0", "odometry timed", "none"])
+def test_scans_whose_stamps_were_left_unset_are_refused(tmp_path: Path, odometry_ns: list[int]) -> None:
+    # A bag recorded with use_sim_time and no /clock: every header stamp 0. Before, with its
+    # odometry at 0 too, its 3 scans read at one instant and SLAM mapped the first alone (exit 0).
+    odom = [("/odom", ODOM, odometry_msg(HUMBLE, ns, (k, 0, 0))) for k, ns in enumerate(odometry_ns)]
+    scans = [("/scan", SCAN, scan_msg(HUMBLE, 0, [1.0 + k, 2.0])) for k in range(3)]
+    path = write_raw(tmp_path / "b", odom + scans)
+    with pytest.raises(InputError) as info:
+        read_laserscan_bag(path)
+    assert str(info.value) == (f"{path}: topic /scan: the 3 scans span no time (every one is stamped 0.000000000 s): "
+                               "their header stamps were left unset, as by a node with use_sim_time and no /clock; "
+                               "record the bag with /clock published, or without use_sim_time")
+    # One scan spans no time and needs none.
+    assert len(read_warned(write_raw(tmp_path / "one", scans[:1]))[0]) == 1
+
+
+@pytest.mark.parametrize("ranges, rmin, rmax, message", [
+    ([0.0, 0.01, math.nan], 0.02, 4.0, "every one of the 9 readings of the 3 scans is NaN, or 0 m or less, or below "
+                                       "the scans' range_min 0.02 m, which LaserScan takes for no reading: there is "
+                                       "nothing to map"),
+    ([1.0, 20.0, math.inf], 50.0, 30.0, "no reading of the 3 scans is an echo: 6 of the 9 are below the scans' "
+                                        "range_min 50 m (above their range_max 30 m), which LaserScan takes for no "
+                                        "reading, and the other 3 saw nothing within range_max: there is nothing to map"),
+], ids=["no reading", "range_min above range_max"])
+def test_a_bag_without_a_reading_says_what_its_readings_are(tmp_path: Path, ranges, rmin, rmax, message) -> None:
+    # Such readings were reported as "every range is beyond the sensor's 4 m or missing".
+    scans = [("/scan", SCAN, scan_msg(HUMBLE, k * NS, ranges, rmin=rmin, rmax=rmax)) for k in (1, 2, 3)]
+    path = write_raw(tmp_path / "b", scans)
+    with pytest.raises(InputError) as info:
+        read_laserscan_bag(path)
+    assert str(info.value) == f"{path}: topic /scan: {message}"
+    # One echo among them is a bag to read: the rest are no echo.
+    scans[1] = ("/scan", SCAN, scan_msg(HUMBLE, 2 * NS, [0.0, math.nan, 3.0], rmin=0.02, rmax=4.0))
+    read = read_warned(write_raw(tmp_path / "one", scans))[0]
+    assert np.isfinite(read.ranges).sum() == 1 and read.ranges[1, 2] == 3.0
 
 
 def test_a_scan_recorded_twice_is_read_once(tmp_path: Path) -> None:

@@ -62,6 +62,19 @@ def test_no_delay_is_estimated_as_none():
     assert abs(estimate_scan_delay(scans, min_turn_deg=1.0).delay) < 0.02
 
 
+@pytest.mark.parametrize("scans, reason", [
+    (1, "slalom: no scan pair taken while turning (by 1° or more) to estimate the scan delay from"),
+    (20, "slalom: only 19 of the 19 scan pairs taken while turning match well; too few (20 needed) to estimate a "
+         "scan delay"),  # every pair of the slalom turns, and matches
+])
+def test_a_log_too_short_for_a_delay_says_why(scans, reason):
+    # A log of 1-3 scans was told "only 0 scan pairs taken while turning match well".
+    log, _ = delayed_log(0.0)
+    with pytest.raises(ValueError) as info:
+        estimate_scan_delay(log.slice(0, scans), min_turn_deg=1.0)
+    assert str(info.value) == reason
+
+
 def test_retimed_odometry_is_where_the_robot_was():
     scans, truth = delayed_log(0.13)
     retimed = retime_odometry(scans, 0.13)
@@ -180,7 +193,9 @@ def test_no_delay_without_turns(tmp_path, capsys):
     recorded, _ = run_slam_command(tmp_path, ScanSequence(scans.timestamps, scans.ranges, scans.angles,
                                                           straight, max_range=15.0), "--scan-delay", "auto")
     assert "scan delay 0 s: not estimated" in capsys.readouterr().out
-    assert recorded["seconds"] == 0.0 and "only 0 scan pairs" in recorded["reason"]
+    # Not "only 0 scan pairs taken while turning match well", as before.
+    assert recorded["seconds"] == 0.0 and recorded["reason"].endswith(
+        "log.clf: no scan pair taken while turning (by 3° or more) to estimate the scan delay from")
     assert recorded["how"] == "--scan-delay: not estimated, so none applied"
 
 

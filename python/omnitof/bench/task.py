@@ -24,6 +24,7 @@ import socket
 import tempfile
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -73,10 +74,10 @@ def run_one(run: RunSpec, log: InputFile, relations: InputFile | None = None,
             metrics = _extra_metrics(run, done, request, world)
         except OmnitofError as err:
             return {**base, "error": own_names(str(err)) or type(err).__name__, "notes": notes,
-                    "warnings": [own_names(str(w.message)) for w in caught],
+                    "warnings": _distinct(caught, own_names),
                     "finished": time.time(), "seconds": time.perf_counter() - clock}
         files = {p.name: p.read_bytes() for p in sorted(out.iterdir()) if p.is_file()}
-        found = [own_names(str(w.message)) for w in caught]
+        found = _distinct(caught, own_names)
     return {**base, "files": files, "metrics": metrics, "notes": notes, "warnings": found, "finished": time.time(),
             "seconds": time.perf_counter() - clock, "peak_rss_mib": _peak_mib(), "peak_rss_rule": peak_rule}
 
@@ -198,3 +199,10 @@ def _peak_mib() -> float:
     except OSError:
         pass
     return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+
+
+def _distinct(caught: list[warnings.WarningMessage], text: Callable[[str], str]) -> list[str]:
+    """The warnings' texts (`text` of each message), each once: a check that runs twice in a run
+    (the limits before and inside run_slam) warns twice, where the command line, which shows a
+    warning once per place, prints it once."""
+    return list(dict.fromkeys(text(str(w.message)) for w in caught))

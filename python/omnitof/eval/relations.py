@@ -29,7 +29,7 @@ How this matches the benchmark's own tools (read from their public sources, not 
   t_est - R(θ_est - θ_ref) t_ref differs from ours by a term of the order of the rotational error
   times |t_ref| (its own source notes the asymmetry). We follow the original evaluator.
 * Both compute the standard deviation with the sample (n - 1) denominator; so does this module
-  (with one matched relation the std is NaN).
+  (with one matched relation the std is NaN: null in summary.yaml, "–" in the printed table).
 * metricEvaluator takes the SLAM pose nearest in time to each relation timestamp (within 0.1 s,
   otherwise it shifts it along raw odometry). Here a trajectory pose is used only if its timestamp
   equals the relation's to within `time_tolerance` (1 ms by default; the benchmark files use the
@@ -192,7 +192,8 @@ class RelationsResult:
             f"unmatched {self.n_unmatched}",
             f"{'error':<22}{'mean':>12}{'std':>12}",
         ]
-        lines += [f"{name:<22}{mean:>12.6f}{std:>12.6f}" for name, mean, std in rows]
+        # One matched relation has no std (NaN; summary.yaml writes null): a dash, not "nan".
+        lines += [f"{name:<22}{_cell(mean)}{_cell(std)}" for name, mean, std in rows]
         groups = self.split()
         if groups["revisits"]["n"]:
             lines.append(
@@ -391,6 +392,11 @@ def _no_match_message(traj: Trajectory, relations: Relations, tolerance: float) 
 
 def _mean(values: np.ndarray) -> float:
     return float(np.mean(values))
+
+
+def _cell(value: float) -> str:
+    """A number of the printed table, or a dash where there is none (NaN)."""
+    return f"{'–':>12}" if math.isnan(value) else f"{value:>12.6f}"
 
 
 def _sample_std(values: np.ndarray) -> float:

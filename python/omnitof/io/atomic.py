@@ -20,6 +20,7 @@ cannot clean up; the next write to the same target sweeps what such a process le
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import secrets
@@ -193,11 +194,13 @@ def atomic_folder(
     """Build a folder under a hidden temporary name beside `path`; put it in place of `path`
     when the `with` block succeeds. Yields the folder to write into.
 
-    Before the block: `path` must be a folder or absent (else OutputError), `may_replace(path)`
-    may refuse an existing folder (by raising), leftovers of killed processes are swept, the
-    missing parent folders are made and the temporary folder is created, which proves that the
-    place can be written (else OutputError). So a run that opens its results folder first
-    learns of a bad output path before it does any work.
+    Before the block: `path` must be a folder or absent (else OutputError), and not a mount
+    point nor a folder that cannot be renamed (an immutable one: it is moved aside and back to
+    find out, `_check_movable`); `may_replace(path)` may refuse an existing folder (by
+    raising), leftovers of killed processes are swept, the missing parent folders are made and
+    the temporary folder is created, which proves that the place can be written (else
+    OutputError). So a run that opens its results folder first learns of a bad output path
+    before it does any work.
 
     When the block succeeds, the new folder (its files fsync'ed) replaces the old one by two
     renames, `path` → `.old` and the new folder → `path`, with SIGINT and SIGTERM held off
@@ -256,10 +259,36 @@ def _checked_target(shown: Path, may_replace: Callable[[Path], None] | None) -> 
         path = path.resolve()  # replace the folder the link names, keep the link
     if path.exists() and not path.is_dir():
         raise OutputError(f"{shown}: is a file, not a folder; choose another place for the results")
-    if path.is_dir() and may_replace is not None:
-        may_replace(path)
+    if path.is_dir():
+        if os.path.ismount(path):
+            raise _mount_point(shown)
+        if may_replace is not None:
+            may_replace(path)
+        _check_movable(path, shown)
     sweep_leftovers(path)
     return path
+
+
+def _mount_point(shown: Path) -> OutputError:
+    return OutputError(f"{shown}: is a mount point: results are written by replacing the folder; give a "
+                       f"folder inside it, e.g. {shown / 'run1'}")
+
+
+def _check_movable(path: Path, shown: Path) -> None:
+    """Move the existing folder `path` aside and back at once. The new folder takes its place by
+    a rename only when the run is done (`_put_in_place`); a folder that cannot be renamed (a
+    mount point os.path.ismount misses, such as a bind mount within one file system, or an
+    immutable folder, chattr +i) would fail only then, with the run's work lost."""
+    aside = _temporary(path, "old")  # a process killed in between leaves it for sweep_leftovers
+    with deferred_signals():
+        try:
+            os.rename(path, aside)
+        except OSError as err:
+            if err.errno == errno.EBUSY:  # Linux's answer for a mount point
+                raise _mount_point(shown) from None
+            raise OutputError(f"{shown}: the folder cannot be replaced ({err.strerror or err}), and results are "
+                              "written by replacing it: give another folder for the results") from None
+        os.rename(aside, path)
 
 
 def _make_parents(folder: Path, shown: Path) -> list[Path]:

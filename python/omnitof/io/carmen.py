@@ -690,6 +690,8 @@ def _build_sequence(
         steps = _old_format_step(counts, fov)
         max_range, rule = _old_format_max_range(ctx, laser, params, raw)
         no_echo = max_range
+    ranges = _no_echo_to_inf(raw, no_echo)
+    _check_some_reading(ctx, kind, raw, ranges, counts, max_range)
     angles, beam_counts = evenly_spaced_beams(starts, steps, counts, tolerance=GEOMETRY_TOLERANCE)
     odometry_rule = f"the {kind} messages' robot poses"
     if scans[0].robot_pose is not None:
@@ -710,7 +712,7 @@ def _build_sequence(
             sensor_pose = np.zeros(3)
     return ScanSequence(
         timestamps=stamps,
-        ranges=_no_echo_to_inf(raw, no_echo),
+        ranges=ranges,
         angles=angles,
         odometry=robot_poses,
         sensor_pose=sensor_pose,
@@ -721,6 +723,28 @@ def _build_sequence(
         max_range_rule=rule,
         odometry_rule=odometry_rule,
     )
+
+
+def _check_some_reading(ctx: _Context, kind: str, raw: np.ndarray, ranges: np.ndarray, counts: np.ndarray,
+                        max_range: float) -> None:
+    """Refuse a log without an echo whose readings are 0 m or less, which a laser logs for no
+    reading, naming them: the later no-echo message would call them beams that saw nothing
+    within the maximum range."""
+    if np.isfinite(ranges).any():
+        return
+    logged = raw[np.arange(raw.shape[1]) < counts[:, None]]  # not the padding
+    unread = logged[logged <= 0.0]
+    if not unread.size:
+        return
+    lo, hi = float(unread.min()), float(unread.max())
+    what = f"{lo:g} m" if lo == hi else f"0 m or less ({lo:g} to {hi:g} m)"
+    scans = f"the {len(counts)} {kind} scans"
+    if unread.size == logged.size:
+        raise ctx.error(f"every one of the {logged.size} readings of {scans} is {what}, which is no reading: there "
+                        "is nothing to map")
+    raise ctx.error(f"no reading of {scans} is an echo: {unread.size} of the {logged.size} are {what}, which is no "
+                    f"reading, and the other {logged.size - unread.size} lie at or beyond the maximum range "
+                    f"{max_range:g} m: there is nothing to map")
 
 
 def old_format_angles(n_beams: int, fov_deg: float) -> np.ndarray:
@@ -776,15 +800,21 @@ def _old_format_max_range(
     if top is not None:
         value, count = top
         warnings.warn(
-            f"{ctx.path}: {count} readings of exactly {value:.2f} m, the largest below "
+            f"{ctx.path}: {count} readings of exactly {_logged_metres(value)} m, the largest below "
             f"{DEFAULT_MAX_RANGE:g} m, are taken for the laser's no-echo value (the log states no "
             f"maximum range; PARAM robot_{laser}_laser_max would)",
             CarmenWarning,
             stacklevel=4,
         )
-        return value, f"repeated top value {value:.2f} m ({count} readings)"
+        return value, f"repeated top value {_logged_metres(value)} m ({count} readings)"
     beyond = int(np.count_nonzero(ranges >= DEFAULT_MAX_RANGE))
     return DEFAULT_MAX_RANGE, f"default {DEFAULT_MAX_RANGE:g} m ({beyond} readings at or beyond it)"
+
+
+def _logged_metres(value: float) -> str:
+    """A reading as the log holds it: to the centimetre, as CARMEN writes ranges, or with every
+    digit it has beyond that (readings of 0.001 m printed as "0.00 m" read as zeros)."""
+    return f"{value:.2f}" if round(value, 2) == value else repr(float(value))
 
 
 def _repeated_top_value(readings: np.ndarray) -> tuple[float, int] | None:
@@ -1144,7 +1174,8 @@ def write_carmen(path: str | Path, scans: ScanSequence, *, hostname: str = "omni
     printed precision: 1 mm ranges, 1e-6 poses, microsecond timestamps), per-scan geometry too.
 
     Each scan's beams must be evenly spaced (ROBOTLASER1 states start angle and step only).
-    No-echo readings are written as the maximum range. gzip or bzip2 compression follows the suffix
+    No-echo readings (+inf, and NaN or 0 m or less, which read as no reading) are written as the
+    maximum range. gzip or bzip2 compression follows the suffix
     (.gz, .bz2). The file is written atomically.
 
     Raises:
@@ -1169,7 +1200,10 @@ def write_carmen(path: str | Path, scans: ScanSequence, *, hostname: str = "omni
         geometry = [_robotlaser_geometry(scans.angles, None)] * len(scans)
     laser_poses = compose(scans.odometry, scans.sensor_pose)
     max_range = float(scans.max_range)
-    ranges = np.where(np.isfinite(scans.ranges), scans.ranges, max_range)
+    # Readings of 0 m or less (to the millimetre written) read as no reading, and a log of
+    # nothing else is refused (_check_some_reading): they are no echo, written as such.
+    with np.errstate(invalid="ignore"):
+        ranges = np.where(np.isfinite(scans.ranges) & (np.round(scans.ranges, 3) > 0.0), scans.ranges, max_range)
     header = (
         "# CARMEN Logfile written by omnitof\n"
         "# ODOM x y theta tv rv accel\n"

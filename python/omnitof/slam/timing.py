@@ -86,7 +86,8 @@ def estimate_scan_delay(
     difference is refined by a parabola through it and its neighbours.
 
     Raises:
-        ValueError: if the timestamps do not increase everywhere, or fewer than 20 pairs match.
+        ValueError: if the timestamps do not increase everywhere, no pair of scans turned, or
+            fewer than 20 pairs match.
     """
     from omnitof import _core
 
@@ -111,10 +112,15 @@ def estimate_scan_delay(
         if score >= 0.5:
             matched_turn.append(pose[2])
             used.append(k)
+    if not len(candidates):  # a log of a few scans, or one that never turns
+        raise ValueError(
+            f"{scans.source or 'scans'}: no scan pair taken while turning (by {min_turn_deg:g}° or more) to "
+            "estimate the scan delay from"
+        )
     if len(used) < 20:
         raise ValueError(
-            f"{scans.source or 'scans'}: only {len(used)} scan pairs taken while turning match well; "
-            "too few to estimate a scan delay"
+            f"{scans.source or 'scans'}: only {len(used)} of the {len(candidates)} scan pairs taken while turning "
+            "match well; too few (20 needed) to estimate a scan delay"
         )
     first = np.asarray(used)
     matched_turn = np.asarray(matched_turn)

@@ -75,6 +75,7 @@ from omnitof.io.rosbag.odometry import (
     odometry_coverage,
     outside_odometry,
     read_bag_odometry,
+    scans_span_no_time,
     spans_no_time,
     time_span,
 )
@@ -165,7 +166,8 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
       range_max; intensities become `remissions` when every scan has one per beam. Where
       angle_min, angle_increment or the beam count change from scan to scan, the ScanSequence
       has per-scan geometry (`angles` (N, B), `beam_counts`).
-    - Time: each scan's header stamp; stamps must not decrease. A scan that repeats the one
+    - Time: each scan's header stamp; stamps must not decrease, nor be all one (of more than
+      one scan: stamps left unset, `scans_span_no_time`). A scan that repeats the one
       before it exactly (stamp, readings, pose) is dropped with a RosbagWarning
       (`omnitof.types.drop_repeated_scans`); one stamped alike but reading differently is kept. The odometry (its header
       stamps must not decrease either) is interpolated to each scan's stamp (linear in x, y,
@@ -183,7 +185,7 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
     Raises:
         InputError: naming the bag and topic: not a bag, no or ambiguous topics, a range_max
             that is not a positive number, beam angles or odometry poses that are not finite,
-            timestamps that go backwards, no scan within the odometry's span.
+            timestamps that go backwards or are all one, no scan within the odometry's span.
     """
     path = Path(path)
     topics = topics or LaserTopics()
@@ -211,6 +213,7 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
         intensities: list[np.ndarray] = []
         geometry: list[tuple[float, float, int, float]] = []  # angle_min, increment, beams, range_max
         odd_ends: list[str] = []  # scans whose angle_max disagrees with their beams (warned once)
+        unread = _Unread()  # what the readings were, while none is an echo
         laser_frame = ""
         for _, msg in _messages(reader, path, scan_conns):
             ns = _stamp_ns(msg.header.stamp)
@@ -244,6 +247,7 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
             with np.errstate(invalid="ignore"):
                 # False for NaN; a range of 0 or less is no reading, whatever range_min says.
                 valid = (r >= range_min) & (r <= range_max) & (r > 0.0)
+            unread.add(r, valid, range_min, range_max)
             r[~valid] = np.inf
             stamps.append(ns)
             ranges.append(r)
@@ -263,6 +267,11 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
             tf_static_topic = f"{tf_static_topic} or {topics.tf}"
     if not stamps:
         raise InputError(f"topic {scan_name}: has no message", path)
+    if len(stamps) > 1 and stamps[0] == stamps[-1]:  # the stamps never decrease: all are equal
+        raise scans_span_no_time(f"topic {scan_name}", "scans", len(stamps), stamps[0], path)
+    no_reading = unread.error(scan_name, len(stamps), path)
+    if no_reading is not None:
+        raise no_reading
 
     t = np.array([_ns_to_s(ns) for ns in stamps], dtype=np.float64)
     poses = np.zeros((len(t), 3))  # without odometry: SLAM estimates it from the scans (slam.scan_odometry)
@@ -337,6 +346,55 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
             stacklevel=2,
         )
     return scans
+
+
+class _Unread:
+    """What a bag's readings were while none of them is an echo: how many say no reading (NaN,
+    0 m or less, below range_min) and how many that the beam saw nothing within range_max. A bag
+    without an echo whose readings say no reading is refused naming them (`error`): the later
+    no-echo message would call them beams that saw nothing."""
+
+    def __init__(self) -> None:
+        self.echoed = False  # once a reading is an echo, nothing more is counted
+        self.unread = 0
+        self.nothing = 0
+        self.kinds: set[str] = set()
+        self.range_min: list[float] = []  # of the scans with readings below it
+        self.range_max: float | None = None  # of a scan whose range_min lies above it: none can be valid
+
+    def add(self, r: np.ndarray, valid: np.ndarray, range_min: float, range_max: float) -> None:
+        if self.echoed or valid.any():
+            self.echoed = True
+            return
+        with np.errstate(invalid="ignore"):
+            nothing = r > range_max  # +inf too
+            below = (r > 0.0) & (r < range_min) & ~nothing
+        self.nothing += int(nothing.sum())
+        self.unread += len(r) - int(nothing.sum())
+        self.kinds |= {kind for kind, seen in (("NaN", np.isnan(r).any()),
+                                               ("0 m or less", (r <= 0.0).any())) if seen}
+        if below.any():
+            self.range_min.append(range_min)
+            if range_min > range_max:
+                self.range_max = range_max
+
+    def error(self, topic: str, scans: int, path: Path) -> InputError | None:
+        if self.echoed or not self.unread:
+            return None
+        kinds = [kind for kind in ("NaN", "0 m or less") if kind in self.kinds]
+        if self.range_min:
+            lo, hi = min(self.range_min), max(self.range_min)
+            below = f"the scans' range_min {lo:g} m" if lo == hi else f"their range_min ({lo:g} to {hi:g} m)"
+            above = "" if self.range_max is None else f" (above their range_max {self.range_max:g} m)"
+            kinds.append(f"below {below}{above}")
+        what = f"{', or '.join(kinds)}, which LaserScan takes for no reading"
+        total = self.unread + self.nothing
+        if not self.nothing:
+            return InputError(f"topic {topic}: every one of the {total} readings of the {scans} scans is {what}: "
+                              "there is nothing to map", path)
+        return InputError(f"topic {topic}: no reading of the {scans} scans is an echo: {self.unread} of the {total} "
+                          f"are {what}, and the other {self.nothing} saw nothing within range_max: there is nothing "
+                          "to map", path)
 
 
 def _check_beams(msg: Any, beams: int, where: str, path: Path, odd_ends: list[str]) -> None:
@@ -454,8 +512,8 @@ def write_laserscan_bag(
 
     Per scan, in time order: the odometry pose (nav_msgs/Odometry odom → base_link), the ground
     truth when the sequence has it (world → base_link), and the scan (sensor_msgs/LaserScan in
-    frame "laser", range_min 0, range_max = max_range, +inf kept for no echo, intensities from
-    remissions), all with the scan's stamp. One static transform base_link → laser from
+    frame "laser", range_min 0, range_max = max_range, +inf kept for no echo and written for
+    NaN and readings of 0 m or less, intensities from remissions), all with the scan's stamp. One static transform base_link → laser from
     sensor_pose on /tf_static (latched in ROS 1). Readings beyond max_range stay in the bag as
     they are; readers (this one too) take them for no echo. With `odometry_on_tf` the odometry
     is the transform odom → base_link on `tf_topic` (tf2_msgs/TFMessage) instead of Odometry
@@ -473,8 +531,9 @@ def write_laserscan_bag(
 
     Raises:
         BagExistsError: `path` exists and overwrite is False.
-        ValueError: uneven beams, timestamps going backwards, odometry or ground truth that is
-            not finite, one topic for two roles, a bad path or version.
+        ValueError: uneven beams, timestamps going backwards or all one (of more than one
+            scan), odometry or ground truth that is not finite, one topic for two roles, a bad
+            path or version.
     """
     path = Path(path)
     roles = {"scan_topic": scan_topic, "tf_static_topic": tf_static_topic}
@@ -499,6 +558,9 @@ def write_laserscan_bag(
     stamps = [_to_ns(t) for t in scans.timestamps]
     if any(b < a for a, b in zip(stamps, stamps[1:])):
         raise ValueError("write_laserscan_bag: scan timestamps must not decrease")
+    if len(stamps) > 1 and stamps[0] == stamps[-1]:
+        raise ValueError(f"write_laserscan_bag: all {len(stamps)} scans are stamped {scans.timestamps[0]!r} s; "
+                         "read_laserscan_bag refuses scans that span no time (stamps left unset)")
     if not len(scans):
         raise ValueError("write_laserscan_bag needs at least one scan")
     if not (math.isfinite(scans.max_range) and 0.0 < scans.max_range <= FLOAT32_MAX
@@ -551,6 +613,8 @@ def write_laserscan_bag(
                     stream.write_until(ns)
                 angle_min, increment = geometry[k]
                 ranges = scans.scan_ranges(k)
+                with np.errstate(invalid="ignore"):  # no reading to the reader: no echo, as ScanSequence has it
+                    ranges = np.where(ranges > 0.0, ranges, np.inf)
                 msg = scan_cls(
                     header=_header(store, ns, LASER_FRAME, ros1=ros1),
                     angle_min=angle_min,

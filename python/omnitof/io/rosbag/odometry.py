@@ -157,6 +157,16 @@ def no_time_span(what: str, trajectory: Trajectory, at: str, path: Path) -> Inpu
                       f"or stamps left unset), so it gives no pose for {at}", path)
 
 
+def scans_span_no_time(where: str, what: str, count: int, ns: int, path: Path) -> InputError:
+    """The error for `count` (more than one) scans or frames at `where` (a topic) whose header
+    stamps are all `ns`: stamps left unset, as by a node with use_sim_time and no /clock. Their
+    order in time, their odometry poses and the scan delay all come from the stamps, so such a
+    bag maps nothing but its first scan."""
+    return InputError(f"{where}: the {count} {what} span no time (every one is stamped {_ns_to_s(ns):.9f} s): "
+                      "their header stamps were left unset, as by a node with use_sim_time and no /clock; record "
+                      "the bag with /clock published, or without use_sim_time", path)
+
+
 def point_at_other_tf(reader: AnyReader, path: Path, tf: str, odom_frame: str, how: TopicsOption) -> None:
     """Where the bag gave no odometry: a RosbagWarning if a transform topic other than `tf` holds a
     transform from odom_frame (or a frame named like it), as a robot recording its odometry on

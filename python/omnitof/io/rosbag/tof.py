@@ -93,6 +93,7 @@ from omnitof.io.rosbag.odometry import (
     odometry_coverage,
     odometry_gaps,
     read_bag_odometry,
+    scans_span_no_time,
     time_span,
 )
 from omnitof.sensor.camera import Camera, CameraParameterError
@@ -463,7 +464,8 @@ class ToFBag:
 
         Raises:
             InputError: naming the bag and topic, for a wrong encoding, an image whose size is
-                not camera_info's, timestamps that go backwards, or a topic that stops.
+                not camera_info's, timestamps that go backwards, distance images that all share
+                one stamp (stamps left unset), or a topic that stops.
         """
         roles = {self.topics.distance: "distance", self.topics.amplitude: "amplitude"}
         if samples and self.has_samples:
@@ -478,11 +480,15 @@ class ToFBag:
         dropped: list[int] = []  # distance images without the frame's other images
         orphans = 0  # other images without a distance image
         repeated: list[int] = []  # images whose stamp repeats the one before on their topic
+        distance_images, first_distance_ns = 0, -1
         with _opened(self.path) as reader:
             connections = [c for c in reader.connections if c.topic in roles]
             for conn, msg in _messages(reader, self.path, connections):
                 role = roles[conn.topic]
                 ns = _stamp_ns(msg.header.stamp)
+                if role == "distance":
+                    first_distance_ns = ns if distance_images == 0 else first_distance_ns
+                    distance_images += 1
                 if ns == last_ns[role]:  # the same image twice (a bag recorded from two sources)
                     repeated.append(ns)
                     continue
@@ -537,6 +543,11 @@ class ToFBag:
                 dropped.append(distance_ns.get(key, key))
             else:
                 orphans += 1
+        # Every image read as a repeat of the first, one frame in all: stamps left unset, not a
+        # bag recorded from two sources.
+        if distance_images > 1 and last_ns["distance"] == first_distance_ns:
+            raise scans_span_no_time(f"topic {self.topics.distance}", "images", distance_images, first_distance_ns,
+                                     self.path)
         if repeated:
             warnings.warn(f"{self.path}: {len(repeated)} image(s) repeat the stamp of the one before on their "
                           f"topic (first at {_ns_to_s(repeated[0]):.9f} s); each read once", RosbagWarning,
