@@ -1352,11 +1352,22 @@ def test_laserscan_errors(tmp_path: Path) -> None:
         read_laserscan_bag(no_range)
     backwards = write_raw(tmp_path / "c", odom + [
         ("/scan", SCAN, scan_msg(store, 2 * NS, [1.0])),
-        ("/scan", SCAN, scan_msg(store, NS, [1.0])),
+        ("/scan", SCAN, scan_msg(store, NS // 2, [1.0])),
     ])  # fmt: skip
-    with pytest.raises(InputError, match="topic /scan: timestamps go backwards") as info:
+    with pytest.raises(InputError, match="topic /scan: timestamps go backwards.*1.500000 s earlier; at most 1 s") as info:
         read_laserscan_bag(backwards)
     assert info.value.path == backwards
+    # Stamps that jitter back less than a second are kept in the bag's order, as CARMEN's are.
+    jitter = write_raw(tmp_path / "c2", odom + [
+        ("/scan", SCAN, scan_msg(store, 3 * NS // 2, [1.0])),
+        ("/scan", SCAN, scan_msg(store, 6 * NS // 5, [2.0])),
+        ("/scan", SCAN, scan_msg(store, 2 * NS, [3.0])),
+    ])  # fmt: skip
+    with pytest.warns(RosbagWarning, match="1 scans on /scan are stamped earlier than the one before .by up to 0.300 s"):
+        scans = read_laserscan_bag(jitter)
+    np.testing.assert_allclose(scans.timestamps, [1.5, 1.2, 2.0])
+    np.testing.assert_allclose(scans.ranges[:, 0], [1.0, 2.0, 3.0])
+    np.testing.assert_allclose(scans.odometry[:, 0], [1.5, 1.2, 2.0])
     outside = write_raw(tmp_path / "d", odom + [
         ("/scan", SCAN, scan_msg(store, 5 * NS, [1.0])),
     ])  # fmt: skip

@@ -261,6 +261,9 @@ MIN_BEAM_STEP = 1e-8
 # they are another unit (Unix milliseconds ~1.7e12, nanoseconds ~1.7e18) or a broken clock, and
 # every tolerance in seconds would be read in that unit. The readers refuse them.
 MAX_TIMESTAMP = 1e12
+# The largest backwards step (s) of scan stamps the readers keep (in file order, with a warning):
+# stamps jitter (Intel's step back 631 times by up to 0.6 s); beyond it a clock was set back.
+MAX_TIME_REVERSAL = 1.0
 
 
 def evenly_spaced_beams(

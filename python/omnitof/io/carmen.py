@@ -44,6 +44,7 @@ from omnitof.io.text import is_decimal, quote
 from omnitof.geometry import MAX_HEADING, interpolate_poses, relative, wrap_angle
 from omnitof.types import (
     MAX_BEAM_ANGLE,
+    MAX_TIME_REVERSAL,
     MAX_TIMESTAMP,
     MIN_BEAM_STEP,
     ScanSequence,
@@ -88,8 +89,6 @@ MAX_POSITION = 1e9
 # A laser mounted farther than this from the robot's centre is a mistaken offset (a PARAM in
 # millimetres, a pose in another frame); the maps' cells could not hold its end points.
 MAX_MOUNT = 100.0
-# read_carmen's default for the largest backwards step of scan timestamps (seconds) it accepts.
-MAX_TIME_REVERSAL = 1.0
 
 # Held odometry (see _held_odometry): a laser message's pose counts as the last ODOM pose when it
 # equals it to the logs' print precision, judged over at least this many scans taken while the

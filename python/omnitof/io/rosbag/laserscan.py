@@ -82,6 +82,7 @@ from omnitof.io.rosbag.odometry import (
 from omnitof.types import (
     FLOAT32_MAX,
     MAX_BEAM_ANGLE,
+    MAX_TIME_REVERSAL,
     MIN_BEAM_STEP,
     ScanSequence,
     Trajectory,
@@ -166,8 +167,10 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
       range_max; intensities become `remissions` when every scan has one per beam. Where
       angle_min, angle_increment or the beam count change from scan to scan, the ScanSequence
       has per-scan geometry (`angles` (N, B), `beam_counts`).
-    - Time: each scan's header stamp; stamps must not decrease, nor be all one (of more than
-      one scan: stamps left unset, `scans_span_no_time`). A scan that repeats the one
+    - Time: each scan's header stamp, in the bag's order; a stamp may be earlier than the one
+      before by up to MAX_TIME_REVERSAL (1 s: stamps that jitter, kept with a RosbagWarning, as
+      read_carmen keeps them), not more, and the stamps must not be all one (of more than one
+      scan: stamps left unset, `scans_span_no_time`). A scan that repeats the one
       before it exactly (stamp, readings, pose) is dropped with a RosbagWarning
       (`omnitof.types.drop_repeated_scans`); one stamped alike but reading differently is kept. The odometry (its header
       stamps must not decrease either) is interpolated to each scan's stamp (linear in x, y,
@@ -185,7 +188,7 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
     Raises:
         InputError: naming the bag and topic: not a bag, no or ambiguous topics, a range_max
             that is not a positive number, beam angles or odometry poses that are not finite,
-            timestamps that go backwards or are all one, no scan within the odometry's span.
+            timestamps that go back more than 1 s or are all one, no scan within the odometry's span.
     """
     path = Path(path)
     topics = topics or LaserTopics()
@@ -214,15 +217,22 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
         geometry: list[tuple[float, float, int, float]] = []  # angle_min, increment, beams, range_max
         odd_ends: list[str] = []  # scans whose angle_max disagrees with their beams (warned once)
         unread = _Unread()  # what the readings were, while none is an echo
+        reversals: list[float] = []  # how far (s) each scan stamped earlier than the one before is
         laser_frame = ""
         for _, msg in _messages(reader, path, scan_conns):
             ns = _stamp_ns(msg.header.stamp)
             if stamps and ns < stamps[-1]:
-                raise InputError(
-                    f"topic {scan_name}: timestamps go backwards: a scan stamped "
-                    f"{_ns_to_s(ns):.9f} s follows one stamped {_ns_to_s(stamps[-1]):.9f} s",
-                    path,
-                )
+                # As read_carmen: a driver's stamps that jitter back a little are kept, in the
+                # bag's order; a clock set back is two runs in one bag.
+                back = _ns_to_s(stamps[-1] - ns)
+                if back > MAX_TIME_REVERSAL:
+                    raise InputError(
+                        f"topic {scan_name}: timestamps go backwards: a scan stamped {_ns_to_s(ns):.9f} s follows one "
+                        f"stamped {_ns_to_s(stamps[-1]):.9f} s, {back:.6f} s earlier; at most {MAX_TIME_REVERSAL:g} s is "
+                        "tolerated (a clock set back: map the parts before and after it apart)",
+                        path,
+                    )
+                reversals.append(back)
             if not stamps:
                 laser_frame = _frame_name(msg.header.frame_id)
             if scan_conns[0].msgtype == MULTI_ECHO_SCAN:
@@ -267,7 +277,14 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
             tf_static_topic = f"{tf_static_topic} or {topics.tf}"
     if not stamps:
         raise InputError(f"topic {scan_name}: has no message", path)
-    if len(stamps) > 1 and stamps[0] == stamps[-1]:  # the stamps never decrease: all are equal
+    if reversals:
+        warnings.warn(
+            f"{path}: {len(reversals)} scans on {scan_name} are stamped earlier than the one before (by up to "
+            f"{max(reversals):.3f} s); kept in the bag's order with their own stamps",
+            RosbagWarning,
+            stacklevel=2,
+        )
+    if len(stamps) > 1 and min(stamps) == max(stamps):
         raise scans_span_no_time(f"topic {scan_name}", "scans", len(stamps), stamps[0], path)
     no_reading = unread.error(scan_name, len(stamps), path)
     if no_reading is not None:
