@@ -480,10 +480,10 @@ def _timestamp(tokens: list[str], layout: _Layout) -> float:
         raise _Malformed(
             f"logger_timestamp is {quote(logger_stamp)}, not a finite decimal number; {layout.expected}"
         )
-    if abs(float(stamp)) > MAX_TIMESTAMP:
-        raise _Malformed(f"ipc_timestamp {float(stamp):g} is beyond ±{MAX_TIMESTAMP:g} s: CARMEN timestamps are "
-                         "seconds")
-    return float(stamp)
+    seconds = float(stamp)
+    if abs(seconds) > MAX_TIMESTAMP:
+        raise _Malformed(f"ipc_timestamp {seconds:g} is beyond ±{MAX_TIMESTAMP:g} s: CARMEN timestamps are seconds")
+    return seconds
 
 
 # --------------------------------------------------------------------------------------------
