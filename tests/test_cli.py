@@ -338,7 +338,7 @@ def test_a_second_run_replaces_the_whole_folder(tmp_path, short_log, corridor_lo
                     "inside it, e.g. "),
     ("bind mount", "results: is a mount point"),  # os.path.ismount misses one within a file system
     ("immutable", "results: the folder cannot be replaced (Operation not permitted), and results are written "
-                  "by replacing it: give another folder for the results"),
+                  "by replacing the folder: give another folder for the results"),
 ])
 def test_an_output_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys, monkeypatch, case, message):
     # The log is malformed too: the output is checked first, so its error is the one reported.

@@ -27,6 +27,7 @@ import secrets
 import shutil
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
@@ -260,34 +261,46 @@ def _checked_target(shown: Path, may_replace: Callable[[Path], None] | None) -> 
     if path.exists() and not path.is_dir():
         raise OutputError(f"{shown}: is a file, not a folder; choose another place for the results")
     if path.is_dir():
-        if os.path.ismount(path):
-            raise _mount_point(shown)
-        if may_replace is not None:
+        if may_replace is not None and not os.path.ismount(path):
             may_replace(path)
-        _check_movable(path, shown)
+        check_replaceable(path, shown, RESULTS)
     sweep_leftovers(path)
     return path
 
 
-def _mount_point(shown: Path) -> OutputError:
-    return OutputError(f"{shown}: is a mount point: results are written by replacing the folder; give a "
-                       f"folder inside it, e.g. {shown / 'run1'}")
+@dataclass(frozen=True)
+class Replaced:
+    """What is written by replacing an existing file or folder as a whole, in an error's words."""
+
+    thing: str  # "the folder"
+    writes: str  # "results are written by replacing the folder"
+    instead: str  # what to give instead of a mount point, with `{shown}` for the path
+    elsewhere: str  # what to give instead of what cannot be renamed
 
 
-def _check_movable(path: Path, shown: Path) -> None:
-    """Move the existing folder `path` aside and back at once. The new folder takes its place by
-    a rename only when the run is done (`_put_in_place`); a folder that cannot be renamed (a
-    mount point os.path.ismount misses, such as a bind mount within one file system, or an
-    immutable folder, chattr +i) would fail only then, with the run's work lost."""
+RESULTS = Replaced("the folder", "results are written by replacing the folder",
+                   "give a folder inside it, e.g. {shown}/run1", "give another folder for the results")
+BAG = Replaced("the bag", "a bag is written by replacing it as a whole",
+               "give the bag a new name (one inside the mount, if it is a folder)", "give another path for the bag")
+
+
+def check_replaceable(path: Path, shown: Path, what: Replaced) -> None:
+    """Refuse an existing `path` that cannot be replaced by a rename when the work is done: a
+    mount point (a Docker volume), or one that cannot be renamed, found by moving it aside and back
+    at once (a mount point os.path.ismount misses, such as a bind mount within one file system,
+    or an immutable folder, chattr +i). Either would fail only at the end, with the work lost."""
+    mount_point = OutputError(f"{shown}: is a mount point: {what.writes}; {what.instead.format(shown=shown)}")
+    if os.path.ismount(path):
+        raise mount_point
     aside = _temporary(path, "old")  # a process killed in between leaves it for sweep_leftovers
     with deferred_signals():
         try:
             os.rename(path, aside)
         except OSError as err:
             if err.errno == errno.EBUSY:  # Linux's answer for a mount point
-                raise _mount_point(shown) from None
-            raise OutputError(f"{shown}: the folder cannot be replaced ({err.strerror or err}), and results are "
-                              "written by replacing it: give another folder for the results") from None
+                raise mount_point from None
+            raise OutputError(f"{shown}: {what.thing} cannot be replaced ({err.strerror or err}), and "
+                              f"{what.writes}: {what.elsewhere}") from None
         os.rename(aside, path)
 
 

@@ -45,7 +45,7 @@ from omnitof.errors import (
 )
 from omnitof.geometry import check_headings, quaternion_to_yaw, yaw_to_quaternion
 from omnitof.interrupts import deferred_signals
-from omnitof.io.atomic import fsync_dir, replaceable_place, temporary_folder
+from omnitof.io.atomic import BAG, check_replaceable, fsync_dir, replaceable_place, temporary_folder
 from omnitof.io.plain import to_plain
 from omnitof.types import Trajectory, first_non_finite
 
@@ -561,6 +561,7 @@ def checked_bag_target(path: str | Path, overwrite: bool) -> Path:
                               "as a whole: give a new name")
     elif path.suffix != ".bag":
         raise OutputError(f"{shown}: is a file but not a ROS 1 bag (.bag); --overwrite replaces a bag only: give a new name")
+    check_replaceable(path, shown, BAG)  # else the finished bag could not take its place
     return path
 
 
