@@ -542,13 +542,15 @@ def write_laserscan_bag(
             ending in ".bag" for version 2.
         scans: evenly spaced beams in each scan (LaserScan stores angle_min +
             i·angle_increment, in float32; per-scan geometry gives each message its own),
-            timestamps non-decreasing and >= 0.
+            timestamps >= 0 and not decreasing by more than MAX_TIME_REVERSAL (1 s): a scan
+            stamped earlier than one before it keeps its stamp and its place in the bag (its
+            odometry message goes where its stamp puts it among the others).
         storage: ROS 2 storage, "mcap" or "sqlite3".
         overwrite: replace an existing bag at `path`.
 
     Raises:
         BagExistsError: `path` exists and overwrite is False.
-        ValueError: uneven beams, timestamps going backwards or all one (of more than one
+        ValueError: uneven beams, timestamps going back more than 1 s or all one (of more than one
             scan), odometry or ground truth that is not finite, one topic for two roles, a bad
             path or version.
     """
@@ -573,8 +575,19 @@ def write_laserscan_bag(
     else:
         geometry = [_even_beams(scans.angles)] * len(scans)
     stamps = [_to_ns(t) for t in scans.timestamps]
-    if any(b < a for a, b in zip(stamps, stamps[1:])):
-        raise ValueError("write_laserscan_bag: scan timestamps must not decrease")
+    # A stamp a little earlier than one before it (a CARMEN log's jitter: Intel's go back 631
+    # times, by up to 0.9 s) is written as it is, in the sequence's order, as the reader keeps
+    # it; the bag's own message times never go back, so that readers keep that order.
+    written_at = np.maximum.accumulate(np.asarray(stamps, dtype=np.int64)).tolist() if stamps else []
+    back = [(w - t) / 1e9 for t, w in zip(stamps, written_at)]
+    if back and max(back) > MAX_TIME_REVERSAL:
+        k = int(np.argmax(back))
+        raise ValueError(f"write_laserscan_bag: scan {k} is stamped {back[k]:.6f} s earlier than one before it; "
+                         f"at most {MAX_TIME_REVERSAL:g} s is written (read_laserscan_bag refuses more)")
+    # The odometry's stamps must not go back (the reader refuses that): its messages are the
+    # scans' poses sorted by stamp, so that the reader, interpolating it to each scan's stamp,
+    # finds that scan's own pose there.
+    by_time = np.argsort(scans.timestamps, kind="stable")
     if len(stamps) > 1 and stamps[0] == stamps[-1]:
         raise ValueError(f"write_laserscan_bag: all {len(stamps)} scans are stamped {scans.timestamps[0]!r} s; "
                          "read_laserscan_bag refuses scans that span no time (stamps left unset)")
@@ -609,7 +622,8 @@ def write_laserscan_bag(
                 conn_odom = add(tf_topic, TF_MESSAGE) if odometry_on_tf else add(odom_topic, ODOMETRY)
                 streams.append(
                     _PoseStream(
-                        writer, conn_odom, store, Trajectory(scans.timestamps, scans.odometry),
+                        writer, conn_odom, store,
+                        Trajectory(scans.timestamps[by_time], scans.odometry[by_time]),
                         ODOM_FRAME, BASE_FRAME, ros1=ros1, as_tf=odometry_on_tf,
                     )
                 )  # fmt: skip
@@ -618,16 +632,16 @@ def write_laserscan_bag(
                 streams.append(
                     _PoseStream(
                         writer, conn_truth, store,
-                        Trajectory(scans.timestamps, scans.ground_truth),
+                        Trajectory(scans.timestamps[by_time], scans.ground_truth[by_time]),
                         WORLD_FRAME, BASE_FRAME, ros1=ros1,
                     )
                 )  # fmt: skip
             tf = _tf_msg(store, stamps[0], scans.sensor_pose, BASE_FRAME, LASER_FRAME, ros1=ros1)
             writer.write(conn_tf, stamps[0], _serialize(store, tf, TF_MESSAGE, ros1))
             scan_cls = store.types[LASER_SCAN]
-            for k, ns in enumerate(stamps):
+            for k, (ns, at) in enumerate(zip(stamps, written_at)):
                 for stream in streams:
-                    stream.write_until(ns)
+                    stream.write_until(at)
                 angle_min, increment = geometry[k]
                 ranges = scans.scan_ranges(k)
                 with np.errstate(invalid="ignore"):  # no reading to the reader: no echo, as ScanSequence has it
@@ -644,7 +658,7 @@ def write_laserscan_bag(
                     ranges=np.ascontiguousarray(ranges, dtype=np.float32),
                     intensities=np.ascontiguousarray(intensities[k, : len(ranges)], dtype=np.float32),
                 )
-                writer.write(conn_scan, ns, _serialize(store, msg, LASER_SCAN, ros1))
+                writer.write(conn_scan, at, _serialize(store, msg, LASER_SCAN, ros1))
 
 
 def _adder(writer: Any, store: Any, ros1: bool) -> Any:
