@@ -1,8 +1,9 @@
-"""Shared fixtures: the real datasets (skipped with a reason when OMNITOF_DATA is unset) and the
-simulated corridor loop."""
+"""Shared fixtures: the real datasets (skipped with a reason when OMNITOF_DATA is unset), the
+simulated corridor loop, and a place that cannot be replaced."""
 
 from __future__ import annotations
 
+import errno
 import os
 from pathlib import Path
 
@@ -27,3 +28,27 @@ def corridor_loop():
     from omnitof.sim.laser2d import make_loop_dataset
 
     return make_loop_dataset(seed=0)
+
+
+@pytest.fixture
+def unreplaceable(monkeypatch):
+    """`unreplaceable(path, case)` makes `path` a place that cannot be replaced by a rename, as
+    `case` says: "mount point" (os.path.ismount says so), "bind mount" (it does not, but a
+    rename fails with EBUSY, as for a bind mount within one file system) or "immutable" (EPERM,
+    chattr +i). Mounting and chattr need privileges that tests lack."""
+
+    def make(path: Path, case: str) -> None:
+        if case == "mount point":
+            monkeypatch.setattr(os.path, "ismount", lambda p: Path(p) == path)
+            return
+        code = {"bind mount": errno.EBUSY, "immutable": errno.EPERM}[case]
+        rename = os.rename
+
+        def refused(src, dst):
+            if Path(src) == path:
+                raise OSError(code, os.strerror(code), str(src), None, str(dst))
+            rename(src, dst)
+
+        monkeypatch.setattr(os, "rename", refused)
+
+    return make

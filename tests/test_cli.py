@@ -3,7 +3,6 @@ mistakes reported as one line with exit status 2 (no traceback)."""
 
 from __future__ import annotations
 
-import errno
 import os
 import subprocess
 import sys
@@ -340,26 +339,16 @@ def test_a_second_run_replaces_the_whole_folder(tmp_path, short_log, corridor_lo
     ("immutable", "results: the folder cannot be replaced (Operation not permitted), and results are written "
                   "by replacing the folder: give another folder for the results"),
 ])
-def test_an_output_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys, monkeypatch, case, message):
+def test_an_output_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys, unreplaceable, case, message):
     # The log is malformed too: the output is checked first, so its error is the one reported.
     log = tmp_path / "bad.clf"
     log.write_text("ODOM 0 0 0 0 0 0 1.0 host 0\nFLASER 3 1.0 2.0 0 0 0 0 0 0 2.0 host 0\n")
     (tmp_path / "taken").write_text("a file")
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "notes.txt").write_text("keep me")
-    (tmp_path / "results").mkdir()  # a Docker volume, say; mounting needs privileges tests lack
-    if case == "mount point":
-        monkeypatch.setattr(os.path, "ismount", lambda p: Path(p) == tmp_path / "results")
-    if case in ("bind mount", "immutable"):
-        code = errno.EBUSY if case == "bind mount" else errno.EPERM
-        rename = os.rename
-
-        def refused(src, dst):
-            if Path(src) == tmp_path / "results":
-                raise OSError(code, os.strerror(code), str(src), None, str(dst))
-            rename(src, dst)
-
-        monkeypatch.setattr(os, "rename", refused)
+    (tmp_path / "results").mkdir()  # a Docker volume, say
+    if case in ("mount point", "bind mount", "immutable"):
+        unreplaceable(tmp_path / "results", case)
     out = {"file": tmp_path / "taken", "under a file": tmp_path / "taken" / "run",
            "foreign folder": tmp_path / "mine", "unwritable": Path("/proc/omnitof-run"),
            "name too long": tmp_path / ("a" * 300)}.get(case, tmp_path / "results")

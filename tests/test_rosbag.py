@@ -7,9 +7,7 @@ rosbags directly, so that the reader is checked against data its writer did not 
 
 from __future__ import annotations
 
-import errno
 import math
-import os
 import re
 import warnings
 from pathlib import Path
@@ -395,8 +393,8 @@ def test_overwrite_replaces_a_bag_and_nothing_else(tmp_path: Path, monkeypatch) 
     ("immutable", "bag: the bag cannot be replaced (Operation not permitted), and a bag is written by replacing "
                   "it as a whole: give another path for the bag"),
 ])
-def test_overwrite_refuses_a_bag_that_cannot_be_replaced_before_writing(tmp_path: Path, monkeypatch, case,
-                                                                        message) -> None:
+def test_overwrite_refuses_a_bag_that_cannot_be_replaced_before_writing(tmp_path: Path, monkeypatch, unreplaceable,
+                                                                        case, message) -> None:
     # The finished bag takes its target's place by a rename: at a mount point (a Docker volume)
     # or an immutable folder that failed only after every frame had been written.
     from omnitof.errors import OutputError
@@ -404,18 +402,7 @@ def test_overwrite_refuses_a_bag_that_cannot_be_replaced_before_writing(tmp_path
     frames = make_frames(SMALL, 2, samples=False)
     odometry = trajectory(np.array([0.0, 0.1, 0.2]), seed=0)
     write_tof_bag(tmp_path / "bag", frames[:1], camera=SMALL, odometry=odometry)
-    if case == "mount point":
-        monkeypatch.setattr(os.path, "ismount", lambda p: Path(p) == tmp_path / "bag")
-    else:
-        code = errno.EBUSY if case == "bind mount" else errno.EPERM
-        rename = os.rename
-
-        def refused(src, dst):
-            if Path(src) == tmp_path / "bag":
-                raise OSError(code, os.strerror(code), str(src), None, str(dst))
-            rename(src, dst)
-
-        monkeypatch.setattr(os, "rename", refused)
+    unreplaceable(tmp_path / "bag", case)
 
     def frames_written():
         written.append(1)

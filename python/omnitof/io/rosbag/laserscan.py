@@ -56,7 +56,6 @@ from omnitof.io.rosbag.common import (
     _ns_to_s,
     _opened,
     _pick_topic,
-    _planar_pose,
     _PoseStream,
     _ros1_store,
     _ros2_store,
