@@ -730,7 +730,7 @@ fn propose3d<R: rand::Rng>(
     }
     let m: &MatcherParams = &p.matcher;
     let predicted = compose(prev_pose, relative(odom_prev, odom_cur));
-    let prior: PosePrior = motion_prior(&p.motion, odom_prev, odom_cur, predicted);
+    let prior: PosePrior = motion_prior(&p.motion, odom_prev, odom_cur, predicted).with_dof(m.prior_dof);
     let target = |pose: [f64; 3]| p.effective_rays * p.field.score(map, pose, pts).0 + prior.log_prob(pose);
     let start = if m.climb_from_sample { p.motion.sample(prev_pose, odom_prev, odom_cur, rng) } else { predicted };
     let (mode, _, matched) = local_match3d(p, map, pts, start, m.odometry_prior.then_some(&prior));
@@ -955,6 +955,7 @@ mod tests {
                 min_matched: 0.3,
                 effective_beams: 9.0,
                 odometry_prior: true,
+                prior_dof: 0.0,
                 climb_from_sample: false,
                 fallback_draw: true,
                 check: OdometryCheck::OFF,

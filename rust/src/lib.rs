@@ -91,7 +91,7 @@ fn climb_params(step_xy: f64, step_theta: f64, refinements: u32, gauss_newton: u
     }
     Ok(MatcherParams {
         step_xy, step_theta, refinements, gauss_newton, sample_xy: 0.01, sample_theta: 0.005,
-        min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, check: OdometryCheck::OFF,
+        min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, prior_dof: 0.0, climb_from_sample: false, fallback_draw: true, check: OdometryCheck::OFF,
     })
 }
 
@@ -312,6 +312,7 @@ config_section! {
         sample_xy: f64,
         sample_deg: f64,
         odometry_prior: bool,
+        prior_dof: f64,
         min_matched: f64,
         climb_from_sample: bool,
         fallback: String,
@@ -436,6 +437,7 @@ fn filter_params(
             min_matched: sm.min_matched,
             effective_beams: s.effective_beams,
             odometry_prior: sm.odometry_prior,
+            prior_dof: sm.prior_dof,
             climb_from_sample: sm.climb_from_sample,
             fallback_draw,
             check: OdometryCheck {

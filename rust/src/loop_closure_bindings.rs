@@ -252,7 +252,7 @@ fn field_match(sub: &Submap, geom: &ScanGeometry, ranges: &[f32], start: [f64; 3
     let lf = LikelihoodField::new(sigma, 0.9, 0.1, max_range, 3, 0.0, false);
     let m = MatcherParams {
         step_xy: 0.01, step_theta: 0.005, refinements: 2, gauss_newton: 10, sample_xy: 0.005, sample_theta: 0.002,
-        min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, check: OdometryCheck::OFF,
+        min_matched: 0.0, effective_beams: 1.0, odometry_prior: false, prior_dof: 0.0, climb_from_sample: false, fallback_draw: true, check: OdometryCheck::OFF,
     };
     let pts = scan_match::endpoints(geom, ranges, 1, max_range);
     if pts.is_empty() {

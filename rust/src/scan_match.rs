@@ -516,6 +516,8 @@ pub struct MatcherParams {
     pub effective_beams: f64,
     /// Climb to the mode of likelihood × odometry prior (true) or of the likelihood alone.
     pub odometry_prior: bool,
+    /// The odometry prior's Student-t degrees of freedom (0: Gaussian; see `PosePrior::dof`).
+    pub prior_dof: f64,
     /// Start each particle's climb at a pose drawn from the odometry motion model (GMapping's
     /// way) instead of at the odometry prediction; see `propose`.
     pub climb_from_sample: bool,
@@ -590,12 +592,18 @@ pub fn climb<F: Fn([f64; 3]) -> f64>(eval: F, start: [f64; 3], m: &MatcherParams
     (pose, best)
 }
 
-/// A Gaussian prior on the pose: mean, variance of x and y (isotropic) and of θ.
+/// A prior on the pose: mean, variance of x and y (isotropic) and of θ; Gaussian, or Student-t
+/// with `dof` degrees of freedom.
 #[derive(Clone, Copy, Debug)]
 pub struct PosePrior {
     pub mean: [f64; 3],
     pub var_xy: f64,
     pub var_theta: f64,
+    /// Degrees of freedom ν of a Student-t prior on the pose (0: a Gaussian). Heavy-tailed: where
+    /// the scan places the pose many standard deviations from the wheels' prediction (a wheel
+    /// that slips in a turn), the prior gives way instead of pulling the match towards the
+    /// wheels; near the prediction (along a corridor the scan cannot fix) it holds as a Gaussian.
+    pub dof: f64,
 }
 
 impl PosePrior {
@@ -604,8 +612,28 @@ impl PosePrior {
         [[1.0 / self.var_xy, 0.0, 0.0], [0.0, 1.0 / self.var_xy, 0.0], [0.0, 0.0, 1.0 / self.var_theta]]
     }
 
+    /// ln p(pose) up to a constant: the Gaussian's −m²/2, or for ν > 0 the 3-dimensional
+    /// Student-t's −(ν + 3)/2 · ln(1 + m²/ν), m the Mahalanobis distance (the normalising
+    /// terms in the variances included, which differ from particle to particle).
     pub fn log_prob(&self, pose: [f64; 3]) -> f64 {
-        -0.5 * (self.mahalanobis2(pose) + 2.0 * self.var_xy.ln() + self.var_theta.ln())
+        let m2 = self.mahalanobis2(pose);
+        let kernel = if self.dof > 0.0 { (self.dof + 3.0) * (m2 / self.dof).ln_1p() } else { m2 };
+        -0.5 * (kernel + 2.0 * self.var_xy.ln() + self.var_theta.ln())
+    }
+
+    /// The weight of the prior's quadratic in Gauss-Newton at `pose`, as iteratively reweighted
+    /// least squares gives it: (ν + 3) / (ν + m²) for a Student-t, 1 for a Gaussian.
+    pub fn weight(&self, pose: [f64; 3]) -> f64 {
+        if self.dof > 0.0 {
+            (self.dof + 3.0) / (self.dof + self.mahalanobis2(pose))
+        } else {
+            1.0
+        }
+    }
+
+    /// The same prior with `dof` degrees of freedom (0: Gaussian).
+    pub fn with_dof(self, dof: f64) -> PosePrior {
+        PosePrior { dof, ..self }
     }
 
     /// The squared Mahalanobis distance of `pose` from the mean.
@@ -726,10 +754,11 @@ pub(crate) fn gauss_newton_with(
         if let Some(p) = prior {
             score += p.log_prob(pose);
             let info = p.information();
+            let w = p.weight(pose);
             let d = [pose[0] - p.mean[0], pose[1] - p.mean[1], wrap(pose[2] - p.mean[2])];
             for a in 0..3 {
-                g[a] += info[a][a] * d[a];
-                h[a][a] += info[a][a];
+                g[a] += w * info[a][a] * d[a];
+                h[a][a] += w * info[a][a];
             }
         }
         if score < best.1 {
@@ -815,6 +844,7 @@ pub fn motion_prior(motion: &OdometryMotion, prev: [f64; 3], cur: [f64; 3], pred
         mean: predicted,
         var_xy: a3 * trans * trans + a4 * rot * rot + 1e-4,
         var_theta: a1 * rot * rot + a2 * trans * trans + 7.6e-5,
+        dof: 0.0,
     }
 }
 
@@ -918,7 +948,7 @@ pub fn propose<R: rand::Rng>(
     // With `odometry_prior`, climb to the mode of the whole target p(z | m, x)·p(x | x', u), so
     // that where the scan cannot tell (along a bare corridor) the odometry decides; without it,
     // to the mode of the likelihood alone, as GMapping does (better where odometry is poor).
-    let prior = motion_prior(motion, odom_prev, odom_cur, predicted);
+    let prior = motion_prior(motion, odom_prev, odom_cur, predicted).with_dof(m.prior_dof);
     let view = FieldView::new(lf, grid);
     let target = |pose: [f64; 3]| objective(&view, geom, pts, m.effective_beams, Some(&prior), pose);
     let climb_prior = m.odometry_prior.then_some(&prior);
@@ -1061,7 +1091,7 @@ mod tests {
     fn searching_matcher() -> MatcherParams {
         MatcherParams {
             step_xy: 0.05, step_theta: 0.035, refinements: 3, gauss_newton: 10, sample_xy: 0.005, sample_theta: 0.002,
-            min_matched: 0.5, effective_beams: 9.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true,
+            min_matched: 0.5, effective_beams: 9.0, odometry_prior: false, prior_dof: 0.0, climb_from_sample: false, fallback_draw: true,
             check: OdometryCheck {
                 window: Some(SearchWindow { half_xy: 1.0, half_theta: 15f64.to_radians(), step_xy: 0.1, step_theta: 1f64.to_radians() }),
                 below: 0.8,
@@ -1106,6 +1136,50 @@ mod tests {
         assert!(odom[0].abs() < 0.03 && odom[1].abs() < 0.03 && odom[2].abs() < 0.01, "{odom:?}");
         let m = gated_matcher(0.6, 0);
         assert!(check_after_glitch_with(&ranges, &m).is_none());
+    }
+
+    #[test]
+    fn a_student_t_prior_is_the_gaussian_for_many_degrees_of_freedom_and_its_own_formula_otherwise() {
+        let g = PosePrior { mean: [1.0, -2.0, 0.3], var_xy: 0.04, var_theta: 0.01, dof: 0.0 };
+        let pose = [1.3, -2.1, 0.2]; // m² = (0.09 + 0.01) / 0.04 + 0.01 / 0.01 = 3.5
+        let norm = -0.5 * (2.0 * 0.04f64.ln() + 0.01f64.ln());
+        assert!((g.mahalanobis2(pose) - 3.5).abs() < 1e-9);
+        assert!((g.log_prob(pose) - (norm - 0.5 * 3.5)).abs() < 1e-9);
+        let t = g.with_dof(3.0);
+        assert!((t.log_prob(pose) - (norm - 0.5 * 6.0 * (1.0 + 3.5 / 3.0f64).ln())).abs() < 1e-9);
+        assert!((t.weight(pose) - 6.0 / 6.5).abs() < 1e-12);
+        let wide = g.with_dof(1e9);
+        assert!((wide.log_prob(pose) - g.log_prob(pose)).abs() < 1e-6);
+        assert!((wide.weight(pose) - 1.0).abs() < 1e-6 && g.weight(pose) == 1.0);
+    }
+
+    #[test]
+    fn a_student_t_prior_gives_way_where_the_scan_puts_the_pose_far_from_the_wheels() {
+        // A scan that fixes x at 0 with information k, and wheels that say x = 1 with σ 0.1 m
+        // (10 σ away) and the same information: a Gaussian prior pulls the match halfway, to
+        // (k·0 + p·1) / (k + p) = 0.5; the Student-t's pull is its weight (ν + 3) / (ν + m²)
+        // times that, so its optimum solves x = w(x)·p / (k + w(x)·p), near 0.06.
+        let k = 100.0;
+        let linearise = |pose: [f64; 3]| {
+            let d = [pose[0], pose[1], pose[2]];
+            let cost = 0.5 * k * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+            (-cost, [k * d[0], k * d[1], k * d[2]], [[k, 0.0, 0.0], [0.0, k, 0.0], [0.0, 0.0, k]], 1)
+        };
+        let gaussian = PosePrior { mean: [1.0, 0.0, 0.0], var_xy: 0.01, var_theta: 0.01, dof: 0.0 };
+        let (x, _, _) = gauss_newton_with(linearise, 1, 1.0, Some(&gaussian), [0.0; 3], 50);
+        assert!((x[0] - 0.5).abs() < 2e-3, "{x:?}");
+        let t = gaussian.with_dof(3.0);
+        let (x, _, _) = gauss_newton_with(linearise, 1, 1.0, Some(&t), [0.0; 3], 50);
+        let p = 1.0 / t.var_xy;
+        let w = t.weight(x);
+        assert!((x[0] - w * p / (k + w * p)).abs() < 2e-3, "{x:?}, fixed point {}", w * p / (k + w * p));
+        assert!(x[0] > 0.03 && x[0] < 0.1, "{x:?}");
+        // Near the wheels' prediction it holds as firmly as a Gaussian, and more: at the mean its
+        // curvature is (ν + 3) / ν times the Gaussian's.
+        let near = PosePrior { mean: [0.05, 0.0, 0.0], ..t };
+        let (xt, _, _) = gauss_newton_with(linearise, 1, 1.0, Some(&near), [0.0; 3], 50);
+        let (xg, _, _) = gauss_newton_with(linearise, 1, 1.0, Some(&PosePrior { dof: 0.0, ..near }), [0.0; 3], 50);
+        assert!(xt[0] > xg[0] && xg[0] > 0.02, "{xt:?} {xg:?}");
     }
 
     #[test]
@@ -1171,7 +1245,7 @@ mod tests {
         let (g, angles, ranges) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
         let lf = LikelihoodField::new(0.05, 0.9, 0.1, 20.0, 3, 0.0, false);
-        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 0, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, check: OdometryCheck::OFF };
+        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 0, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, prior_dof: 0.0, climb_from_sample: false, fallback_draw: true, check: OdometryCheck::OFF };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let view = FieldView::new(&lf, &g);
         let (pose, _) = climb(|p| objective(&view, &geom, &pts, 1.0, None, p), [2.08, 1.43, 0.03], &m);
@@ -1195,7 +1269,7 @@ mod tests {
         let (g, angles, ranges) = room();
         let geom = ScanGeometry { angles: &angles, sensor: [0.0; 3] };
         let lf = LikelihoodField::new(0.02, 0.9, 0.1, 20.0, 3, 0.0, true);
-        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 10, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, climb_from_sample: false, fallback_draw: true, check: OdometryCheck::OFF };
+        let m = MatcherParams { step_xy: 0.05, step_theta: 0.02, refinements: 5, gauss_newton: 10, sample_xy: 0.02, sample_theta: 0.005, min_matched: 0.5, effective_beams: 10.0, odometry_prior: false, prior_dof: 0.0, climb_from_sample: false, fallback_draw: true, check: OdometryCheck::OFF };
         let pts = endpoints(&geom, &ranges, 1, 20.0);
         let view = FieldView::new(&lf, &g);
         let (mode, _) = climb(|p| objective(&view, &geom, &pts, 1.0, None, p), [2.04, 1.46, 0.02], &m);
