@@ -602,7 +602,8 @@ pub struct PosePrior {
     /// Degrees of freedom ν of a Student-t prior on the pose (0: a Gaussian). Heavy-tailed: where
     /// the scan places the pose many standard deviations from the wheels' prediction (a wheel
     /// that slips in a turn), the prior gives way instead of pulling the match towards the
-    /// wheels; near the prediction (along a corridor the scan cannot fix) it holds as a Gaussian.
+    /// wheels; near the prediction (along a corridor the scan cannot fix) it holds as firmly as
+    /// a Gaussian, or more: its curvature at the mean is (ν + 3)/ν times the Gaussian's.
     pub dof: f64,
 }
 

@@ -134,7 +134,8 @@ class ScanMatcherConfig(_Section):
     )
     prior_dof: float = Field(
         0.0, ge=0, le=1e6,
-        description="with odometry_prior, the prior's degrees of freedom as a Student-t on the pose (0: a Gaussian): "
+        description="the odometry prior (the climb's with odometry_prior, and always the proposal Gaussian's and the "
+        "weight's) as a Student-t on the pose with this many degrees of freedom (0: a Gaussian): "
         "heavy-tailed, it holds the pose where the scan cannot (along a corridor the laser sees no end of) and "
         "gives way where the scan puts the pose many of the motion model's standard deviations from the "
         "wheels (a wheel that slips in a turn; a Gaussian prior there bent Freiburg 079's map by 30°); "
