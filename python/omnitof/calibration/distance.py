@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 from scipy.interpolate import BSpline
 from scipy.sparse import coo_matrix, csr_matrix, hstack, vstack
+from threadpoolctl import threadpool_limits
 
 from omnitof.errors import InputError
 
@@ -291,18 +292,22 @@ def _solve(m, t, la, p, dk, ak, per_pixel: bool, shape, ridge: float, weights: n
     normal = (system.T @ system).tocsr()
     rhs_n = system.T @ np.concatenate(rhs)
     ns = Bd.shape[1] + Ba.shape[1]
-    if not per_pixel:
-        x = np.linalg.solve(normal.toarray(), rhs_n)
-    else:
-        # The pixel block of the normal equations is diagonal (one pixel per sample): eliminate
-        # it (Schur complement) and solve the few spline coefficients densely.
-        A = normal[:ns, :ns].toarray()
-        B = normal[:ns, ns:].toarray()
-        D = normal[ns:, ns:].diagonal()
-        schur = A - (B / D) @ B.T
-        xs = np.linalg.solve(schur, rhs_n[:ns] - (B / D) @ rhs_n[ns:])
-        xp = (rhs_n[ns:] - B.T @ xs) / D
-        x = np.concatenate([xs, xp])
+    # The dense products and solves on one BLAS thread: a multithreaded BLAS sums them in an
+    # order that depends on its thread count, and the correction differed in its last digits
+    # between one core and two (as the refinement did, calibration.refine.refine).
+    with threadpool_limits(limits=1, user_api="blas"):
+        if not per_pixel:
+            x = np.linalg.solve(normal.toarray(), rhs_n)
+        else:
+            # The pixel block of the normal equations is diagonal (one pixel per sample):
+            # eliminate it (Schur complement) and solve the few spline coefficients densely.
+            A = normal[:ns, :ns].toarray()
+            B = normal[:ns, ns:].toarray()
+            D = normal[ns:, ns:].diagonal()
+            schur = A - (B / D) @ B.T
+            xs = np.linalg.solve(schur, rhs_n[:ns] - (B / D) @ rhs_n[ns:])
+            xp = (rhs_n[ns:] - B.T @ xs) / D
+            x = np.concatenate([xs, xp])
     wd = x[: Bd.shape[1]]
     wa = x[Bd.shape[1] : Bd.shape[1] + Ba.shape[1]]
     offsets = x[Bd.shape[1] + Ba.shape[1] :].reshape(shape) if per_pixel else None

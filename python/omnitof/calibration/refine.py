@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 from scipy.sparse import coo_matrix
+from threadpoolctl import threadpool_limits
 
 from omnitof.calibration import CalibrationError
 from omnitof.calibration.intrinsics import MIN_OUTLIER_PX
@@ -495,10 +496,20 @@ def refine(problem: Problem, *, max_nfev: int = 50) -> Refinement:
     would leave a parameter undetermined (then it stays). The Huber loss bounds such a view's
     pull but not its count of residuals, and its cost inflated the reported σ twofold.
 
+    BLAS runs on one thread meanwhile: a multithreaded BLAS sums the products of the fit
+    (JᵀWJ, Jᵀr and more) in an order that depends on the thread count, and the last-digit
+    differences grew through the iterations into a calibration, and a demo map, that differed
+    between one core and two.
+
     Raises:
         CalibrationError naming what is missing (`check_problem`, also after views are left
         out) or the parameter that the data leave undetermined.
     """
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _refine(problem, max_nfev)
+
+
+def _refine(problem: Problem, max_nfev: int) -> Refinement:
     check_problem(problem)
     result = _fit(problem, max_nfev)
     rejected: dict[str, float] = {}
