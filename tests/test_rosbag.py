@@ -1035,6 +1035,10 @@ def test_laserscan_writer_checks(tmp_path: Path) -> None:
                                          r"no time"):
         write_laserscan_bag(tmp_path / "x", still)
     assert list(tmp_path.iterdir()) == []
+    # Stamps that go back may end where they began and still span time: written, not refused.
+    there_and_back = scans.slice()
+    there_and_back.timestamps = there_and_back.timestamps[0] + np.array([0.0, 0.5, 0.0])
+    write_laserscan_bag(tmp_path / "back_again", there_and_back)
     # Readings of NaN or 0 m or less, no reading to a reader, are written as no echo (+inf): a
     # ScanSequence of nothing else reads back, as it did, as beams without an echo.
     blind = scans.slice()

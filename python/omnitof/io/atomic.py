@@ -197,7 +197,7 @@ def atomic_folder(
 
     Before the block: `path` must be a folder or absent (else OutputError), and not a mount
     point nor a folder that cannot be renamed (an immutable one: it is moved aside and back to
-    find out, `_check_movable`); `may_replace(path)` may refuse an existing folder (by
+    find out, `check_replaceable`); `may_replace(path)` may refuse an existing folder (by
     raising), leftovers of killed processes are swept, the missing parent folders are made and
     the temporary folder is created, which proves that the place can be written (else
     OutputError). So a run that opens its results folder first learns of a bad output path

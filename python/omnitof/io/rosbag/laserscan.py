@@ -577,9 +577,10 @@ def write_laserscan_bag(
     # A stamp a little earlier than one before it (a CARMEN log's jitter: Intel's go back 631
     # times, by up to 0.9 s) is written as it is, in the sequence's order, as the reader keeps
     # it; the bag's own message times never go back, so that readers keep that order.
-    written_at = np.maximum.accumulate(np.asarray(stamps, dtype=np.int64)).tolist() if stamps else []
-    back = [(w - t) / 1e9 for t, w in zip(stamps, written_at)]
-    if back and max(back) > MAX_TIME_REVERSAL:
+    stamp_ns = np.asarray(stamps, dtype=np.int64)
+    written_at = np.maximum.accumulate(stamp_ns) if len(stamp_ns) else stamp_ns
+    back = (written_at - stamp_ns) / 1e9
+    if len(back) and back.max() > MAX_TIME_REVERSAL:
         k = int(np.argmax(back))
         raise ValueError(f"write_laserscan_bag: scan {k} is stamped {back[k]:.6f} s earlier than one before it; "
                          f"at most {MAX_TIME_REVERSAL:g} s is written (read_laserscan_bag refuses more)")
@@ -587,7 +588,7 @@ def write_laserscan_bag(
     # scans' poses sorted by stamp, so that the reader, interpolating it to each scan's stamp,
     # finds that scan's own pose there.
     by_time = np.argsort(scans.timestamps, kind="stable")
-    if len(stamps) > 1 and stamps[0] == stamps[-1]:
+    if len(stamp_ns) > 1 and stamp_ns.min() == stamp_ns.max():  # not first against last: stamps may go back
         raise ValueError(f"write_laserscan_bag: all {len(stamps)} scans are stamped {scans.timestamps[0]!r} s; "
                          "read_laserscan_bag refuses scans that span no time (stamps left unset)")
     if not len(scans):
@@ -638,7 +639,7 @@ def write_laserscan_bag(
             tf = _tf_msg(store, stamps[0], scans.sensor_pose, BASE_FRAME, LASER_FRAME, ros1=ros1)
             writer.write(conn_tf, stamps[0], _serialize(store, tf, TF_MESSAGE, ros1))
             scan_cls = store.types[LASER_SCAN]
-            for k, (ns, at) in enumerate(zip(stamps, written_at)):
+            for k, (ns, at) in enumerate(zip(stamps, written_at.tolist())):
                 for stream in streams:
                     stream.write_until(at)
                 angle_min, increment = geometry[k]
