@@ -237,6 +237,12 @@ class MapConfig(_Section):
     )
     max_range: float = Field(20.0, gt=0, description="readings beyond this (m) clear free space only")
     clear_no_echo: bool = Field(False, description="let no-echo beams clear free space up to max_range")
+    footprint_radius: float = Field(
+        0.0, ge=0, le=10,
+        description="the robot's radius (m): in the map written at the end, every cell within it of the "
+        "trajectory that holds no obstacle is free (the robot drove there; a sensor blind around its own "
+        "base otherwise leaves unknown holes along the path; omnitof.slam.footprint). 0: off",
+    )
     once_per_scan: bool = Field(
         False, description="update each cell at most once per scan: l_occ where a beam ends, else l_free where any "
         "passes (Cartographer's inserter); off: once per beam, the paper's eq. 8 as written",

@@ -23,6 +23,7 @@ from omnitof.slam.backend import FrontEnd2D, PoseGraphBackend
 from omnitof.slam.limits import MemoryWatch, check_limits, usable_cores, within_cores
 from omnitof.slam.config import SlamConfig
 from omnitof.slam.final_match import final_match, grid_along
+from omnitof.slam.footprint import clear_footprint
 from omnitof.slam.moving import drop_moving
 from omnitof.slam.scan_odometry import with_scan_odometry
 from omnitof.slam.thinning import thin_dense_scans
@@ -85,7 +86,7 @@ DRIVER_FILTER_FIELDS = frozenset({
     "linear_update", "angular_update_deg", "match_between", "final_match_passes", "moving_lookback", "moving_margin",
 })
 # The map section's fields the driver applies before the filter (omnitof.slam.thinning).
-DRIVER_MAP_FIELDS = frozenset({"max_beams", "thin_beams"})
+DRIVER_MAP_FIELDS = frozenset({"max_beams", "thin_beams", "footprint_radius"})
 
 
 def core_sections(cfg: SlamConfig) -> dict:
@@ -195,6 +196,7 @@ def run_slam(
             f"{cfg.map.max_range:g} m, and map.clear_no_echo is off): there is nothing to map",
             scans.source or None,
         )
+    result.map = clear_footprint(result.map, result.trajectory.poses, cfg.map.footprint_radius, cfg.map.l_min)
     return result
 
 

@@ -31,6 +31,7 @@ import numpy as np
 from omnitof import _core
 from omnitof.errors import InputError, ResourceError
 from omnitof.slam.config import SlamConfig
+from omnitof.slam.footprint import clear_footprint
 from omnitof.slam.driver import DRIVER_FILTER_FIELDS, DRIVER_MAP_FIELDS, SlamResult, fill_trajectory, in_odometry_frame
 from omnitof.slam.anchor import moved, voxel_offset
 from omnitof.slam.backend import PoseGraphBackend
@@ -226,7 +227,7 @@ def _run(scans: ScanSequence, frames: np.ndarray, clouds: Sequence[np.ndarray], 
         trajectory=Trajectory(scans.timestamps, poses),
         odometry=Trajectory(scans.timestamps, scans.odometry),
         integrated=frames,
-        map=occupancy,
+        map=clear_footprint(occupancy, poses, cfg.map.footprint_radius, cfg.map.l_min),
         stats=stats,
         graph=graph,
     )
