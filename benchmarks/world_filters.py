@@ -86,7 +86,8 @@ def extracted_scans(name: str, drive: int, cache: Path, tof_errors: str = "defau
     tag += "_mpcomp" if compensate else ""
     tag += f"_ratio{max_ratio:g}" if compensate and max_ratio is not None else ""
     tag += "_bands" + "+".join(f"{h:g}:{b:g}" for h, b in bands) if bands else ""
-    path = cache / f"{name}_{drive}{tag}.pkl"
+    stem = Path(name).stem if name.endswith((".yaml", ".yml")) else name  # a world YAML by path
+    path = cache / f"{stem}_{drive}{tag}.pkl"
     if path.exists():
         return pickle.loads(path.read_bytes())["scans"]
     settings = DemoSettings(world=name, seed=drive, calibrate=not true_rig, true_rig_correction=true_rig)
@@ -94,7 +95,7 @@ def extracted_scans(name: str, drive: int, cache: Path, tof_errors: str = "defau
     sequence = make_sequence(world, seed=drive, motion=MotionSettings(speed=settings.speed))
     sensor = SensorNoise(errors=errors)
     renderer = Renderer(world, sensor=sensor, settings=RenderSettings(seed=drive))
-    work = cache / f"{name}_{drive}{tag}"
+    work = cache / f"{stem}_{drive}{tag}"
     work.mkdir(parents=True, exist_ok=True)
     calibration, _ = _calibrate(renderer, settings, work)
     multipath = MultipathSettings.for_camera(errors, amplitude_at_1m=sensor.amplitude_at_1m, f_mod=sensor.f_mod,

@@ -209,3 +209,22 @@ def test_wall_coverage_of_perfect_and_half_maps(tmp_path):
     points, visible, _ = visible_wall_samples(ROOM, poses, 10.0)
     plot_floorplan_overlay(tmp_path / "plan.png", occ, ROOM, trajectory=poses, seen_points=points[visible])
     assert (tmp_path / "plan.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_free_cells_beside_a_wall_do_not_pull_its_peak():
+    """Beams that graze a wall leave free-leaning cells (p 0.35–0.45) beside it; here 0.4 m of
+    them beyond one wall, the space further out unknown, the corridor free (p 0.12), as in the
+    simulated corridor2's map at #1. They are not wall: the distance is measured between the
+    occupied cells. Read as occupancy, they widened that wall's fitted peak and moved it out
+    (2.17 m read 2.277 m)."""
+    d, res = 2.17, 0.05
+    walls = [np.array([[-3.0, s * d / 2], [3.0, s * d / 2]]) for s in (-1, 1)]
+    occ = _grid_from_segments(walls, resolution=res, free=0.12)
+    ys = occ.origin[1] + (np.arange(occ.log_odds.shape[0]) + 0.5) * res
+    occ.known[np.abs(ys) > d / 2 + res, :] = False
+    shoulder = (ys > d / 2 + res / 2) & (ys < d / 2 + 0.45)
+    occ.log_odds[shoulder, :] = math.log(0.38 / 0.62)
+    occ.known[shoulder, :] = True
+    row = measure_landmark(occ, Landmark("1", np.array([0.2, 0.1]), math.pi / 2, d, 1.0))
+    assert row.fit.ok, row.reason
+    assert abs(row.offset) < res, f"measured {row.measured:.3f} m"
