@@ -1,10 +1,11 @@
 """The ground the robot drove over, free in the written map.
 
-A sensor that cannot see the floor around its own base leaves holes along the path: the mirror
-rig sees the 0.5–0.7 m slice only from about 0.3 m out, and the diagonals not at all, so every
-ToF map had a chain of unknown patches, one per integrated scan, down the middle of each
-corridor it drove (a planner that treats unknown as blocked cannot follow the robot's own path
-back). The robot was there, so those cells were free: `map.footprint_radius` marks every cell
+A sensor whose beams never cross the ground it drives over leaves holes along the path: the
+mirror rig has no reading straight ahead or behind down a corridor longer than its range and none
+along its diagonals, and a missing ToF reading clears nothing (`map.clear_no_echo` stays off), so
+every ToF map had a chain of unknown patches some 0.4 m wide, one between each two integrated
+scans, down the middle of each corridor it drove (a planner that treats unknown as blocked
+cannot follow the robot's own path back). The robot was there, so those cells were free: `map.footprint_radius` marks every cell
 whose centre lies within that radius of the trajectory (every scan's pose, the segments between
 them included) as free with the map's full confidence (`map.l_min`), as ROS's costmaps clear a
 robot's footprint. A cell where the scans found an obstacle (log-odds above 0) keeps it: the
