@@ -488,3 +488,40 @@ def test_the_back_end_repairs_a_loop_the_3d_filter_got_wrong(corridor_loop):
     d_alone, d_repaired = wall_distance(alone_run), wall_distance(run)
     assert np.median(d_repaired) < 0.5 * np.median(d_alone)
     assert np.mean(d_repaired < 0.2) > 0.6 > 0.4 > np.mean(d_alone < 0.2)
+
+
+def test_the_3d_runs_written_map_has_its_path_free(atrium_run):
+    # map.footprint_radius (omnitof.slam.footprint) in the 3D filter's projection too: the cells
+    # the robot drove over are known and free, every cell it changed lies within the radius of
+    # the path and is set free, and no cell that held an obstacle changes. (Here the projection
+    # had the path's own cells free already; the footprint sets its neighbours that were unknown
+    # or only weakly free.)
+    data, cfg = atrium_run
+    keep = 8
+    scans = data.scans.slice(0, int(data.cloud_frames[keep - 1]) + 1)
+    radius = 0.3
+    runs = [run_slam3d(scans, data.cloud_frames[:keep], data.clouds[:keep],
+                       cfg.model_copy(update={"map": cfg.map.model_copy(update={"footprint_radius": r})})).result
+            for r in (0.0, radius)]
+    plain, cleared = (r.map for r in runs)
+    np.testing.assert_array_equal(runs[0].trajectory.poses, runs[1].trajectory.poses)
+    xy = runs[1].trajectory.poses[:, :2]
+    res = cleared.resolution
+    cells = np.floor((xy - np.asarray(cleared.origin)) / res).astype(int)
+    assert cleared.known[cells[:, 1], cells[:, 0]].all()
+    assert (cleared.probability[cells[:, 1], cells[:, 0]] < 0.5).all()
+    dc = round((plain.origin[0] - cleared.origin[0]) / res)
+    dr = round((plain.origin[1] - cleared.origin[1]) / res)
+    h, w = plain.log_odds.shape
+    before_lo, before_known = np.zeros_like(cleared.log_odds), np.zeros_like(cleared.known)
+    before_lo[dr:dr + h, dc:dc + w], before_known[dr:dr + h, dc:dc + w] = plain.log_odds, plain.known
+    obstacles = before_known & (before_lo > 0)
+    np.testing.assert_array_equal(cleared.log_odds[obstacles], before_lo[obstacles])
+    changed = (cleared.log_odds != before_lo) | (cleared.known != before_known)
+    assert changed.any()
+    assert np.all(cleared.log_odds[changed] == cfg.map.l_min)
+    rows, cols = np.nonzero(changed)
+    centres = np.asarray(cleared.origin) + (np.stack([cols, rows], axis=1) + 0.5) * res
+    nearest = np.min(np.linalg.norm(centres[:, None, :] - xy[None, :, :], axis=2), axis=1)
+    spacing = np.max(np.linalg.norm(np.diff(xy, axis=0), axis=1))
+    assert nearest.max() <= radius + res / math.sqrt(2) + spacing / 2

@@ -85,7 +85,8 @@ def fill_trajectory(odometry: np.ndarray, integrated: np.ndarray, corrected: np.
 DRIVER_FILTER_FIELDS = frozenset({
     "linear_update", "angular_update_deg", "match_between", "final_match_passes", "moving_lookback", "moving_margin",
 })
-# The map section's fields the driver applies before the filter (omnitof.slam.thinning).
+# The map section's fields the driver applies itself: before the filter (omnitof.slam.thinning)
+# and to the map written at the end (omnitof.slam.footprint).
 DRIVER_MAP_FIELDS = frozenset({"max_beams", "thin_beams", "footprint_radius"})
 
 
