@@ -14,6 +14,10 @@ and scores the scan at t2:
   than 10 m away in the run's estimate (a drifted estimate can still put the same place there,
   so read the false scores' maximum with that in mind).
 
+Each group also prints its scores divided by what the submap's own central scan scores there at
+its own pose (false ones: by their own submap's): a bar that would follow a log's level.
+`--false-window M` searches the false matches within M metres instead of the back end's window.
+
 Beside the scores, the share of the true match's end points that fall in cells the submap
 observed at all (a scan that sees what the submap never held cannot score, whatever the
 threshold). Groups: revisits (t1 and t2 at least `REVISIT_SECONDS` apart, what the back end
@@ -23,7 +27,8 @@ The scores are the search's (mean end-point occupancy probability, rust/src/loop
 with the map and back-end settings of the run's `config.yaml`.
 
     omnitof slam ../shared/data/intel.clf.bz2 --out RUN
-    python benchmarks/closure_truth.py ../shared/data/intel.clf.bz2 ../shared/data/intel.relations RUN
+    python benchmarks/closure_truth.py ../shared/data/intel.clf.bz2 ../shared/data/intel.relations RUN \
+        [--pairs 60] [--false-window 8]
 """
 
 from __future__ import annotations
@@ -57,6 +62,8 @@ def main() -> None:
     parser.add_argument("--bundle", type=float, default=0.0,
                         help="match the end points of every scan within this much path (m) of t2, placed by "
                         "the run's poses, instead of the one scan (0: the scan alone, as the back end does)")
+    parser.add_argument("--false-window", type=float, default=None,
+                        help="search the false matches within this half-width (m) instead of backend.linear_window")
     args = parser.parse_args()
     try:
         cfg = load_config(Path(args.run) / "config.yaml")
@@ -144,18 +151,23 @@ def main() -> None:
     for name, keep in groups.items():
         idx = np.flatnonzero(keep)
         idx = rng.choice(idx, min(args.pairs, len(idx)), replace=False) if len(idx) else idx
-        true, false, observed = [], [], []
+        true, false, observed, selfs, false_self = [], [], [], [], []
         for q in idx:
             i, j = int(i_all[q]), int(j_all[q])
-            found, seen = score(submap(i, stamps[j]), j, compose(poses[i], delta[q]), TRUE_XY, TRUE_DEG)
+            grid = submap(i, stamps[j])
+            found, seen = score(grid, j, compose(poses[i], delta[q]), TRUE_XY, TRUE_DEG)
+            own = score(grid, i, poses[i], 0.05, 1.0)[0]
             true.append(found)
+            selfs.append(own)
             observed.append(seen)
             far = (np.abs(path - path[i]) > FALSE_PATH_M) & (np.abs(path - path[j]) > FALSE_PATH_M)
             for k in (i, j):
                 far &= np.hypot(*(poses[:, :2] - poses[k, :2]).T) > FALSE_APART_M
             if far.any():
                 o = int(rng.choice(np.flatnonzero(far)))
-                false.append(score(submap(o, stamps[j]), j, poses[o], b.linear_window, b.angular_window_deg)[0])
+                fgrid = submap(o, stamps[j])
+                false.append(score(fgrid, j, poses[o], args.false_window or b.linear_window, b.angular_window_deg)[0])
+                false_self.append(false[-1] / max(score(fgrid, o, poses[o], 0.05, 1.0)[0], 1e-6))
         if not true:
             print(f"| {name} | 0 | | | | | | |")
             continue
@@ -164,6 +176,10 @@ def main() -> None:
               f"| {np.mean(t >= b.min_score):.0%} | {np.median(f):.2f} / {np.percentile(f, 90):.2f} / {f.max():.2f} "
               f"| {np.mean(f >= b.min_score):.0%} | {np.mean(t > np.percentile(f, 90)):.0%} "
               f"| {np.median(observed):.0%} |")
+        ts, fs = t / np.maximum(np.array(selfs), 1e-6), np.array(false_self) if false_self else np.zeros(1)
+        print(f"|   relative to self | | {np.percentile(ts, 10):.2f} / {np.median(ts):.2f} / {np.percentile(ts, 90):.2f} "
+              f"| self median {np.median(selfs):.2f} | {np.median(fs):.2f} / {np.percentile(fs, 90):.2f} / {fs.max():.2f} "
+              f"| | {np.mean(ts > np.percentile(fs, 90)):.0%} | |")
 
 
 if __name__ == "__main__":
