@@ -67,6 +67,23 @@ def test_slam_writes_the_results_folder(tmp_path, loop_log, loop_relations, corr
     assert (out / "map.png").stat().st_size > 10_000
 
 
+def test_slam_of_a_file_whose_name_is_not_utf8_writes_every_output(tmp_path, corridor_loop, capsys):
+    # A Latin-1 "café" reaches Python with a surrogate escape (PEP 383), which fonts and UTF-8
+    # files do not take: the titles and summary.yaml show the byte as \xe9, and nothing is lost.
+    folder = tmp_path / "données ñ"
+    folder.mkdir()
+    log = folder / os.fsdecode(b"caf\xe9.log")
+    write_carmen(log, corridor_loop.slice(0, 300))
+    out = tmp_path / "r\u00e9sultats 結果"
+    assert main(["slam", str(log), "--out", str(out), "--preset", "sim2d", "--particles", "5", "--quiet"]) == 0
+    capsys.readouterr()
+    for name in ("map.png", "map.pgm", "trajectory.tum", "config.yaml"):
+        assert (out / name).stat().st_size > 0
+    text = (out / "summary.yaml").read_text(encoding="utf-8")
+    assert "données ñ/caf\\xe9.log" in text  # other alphabets as they are, the stray byte escaped
+    assert yaml.safe_load(text)["run"]["scans"] == 300
+
+
 def test_eval_relations_prints_the_metric(tmp_path, loop_relations, corridor_loop, capsys):
     from omnitof.io.tum import write_tum
     from omnitof.types import Trajectory

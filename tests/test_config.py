@@ -311,3 +311,17 @@ def test_the_configuration_text_is_pyyamls_own_for_every_preset():
         cfg = load_config(preset=name)
         assert cfg.to_yaml() == yaml.safe_dump(cfg.model_dump(), sort_keys=False)
         assert SlamConfig.model_validate(yaml.safe_load(cfg.to_yaml())) == cfg
+
+
+def test_every_preset_reads_under_an_ascii_locale():
+    # The presets hold "°" and "×": read as UTF-8 whatever the locale's encoding (LC_ALL=C with
+    # UTF-8 mode and locale coercion off makes Python's default ASCII).
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "LC_ALL": "C", "LANG": "C", "PYTHONUTF8": "0", "PYTHONCOERCECLOCALE": "0"}
+    code = ("import locale; from omnitof.slam.config import load_preset, preset_names; "
+            "print(locale.getpreferredencoding(False)); [load_preset(n) for n in preset_names()]")
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr

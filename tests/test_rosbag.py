@@ -968,6 +968,29 @@ def test_laserscan_bag_with_changing_beams_and_range_max(tmp_path: Path) -> None
     assert scans.max_range == 4.0 and scans.max_range_rule == "LaserScan range_max (2.5 to 4 m)"
 
 
+def test_laserscan_range_max_inf_takes_the_maximum_from_the_readings(tmp_path: Path) -> None:
+    # pointcloud_to_laserscan's default range_max (the largest double) is +inf as a float32: no
+    # limit. The maximum is then a no-echo code repeated at the top of the readings, where one is
+    # (as read_carmen finds 50.00 m), else just beyond the farthest reading (an echo, kept).
+    def bag(name: str, far: list[float]) -> ScanSequence:
+        messages: list[tuple[str, str, object]] = []
+        for k in range(120):  # a code must repeat at least 100 times (carmen.TOP_VALUE_MIN_COUNT)
+            ns = 1000 * NS + k * NS // 10
+            messages.append(("/odom", ODOM, odometry_msg(HUMBLE, ns, (0.01 * k, 0, 0))))
+            beams = [1.0 + 0.01 * k, 2.0 + 0.003 * k, far[k % len(far)], math.inf]
+            messages.append(("/scan", SCAN, scan_msg(HUMBLE, ns, beams, rmax=math.inf)))
+        return read_warned(write_raw(tmp_path / name, messages))[0]
+
+    plain = bag("plain", [6.25, 7.5, 3.0])
+    assert plain.max_range > 7.5 and plain.max_range == np.nextafter(np.float32(7.5), np.float32(np.inf))
+    assert plain.max_range_rule == "the farthest reading, 7.5 m (range_max not finite)"
+    np.testing.assert_array_equal(plain.ranges[:3, 2], np.float32([6.25, 7.5, 3.0]))  # every reading an echo
+    assert np.isinf(plain.ranges[:, 3]).all()
+    coded = bag("coded", [50.0])  # a driver's no-echo code on one beam of four
+    assert coded.max_range == 50.0 and coded.max_range_rule.startswith("repeated top value 50 m (120 readings")
+    assert np.isinf(coded.ranges[:, 2]).all()
+
+
 def test_laserscan_beams_that_are_no_lasers_are_refused_and_a_wrong_angle_max_warned_of(tmp_path: Path) -> None:
     def bag(name, **geometry):
         messages = []
@@ -1141,8 +1164,9 @@ def test_ros1_laserscan_bag(tmp_path: Path) -> None:
     np.testing.assert_allclose(scans.timestamps, 1000 + t, rtol=0, atol=1e-9)
     # Interpolated odometry between 50 Hz poses equals the analytic (linear) path.
     assert_poses(scans.odometry, np.column_stack([0.5 * t, -0.2 * t, 0.3 * t]), atol=1e-9)
-    # Ranges: NaN, ±inf, below range_min (0.1) and above range_max (4.0) are no echo.
-    expected = np.array([1.0, np.inf, np.inf, 4.0, np.inf, np.inf, np.inf, 0.1], np.float32)
+    # Ranges: NaN, ±inf, below range_min (0.1), at range_max (4.0: many drivers' no-echo value)
+    # and above it are no echo; range_min itself is a reading.
+    expected = np.array([1.0, np.inf, np.inf, np.inf, np.inf, np.inf, np.inf, 0.1], np.float32)
     np.testing.assert_array_equal(scans.ranges[0, 1:], expected[1:])
     np.testing.assert_array_equal(scans.ranges[:, 0], np.float32(1.0 + 0.25 * np.arange(1, 11)))
     np.testing.assert_allclose(scans.angles, -1.0 + 0.5 * np.arange(8), rtol=0, atol=1e-7)
@@ -1397,12 +1421,19 @@ def test_laserscan_errors(tmp_path: Path) -> None:
     odom = [("/odom", ODOM, odometry_msg(store, k * NS, (k, 0, 0))) for k in range(3)]
     no_odom = write_raw(tmp_path / "a", [("/scan", SCAN, scan_msg(store, NS, [1.0]))])
     assert not read_warned(no_odom)[0].odometry_known
+    # A range_max of NaN or 0 in one message does not lose the run: that scan's readings are
+    # bounded by the others' range_max (4 m), with a warning naming the first.
     no_range = write_raw(tmp_path / "b", odom + [
         ("/scan", SCAN, scan_msg(store, NS, [1.0, 2.0])),
-        ("/scan", SCAN, scan_msg(store, NS + 1, [1.0, 2.0, 3.0], rmax=math.nan)),
+        ("/scan", SCAN, scan_msg(store, NS + 1, [1.0, 5.0, 3.0], rmax=math.nan)),
+        ("/scan", SCAN, scan_msg(store, NS + 2, [1.5, 4.5], rmax=0.0)),
     ])  # fmt: skip
-    with pytest.raises(InputError, match="topic /scan: the scan at 1.000000001 s has range_max nan"):
-        read_laserscan_bag(no_range)
+    scans, messages = read_warned(no_range)
+    assert any("2 scan(s) on /scan with a range_max of NaN, 0 or less (first at 1.000000001 s); their "
+               "readings are taken up to the maximum range, 4 m" in m for m in messages)
+    np.testing.assert_array_equal(scans.scan_ranges(1), np.float32([1.0, np.inf, 3.0]))
+    np.testing.assert_array_equal(scans.scan_ranges(2), np.float32([1.5, np.inf]))
+    assert scans.max_range == 4.0 and scans.max_range_rule == "LaserScan range_max (4 m, others unbounded)"
     backwards = write_raw(tmp_path / "c", odom + [
         ("/scan", SCAN, scan_msg(store, 2 * NS, [1.0])),
         ("/scan", SCAN, scan_msg(store, NS // 2, [1.0])),

@@ -57,6 +57,44 @@ def test_the_delay_is_found_from_the_scans_alone():
     assert estimate.heading_error[-1] > 2 * estimate.heading_error[best]
 
 
+def irregular_log(delay: float) -> ScanSequence:
+    """As `delayed_log`, along turns that never repeat (two turn rates of unrelated periods)."""
+    dt = 1e-3
+    t = np.arange(0.0, 40.0 + dt / 2, dt)
+    rate = 0.5 * np.sin(2 * np.pi * t / 4.0) + 0.4 * np.sin(2 * np.pi * t / 6.7 + 1.0)
+    theta = np.concatenate([[0.0], np.cumsum(rate[:-1] * dt)])
+    x = 2.0 + np.concatenate([[0.0], np.cumsum(0.2 * np.cos(theta[:-1]) * dt)])
+    y = 4.0 + np.concatenate([[0.0], np.cumsum(0.2 * np.sin(theta[:-1]) * dt)])
+    fine = Trajectory(t, np.stack([x, y, wrap_angle(theta)], axis=1))
+    stamps = np.arange(2.0, 36.0, 1.0 / RATE_HZ)  # odometry on both sides of every re-timed stamp
+    angles = beam_angles(181, 180.0)
+    ranges = simulate_scans(room(), interpolate_poses(fine, stamps), angles, max_range=15.0, range_noise=0.005, seed=3)
+    return ScanSequence(stamps, ranges, angles, interpolate_poses(fine, stamps + delay), max_range=15.0,
+                        source="irregular")
+
+
+def test_clocks_that_disagree_by_seconds_are_found_beyond_a_lasers_delay():
+    # A bag whose odometry is stamped by another clock, 1.7 s ahead: beyond the ±0.3 s of a
+    # laser's own delay the estimate searches on, and finds it.
+    estimate = estimate_scan_delay(irregular_log(1.7), min_turn_deg=1.0)
+    assert abs(estimate.delay - 1.7) < 0.02, estimate.delay
+    assert estimate.delays[0] < -5 and estimate.delays[-1] > 5
+    # A laser's own delay is found as before, without the wider search.
+    small = estimate_scan_delay(irregular_log(0.12), min_turn_deg=1.0)
+    assert abs(small.delay - 0.12) < 0.02 and small.delays[-1] < 0.31
+
+
+def test_a_delay_that_turns_to_a_rhythm_is_not_guessed():
+    # The slalom turns with a period of 4 s: 1.5 s and 1.5 - 4 s explain its turns alike.
+    scan_times, fine = slalom(30.0, RATE_HZ)
+    keep = scan_times.timestamps < 24.0
+    stamps, angles = scan_times.timestamps[keep], beam_angles(181, 180.0)
+    ranges = simulate_scans(room(), scan_times.poses[keep], angles, max_range=15.0, range_noise=0.005, seed=3)
+    scans = ScanSequence(stamps, ranges, angles, interpolate_poses(fine, stamps + 1.5), max_range=15.0)
+    with pytest.raises(ValueError, match="as well at a delay of .* as at .*the robot turns to a rhythm"):
+        estimate_scan_delay(scans, min_turn_deg=1.0)
+
+
 def test_no_delay_is_estimated_as_none():
     scans, _ = delayed_log(0.0)
     assert abs(estimate_scan_delay(scans, min_turn_deg=1.0).delay) < 0.02

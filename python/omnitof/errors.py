@@ -97,17 +97,32 @@ def _numbers_without_base_60(cls: type, keep_yaml_1_1: bool = False) -> None:
     )
 
 
+def displayable(text: str) -> str:
+    """`text` with every byte that was not UTF-8 shown as an escape: a file name that is not valid
+    UTF-8 reaches Python with surrogate escapes (PEP 383: a Latin-1 "café.clf" is "caf\\udce9.clf"),
+    which neither UTF-8 files nor fonts take; it becomes "caf\\xe9.clf"."""
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
 class YamlDumper(getattr(yaml, "CSafeDumper", yaml.SafeDumper)):  # type: ignore[misc]
     """PyYAML's safe dumper (the C one where built) with `load_yaml`'s numbers: every YAML the
-    project writes is read back by `load_yaml` to what was written."""
+    project writes is read back by `load_yaml` to what was written (bar the bytes of a file name
+    that is not UTF-8, which it writes as `displayable` shows them)."""
+
+
+def _represent_text(dumper: yaml.BaseDumper, text: str) -> yaml.Node:
+    return dumper.represent_str(displayable(text))
 
 
 _numbers_without_base_60(_UniqueKeyLoader)
 _numbers_without_base_60(YamlDumper, keep_yaml_1_1=True)
+YamlDumper.add_representer(str, _represent_text)
 
 
 def dump_yaml(data: Any, stream: Any = None, **options: Any) -> Any:
-    """`yaml.safe_dump` with `YamlDumper` (the text, or None when written to `stream`)."""
+    """`yaml.safe_dump` with `YamlDumper` (the text, or None when written to `stream`); other
+    alphabets than Latin written as they are (a user's file names), not as escapes."""
+    options.setdefault("allow_unicode", True)
     return yaml.dump(data, stream, Dumper=YamlDumper, **options)
 
 

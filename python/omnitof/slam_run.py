@@ -383,7 +383,7 @@ def _retimed(scans: ScanSequence, delay: str | float, *, given: bool,
     what to record of it. Where the log does not allow an estimate (a clock that steps back, too
     few scans taken while turning), the delay is 0 and the record says why; a delay in seconds
     that cannot be applied is an error."""
-    from omnitof.slam.timing import estimate_scan_delay, retime_odometry
+    from omnitof.slam.timing import LASER_DELAY, estimate_scan_delay, retime_odometry
 
     option = "--scan-delay" if given else "default --scan-delay auto"
     if delay == "auto":
@@ -392,7 +392,11 @@ def _retimed(scans: ScanSequence, delay: str | float, *, given: bool,
         except ValueError as err:
             echo(f"scan delay 0 s: not estimated ({err})")
             return scans, {"seconds": 0.0, "how": f"{option}: not estimated, so none applied", "reason": str(err)}
-        echo(f"scan delay estimated from {estimate.pairs} scan pairs: {estimate.delay:.3f} s")
+        clocks = ""
+        if abs(estimate.delay) > LASER_DELAY:
+            clocks = (f" (more than a laser's own {LASER_DELAY:g} s: the laser's and the odometry's clocks "
+                      "disagree)")
+        echo(f"scan delay estimated from {estimate.pairs} scan pairs: {estimate.delay:.3f} s{clocks}")
         record = {"seconds": estimate.delay, "how": f"{option}: estimated from the log",
                   "estimated_from_pairs": estimate.pairs}
     else:

@@ -320,7 +320,7 @@ def read_wall_recordings(path: str | Path, calibration: Any) -> list[WallRecordi
 
     path = Path(path)
     try:
-        data = load_yaml(path.read_text())
+        data = load_yaml(path.read_text(encoding="utf-8"))
     except OSError as err:
         raise CalibrationError(f"cannot read the walls file: {err.strerror or err}", path) from None
     except yaml.YAMLError as err:

@@ -63,7 +63,7 @@ TRAILER = "ipc_timestamp ipc_hostname logger_timestamp"
 # codes in the bundled logs (81.83 in intel, 81.91 in fr079).
 DEFAULT_MAX_RANGE = 80.0
 
-# The no-echo code of a laser whose log does not state its range (see _repeated_top_value):
+# The no-echo code of a laser whose log does not state its range (see repeated_top_value):
 # the top reading below DEFAULT_MAX_RANGE counts as that code when it holds this share of all
 # readings, at least this many of them, and this many times the count of any other value
 # within TOP_VALUE_BAND (relative) below it.
@@ -202,7 +202,7 @@ def read_carmen(
     maximum_range in the new format (each scan its own); for FLASER/RLASER it is the PARAM
     `robot_front_laser_max` (`robot_rear_laser_max`), else `laser_front_laser_max_range`, else
     80 m, lowered to a value that repeats at the top of the readings below 80 m (a laser's own
-    no-echo code, such as 50.00 m; see `_repeated_top_value`), with a CarmenWarning.
+    no-echo code, such as 50.00 m; see `repeated_top_value`), with a CarmenWarning.
     `ScanSequence.max_range_rule` says which rule gave it.
 
     Time order. Scans are kept in file order with their logged timestamps (the benchmark
@@ -795,7 +795,7 @@ def _old_format_max_range(
             if value <= 0.0:
                 raise ctx.error(f"PARAM {name} is {value}; it must be positive", params[name][1])
             return value, f"PARAM {name} = {value:g}"
-    top = _repeated_top_value(ranges[np.isfinite(ranges)])
+    top = repeated_top_value(ranges[np.isfinite(ranges)])
     if top is not None:
         value, count = top
         warnings.warn(
@@ -816,7 +816,7 @@ def _logged_metres(value: float) -> str:
     return f"{value:.2f}" if round(value, 2) == value else repr(float(value))
 
 
-def _repeated_top_value(readings: np.ndarray) -> tuple[float, int] | None:
+def repeated_top_value(readings: np.ndarray) -> tuple[float, int] | None:
     """(value, count) of a laser's own no-echo code among `readings`, or None.
 
     A laser that saw nothing reports a fixed value: SICK's codes (81.83, 81.91 m) lie above the

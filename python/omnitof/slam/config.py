@@ -614,7 +614,7 @@ def load_preset(name: str) -> dict[str, Any]:
 def _preset_settings(name: str) -> dict[str, Any]:
     # Read once per process: `omnitof bench` builds one configuration per run, and parsing the
     # preset's YAML in pure Python was a third of planning 2000 runs (14 of 36 s).
-    text = (resources.files("omnitof") / "presets" / f"{name}.yaml").read_text()
+    text = (resources.files("omnitof") / "presets" / f"{name}.yaml").read_text(encoding="utf-8")
     return _read_yaml(text, f"preset {name}")
 
 

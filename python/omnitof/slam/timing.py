@@ -25,6 +25,14 @@ import numpy as np
 from omnitof.geometry import interpolate_poses, relative, wrap_angle
 from omnitof.types import ScanSequence, Trajectory
 
+# The most a laser's own delay can be (s): a sweep and its transfer. Beyond it the laser's and
+# the odometry's clocks disagree (`estimate_scan_delay` then searches wider).
+LASER_DELAY = 0.3
+# In the wider search, a second minimum this far (s) from the best and within this ratio of its
+# heading error makes the estimate ambiguous.
+AMBIGUOUS_APART = 0.5
+AMBIGUOUS_RATIO = 2.0
+
 
 @dataclass
 class ScanDelay:
@@ -70,13 +78,17 @@ def retime_odometry(scans: ScanSequence, delay: float) -> ScanSequence:
 def estimate_scan_delay(
     scans: ScanSequence,
     *,
-    max_delay: float = 0.3,
+    max_delay: float = LASER_DELAY,
+    widest: float = 10.0,
     step: float = 0.01,
     min_turn_deg: float = 3.0,
     max_pairs: int = 600,
     max_range: float = 15.0,
 ) -> ScanDelay:
-    """Estimate the scan delay (see the module notes) over the delays −max_delay..max_delay.
+    """Estimate the scan delay (see the module notes) over the delays −max_delay..max_delay, or,
+    where the best of those lies at either end, over −widest..widest: the laser's and the
+    odometry's clocks then disagree (a bag whose two drivers stamp by different clocks), by more
+    than a laser's own delay.
 
     Scan pairs: consecutive scans between which the odometry turned at least `min_turn_deg`,
     up to `max_pairs` spread evenly over the log. Each later scan is matched (omnitof._core,
@@ -86,8 +98,9 @@ def estimate_scan_delay(
     difference is refined by a parabola through it and its neighbours.
 
     Raises:
-        ValueError: if the timestamps do not increase everywhere, no pair of scans turned, or
-            fewer than 20 pairs match.
+        ValueError: if the timestamps do not increase everywhere, no pair of scans turned,
+            fewer than 20 pairs match, or (in the wider search) the best delay lies at ±widest or
+            another one half a second or more away explains the turns almost as well.
     """
     from omnitof import _core
 
@@ -124,15 +137,40 @@ def estimate_scan_delay(
         )
     first = np.asarray(used)
     matched_turn = np.asarray(matched_turn)
-    delays = np.arange(-max_delay, max_delay + step / 2, step)
     trajectory = Trajectory(scans.timestamps, scans.odometry)
     t = scans.timestamps
-    errors = np.empty(len(delays))
-    for i, d in enumerate(delays):
-        a = interpolate_poses(trajectory, np.clip(t[first] - d, t[0], t[-1]))
-        b = interpolate_poses(trajectory, np.clip(t[first + 1] - d, t[0], t[-1]))
-        errors[i] = np.mean(np.abs(wrap_angle(matched_turn - relative(a, b)[:, 2])))
+
+    def heading_errors(delays: np.ndarray) -> np.ndarray:
+        errors = np.empty(len(delays))
+        for i, d in enumerate(delays):
+            a = interpolate_poses(trajectory, np.clip(t[first] - d, t[0], t[-1]))
+            b = interpolate_poses(trajectory, np.clip(t[first + 1] - d, t[0], t[-1]))
+            errors[i] = np.mean(np.abs(wrap_angle(matched_turn - relative(a, b)[:, 2])))
+        return errors
+
+    delays = np.arange(-max_delay, max_delay + step / 2, step)
+    errors = heading_errors(delays)
     best = int(np.argmin(errors))
+    if best in (0, len(delays) - 1) and widest > max_delay:
+        delays = np.arange(-widest, widest + step / 2, step)
+        errors = heading_errors(delays)
+        best = int(np.argmin(errors))
+        # A robot that turns to a rhythm agrees with itself a period later: two near-equal
+        # minima are no estimate.
+        apart = np.abs(delays - delays[best]) > AMBIGUOUS_APART
+        if apart.any() and errors[apart].min() < AMBIGUOUS_RATIO * errors[best]:
+            other = float(delays[apart][np.argmin(errors[apart])])
+            raise ValueError(
+                f"{scans.source or 'scans'}: the odometry's turns agree with the scans' as well at a delay of "
+                f"{delays[best]:+.2f} s as at {other:+.2f} s (the robot turns to a rhythm): no delay can be told "
+                "(give --scan-delay SECONDS)"
+            )
+        if best in (0, len(delays) - 1):
+            raise ValueError(
+                f"{scans.source or 'scans'}: the odometry's turns agree best with the scans' at a delay of "
+                f"{delays[best]:+.2f} s, the end of the ±{widest:g} s searched: the laser's and the odometry's "
+                "clocks disagree by more, or the scans do not match (give --scan-delay SECONDS)"
+            )
     delay = float(delays[best])
     if 0 < best < len(delays) - 1:
         lo, mid, hi = errors[best - 1 : best + 2]

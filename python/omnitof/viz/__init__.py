@@ -12,7 +12,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from matplotlib.figure import Figure
+from matplotlib.text import Text
 
+from omnitof.errors import displayable
 from omnitof.io.atomic import atomic_write
 
 
@@ -20,6 +22,11 @@ def save_figure(fig: Figure, path: str | Path, *, dpi: float | None = None,
                 tight_layout: bool = True) -> Figure:
     """Write `fig` as a PNG at `path` (atomically: a reader never sees half a file) and return
     it. `tight_layout` first fits the axes to their labels; `dpi` None keeps the figure's own."""
+    # Titles and labels quote the user's file names; one text that cannot be drawn would lose
+    # the figure, and with it the run's other outputs.
+    for text in fig.findobj(Text):
+        if text.get_text() != displayable(text.get_text()):
+            text.set_text(displayable(text.get_text()))
     if tight_layout:
         fig.tight_layout()
     with atomic_write(path, "wb") as handle:

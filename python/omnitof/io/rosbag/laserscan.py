@@ -27,6 +27,7 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import Writer as Writer2
 
 from omnitof.errors import InputError
+from omnitof.io.carmen import repeated_top_value
 from omnitof.geometry import interpolate_poses
 from omnitof.io.rosbag.common import (
     _ROSBAG2_VERSION,
@@ -161,11 +162,14 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
       names a tf2_msgs/TFMessage topic) the transform odom → base on /tf, as gmapping and
       slam_toolbox read it: x, y and the heading of each transform, by its own stamp (sorted;
       the last of several at one stamp).
-    - Ranges: NaN, ±inf, values of 0 or less and values outside [range_min, range_max] (each
-      message its own) become +inf (no echo). Beam i is at angle_min + i·angle_increment; max_range = the largest
-      range_max; intensities become `remissions` when every scan has one per beam. Where
-      angle_min, angle_increment or the beam count change from scan to scan, the ScanSequence
-      has per-scan geometry (`angles` (N, B), `beam_counts`).
+    - Ranges: NaN, ±inf, values of 0 or less, below range_min or at range_max and beyond (each
+      message its own; a reading of exactly range_max is many drivers' no-echo value) become
+      +inf (no echo). Beam i is at angle_min + i·angle_increment; max_range = the largest
+      finite range_max (`_max_range`: where none is finite, a repeated no-echo code or the
+      farthest reading; a range_max of NaN or 0 in some messages bounds theirs by the
+      others', with a RosbagWarning); intensities become `remissions` when every scan has
+      one per beam. Where angle_min, angle_increment or the beam count change from scan to
+      scan, the ScanSequence has per-scan geometry (`angles` (N, B), `beam_counts`).
     - Time: each scan's header stamp, in the bag's order; a stamp may be earlier than the one
       before by up to MAX_TIME_REVERSAL (1 s: stamps that jitter, kept with a RosbagWarning, as
       read_carmen keeps them), not more, and the stamps must not be all one (of more than one
@@ -185,9 +189,9 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
       angles negated. Without such a transform: zeros and a RosbagWarning.
 
     Raises:
-        InputError: naming the bag and topic: not a bag, no or ambiguous topics, a range_max
-            that is not a positive number, beam angles or odometry poses that are not finite,
-            timestamps that go back more than 1 s or are all one, no scan within the odometry's span.
+        InputError: naming the bag and topic: not a bag, no or ambiguous topics, beam angles or
+            odometry poses that are not finite, timestamps that go back more than 1 s or are
+            all one, no scan within the odometry's span.
     """
     path = Path(path)
     topics = topics or LaserTopics()
@@ -217,6 +221,7 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
         odd_ends: list[str] = []  # scans whose angle_max disagrees with their beams (warned once)
         unread = _Unread()  # what the readings were, while none is an echo
         reversals: list[float] = []  # how far (s) each scan stamped earlier than the one before is
+        unstated: list[float] = []  # stamps (s) of the scans whose range_max is NaN, 0 or less
         laser_frame = ""
         for _, msg in _messages(reader, path, scan_conns):
             ns = _stamp_ns(msg.header.stamp)
@@ -239,12 +244,11 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
             else:
                 r, remission = np.array(msg.ranges, dtype=np.float32), np.asarray(msg.intensities, dtype=np.float32)
             range_min, range_max = float(msg.range_min), float(msg.range_max)
-            if not (math.isfinite(range_max) and range_max > 0.0):
-                raise InputError(
-                    f"topic {scan_name}: the scan at {_ns_to_s(ns):.9f} s has range_max "
-                    f"{range_max}; it must be a positive number",
-                    path,
-                )
+            if not range_max > 0.0:
+                # NaN, 0 or less: this message states no limit; its readings are bounded by the
+                # others' (below), and the whole run is not lost to one corrupt field.
+                unstated.append(_ns_to_s(ns))
+                range_max = math.inf
             if not (math.isfinite(msg.angle_min) and math.isfinite(msg.angle_increment)):
                 raise InputError(
                     f"topic {scan_name}: the scan at {_ns_to_s(ns):.9f} s has angle_min "
@@ -254,8 +258,10 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
                 )
             _check_beams(msg, len(r), f"topic {scan_name}: the scan at {_ns_to_s(ns):.9f} s", path, odd_ends)
             with np.errstate(invalid="ignore"):
-                # False for NaN; a range of 0 or less is no reading, whatever range_min says.
-                valid = (r >= range_min) & (r <= range_max) & (r > 0.0)
+                # False for NaN; a range of 0 or less is no reading, whatever range_min says. A
+                # reading of range_max itself is the no-echo value of drivers that write the
+                # limit where the beam saw nothing (as read_carmen takes "at or beyond max").
+                valid = (r >= range_min) & (r < range_max) & (r > 0.0)
             unread.add(r, valid, range_min, range_max)
             r[~valid] = np.inf
             stamps.append(ns)
@@ -331,10 +337,16 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
     remissions = None
     if all(len(intensities[i]) == len(ranges[i]) for i in kept):
         remissions = pad_rows([intensities[i] for i in kept], 0.0, np.float32)
-    max_range = float(range_max.max())
-    rule = "LaserScan range_max"
-    if range_max.min() < max_range:
-        rule += f" ({range_max.min():g} to {max_range:g} m)"
+    max_range, rule = _max_range(range_max, scan_ranges, path, scan_name)
+    if unstated:
+        warnings.warn(
+            f"{path}: {len(unstated)} scan(s) on {scan_name} with a range_max of NaN, 0 or less (first at "
+            f"{unstated[0]:.9f} s); their readings are taken up to the maximum range, {max_range:g} m",
+            RosbagWarning,
+            stacklevel=2,
+        )
+    # Readings of scans that stated no limit, and a no-echo code, are no echo from the maximum on.
+    scan_ranges[scan_ranges >= np.float32(max_range)] = np.inf
     sensor_pose, flipped = _laser_pose(static, base_frame, laser_frame, path, tf_static_topic)
     if flipped:
         angles = -angles
@@ -364,6 +376,39 @@ def read_laserscan_bag(path: str | Path, *, topics: LaserTopics | None = None) -
     return scans
 
 
+def _max_range(range_max: np.ndarray, ranges: np.ndarray, path: Path, topic: str) -> tuple[float, str]:
+    """(the scans' maximum range, the rule that gave it): the largest finite range_max. Where every
+    range_max is +inf (pointcloud_to_laserscan's default: the largest double, +inf as a float32)
+    or unstated, a no-echo code repeated at the top of the readings (as read_carmen finds one),
+    else just beyond the farthest reading."""
+    finite = range_max[np.isfinite(range_max)]
+    if finite.size:
+        top = float(finite.max())
+        spread = [f"{finite.min():g} to {top:g} m" if finite.min() < top else f"{top:g} m"]
+        if finite.size < range_max.size:
+            spread.append("others unbounded")
+        rule = "LaserScan range_max"
+        if len(spread) > 1 or finite.min() < top:
+            rule += f" ({', '.join(spread)})"
+        return top, rule
+    readings = ranges[np.isfinite(ranges)]
+    if readings.size == 0:
+        raise InputError(f"topic {topic}: no reading of the scans kept is an echo: there is nothing to map", path)
+    code = repeated_top_value(readings)
+    if code is not None:
+        value, count = code
+        warnings.warn(
+            f"{path}: topic {topic} states no finite range_max; {count} readings of exactly {value:g} m, the "
+            "largest, are taken for the laser's no-echo value",
+            RosbagWarning,
+            stacklevel=3,
+        )
+        return value, f"repeated top value {value:g} m ({count} readings; range_max not finite)"
+    # The farthest reading is an echo: the maximum lies just beyond it.
+    farthest = np.float32(readings.max())
+    return float(np.nextafter(farthest, np.float32(np.inf))), f"the farthest reading, {float(farthest):g} m (range_max not finite)"
+
+
 class _Unread:
     """What a bag's readings were while none of them is an echo: how many say no reading (NaN,
     0 m or less, below range_min) and how many that the beam saw nothing within range_max. A bag
@@ -383,7 +428,7 @@ class _Unread:
             self.echoed = True
             return
         with np.errstate(invalid="ignore"):
-            nothing = r > range_max  # +inf too
+            nothing = r >= range_max  # +inf too
             below = (r > 0.0) & (r < range_min) & ~nothing
         self.nothing += int(nothing.sum())
         self.unread += len(r) - int(nothing.sum())
