@@ -381,6 +381,30 @@ def test_a_malformed_experiment_is_one_line_naming_the_field(data, tmp_path, cap
     assert not (tmp_path / "out").exists()
 
 
+def test_malformed_relations_are_refused_before_any_run(data, tmp_path, capsys):
+    # They passed as "a file" and then failed every run, each leaving a failed run's folder.
+    bad = tmp_path / "bad.relations"
+    bad.write_text("1.0 2.0 0.5\n")
+    path = _experiment(tmp_path, "rel", f"inputs: [{{name: a, log: {data['first']}, relations: {bad}}}]\n")
+    assert main(["bench", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert f"inputs[0].relations: {bad}:1: relation rows need 8 numbers" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_folder_that_no_experiment_wrote_is_not_written_into(data, tmp_path, capsys):
+    # A user's folder, or an `omnitof slam` results folder: its table.csv was overwritten.
+    path = _experiment(tmp_path, "e", f"inputs: [{{name: a, log: {data['first']}}}]\n")
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "table.csv").write_text("my own numbers\n")
+    assert main(["bench", str(path), "--out", str(mine)]) == 2
+    err = capsys.readouterr().err
+    assert f"{mine}: holds files that no experiment wrote (table.csv)" in err and len(err.strip().splitlines()) == 1
+    assert sorted(p.name for p in mine.iterdir()) == ["table.csv"]
+    assert (mine / "table.csv").read_text() == "my own numbers\n"
+
+
 def test_a_world_whose_drive_cannot_be_planned_is_refused_before_anything_is_written(tmp_path, capsys):
     # It loaded, so it passed validation; a worker then failed to plan the drive.
     from omnitof.errors import dump_yaml, load_yaml

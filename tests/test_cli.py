@@ -84,6 +84,39 @@ def test_slam_of_a_file_whose_name_is_not_utf8_writes_every_output(tmp_path, cor
     assert yaml.safe_load(text)["run"]["scans"] == 300
 
 
+def test_a_reader_that_goes_away_stops_the_output_quietly(tmp_path, loop_relations, corridor_loop):
+    # `omnitof eval relations … | head -3` ended with "omnitof: error: [Errno 32] Broken pipe".
+    from omnitof.io.tum import write_tum
+    from omnitof.types import Trajectory
+
+    path = tmp_path / "gt.tum"
+    write_tum(path, Trajectory(corridor_loop.timestamps, corridor_loop.ground_truth))
+    proc = subprocess.Popen([sys.executable, "-m", "omnitof", "eval", "relations", str(path), str(loop_relations)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # long before the command has imported enough to print
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141, err  # 128 + SIGPIPE, as Unix tools end
+    assert err == "", err
+
+
+def test_a_config_of_a_few_fields_lies_over_the_inputs_default_preset(tmp_path, loop_log, capsys):
+    # It replaced the preset: the fields it left out fell to the bare defaults (the paper's beam
+    # model on a laser log), without a word.
+    from omnitof.slam.config import SlamConfig, load_preset
+
+    partial = tmp_path / "mine.yaml"
+    partial.write_text("filter:\n  particles: 7\n")
+    out = tmp_path / "run"
+    assert main(["slam", str(loop_log), "--out", str(out), "--config", str(partial), "--max-scans", "150",
+                 "--quiet"]) == 0
+    capsys.readouterr()
+    used = yaml.safe_load((out / "config.yaml").read_text())
+    preset = yaml.safe_load(SlamConfig.model_validate(load_preset("laser180-scanmatch")).to_yaml())
+    assert used["filter"]["particles"] == 7
+    assert used["sensor_model"] == preset["sensor_model"] and used["backend"] == preset["backend"]
+    assert used["sensor_model"]["model"] == "likelihood_field" and used["backend"]["enabled"] is True
+
+
 def test_eval_relations_prints_the_metric(tmp_path, loop_relations, corridor_loop, capsys):
     from omnitof.io.tum import write_tum
     from omnitof.types import Trajectory

@@ -404,3 +404,13 @@ def test_errors_beyond_float_range_are_inf_without_numpy_warnings():
     assert result.trans_mean == 5e307 and result.trans_std == math.inf and result.trans2_mean == math.inf
     assert math.isnan(result.trans2_std) and result.rot_mean == 0.0
     assert list(result.trans_errors) == [1e308, 0.0]
+
+
+def test_the_printed_table_keeps_its_columns_apart_for_any_error():
+    # A diverged run's squared error (4.6e5 m²) ran into its std: "462044.206789944552.690425".
+    from omnitof.eval.relations import _cell
+
+    for value in (0.0123, 552.690425, 462044.206789944, 4.62e11, math.inf):
+        cell = _cell(value)
+        assert len(cell) == 12 and cell[0] == " " and float(cell) == pytest.approx(value, rel=1e-5)
+    assert _cell(0.0123).strip() == "0.012300" and _cell(math.nan).strip() == "–"

@@ -111,6 +111,22 @@ def test_counted_and_unix_timestamps_are_read(tmp_path: Path) -> None:
     assert read_tum(path).timestamps.tolist() == [1700000000.123456, 999999999999.5]
 
 
+def test_a_relations_file_given_as_a_trajectory_is_refused(tmp_path: Path) -> None:
+    # Both have 8 numbers a row; read as TUM, a relation's t2 was x (976 052 905 m) and its yaw
+    # qw, and `omnitof eval relations` scored it without a word.
+    path = tmp_path / "intel.relations"
+    path.write_text("976052896.784509 976052905.167303 -0.153130 -0.051420 0 0 0 -2.405850\n")
+    with pytest.raises(InputError, match=r"second column is a time \(976052905.167303, 8.383 s after the first\), "
+                       "not x: this is a relations file") as info:
+        read_tum(path)
+    assert info.value.line == 1
+    # A robot far out (UTM northing, 5 000 km) at a Unix time is a trajectory, as is one near the origin.
+    path.write_text("1700000000.0 5000000.0 400000.0 0 0 0 0 1\n1700000000.1 5000000.1 400000.0 0 0 0 0 1\n")
+    assert read_tum(path).poses[:, 0].tolist() == [5000000.0, 5000000.1]
+    path.write_text("0.5 0.6 0 0 0 0 0 1\n")
+    assert read_tum(path).poses[0, 0] == 0.6
+
+
 def test_non_increasing_timestamps(tmp_path: Path) -> None:
     path = tmp_path / "t.tum"
     path.write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n")

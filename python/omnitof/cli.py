@@ -24,7 +24,11 @@ def _config_from_args(args: argparse.Namespace, default_preset: str | None = Non
     from omnitof.slam.config import parse_setting
     from omnitof.slam_run import slam_config
 
-    preset = args.preset if args.preset is not None or args.config is not None else default_preset
+    # A --config file lies over the input's default preset as --set does: a file of a few fields
+    # (`filter: {particles: 50}`) changes those and nothing else. (It replaced the preset: the
+    # fields it left out fell to the bare defaults, the paper's beam model on a laser log, without
+    # a word.) A run's own config.yaml names every field, so it reproduces the run either way.
+    preset = args.preset if args.preset is not None else default_preset
     settings = dict(parse_setting(item) for item in (getattr(args, "set", None) or []))
     return slam_config(preset=preset, config=args.config, settings=settings,
                        particles=getattr(args, "particles", None), seed=getattr(args, "seed", None),
@@ -626,6 +630,11 @@ def main(argv: list[str] | None = None) -> int:
         except OmnitofError as err:
             print(f"omnitof: error: {err}", file=sys.stderr)
             return 2
+        except BrokenPipeError:
+            # The reader of our output went away (`omnitof eval … | head`): as other Unix tools,
+            # stop quietly; stdout goes to /dev/null so that Python's own flush at exit is silent.
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return 128 + signal.SIGPIPE
         except OSError as err:  # an input that cannot be read, an output folder that cannot be written
             print(f"omnitof: error: {os_error_message(err)}", file=sys.stderr)
             return 2

@@ -37,7 +37,7 @@ import yaml
 from pydantic import AfterValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from omnitof.settings_model import SettingsModel
-from omnitof.errors import ConfigError, OmnitofError, dump_yaml, leading_problem, load_yaml, yaml_problem
+from omnitof.errors import ConfigError, InputError, OmnitofError, dump_yaml, leading_problem, load_yaml, yaml_problem
 
 METRICS = ("relations", "trajectory", "floorplan", "table1")
 # Runs of one experiment: planning takes about 1 ms a run, a run seconds to hours.
@@ -305,12 +305,25 @@ def _resolved(spec: ExperimentSpec, source: Path) -> ExperimentSpec:
                 # A log may be a folder (a ROS 2 bag); these two are read as one file each.
                 if key != "log" and not Path(updates[key]).is_file():
                     raise ExperimentError(f"{source}: inputs[{k}].{key}: not a file: {updates[key]}")
+                if key == "relations":
+                    _check_relations(updates[key], source, f"inputs[{k}].relations")
         if item.world is not None:
             if item.world.endswith((".yaml", ".yml")):
                 updates["world"] = str(_path(item.world, source, f"inputs[{k}].world"))
             _check_world(updates.get("world", item.world), item.speed, source, f"inputs[{k}].world")
         inputs.append(item.model_copy(update=updates))
     return spec.model_copy(update={"inputs": inputs})
+
+
+def _check_relations(path: str, source: Path, name: str) -> None:
+    """Read the relations once before any run (each run reads them again), as `omnitof slam
+    --relations` does: a malformed file is one error here, not a failed folder per run."""
+    from omnitof.eval.relations import read_relations
+
+    try:
+        read_relations(path)
+    except InputError as err:
+        raise ExperimentError(f"{source}: {name}: {err}") from None
 
 
 def _path(value: str, source: Path, name: str) -> Path:

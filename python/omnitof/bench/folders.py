@@ -70,10 +70,11 @@ def read_mapping(path: Path) -> dict[str, Any]:
 
 
 def prepare(out: Path, experiment_text: str, runs: list[RunSpec]) -> list[RunSpec]:
-    """Make DIR, sweep what an interrupted experiment left half-written, and return the runs
-    still to do. A complete run made with another configuration or input than the plan's is an
+    """Make DIR (refusing one that holds what no experiment wrote), sweep what an interrupted
+    experiment left half-written, and return the runs still to do. A complete run made with another configuration or input than the plan's is an
     error: the folder belongs to another experiment, and mixing the two would go unnoticed."""
     out = Path(out)
+    _refuse_a_foreign_folder(out)
     (out / RUNS).mkdir(parents=True, exist_ok=True)
     todo = []
     for run in runs:
@@ -92,6 +93,22 @@ def prepare(out: Path, experiment_text: str, runs: list[RunSpec]) -> list[RunSpe
     with atomic_write(out / "experiment.yaml") as f:
         f.write(experiment_text)
     return todo
+
+
+def _refuse_a_foreign_folder(out: Path) -> None:
+    """ExperimentError where DIR holds what no experiment wrote (a user's files, an `omnitof
+    slam` results folder): the table and experiment.yaml would overwrite theirs. An
+    experiment's own folder (experiment.yaml, or only the runs and inputs that an experiment
+    stopped before writing it left) is resumed."""
+    if not out.is_dir() or (out / "experiment.yaml").is_file():
+        return
+    foreign = sorted(p.name for p in out.iterdir() if not p.name.startswith(".") and p.name not in (RUNS, INPUTS))
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (", …" if len(foreign) > 3 else "")
+        raise ExperimentError(
+            f"{out}: holds files that no experiment wrote ({shown}); give a new or empty folder with --out, "
+            "or an experiment's folder to resume it"
+        )
 
 
 def write_run(out: Path, run_id: str, files: dict[str, bytes], record: dict[str, Any]) -> Path:

@@ -396,7 +396,12 @@ def _mean(values: np.ndarray) -> float:
 
 def _cell(value: float) -> str:
     """A number of the printed table, or a dash where there is none (NaN)."""
-    return f"{'–':>12}" if math.isnan(value) else f"{value:>12.6f}"
+    if math.isnan(value):
+        return f"{'–':>12}"
+    # Six decimals while they fit; a diverged run's error (10⁶ m and more) in fewer digits, so
+    # that the columns never run together.
+    text = f"{value:.6f}"
+    return f"{text if len(text) < 12 else f'{value:.6g}':>12}"
 
 
 def _sample_std(values: np.ndarray) -> float:

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from omnitof.errors import InputError, read_problem
-from omnitof.io.text import parse_float_row
+from omnitof.io.text import is_decimal, parse_float_row
 from omnitof.geometry import check_headings, quaternion_to_yaw, yaw_to_quaternion
 from omnitof.io.atomic import atomic_write
 from omnitof.types import MAX_TIMESTAMP, Trajectory, first_non_finite
@@ -141,6 +141,7 @@ def _read_lines(path: str | Path) -> list[str]:
 
 
 def _parse_row(text: str, path: str | Path, number: int) -> list[float]:
+    _refuse_relations(text, path, number)
     row = parse_float_row(text, 8, ROW_MESSAGE, path, number, names=_FIELDS, limits=_LIMITS)
     if abs(row[0]) > MAX_TIMESTAMP:
         raise InputError(f"timestamp {row[0]:g} is beyond ±{MAX_TIMESTAMP:g} s: TUM timestamps are seconds "
@@ -148,6 +149,22 @@ def _parse_row(text: str, path: str | Path, number: int) -> list[float]:
     if max(abs(v) for v in row[4:8]) < 1e-9:
         raise InputError("the quaternion qx qy qz qw has zero length", path, number)
     return row
+
+
+def _refuse_relations(text: str, path: str | Path, number: int) -> None:
+    """InputError where the row is a benchmark relation (`t1 t2 x y z roll pitch yaw`, 8 numbers
+    as a TUM row has): its second column is then a time a little after the first, which read as
+    x put the robot a billion metres out and gave a score of nonsense. No robot's x lies within
+    a day after a timestamp of 10⁶ s or more (x ≥ 1000 km)."""
+    fields = text.split()
+    if len(fields) != 8 or not (is_decimal(fields[0]) and is_decimal(fields[1])):
+        return
+    t, x = float(fields[0]), float(fields[1])
+    if t >= 1e6 and 0.0 < x - t <= 86400.0:
+        raise InputError(
+            f"the second column is a time ({fields[1]}, {x - t:.3f} s after the first), not x: this is a relations "
+            "file (t1 t2 x y z roll pitch yaw); a TUM trajectory holds timestamp x y z qx qy qz qw",
+            path, number)
 
 
 def _yaw(data: np.ndarray) -> np.ndarray:
