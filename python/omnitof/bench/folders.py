@@ -71,8 +71,9 @@ def read_mapping(path: Path) -> dict[str, Any]:
 
 def prepare(out: Path, experiment_text: str, runs: list[RunSpec]) -> list[RunSpec]:
     """Make DIR (refusing one that holds what no experiment wrote), sweep what an interrupted
-    experiment left half-written, and return the runs still to do. A complete run made with another configuration or input than the plan's is an
-    error: the folder belongs to another experiment, and mixing the two would go unnoticed."""
+    experiment left half-written, and return the runs still to do. A complete run made with
+    another configuration or input than the plan's is an error: the folder belongs to another
+    experiment, and mixing the two would go unnoticed."""
     out = Path(out)
     _refuse_a_foreign_folder(out)
     (out / RUNS).mkdir(parents=True, exist_ok=True)
