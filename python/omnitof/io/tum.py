@@ -141,6 +141,8 @@ def _read_lines(path: str | Path) -> list[str]:
 
 
 def _parse_row(text: str, path: str | Path, number: int) -> list[float]:
+    # Before the fields' limits: a relations row of today's Unix times has an "x" beyond 1e9 m,
+    # which would be refused as a position instead of named for what it is.
     _refuse_relations(text, path, number)
     row = parse_float_row(text, 8, ROW_MESSAGE, path, number, names=_FIELDS, limits=_LIMITS)
     if abs(row[0]) > MAX_TIMESTAMP:

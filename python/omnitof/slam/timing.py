@@ -141,12 +141,12 @@ def estimate_scan_delay(
     t = scans.timestamps
 
     def heading_errors(delays: np.ndarray) -> np.ndarray:
-        errors = np.empty(len(delays))
-        for i, d in enumerate(delays):
-            a = interpolate_poses(trajectory, np.clip(t[first] - d, t[0], t[-1]))
-            b = interpolate_poses(trajectory, np.clip(t[first + 1] - d, t[0], t[-1]))
-            errors[i] = np.mean(np.abs(wrap_angle(matched_turn - relative(a, b)[:, 2])))
-        return errors
+        """Mean |matched turn − odometry turn| per delay, every (delay, pair) at once."""
+        shifted = delays[:, None]
+        a = interpolate_poses(trajectory, np.clip(t[first] - shifted, t[0], t[-1]).ravel())
+        b = interpolate_poses(trajectory, np.clip(t[first + 1] - shifted, t[0], t[-1]).ravel())
+        turns = relative(a, b)[:, 2].reshape(len(delays), len(first))
+        return np.mean(np.abs(wrap_angle(matched_turn - turns)), axis=1)
 
     delays = np.arange(-max_delay, max_delay + step / 2, step)
     errors = heading_errors(delays)

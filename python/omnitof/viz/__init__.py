@@ -25,8 +25,9 @@ def save_figure(fig: Figure, path: str | Path, *, dpi: float | None = None,
     # Titles and labels quote the user's file names; one text that cannot be drawn would lose
     # the figure, and with it the run's other outputs.
     for text in fig.findobj(Text):
-        if text.get_text() != displayable(text.get_text()):
-            text.set_text(displayable(text.get_text()))
+        shown = displayable(text.get_text())
+        if shown != text.get_text():
+            text.set_text(shown)
     if tight_layout:
         fig.tight_layout()
     with atomic_write(path, "wb") as handle:
