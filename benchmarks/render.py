@@ -22,7 +22,6 @@ import platform
 import statistics
 import time
 
-import numpy as np
 
 from omnitof.sim.render import Renderer, RenderSettings
 from omnitof.sim.worlds import load_world, world_names

@@ -44,7 +44,7 @@ def test_from_rig_is_the_true_geometry(rig):
 
 
 def test_save_load_round_trip_is_exact(rig, tmp_path):
-    camera, mirrors = rig.camera, rig.mirrors
+    camera = rig.camera
     cal = Calibration.from_rig(rig)
     cal.polygons = {"front": np.array([[0.0, 0.0], [175.0, 0.0], [88.0, 70.0]])}
     cal.quality = {"intrinsics_rms_px": 0.1, "mirrors": {"front": {"inliers": 12}}}
@@ -78,7 +78,6 @@ def test_rows_encoding_round_trip():
     ],
 )
 def test_bad_file_names_file_and_field(rig, tmp_path, edit, message):
-    camera, mirrors = rig.camera, rig.mirrors
     path = save_calibration(Calibration.from_rig(rig), tmp_path / "cal.yaml")
     path.write_text(edit(path.read_text()))
     with pytest.raises(CalibrationError) as err:
@@ -443,7 +442,7 @@ def test_clear_errors_name_image_and_mirror(rig, dot_images):
     from omnitof.calibration.images import AmplitudeImage
     from omnitof.calibration.mirror_planes import detect_views
 
-    camera, mirrors = rig.camera, rig.mirrors
+    camera = rig.camera
     images, _ = dot_images
     blank = AmplitudeImage("empty.npz", np.full(camera.shape, 50.0, np.float32),
                            np.full(camera.shape, 2.0, np.float32))

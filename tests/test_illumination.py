@@ -7,7 +7,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pytest
 
 from omnitof.sensor.camera import Camera
 from omnitof.sensor.design import default_rig

@@ -13,7 +13,7 @@ from omnitof.sensor.design import default_rig
 from omnitof.sensor.mirrors import assign_pixels, camera_mount
 from omnitof.sim.render import AMBIENT_REFERENCE_ALBEDO, RenderConfigError, Renderer, RenderSettings
 from omnitof.sim.worlds import load_world, parse_world
-from omnitof.sensor.tof import SensorNoise, decode, distance_noise_std, phase_to_distance, unambiguous_range
+from omnitof.sensor.tof import SensorNoise, decode, phase_to_distance, unambiguous_range
 
 CAMERA, MIRRORS = default_rig().camera, default_rig().mirrors
 MOUNT = camera_mount()
