@@ -296,9 +296,25 @@ def beyond_view_sources(camera: Camera, planes: list[MirrorPlane], labels: np.nd
 
 def solid_angles(camera: Camera) -> np.ndarray:
     """(H·W,) each pixel's solid angle (sr): the parallelogram of the unit rays one pixel apart
-    (central differences; a mirror keeps solid angles)."""
+    (central differences, one-sided beside a pixel without a ray; a mirror keeps solid angles).
+    A pixel without a ray (NaN: an estimated lens distortion can fold an image corner back on
+    itself, `Camera.rays`) gets 0: it is no source."""
     rays = camera.pixel_grid_rays()
-    return np.linalg.norm(np.cross(np.gradient(rays, axis=1), np.gradient(rays, axis=0)), axis=2).reshape(-1)
+    area = np.linalg.norm(np.cross(_ray_steps(rays, axis=1), _ray_steps(rays, axis=0)), axis=2)
+    return np.where(np.isfinite(area), area, 0.0).reshape(-1)
+
+
+def _ray_steps(rays: np.ndarray, axis: int) -> np.ndarray:
+    """(H, W, 3) the change of the ray per pixel along `axis`: the central difference, or the
+    one-sided one where a neighbour has no ray (NaN only where both sides lack one)."""
+    step = np.diff(rays, axis=axis)
+    pad = [(0, 0)] * rays.ndim
+    pad[axis] = (1, 0)
+    backward = np.pad(step, pad, constant_values=np.nan)
+    pad[axis] = (0, 1)
+    forward = np.pad(step, pad, constant_values=np.nan)
+    central = 0.5 * (forward + backward)
+    return np.where(np.isfinite(central), central, np.where(np.isfinite(forward), forward, backward))
 
 
 class MultipathCompensation:
