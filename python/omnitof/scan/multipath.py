@@ -313,7 +313,7 @@ def _ray_steps(rays: np.ndarray, axis: int) -> np.ndarray:
     backward = np.pad(step, pad, constant_values=np.nan)
     pad[axis] = (0, 1)
     forward = np.pad(step, pad, constant_values=np.nan)
-    central = 0.5 * (forward + backward)
+    central = np.gradient(rays, axis=axis)
     return np.where(np.isfinite(central), central, np.where(np.isfinite(forward), forward, backward))
 
 
