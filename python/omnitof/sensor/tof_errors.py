@@ -93,8 +93,8 @@ SWITCHES = ("wiggling", "amplitude_offset", "fixed_pattern", "motion", "multipat
 # multipath. With multipath on (`--tof-errors all`) the walls read long, by up to decimetres where
 # they are seen at grazing angles; the scan extraction's multipath compensation
 # (omnitof.scan.multipath, on for such a camera) takes most of it out, but the demo with it does
-# not yet end corridor1 within 5 cm in every seed of 3 (0.6, 5.5, 3.1 cm; BENCHMARKS.md, "The
-# LEDs' light in the compensation"), so the default realism leaves it out.
+# not yet end corridor1 within 5 cm in every seed of 3 (1.5, 5.7, 4.3 cm; BENCHMARKS.md, "The
+# demo with every effect, re-run"), so the default realism leaves it out.
 DEFAULT_SWITCHES = ("wiggling", "amplitude_offset", "fixed_pattern", "motion", "illumination")
 
 
