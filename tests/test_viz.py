@@ -77,6 +77,22 @@ def test_png_shows_map_and_trajectories(tmp_path: Path, dpi: int) -> None:
     assert [p.name for p in tmp_path.iterdir()] == ["map.png"]
 
 
+
+def test_odometry_that_drifts_far_leaves_the_view_to_the_map(tmp_path: Path) -> None:
+    """Wheels that drift hundreds of metres (MIT Killian Court's end 600 m away) would shrink a
+    10 m map to a corner of the figure: the view stays the map's, and the legend says which
+    trajectory leaves it."""
+    inside = np.column_stack([np.linspace(1, 7, 50), np.full(50, 2.0), np.zeros(50)])
+    drifting = np.column_stack([np.linspace(1, -600, 50), np.linspace(2, -450, 50), np.zeros(50)])
+    fig = plot_map(tmp_path / "map.png", _map(), {"SLAM": inside, "odometry": drifting}, dpi=50)
+    ax = fig.axes[0]
+    np.testing.assert_allclose([*ax.get_xlim(), *ax.get_ylim()], _map().extent)
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert labels == ["SLAM", "odometry (leaves the map's extent)"]
+    # The map fills the figure's width: 10 m across more than half of its 400 pixels.
+    left, right = ax.transData.transform([(0.0, 0.0), (10.0, 0.0)])[:, 0]
+    assert right - left > 200
+
 def test_trajectories_without_map(tmp_path: Path) -> None:
     path = tmp_path / "t.png"
     square = np.array([[0, 0, 0], [4, 0, 0], [4, 4, 0], [0, 4, 0], [0, 0, 0]], dtype=float)

@@ -45,7 +45,9 @@ def plot_map(
         occ: the map, drawn in greyscale in metres (None for trajectories only).
         trajectories: name -> (N, 3) poses (x, y, theta) in the map frame, metres; each becomes a
             coloured line (colours in the order of the dict) with a circle at its first pose and
-            its name in the legend.
+            its name in the legend. With a map, the view is the map's extent: a trajectory that
+            leaves it (wheel odometry that drifts hundreds of metres would otherwise shrink the
+            map to a corner of the figure) is cut at its edge and says so in the legend.
         title: the figure title.
         dpi: resolution; the PNG is figsize[0] * dpi by figsize[1] * dpi pixels.
         figsize: (width, height) in inches.
@@ -56,10 +58,16 @@ def plot_map(
     fig = Figure(figsize=figsize, dpi=dpi)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
+    view = None
     if occ is not None:
         _draw_map(ax, occ)
+        if occ.log_odds.size:
+            view = occ.extent
     for index, (name, poses) in enumerate(trajectories.items()):
-        _draw_trajectory(ax, name, poses, color=f"C{index}")
+        _draw_trajectory(ax, name, poses, color=f"C{index}", view=view)
+    if view is not None:
+        ax.set_xlim(view[0], view[1])
+        ax.set_ylim(view[2], view[3])
     ax.set_aspect("equal", adjustable="datalim" if occ is None else "box")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
@@ -139,10 +147,19 @@ def _at_most(shades: np.ndarray, cells: int) -> np.ndarray:
     return padded.reshape(padded.shape[0] // k, k, padded.shape[1] // k, k).min(axis=(1, 3))
 
 
-def _draw_trajectory(ax: Axes, name: str, poses: np.ndarray, *, color: str) -> None:
+def _draw_trajectory(ax: Axes, name: str, poses: np.ndarray, *, color: str,
+                     view: tuple[float, float, float, float] | None = None) -> None:
+    """One trajectory as a line; `view` (x0, x1, y0, y1): the figure's extent, which a
+    trajectory beyond it (by more than a hair) names in its label."""
     xy = np.asarray(poses, dtype=np.float64)
     if xy.ndim != 2 or xy.shape[1] != 3:
         raise ValueError(f"trajectory '{name}' must be (N, 3) poses, got shape {xy.shape}")
+    if view is not None and len(xy):
+        slack = 1e-6 * max(view[1] - view[0], view[3] - view[2], 1.0)
+        outside = ((xy[:, 0] < view[0] - slack) | (xy[:, 0] > view[1] + slack)
+                   | (xy[:, 1] < view[2] - slack) | (xy[:, 1] > view[3] + slack))
+        if outside.any():
+            name = f"{name} (leaves the map's extent)"
     ax.plot(xy[:, 0], xy[:, 1], color=color, linewidth=1.5, label=name)
     if len(xy):
         ax.plot(xy[0, 0], xy[0, 1], marker="o", color=color, markersize=6, linestyle="none")
