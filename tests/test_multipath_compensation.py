@@ -270,6 +270,33 @@ def test_a_simulated_bag_gets_the_compensation_its_camera_needs(tmp_path, errors
     assert np.any(on.scans.ranges != off.scans.ranges)
 
 
+
+@pytest.mark.filterwarnings("ignore::omnitof.scan.tof_input.ToFInputWarning")
+@pytest.mark.parametrize("render, message", [
+    ({"mirror_reflectivity": 0.0}, "render.mirror_reflectivity: expected a number in (0, 1], got 0.0"),
+    ({"mirror_reflectivity": "x"}, "render.mirror_reflectivity: expected a number in (0, 1], got 'x'"),
+    (None, "render: expected a mapping, got None"),
+])
+def test_a_hand_edited_sidecar_names_its_mirror_reflectivity(tmp_path, capsys, render, message):
+    """The compensation takes the mirrors' reflectivity from the bag's sidecar: a bad value there
+    is one line naming the sidecar and the field (it was a pydantic or ValueError traceback)."""
+    import yaml
+
+    from omnitof.cli import main
+
+    bag = tmp_path / "bag"
+    assert main(["simulate", "--world", "room", "--out", str(bag), "--tof-errors", "multipath", "--max-frames", "2",
+                 "--quiet"]) == 0
+    sidecar = bag / "omnitof.yaml"
+    data = yaml.safe_load(sidecar.read_text())
+    data["render"] = render if render is None else {**data["render"], **render}
+    sidecar.write_text(yaml.safe_dump(data, sort_keys=False))
+    capsys.readouterr()
+    assert main(["slam", str(bag), "--out", str(tmp_path / "out"), "--quiet"]) != 0
+    err = capsys.readouterr().err.strip()
+    assert err.endswith(message) and "omnitof.yaml" in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
 def test_a_keyframe_is_compensated_once_for_its_rays_and_its_scan():
     # The 3D filter's keyframes go into both the rays and the scans: the compensation (as long
     # as the rest of the extraction) runs once per frame, and the results are the ones each

@@ -165,14 +165,34 @@ def multipath_for_bag(bag: Any, settings: ScanSettings, choice: str) -> tuple[Sc
     if choice == "auto" and not sensor.errors.multipath:
         off = settings.multipath.model_copy(update={"enabled": False})
         return settings.model_copy(update={"multipath": off}), "off (auto: the simulated camera has no multipath)"
-    reflectivity = (bag.sidecar or {}).get("render", {}).get("mirror_reflectivity", settings.multipath.mirror_reflectivity)
+    reflectivity = _sidecar_reflectivity(bag, settings.multipath.mirror_reflectivity)
     # The camera's figures from the sidecar; how the sum is taken (stride, visibility, ...) as the settings say.
     camera = MultipathSettings.for_camera(sensor.errors, amplitude_at_1m=sensor.amplitude_at_1m, f_mod=sensor.f_mod,
-                                          mirror_reflectivity=float(reflectivity), enabled=True)
+                                          mirror_reflectivity=reflectivity, enabled=True)
     figures = camera.model_dump(include=CAMERA_FIGURES)
     why = "--multipath-compensation on" if choice == "on" else "auto: the simulated camera has multipath"
     on = settings.multipath.model_copy(update=figures)
     return settings.model_copy(update={"multipath": on}), f"on ({why}; the camera's figures from the bag's sidecar)"
+
+
+def _sidecar_reflectivity(bag: Any, default: float) -> float:
+    """The mirrors' reflectivity the bag's sidecar renders with (`render.mirror_reflectivity`),
+    else `default`; an InputError naming the sidecar and the field where it is not a number in
+    (0, 1] (a hand-edited sidecar; the compensation would otherwise fail with a traceback)."""
+    from omnitof.io.rosbag.common import SIDECAR_NAME
+
+    where = Path(str(getattr(bag, "path", ""))) / SIDECAR_NAME
+    render = (bag.sidecar or {}).get("render", {})
+    if render is None or not isinstance(render, dict):
+        raise InputError(f"render: expected a mapping, got {render!r}", where)
+    value = render.get("mirror_reflectivity", default)
+    try:
+        reflectivity = float(value)
+    except (TypeError, ValueError):
+        reflectivity = math.nan
+    if isinstance(value, bool) or not 0.0 < reflectivity <= 1.0:
+        raise InputError(f"render.mirror_reflectivity: expected a number in (0, 1], got {value!r}", where)
+    return reflectivity
 
 
 def extractor_for_bag(
