@@ -544,6 +544,33 @@ def test_equal_height_check_sees_a_tilted_mirror(rig):
     assert edge_heights(cal, frame.distance).spread > 0.02
 
 
+
+def test_equal_height_check_with_edges_through_one_mirror_measures_nothing(rig, tmp_path, capsys):
+    """Fewer than two mirrors with an upper edge leave nothing to compare: the check said
+    "difference between mirrors: 0.0 mm" and passed. Now it says so and `calibrate check` fails."""
+    import math
+
+    from omnitof.calibration.check import edge_heights, render_check_frame
+    from omnitof.cli import main
+
+    camera, mirrors = rig.camera, rig.mirrors
+    frame = render_check_frame(camera, mirrors, seed=1)
+    cal = Calibration.from_rig(rig)
+    only_front = np.where(cal.labels == 0, frame.distance, np.nan)
+    check = edge_heights(cal, only_front)
+    assert list(check.per_mirror) == [cal.names[0]] and not check.measured and math.isnan(check.spread)
+    lines = check.report(list(cal.names))
+    assert lines[1].strip() == f"{cal.names[1]}: no upper edge in the band"
+    assert lines[-1].startswith("difference between mirrors: not measured")
+    # A frame with no object in the band at all, through the command line.
+    empty = tmp_path / "empty.npz"
+    np.savez(empty, distance=np.full(camera.shape, 20.0, np.float32), amplitude=np.full(camera.shape, 50.0, np.float32))
+    path = save_calibration(cal, tmp_path / "cal.yaml")
+    capsys.readouterr()
+    assert main(["calibrate", "check", str(path), "--frame", str(empty)]) == 2
+    captured = capsys.readouterr()
+    assert "not measured" in captured.out and "upper edge through 0 of 4 mirrors" in captured.err
+
 # --- command line ----------------------------------------------------------------------------
 
 

@@ -165,7 +165,7 @@ def write_report(cal: Calibration, out: str | Path, *, distance: np.ndarray | No
     written["side_view"] = out / "fig6_side_view.png"
     lines += ["", "## The paper's Fig. 6 check", "",
               f"Objects of equal height seen through every mirror ({where}): their upper edges should "
-              "lie at one height.", ""] + [f"    {line}" for line in check.report()]
+              "lie at one height.", ""] + [f"    {line}" for line in check.report(list(cal.names))]
     lines += ["", "![side view](fig6_side_view.png)", ""]
     with atomic_write(out / "report.md", "w") as handle:
         handle.write("\n".join(lines))

@@ -300,7 +300,9 @@ def cmd_report(args: argparse.Namespace) -> int:
             raise CalibrationError("the check needs a distance image (.npz or a ROS bag)", args.frame)
         distance = frames[0].distance
     written = write_report(cal, args.out, distance=distance, truth=truth)
-    print(f"Fig. 6 check: upper edges of the mirrors within {written['fig6_spread_mm']:.1f} mm")
+    spread = written["fig6_spread_mm"]
+    print(f"Fig. 6 check: upper edges of the mirrors within {spread:.1f} mm" if math.isfinite(spread)
+          else "Fig. 6 check: not measured (fewer than two mirrors saw an upper edge in the frame; report.md)")
     print(f"wrote {written['report']} and " + ", ".join(str(v) for k, v in written.items()
                                                        if k not in ("report", "fig6_spread_mm")))
     return 0
@@ -446,7 +448,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         options["min_height"] = args.min_height
     check = edge_heights(cal, distance, **options)
     print("upper edges of objects of equal height, seen through each mirror (paper Fig. 6):")
-    for line in check.report():
+    for line in check.report(list(cal.names)):
         print("  " + line)
     if truth is not None:
         for name, (angle, dd) in plane_errors(cal, truth).items():
@@ -454,6 +456,12 @@ def cmd_check(args: argparse.Namespace) -> int:
     if args.figure:
         plot_side_view(args.figure, check, cal.names)
         print(f"wrote {args.figure}")
+    if not check.measured:
+        from omnitof.errors import OmnitofError
+
+        raise OmnitofError(f"the frame shows an upper edge through {len(check.per_mirror)} of {len(cal.names)} "
+                           "mirrors, so the check compares nothing: it needs objects of equal height around the "
+                           "rig (--band: their near faces' range, --min-height: below their tops)")
     return 0
 
 

@@ -90,7 +90,8 @@ def points_from_frame(cal: Calibration, distance: np.ndarray) -> tuple[np.ndarra
 @dataclass
 class HeightCheck:
     """Upper-edge heights per mirror: name → (median m, robust std m, bins); and `spread`, the
-    largest difference between two mirrors' medians (metres)."""
+    largest difference between two mirrors' medians (metres), NaN where fewer than two mirrors
+    saw an edge (nothing to compare: `measured` is False)."""
 
     per_mirror: dict[str, tuple[float, float, int]]
     spread: float
@@ -98,13 +99,27 @@ class HeightCheck:
     owners: np.ndarray
     band: tuple[float, float]
 
-    def report(self) -> list[str]:
-        lines = [
-            f"{name:>12}: upper edge at {1000 * med:7.1f} mm, spread (robust std) {1000 * std:5.1f} mm, "
-            f"{n} bearing bins"
-            for name, (med, std, n) in self.per_mirror.items()
-        ]
-        lines.append(f"difference between mirrors: {1000 * self.spread:.1f} mm")
+    @property
+    def measured(self) -> bool:
+        """Whether at least two mirrors saw an upper edge, so that the check compares something."""
+        return len(self.per_mirror) >= 2
+
+    def report(self, names: list[str] | None = None) -> list[str]:
+        """One line per mirror (`names`: every mirror, those without an edge said so) and the
+        difference between them."""
+        lines = []
+        for name in names if names is not None else list(self.per_mirror):
+            if name not in self.per_mirror:
+                lines.append(f"{name:>12}: no upper edge in the band")
+                continue
+            med, std, n = self.per_mirror[name]
+            lines.append(f"{name:>12}: upper edge at {1000 * med:7.1f} mm, spread (robust std) {1000 * std:5.1f} mm, "
+                         f"{n} bearing bins")
+        if self.measured:
+            lines.append(f"difference between mirrors: {1000 * self.spread:.1f} mm")
+        else:
+            lines.append(f"difference between mirrors: not measured (an upper edge through {len(self.per_mirror)} "
+                         "mirror(s); the check needs two)")
         return lines
 
 
@@ -138,7 +153,7 @@ def edge_heights(
             mad = 1.4826 * float(np.median(np.abs(np.array(tops) - med)))
             per_mirror[name] = (med, mad, len(tops))
     medians = [v[0] for v in per_mirror.values()]
-    spread = float(max(medians) - min(medians)) if len(medians) > 1 else 0.0
+    spread = float(max(medians) - min(medians)) if len(medians) > 1 else math.nan
     return HeightCheck(per_mirror, spread, points[keep], owners[keep], band)
 
 

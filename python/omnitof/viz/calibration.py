@@ -31,7 +31,8 @@ def plot_side_view(path: str | Path, check: HeightCheck, names: Sequence[str], d
             ax.axhline(check.per_mirror[name][0], color=colour, linewidth=0.8)
     ax.set_xlabel("horizontal range [m]")
     ax.set_ylabel("height above floor [m]")
-    ax.set_title(f"upper edges per mirror; difference {1000 * check.spread:.1f} mm")
+    ax.set_title(f"upper edges per mirror; difference {1000 * check.spread:.1f} mm" if check.measured
+                 else "upper edges per mirror; fewer than two mirrors saw one")
     ax.legend(markerscale=4, fontsize=8)
     return save_figure(fig, path, dpi=dpi)
 
