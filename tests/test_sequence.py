@@ -204,3 +204,19 @@ def test_sample_poses_follow_a_steady_turn_inside_and_at_the_ends():
     offsets = (np.arange(4) - 1.5) * 0.005
     np.testing.assert_allclose(wrap_angle(got[..., 2] - (omega * (t[:, None] + offsets) + 3.0)), 0.0, atol=1e-12)
     np.testing.assert_allclose(got[..., 0], speed * (t[:, None] + offsets), atol=1e-12)
+
+
+@pytest.mark.parametrize("world, speed, message", [
+    ("room", 0.8, "leg 1 (1.50 m) is too short for its corner arcs; at 0.8 m/s the corners are arcs of 1.33 m radius"),
+    ("corridor1", 1.0, "from an obstacle at (4.93, 21.03); it needs 0.3 m (move path.waypoints); at 1 m/s the "
+                       "corners are arcs of 1.67 m radius"),
+])
+def test_a_speed_a_bundled_world_cannot_be_driven_at_is_named(world, speed, message):
+    """The corners' arcs are speed / the largest turn rate: a bundled world refused at a higher
+    speed blamed its own waypoints, which a user cannot edit. The message names the speed."""
+    from omnitof.sim.worlds import WorldError, load_world
+
+    with pytest.raises(WorldError) as err:
+        robot_path(load_world(world), MotionSettings(speed=speed))
+    assert message in str(err.value) and "a lower speed turns tighter" in str(err.value)
+    robot_path(load_world(world), MotionSettings())  # the default speed drives it

@@ -160,13 +160,18 @@ def robot_path(world: World, motion: MotionSettings = MotionSettings()) -> laser
 
     Raises WorldError if the smoothed path passes closer than ROBOT_RADIUS to an obstacle.
     """
+    # The corners' arcs grow with the speed: a bundled world fails at a speed it was not drawn
+    # for, and its file is not the user's to edit, so the message names the speed too.
+    arcs = (f"; at {motion.speed:g} m/s the corners are arcs of {motion.speed / motion.max_turn_rate:.2f} m radius "
+            f"(speed / the largest turn rate, {motion.max_turn_rate:g} rad/s): a lower speed turns tighter")
+    beside_speed = "" if motion.speed == MotionSettings().speed else arcs
     try:  # plan_path bounds the frames (rate_hz 1e9 asked for terabytes)
         path = laser2d.plan_path(
             loop_waypoints(world, motion.overlap), speed=motion.speed, rate_hz=motion.rate_hz,
             max_turn_rate=motion.max_turn_rate,
         )
     except ConfigError as err:
-        raise WorldError(f"world {world.name!r}: path.waypoints: {err}", world.source) from None
+        raise WorldError(f"world {world.name!r}: path.waypoints: {err}{arcs}", world.source) from None
     walls = laser2d.World2D(world.obstacles())
     clearance = walls.distance_to_walls(path.poses[:, :2])
     if not clearance.min() >= ROBOT_RADIUS:  # NaN too: a clearance that cannot be worked out
@@ -174,7 +179,7 @@ def robot_path(world: World, motion: MotionSettings = MotionSettings()) -> laser
         x, y = path.poses[i, :2]
         raise WorldError(
             f"world {world.name!r}: the robot's path passes {clearance[i]:.2f} m from an obstacle "
-            f"at ({x:.2f}, {y:.2f}); it needs {ROBOT_RADIUS} m (move path.waypoints)",
+            f"at ({x:.2f}, {y:.2f}); it needs {ROBOT_RADIUS} m (move path.waypoints){beside_speed}",
             world.source,
         )
     return path
