@@ -197,6 +197,25 @@ def test_plan_path_l_turn_matches_arc_geometry():
     np.testing.assert_allclose(bearing_from_centre, path.poses[on_arc, 2] - math.pi / 2, atol=1e-12)
 
 
+
+def test_a_path_of_many_laps_is_sampled_piece_by_piece_without_a_jump():
+    """200 laps of a 6 m square (1600 pieces, 30 000 poses): every pose lies on its own piece,
+    so the path moves one step and turns at most the turn rate between poses, and every lap's
+    corners lie on the same arcs. (Sampling looped over the pieces, each over every sample: a
+    world of 10 000 laps took minutes.)"""
+    speed, rate, turn_rate = 0.4, 10.0, 0.6
+    r = speed / turn_rate
+    square = np.array([[0.0, 0.0], [6.0, 0.0], [6.0, 6.0], [0.0, 6.0]])
+    path = plan_path(np.vstack([np.tile(square, (200, 1)), square[:1]]), speed, rate, turn_rate)
+    step = speed / rate
+    moved = np.hypot(*np.diff(path.poses[:, :2], axis=0).T)
+    assert moved.max() <= step + 1e-9 and moved.min() > 0.99 * step
+    assert np.abs(wrap_angle(np.diff(path.poses[:, 2]))).max() <= turn_rate / rate + 1e-9
+    # Every pose in the corner (6, 0)'s quarter: on the arc about (6 - r, r), every lap alike.
+    corner = (path.poses[:, 0] > 6.0 - r) & (path.poses[:, 1] < r)
+    assert corner.sum() > 200 * 5
+    np.testing.assert_allclose(np.hypot(*(path.poses[corner, :2] - [6.0 - r, r]).T), r, atol=1e-9)
+
 def test_loop_path_respects_speed_and_turn_rate_and_closes():
     speed, rate, turn_rate = 0.4, 10.0, 0.6
     path = loop_path(speed=speed, rate_hz=rate, max_turn_rate=turn_rate, overlap=5.0)
