@@ -216,6 +216,9 @@ BAD_FILES = [
      "  laps: 1000000000000\n", ["path.laps", "less than or equal to 10000"]),
     ("name: x\nceiling_height: 2.5\nwalls:\n  - points: [[0, 0], [3, 0]]\npath:\n  waypoints: [[1, 1], [1, 1], [2, 1]]\n",
      ["path", "waypoints 0 and 1 are both [1.0, 1.0]: consecutive waypoints must differ"]),
+    # Laps of an open path were driven once without a word.
+    ("name: x\nceiling_height: 2.5\nwalls:\n  - points: [[0, 0], [3, 0]]\npath:\n  waypoints: [[1, 1], [2, 1]]\n"
+     "  closed: false\n  laps: 3\n", ["path", "laps: 3 laps of an open path (closed: false) cannot be driven"]),
     ("name: x\nceiling_height: 2.5\nwalls: [[0, 0], [1, 0]\n", ["not valid YAML"]),
     # Paths the drive's clearance check let through: out of a room open to the east, beyond its
     # walls (the robot drove through nowhere), and round a sharp corner whose arc passes 2.7 m

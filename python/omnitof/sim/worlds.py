@@ -17,7 +17,7 @@ A world file (`omnitof/worlds/<name>.yaml`, package data) describes one floor of
   `bottom` and `height` (z of the lowest and highest face);
 - `landmarks`: places where the distance between two opposite walls is known (the paper's
   Table I): `position`, `direction_deg` of the measurement, true `distance`, `height`;
-- `path`: the robot's loop as `waypoints` (closed unless `closed: false`), driven `laps` times (1 to 10 000);
+- `path`: the robot's loop as `waypoints` (closed unless `closed: false`), driven `laps` times (1 to 10 000; an open path once);
   each waypoint within the walls' and boxes' extent and outside the boxes the robot cannot pass;
 - `extends`: another world file (name in the same folder, without .yaml) whose keys this one
   takes over and may replace, key by key; a name starting with "_" is a shared part, not a world.
@@ -221,6 +221,11 @@ class PathSpec(_Strict):
             if tuple(self.waypoints[k]) == tuple(self.waypoints[k - 1]):
                 raise ValueError(f"waypoints {k - 1} and {k} are both {list(self.waypoints[k])}: consecutive "
                                  "waypoints must differ")
+        # An open path ends where it ends: a second lap would start with a jump back (it was
+        # driven once without a word).
+        if not self.closed and self.laps > 1:
+            raise ValueError(f"laps: {self.laps} laps of an open path (closed: false) cannot be driven; close the "
+                             "path or drop laps")
         return self
 
 
