@@ -159,6 +159,24 @@ def test_slam_command_estimates_and_records_the_delay(tmp_path, capsys):
     assert abs(recorded["seconds"] - 0.13) < 0.02 and recorded["estimated_from_pairs"] >= 20
 
 
+def test_slam_command_refuses_a_delay_as_long_as_the_log(tmp_path, capsys):
+    """A delay of the log's whole length (seconds typed for milliseconds) read every scan's
+    odometry beyond the log's end: one scan integrated, and no word of why."""
+    from omnitof.cli import main
+    from omnitof.io.carmen import write_carmen
+
+    scans, _ = delayed_log(0.0)
+    first = scans.timestamps < scans.timestamps[0] + 4.0  # a short log: ±10 s is refused anyway
+    log = tmp_path / "log.clf"
+    write_carmen(log, ScanSequence(scans.timestamps[first], scans.ranges[first], scans.angles, scans.odometry[first],
+                                   max_range=15.0))
+    span = float(np.ptp(scans.timestamps[first]))
+    for delay in (span + 1.0, -(span + 1.0)):
+        assert main(["slam", str(log), "--out", str(tmp_path / "run"), "--scan-delay", f"{delay:g}", "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert f"is as long as the log itself ({span:.3g} s of scans)" in err and len(err.strip().splitlines()) == 1
+        assert not (tmp_path / "run").exists()
+
 @pytest.mark.filterwarnings("ignore:.*timestamps are earlier than the one before")
 def test_slam_command_refuses_a_delay_for_a_jittering_clock(tmp_path, capsys):
     from omnitof.cli import main

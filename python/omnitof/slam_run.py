@@ -400,6 +400,12 @@ def _retimed(scans: ScanSequence, delay: str | float, *, given: bool,
         record = {"seconds": estimate.delay, "how": f"{option}: estimated from the log",
                   "estimated_from_pairs": estimate.pairs}
     else:
+        span = float(np.ptp(scans.timestamps)) if len(scans) else 0.0
+        if span > 0.0 and abs(float(delay)) >= span:
+            # Every scan would take the odometry from beyond the log's end (or start), which holds
+            # still there: a run of one integrated scan, and no word of why.
+            raise OmnitofError(f"--scan-delay {float(delay):g} s is as long as the log itself ({span:.3g} s of "
+                               "scans): the delay is in seconds, and a laser's is a fraction of one")
         record = {"seconds": float(delay), "how": "--scan-delay: given"}
     try:
         return retime_odometry(scans, record["seconds"]), record
