@@ -189,6 +189,20 @@ def test_cli_simulate_calibration_renders_target_images(tmp_path, capsys):
     assert len(list((out / "intrinsics").glob("*.png"))) == 2
     assert len(list((out / "mirrors").glob("*.png"))) == 4  # one placement at each of the 4 mirrors
     assert (out / "truth.yaml").exists()
+    # Again into the same folder with fewer boards: the folder is replaced whole (the first run's
+    # third board stayed beside the second run's truth.yaml), and nothing hidden is left beside it.
+    assert main(["simulate", "calibration", "--world", "room", "--out", str(out), "--placements", "1",
+                 "--boards", "1"]) == 0
+    assert sorted(p.name for p in (out / "intrinsics").iterdir()) == ["board_00.npz", "board_00.png"]
+    assert [p.name for p in tmp_path.iterdir()] == ["targets"]
+    # A folder of the user's other files is not replaced.
+    other = tmp_path / "mine"
+    other.mkdir()
+    (other / "notes.txt").write_text("keep me")
+    capsys.readouterr()
+    assert main(["simulate", "calibration", "--out", str(other), "--placements", "1", "--boards", "1"]) != 0
+    assert "not calibration target images" in capsys.readouterr().err
+    assert [p.name for p in other.iterdir()] == ["notes.txt"]
 
 
 def test_sample_poses_follow_a_steady_turn_inside_and_at_the_ends():

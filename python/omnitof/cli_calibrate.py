@@ -361,35 +361,53 @@ def cmd_plan_boards(args: argparse.Namespace) -> int:
 
 def cmd_render_targets(args: argparse.Namespace) -> int:
     from omnitof.calibration.targets import render_calibration_images
+    from omnitof.io.atomic import atomic_folder
 
     started = time.perf_counter()
-    summary = render_calibration_images(
-        args.out, world=args.world, seed=args.seed, placements=args.placements, boards=args.boards,
-        pair_boards=args.pair_boards, planned_boards=not args.random_boards,
-    )
+    # Built under a hidden name and put in place whole (as a results folder is): an interrupted
+    # run left empty folders, and a second run into the same folder kept the first one's extra
+    # boards beside its truth.yaml. A folder that is not a set of target images is not replaced.
+    with atomic_folder(args.out, may_replace=_only_target_images) as folder:
+        summary = render_calibration_images(
+            folder, world=args.world, seed=args.seed, placements=args.placements, boards=args.boards,
+            pair_boards=args.pair_boards, planned_boards=not args.random_boards,
+        )
+        walls = None
+        if args.walls:
+            from omnitof.calibration.walls import render_wall_recordings, write_wall_recordings
+            from omnitof.sensor.design import default_rig
+            from omnitof.sensor.tof import SensorNoise
+            from omnitof.sensor.tof_errors import ToFErrors
+
+            rig = default_rig()
+            # The camera's systematic errors (`simulate calibration --tof-errors`; the simulator's
+            # default for `calibrate render-targets`): what the correction is for.
+            errors = getattr(args, "tof_errors", None)
+            sensor = SensorNoise(errors=ToFErrors.parse(errors) if errors else ToFErrors.simulation_default())
+            # Set up by hand: each wall a little off square (`calibrate distance` fits the turn).
+            turns = (1.5, -1.0, 0.5, -2.0, 0.0, 2.5, -0.5)
+            recordings = [r for r, _ in render_wall_recordings(rig.camera, rig.mirrors, args.seed, sensor=sensor,
+                                                               turns_deg=turns)]
+            listing = write_wall_recordings(folder / "walls", recordings, [m.name for m in rig.mirrors])
+            walls = (len(recordings), args.out / "walls" / listing.name)
     print(f"wrote {summary['boards']} checkerboard images to {args.out / 'intrinsics'}, "
           f"{summary['dot_images']} dot-target images ({args.placements} per mirror: "
           f"{', '.join(summary['mirrors'])}) to {args.out / 'mirrors'}, "
           f"{summary['pair_images']} two-mirror board images to {args.out / 'pairs'}, "
-          f"and the true calibration {summary['truth']} ({time.perf_counter() - started:.1f} s)")
-    if args.walls:
-        from omnitof.calibration.walls import render_wall_recordings, write_wall_recordings
-        from omnitof.sensor.design import default_rig
-        from omnitof.sensor.tof import SensorNoise
-        from omnitof.sensor.tof_errors import ToFErrors
-
-        rig = default_rig()
-        # The camera's systematic errors (`simulate calibration --tof-errors`; the simulator's
-        # default for `calibrate render-targets`): what the correction is for.
-        errors = getattr(args, "tof_errors", None)
-        sensor = SensorNoise(errors=ToFErrors.parse(errors) if errors else ToFErrors.simulation_default())
-        # Set up by hand: each wall a little off square (`calibrate distance` fits the turn).
-        turns = (1.5, -1.0, 0.5, -2.0, 0.0, 2.5, -0.5)
-        recordings = [r for r, _ in render_wall_recordings(rig.camera, rig.mirrors, args.seed, sensor=sensor,
-                                                           turns_deg=turns)]
-        listing = write_wall_recordings(args.out / "walls", recordings, [m.name for m in rig.mirrors])
-        print(f"wrote {len(recordings)} wall positions to {listing} ({time.perf_counter() - started:.1f} s)")
+          f"and the true calibration {args.out / 'truth.yaml'} ({time.perf_counter() - started:.1f} s)")
+    if walls is not None:
+        print(f"wrote {walls[0]} wall positions to {walls[1]} ({time.perf_counter() - started:.1f} s)")
     return 0
+
+
+def _only_target_images(path: Path) -> None:
+    """`render-targets --out` replaces an empty folder or one it wrote before (its truth.yaml
+    beside intrinsics/), never a user's other folder."""
+    from omnitof.errors import OutputError
+
+    if any(path.iterdir()) and not ((path / "truth.yaml").is_file() and (path / "intrinsics").is_dir()):
+        raise OutputError(f"{path}: holds files that are not calibration target images (no truth.yaml and "
+                          "intrinsics/): give a new or empty folder")
 
 
 def cmd_distance(args: argparse.Namespace) -> int:
