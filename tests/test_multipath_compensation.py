@@ -297,6 +297,28 @@ def test_a_hand_edited_sidecar_names_its_mirror_reflectivity(tmp_path, capsys, r
     assert err.endswith(message) and "omnitof.yaml" in err and "Traceback" not in err
     assert not (tmp_path / "out").exists()
 
+
+@pytest.mark.filterwarnings("ignore::omnitof.scan.tof_input.ToFInputWarning")
+def test_a_geometry_of_another_image_size_names_its_file(tmp_path, capsys):
+    """A sidecar (or a calibration) whose camera is not the bag's image size: one error naming
+    it, where a shape error from the extraction named neither the file nor the field."""
+    import yaml
+
+    from omnitof.cli import main
+
+    bag = tmp_path / "bag"
+    assert main(["simulate", "--world", "room", "--out", str(bag), "--max-frames", "2", "--quiet"]) == 0
+    sidecar = bag / "omnitof.yaml"
+    data = yaml.safe_load(sidecar.read_text())
+    width, height = data["camera"]["width"], data["camera"]["height"]
+    data["camera"]["width"] = 100
+    sidecar.write_text(yaml.safe_dump(data, sort_keys=False))
+    capsys.readouterr()
+    assert main(["slam", str(bag), "--out", str(tmp_path / "out"), "--quiet"]) != 0
+    err = capsys.readouterr().err.strip()
+    assert f"omnitof.yaml: camera: 100 x {height} pixels (width x height), but the bag's images are {width} x " \
+           f"{height}" in err and len(err.splitlines()) == 1
+
 def test_a_keyframe_is_compensated_once_for_its_rays_and_its_scan():
     # The 3D filter's keyframes go into both the rays and the scans: the compensation (as long
     # as the rest of the extraction) runs once per frame, and the results are the ones each
