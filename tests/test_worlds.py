@@ -256,9 +256,17 @@ def test_yaml_syntax_errors_name_the_line(tmp_path):
     assert err.value.line is not None and str(err.value).startswith(f"{path}:{err.value.line}:")
 
 
-def test_unknown_world_names_list_the_known_ones():
+def test_unknown_world_names_list_the_known_ones(tmp_path, monkeypatch):
     with pytest.raises(WorldError, match="no bundled world 'kitchen'.*corridor1, corridor2, office, room"):
         load_world("kitchen")
+    # A name that is no bundled world but a folder or another file here says what it is.
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "worlds").mkdir()
+    (tmp_path / "plan.png").write_bytes(b"\x89PNG")
+    with pytest.raises(WorldError, match="'worlds' is a folder: give a world file"):
+        load_world("worlds")
+    with pytest.raises(WorldError, match="'plan.png' is not a world file"):
+        load_world("plan.png")
 
 
 def test_extends_cycles_and_missing_bases_are_refused(tmp_path):

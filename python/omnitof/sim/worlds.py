@@ -503,6 +503,14 @@ def load_world(name_or_path: str | Path) -> World:
     else:
         path = worlds_folder() / f"{text}.yaml"
         if not path.is_file():
+            # A name that is no bundled world but names something here: say what it is.
+            here = Path(text)
+            if here.is_dir():
+                raise WorldError(f"{text!r} is a folder: give a world file (.yaml) or a bundled world "
+                                 f"({', '.join(world_names())})")
+            if here.exists():
+                raise WorldError(f"{text!r} is not a world file (a world is a .yaml file) nor a bundled world "
+                                 f"({', '.join(world_names())})")
             raise WorldError(f"no bundled world {text!r}; known worlds: {', '.join(world_names())}")
     return parse_world(_read_merged(path, ()), path)
 
