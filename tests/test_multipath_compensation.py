@@ -4,6 +4,7 @@ Monte-Carlo interreflection is the independent reference for the frame's own rad
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -384,3 +385,25 @@ def test_a_lens_that_folds_an_image_corner_leaves_that_pixel_out():
     assert both.sum() > 100
     # The estimated intrinsics differ from the true ones by a fraction of a pixel: the same walls.
     assert np.median(np.abs(scan[both] - truth_camera[both])) < 0.02
+
+
+def test_a_calibration_of_the_intrinsics_only_is_used_with_a_warning(tmp_path):
+    """`calibrate intrinsics` writes a file whose mirrors are the design's until `calibrate
+    mirrors` measures them; read with a bag, it was used without a word."""
+    from omnitof.calibration import MIRRORS_NOT_CALIBRATED, Calibration, save_calibration
+    from omnitof.cli import main
+    from omnitof.io.rosbag import read_tof_bag
+    from omnitof.scan.tof_input import ToFInputWarning, read_tof_scans
+
+    bag = tmp_path / "bag"
+    assert main(["simulate", "--world", "room", "--out", str(bag), "--max-frames", "1", "--quiet"]) == 0
+    cal = Calibration.from_rig(read_tof_bag(bag).rig)
+    cal.provenance = {"mirrors": MIRRORS_NOT_CALIBRATED, "intrinsics": "11 checkerboard images"}
+    path = save_calibration(cal, tmp_path / "intrinsics.yaml")
+    with pytest.warns(ToFInputWarning, match="intrinsics.yaml: its mirrors are the rig's design, not measured"):
+        read_tof_scans(bag, calibration=path)
+    cal.provenance["mirrors"] = "12 dot-target images per mirror"
+    measured = save_calibration(cal, tmp_path / "measured.yaml")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ToFInputWarning)
+        read_tof_scans(bag, calibration=measured)

@@ -171,7 +171,7 @@ def _design_outside(camera) -> np.ndarray:
 
 
 def cmd_intrinsics(args: argparse.Namespace) -> int:
-    from omnitof.calibration import Calibration, load_calibration, save_calibration
+    from omnitof.calibration import MIRRORS_NOT_CALIBRATED, Calibration, load_calibration, save_calibration
     from omnitof.calibration.images import load_images
     from omnitof.calibration.intrinsics import calibrate_intrinsics
     from omnitof.calibration.masks import labels_from_planes
@@ -189,7 +189,7 @@ def cmd_intrinsics(args: argparse.Namespace) -> int:
         cal = cal.with_rig(replace(cal.rig, camera=camera))
     else:
         cal = Calibration.from_rig(replace(default_rig(), camera=camera))
-        cal.provenance = {"mirrors": "rig design (not calibrated yet: run `calibrate mirrors`)"}
+        cal.provenance = {"mirrors": MIRRORS_NOT_CALIBRATED}
     cal.labels = labels_from_planes(camera, cal.planes, _design_outside(camera), cal.edge_margin_px)
     cal.quality.update(result.quality())
     cal.provenance["intrinsics"] = f"{len(result.used)} checkerboard images ({cols}x{rows}, {args.square} m)"

@@ -64,6 +64,7 @@ from omnitof.sensor.rig import Rig, RigError, camera_to_dict
 
 __all__ = [
     "FORMAT_VERSION",
+    "MIRRORS_NOT_CALIBRATED",
     "Calibration",
     "CalibrationError",
     "decode_rows",
@@ -73,6 +74,9 @@ __all__ = [
 ]
 
 FORMAT_VERSION = 1
+# What `calibrate intrinsics` writes as the mirrors' provenance of a new calibration file: its
+# mirrors are the design's until `calibrate mirrors` measures them (a scan reader warns).
+MIRRORS_NOT_CALIBRATED = "rig design (not calibrated yet: run `calibrate mirrors`)"
 
 
 class CalibrationError(InputError):

@@ -175,21 +175,6 @@ def multipath_for_bag(bag: Any, settings: ScanSettings, choice: str) -> tuple[Sc
     return settings.model_copy(update={"multipath": on}), f"on ({why}; the camera's figures from the bag's sidecar)"
 
 
-def _check_image_size(bag: Any, extractor: ScanExtractor, calibration: str | Path | None) -> None:
-    """The geometry's camera must have the bag's image size (its camera_info): an InputError
-    naming the calibration or the sidecar where it does not (a shape error from deep in the
-    extraction named neither)."""
-    from omnitof.io.rosbag.common import SIDECAR_NAME
-
-    have = tuple(int(n) for n in getattr(bag, "shape", (0, 0)))
-    want = tuple(int(n) for n in extractor.camera.shape)
-    if have == (0, 0) or have == want:
-        return
-    source = Path(calibration) if calibration is not None else Path(str(bag.path)) / SIDECAR_NAME
-    raise InputError(f"camera: {want[1]} x {want[0]} pixels (width x height), but the bag's images are "
-                     f"{have[1]} x {have[0]} (its camera_info): a calibration of another camera", source)
-
-
 def _sidecar_reflectivity(bag: Any, default: float) -> float:
     """The mirrors' reflectivity the bag's sidecar renders with (`render.mirror_reflectivity`),
     else `default`; an InputError naming the sidecar and the field where it is not a number in
@@ -216,9 +201,13 @@ def extractor_for_bag(
     """The bag's ScanExtractor and where its geometry came from: the calibration file, else the
     true rig of a simulated bag's sidecar (with a ToFInputWarning), else an InputError."""
     if calibration is not None:
-        from omnitof.calibration import load_calibration
+        from omnitof.calibration import MIRRORS_NOT_CALIBRATED, load_calibration
 
         cal = load_calibration(calibration)
+        if cal.provenance.get("mirrors") == MIRRORS_NOT_CALIBRATED:
+            warnings.warn(f"{calibration}: its mirrors are the rig's design, not measured (the file holds "
+                          "`calibrate intrinsics` only): run `omnitof calibrate mirrors` on it, or the scans "
+                          "take the design's mirror planes", ToFInputWarning, stacklevel=2)
         if cal.camera.shape != bag.shape:
             raise InputError(
                 f"the calibration is for {cal.camera.width}×{cal.camera.height} images, the bag has "
@@ -227,6 +216,13 @@ def extractor_for_bag(
         return ScanExtractor.from_calibration(cal, settings=settings), f"calibration {calibration}"
     rig = bag.rig
     if rig is not None:
+        if bag.shape not in ((0, 0), rig.camera.shape):
+            # A shape error from deep in the extraction would name neither the file nor the field.
+            from omnitof.io.rosbag.common import SIDECAR_NAME
+
+            raise InputError(f"camera: {rig.camera.width} x {rig.camera.height} pixels (width x height), but the "
+                             f"bag's images are {bag.shape[1]} x {bag.shape[0]} (its camera_info)",
+                             Path(str(bag.path)) / SIDECAR_NAME)
         warnings.warn(
             f"{bag.path}: no --calibration given; using the true rig from the simulator's sidecar",
             ToFInputWarning, stacklevel=2,
@@ -269,7 +265,6 @@ def read_tof_scans(
                          "the 2D filter estimates the odometry from the scans", path)
     settings, multipath_rule = multipath_for_bag(bag, settings or ScanSettings(), multipath)
     extractor, rig_source = extractor_for_bag(bag, calibration, settings)
-    _check_image_size(bag, extractor, calibration)
     dropped: list[int] = []
     frames = _with_odometry(bag, dropped, progress)
     if max_frames is not None:
