@@ -495,6 +495,9 @@ def test_only_omnitofs_own_warnings_read_as_omnitof_warnings():
     (["design", "--band", "-5"], "--band: expected a number of at least 0"),
     (["simulate", "--out", "OUT", "--speed", "inf"], "--speed: expected a finite number"),
     (["calibrate", "render-targets", "--out", "OUT", "--boards", "0"], "--boards: expected at least 1"),
+    # 100 000 boards rendered on for hours.
+    (["simulate", "calibration", "--out", "OUT", "--boards", "100000"], "--boards: expected at most 1000"),
+    (["calibrate", "plan-boards", "--boards", "1000000"], "--boards: expected at most 1000"),
     (["calibrate", "intrinsics", "x.png", "--out", "c.yaml", "--square", "0"], "--square: expected a number above 0"),
 ])
 def test_every_command_refuses_numbers_outside_their_domain(tmp_path, monkeypatch, capsys, argv, message):

@@ -129,6 +129,9 @@ def _whole(at_least: int, at_most: int | None = None):
 
 
 _positive_int = _whole(1)
+# Rendered calibration images: a real calibration takes tens of boards and placements; a
+# thousand renders take minutes, and more is a typo (100 000 boards ran on and on).
+_image_count = _whole(1, 1000)
 
 
 # A laser's scan delay is a fraction of a second; seconds beyond this are a mistake, not a delay.
@@ -567,11 +570,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "target images with the true calibration (as `omnitof calibrate render-targets`)")
     p.add_argument("--world", default="corridor1", help="a bundled world (room, office, corridor1, corridor2) or a world YAML file")
     p.add_argument("--out", type=Path, required=True, help="the bag folder (or, for calibration, the image folder) to write")
-    p.add_argument("--placements", type=_positive_int, default=14, help="calibration: dot-target placements per mirror")
-    p.add_argument("--boards", type=_positive_int, default=30, help="calibration: checkerboard images")
+    p.add_argument("--placements", type=_image_count, default=14, help="calibration: dot-target placements per mirror")
+    p.add_argument("--boards", type=_image_count, default=30, help="calibration: checkerboard images")
     p.add_argument("--random-boards", action="store_true",
                    help="calibration: checkerboards at random poses (default: poses planned for the intrinsics)")
-    p.add_argument("--pair-boards", type=_positive_int, default=2,
+    p.add_argument("--pair-boards", type=_image_count, default=2,
                    help="calibration: plain boards seen through each two neighbouring mirrors (for `calibrate refine`)")
     p.add_argument("--walls", action="store_true",
                    help="calibration: also a flat wall facing each mirror at 0.5-6.5 m, with --tof-errors, and "

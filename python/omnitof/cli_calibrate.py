@@ -35,7 +35,7 @@ walls:                      # one entry per position of the rig before a flat ma
 
 def add_calibrate_parser(sub) -> None:
     """Register `calibrate` and its subcommands on the `omnitof` subparsers."""
-    from omnitof.cli import _add_tof_bag_options, _number, _positive_int, _seed  # the command's argument types
+    from omnitof.cli import _add_tof_bag_options, _image_count, _number, _seed  # the command's argument types
 
     p = sub.add_parser("calibrate", help="calibrate the camera and the mirrors (paper sec. II-C)")
     csub = p.add_subparsers(dest="calibrate_command", required=True)
@@ -94,7 +94,7 @@ def add_calibrate_parser(sub) -> None:
     camera_from.add_argument("--taken", type=Path, nargs="+", metavar="IMAGES",
                              help="checkerboard images already taken (files, folders, bags): calibrate from "
                                   "them and plan the boards that add most to them")
-    c.add_argument("--boards", type=_positive_int, default=30, help="boards to plan")
+    c.add_argument("--boards", type=_image_count, default=30, help="boards to plan")
     c.add_argument("--board", default="8x6", help="squares across x down (default 8x6)")
     c.add_argument("--square", type=_number(above=0), default=0.035, help="square side in metres (default 0.035)")
     c.add_argument("--seed", type=_seed, default=0, help="fixes the candidate poses drawn")
@@ -105,11 +105,11 @@ def add_calibrate_parser(sub) -> None:
     c.add_argument("--out", type=Path, required=True, help="folder to write into")
     c.add_argument("--world", help="bundled world name or YAML: its ceiling, floor and light")
     c.add_argument("--seed", type=_seed, default=0)
-    c.add_argument("--placements", type=_positive_int, default=8, help="dot-target placements per mirror")
-    c.add_argument("--boards", type=_positive_int, default=15, help="checkerboard images")
+    c.add_argument("--placements", type=_image_count, default=8, help="dot-target placements per mirror")
+    c.add_argument("--boards", type=_image_count, default=15, help="checkerboard images")
     c.add_argument("--random-boards", action="store_true",
                    help="checkerboards at random poses (default: poses planned for the intrinsics)")
-    c.add_argument("--pair-boards", type=_positive_int, default=2,
+    c.add_argument("--pair-boards", type=_image_count, default=2,
                    help="plain boards seen through each two neighbouring mirrors (for `calibrate refine`)")
     c.add_argument("--walls", action="store_true",
                    help="also a flat wall facing each mirror at 0.5-6.5 m, with the camera's systematic distance "
