@@ -216,6 +216,16 @@ BAD_FILES = [
      "  laps: 1000000000000\n", ["path.laps", "less than or equal to 10000"]),
     ("name: x\nceiling_height: 2.5\nwalls:\n  - points: [[0, 0], [3, 0]]\npath:\n  waypoints: [[1, 1], [1, 1], [2, 1]]\n",
      ["path", "waypoints 0 and 1 are both [1.0, 1.0]: consecutive waypoints must differ"]),
+    # Landmarks that the world does not hold were accepted, and Table I showed n/a or a wrong offset.
+    ("name: x\nceiling_height: 2.5\nwalls:\n  - {points: [[0, 0], [5, 0], [5, 4], [0, 4]], closed: true}\n"
+     "landmarks:\n  - {name: a, position: [2.5, 2], direction_deg: 0, distance: 1.0}\n",
+     ["landmarks[0].distance: 1 m, but the walls along its line are 5.000 m apart at 1 m (2.500 + 2.500 m)"]),
+    ("name: x\nceiling_height: 2.5\nwalls:\n  - {points: [[0, 0], [5, 0], [5, 4], [0, 4]], closed: true}\n"
+     "landmarks:\n  - {name: a, position: [100, 100], direction_deg: 0, distance: 5.0}\n",
+     ["landmarks[0].position: (100, 100) lies outside the world"]),
+    ("name: x\nceiling_height: 2.5\nwalls:\n  - points: [[0, 0], [5, 0]]\n  - points: [[0, 3], [1, 3]]\n"
+     "landmarks:\n  - {name: a, position: [2.5, 0.5], direction_deg: 90, distance: 5.0}\n",
+     ["landmarks[0]: no wall along its line at 1 m"]),
     # Laps of an open path were driven once without a word.
     ("name: x\nceiling_height: 2.5\nwalls:\n  - points: [[0, 0], [3, 0]]\npath:\n  waypoints: [[1, 1], [2, 1]]\n"
      "  closed: false\n  laps: 3\n", ["path", "laps: 3 laps of an open path (closed: false) cannot be driven"]),

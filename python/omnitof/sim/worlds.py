@@ -637,7 +637,33 @@ def _compile(spec: WorldSpec, source: Path | None) -> World:
         laps=path.laps if path else 1,
     )
     _check_waypoints(world, source)
+    _check_landmarks(world, source)
     return world
+
+
+# A landmark's declared distance is Table I's truth: it must be the walls' (the bundled worlds'
+# agree to 1e-4 m; Table I's errors are centimetres).
+LANDMARK_TOLERANCE_M = 0.01
+
+
+def _check_landmarks(world: World, source: Path | None) -> None:
+    """WorldError naming the first landmark outside the world, or whose declared distance is not
+    the distance between the walls along its line at its height (Table I would compare the map
+    with a number the world does not hold; it showed n/a or a wrong offset)."""
+    xmin, xmax, ymin, ymax = world.bounds
+    for k, mark in enumerate(world.landmarks):
+        x, y = (float(v) for v in mark.position)
+        if not (xmin <= x <= xmax and ymin <= y <= ymax):
+            raise WorldError(f"landmarks[{k}].position: ({x:g}, {y:g}) lies outside the world, whose walls and boxes "
+                             f"span x {xmin:g} .. {xmax:g} m, y {ymin:g} .. {ymax:g} m", source)
+        ways = world.horizontal_distance(mark.position, np.array([mark.direction, mark.direction + math.pi]),
+                                         mark.height)
+        walls = float(np.sum(ways))
+        if not math.isfinite(walls):
+            raise WorldError(f"landmarks[{k}]: no wall along its line at {mark.height:g} m on one side or both", source)
+        if abs(walls - mark.distance) > LANDMARK_TOLERANCE_M:
+            raise WorldError(f"landmarks[{k}].distance: {mark.distance:g} m, but the walls along its line are "
+                             f"{walls:.3f} m apart at {mark.height:g} m ({ways[0]:.3f} + {ways[1]:.3f} m)", source)
 
 
 def _check_waypoints(world: World, source: Path | None) -> None:
