@@ -161,6 +161,8 @@ def test_python_dash_m_runs_the_command(tmp_path):
         (["config", "--set", "filter.partcles=3"], "filter.partcles"),
         (["config", "--set", "particles=3"], "SECTION.FIELD"),
         (["eval", "relations", "none.tum", "none.relations"], "none.tum"),
+        # The demo ran the 2D filter with the 3D preset's settings without a word.
+        (["demo", "--preset", "tof3d", "--out", "OUT"], "--preset tof3d: the demo runs the 2D filter"),
     ],
 )
 def test_user_mistakes_are_one_line(tmp_path, monkeypatch, capsys, argv, message):

@@ -406,7 +406,13 @@ def run_demo(out: str | Path, *, world: str = DEFAULT_WORLD, seed: int = 0, pres
 
     settings = DemoSettings(world=world, seed=seed, preset=preset, particles=particles, calibrate=calibrate,
                             max_frames=max_frames, refine=refine, tof_errors=tof_errors)
-    slam_config(preset, seed, particles)  # a bad value is refused before the folder is opened
+    cfg = slam_config(preset, seed, particles)  # a bad value is refused before the folder is opened
+    if cfg.filter3d.enabled:
+        # The demo runs the 2D filter; with tof3d it ran that with the 3D preset's settings.
+        from omnitof.errors import OmnitofError
+
+        raise OmnitofError(f"--preset {preset}: the demo runs the 2D filter (tof-scanmatch, tof); the 3D filter runs "
+                           "on a ToF bag: `omnitof simulate --out BAG`, then `omnitof slam BAG --preset tof3d`")
     with results_folder(out) as folder:
         summary = run_world(settings, folder, progress=progress).summary
     _print_summary(summary, Path(out), print)
