@@ -92,6 +92,11 @@ def test_odometry_that_drifts_far_leaves_the_view_to_the_map(tmp_path: Path) -> 
     # The map fills the figure's width: 10 m across more than half of its 400 pixels.
     left, right = ax.transData.transform([(0.0, 0.0), (10.0, 0.0)])[:, 0]
     assert right - left > 200
+    # Odometry a metre beyond the map is drawn whole, as before: the figure grows to hold it.
+    near = np.column_stack([np.linspace(1, 11, 50), np.full(50, 2.0), np.zeros(50)])
+    fig = plot_map(tmp_path / "near.png", _map(), {"SLAM": inside, "odometry": near}, dpi=50)
+    assert fig.axes[0].get_xlim()[1] >= 11.0
+    assert [t.get_text() for t in fig.axes[0].get_legend().get_texts()] == ["SLAM", "odometry"]
 
 def test_trajectories_without_map(tmp_path: Path) -> None:
     path = tmp_path / "t.png"

@@ -45,9 +45,10 @@ def plot_map(
         occ: the map, drawn in greyscale in metres (None for trajectories only).
         trajectories: name -> (N, 3) poses (x, y, theta) in the map frame, metres; each becomes a
             coloured line (colours in the order of the dict) with a circle at its first pose and
-            its name in the legend. With a map, the view is the map's extent: a trajectory that
-            leaves it (wheel odometry that drifts hundreds of metres would otherwise shrink the
-            map to a corner of the figure) is cut at its edge and says so in the legend.
+            its name in the legend. With a map, where a trajectory reaches further than a
+            quarter of the map's size beyond it (wheel odometry that drifts hundreds of metres
+            would shrink the map to a corner of the figure), the view is the map's extent, and
+            each trajectory that leaves it is cut at its edge and says so in the legend.
         title: the figure title.
         dpi: resolution; the PNG is figsize[0] * dpi by figsize[1] * dpi pixels.
         figsize: (width, height) in inches.
@@ -62,7 +63,7 @@ def plot_map(
     if occ is not None:
         _draw_map(ax, occ)
         if occ.log_odds.size:
-            view = occ.extent
+            view = _view(occ.extent, trajectories.values())
     for index, (name, poses) in enumerate(trajectories.items()):
         _draw_trajectory(ax, name, poses, color=f"C{index}", view=view)
     if view is not None:
@@ -145,6 +146,25 @@ def _at_most(shades: np.ndarray, cells: int) -> np.ndarray:
     padded = np.full((-(-h // k) * k, -(-w // k) * k), UNKNOWN_SHADE)
     padded[:h, :w] = shades
     return padded.reshape(padded.shape[0] // k, k, padded.shape[1] // k, k).min(axis=(1, 3))
+
+
+# Trajectories that reach further than this share of the map's width or height beyond it are cut
+# at the map's edge; nearer ones are drawn whole, the figure grown to hold them.
+MAX_OVERHANG = 0.25
+
+
+def _view(extent: tuple[float, float, float, float], trajectories) -> tuple[float, float, float, float] | None:
+    """The figure's extent (x0, x1, y0, y1) with a map of `extent`: None (matplotlib's own,
+    everything drawn) where the trajectories stay within MAX_OVERHANG of it, else the map's."""
+    x0, x1, y0, y1 = extent
+    width, height = x1 - x0, y1 - y0
+    for poses in trajectories:
+        xy = np.asarray(poses, dtype=np.float64).reshape(-1, 3)[:, :2]
+        xy = xy[np.all(np.isfinite(xy), axis=1)]
+        if len(xy) and (xy[:, 0].min() < x0 - MAX_OVERHANG * width or xy[:, 0].max() > x1 + MAX_OVERHANG * width
+                        or xy[:, 1].min() < y0 - MAX_OVERHANG * height or xy[:, 1].max() > y1 + MAX_OVERHANG * height):
+            return extent
+    return None
 
 
 def _draw_trajectory(ax: Axes, name: str, poses: np.ndarray, *, color: str,
