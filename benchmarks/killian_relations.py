@@ -93,6 +93,7 @@ def align(times: np.ndarray, odometry: np.ndarray, pairs: dict[int, np.ndarray])
 
 
 def end_points(scans, k: int, pose: np.ndarray) -> np.ndarray:
+    """(M, 2) scan k's end points within 30 m, the robot at `pose`."""
     r, a = scans.scan_ranges(k), scans.scan_angles(k)
     ok = np.isfinite(r) & (r < 30.0)
     sensor = compose(pose, scans.sensor_pose)
