@@ -179,11 +179,11 @@ def _sidecar_reflectivity(bag: Any, default: float) -> float:
     """The mirrors' reflectivity the bag's sidecar renders with (`render.mirror_reflectivity`),
     else `default`; an InputError naming the sidecar and the field where it is not a number in
     (0, 1] (a hand-edited sidecar; the compensation would otherwise fail with a traceback)."""
-    from omnitof.io.rosbag.common import SIDECAR_NAME
+    from omnitof.io.rosbag.common import sidecar_path
 
-    where = Path(str(getattr(bag, "path", ""))) / SIDECAR_NAME
+    where = sidecar_path(Path(bag.path))
     render = (bag.sidecar or {}).get("render", {})
-    if render is None or not isinstance(render, dict):
+    if not isinstance(render, dict):
         raise InputError(f"render: expected a mapping, got {render!r}", where)
     value = render.get("mirror_reflectivity", default)
     try:
@@ -218,11 +218,11 @@ def extractor_for_bag(
     if rig is not None:
         if bag.shape not in ((0, 0), rig.camera.shape):
             # A shape error from deep in the extraction would name neither the file nor the field.
-            from omnitof.io.rosbag.common import SIDECAR_NAME
+            from omnitof.io.rosbag.common import sidecar_path
 
             raise InputError(f"camera: {rig.camera.width} x {rig.camera.height} pixels (width x height), but the "
                              f"bag's images are {bag.shape[1]} x {bag.shape[0]} (its camera_info)",
-                             Path(str(bag.path)) / SIDECAR_NAME)
+                             sidecar_path(Path(bag.path)))
         warnings.warn(
             f"{bag.path}: no --calibration given; using the true rig from the simulator's sidecar",
             ToFInputWarning, stacklevel=2,

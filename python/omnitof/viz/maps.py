@@ -59,13 +59,16 @@ def plot_map(
     fig = Figure(figsize=figsize, dpi=dpi)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
+    tracks = {name: _poses(name, poses) for name, poses in trajectories.items()}
     view = None
     if occ is not None:
         _draw_map(ax, occ)
-        if occ.log_odds.size:
-            view = _view(occ.extent, trajectories.values())
-    for index, (name, poses) in enumerate(trajectories.items()):
-        _draw_trajectory(ax, name, poses, color=f"C{index}", view=view)
+        if occ.log_odds.size and any(_beyond(xy, occ.extent, MAX_OVERHANG) for xy in tracks.values()):
+            view = occ.extent
+    for index, (name, xy) in enumerate(tracks.items()):
+        if view is not None and _beyond(xy, view, 0.0):
+            name = f"{name} (leaves the map's extent)"
+        _draw_trajectory(ax, name, xy, color=f"C{index}")
     if view is not None:
         ax.set_xlim(view[0], view[1])
         ax.set_ylim(view[2], view[3])
@@ -153,33 +156,24 @@ def _at_most(shades: np.ndarray, cells: int) -> np.ndarray:
 MAX_OVERHANG = 0.25
 
 
-def _view(extent: tuple[float, float, float, float], trajectories) -> tuple[float, float, float, float] | None:
-    """The figure's extent (x0, x1, y0, y1) with a map of `extent`: None (matplotlib's own,
-    everything drawn) where the trajectories stay within MAX_OVERHANG of it, else the map's."""
+def _beyond(poses: np.ndarray, extent: tuple[float, float, float, float], share: float) -> bool:
+    """Whether a finite pose of `poses` (N, 3) lies further outside `extent` (x0, x1, y0, y1)
+    than `share` of its width (in x) or height (in y)."""
     x0, x1, y0, y1 = extent
-    width, height = x1 - x0, y1 - y0
-    for poses in trajectories:
-        xy = np.asarray(poses, dtype=np.float64).reshape(-1, 3)[:, :2]
-        xy = xy[np.all(np.isfinite(xy), axis=1)]
-        if len(xy) and (xy[:, 0].min() < x0 - MAX_OVERHANG * width or xy[:, 0].max() > x1 + MAX_OVERHANG * width
-                        or xy[:, 1].min() < y0 - MAX_OVERHANG * height or xy[:, 1].max() > y1 + MAX_OVERHANG * height):
-            return extent
-    return None
+    mx, my = share * (x1 - x0), share * (y1 - y0)
+    x, y = poses[:, 0], poses[:, 1]
+    return bool(np.any((x < x0 - mx) | (x > x1 + mx) | (y < y0 - my) | (y > y1 + my)))
 
 
-def _draw_trajectory(ax: Axes, name: str, poses: np.ndarray, *, color: str,
-                     view: tuple[float, float, float, float] | None = None) -> None:
-    """One trajectory as a line; `view` (x0, x1, y0, y1): the figure's extent, which a
-    trajectory beyond it (by more than a hair) names in its label."""
+def _poses(name: str, poses: np.ndarray) -> np.ndarray:
     xy = np.asarray(poses, dtype=np.float64)
     if xy.ndim != 2 or xy.shape[1] != 3:
         raise ValueError(f"trajectory '{name}' must be (N, 3) poses, got shape {xy.shape}")
-    if view is not None and len(xy):
-        slack = 1e-6 * max(view[1] - view[0], view[3] - view[2], 1.0)
-        outside = ((xy[:, 0] < view[0] - slack) | (xy[:, 0] > view[1] + slack)
-                   | (xy[:, 1] < view[2] - slack) | (xy[:, 1] > view[3] + slack))
-        if outside.any():
-            name = f"{name} (leaves the map's extent)"
+    return xy
+
+
+def _draw_trajectory(ax: Axes, name: str, xy: np.ndarray, *, color: str) -> None:
+    """One trajectory (N, 3) as a line, a circle at its first pose."""
     ax.plot(xy[:, 0], xy[:, 1], color=color, linewidth=1.5, label=name)
     if len(xy):
         ax.plot(xy[0, 0], xy[0, 1], marker="o", color=color, markersize=6, linestyle="none")

@@ -56,6 +56,7 @@ __all__ = [
     "BagExistsError",
     "RosbagWarning",
     "bag_message_types",
+    "sidecar_path",
     "checked_bag_target",
     "from_ros_time",
     "to_ros_time",
@@ -452,12 +453,13 @@ def _frame_name(frame_id: str) -> str:
 # --- sidecar, storage, atomic writing ------------------------------------------------------
 
 
-def _sidecar_path(path: Path) -> Path:
+def sidecar_path(path: Path) -> Path:
+    """Where a bag's sidecar lies: inside a bag folder, beside a single-file (ROS 1) bag."""
     return path / SIDECAR_NAME if path.is_dir() else path.with_name(path.name + "." + SIDECAR_NAME)
 
 
 def _read_sidecar(path: Path) -> dict | None:
-    sidecar = _sidecar_path(path)
+    sidecar = sidecar_path(path)
     if not sidecar.is_file():
         return None
     try:
