@@ -494,10 +494,11 @@ def cmd_masks(args: argparse.Namespace) -> int:
 
     cal = load_calibration(args.calibration)
     changed = False
+    eroded_by = cal.edge_margin_px  # the margin the stored labels were made with
     if args.margin is not None:
         cal.edge_margin_px = args.margin
     if args.export:
-        polygons = cal.polygons or polygons_from_labels(cal.labels, cal.names)
+        polygons = cal.polygons or polygons_from_labels(cal.labels, cal.names, margin_px=eroded_by)
         write_polygon_file(args.export, polygons)
         print(f"wrote {args.export}: {len(polygons)} polygons; edit and redraw with --polygons")
     if args.polygons:

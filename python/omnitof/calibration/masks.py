@@ -126,14 +126,30 @@ def labels_from_polygons(
     return labels
 
 
+def grow_labels(labels: np.ndarray, margin_px: float) -> np.ndarray:
+    """The edge margin given back: every unlabelled pixel within margin_px (centre to centre)
+    of a labelled one joins the nearest labelled pixel's region. Undoes `erode_labels` up to
+    the regions' corners, so that outlines drawn from eroded labels and eroded again on
+    redrawing keep the pixels they had."""
+    labels = np.asarray(labels, dtype=np.int32)
+    margin = float(margin_px)
+    if margin <= 0.0 or not (labels >= 0).any():
+        return labels.copy()
+    distance, (rows, cols) = distance_transform_edt(labels < 0, return_indices=True)
+    return np.where((labels < 0) & (distance <= margin), labels[rows, cols], labels).astype(np.int32)
+
+
 def polygons_from_labels(
-    labels: np.ndarray, names: Sequence[str], tolerance_px: float = 0.7
+    labels: np.ndarray, names: Sequence[str], tolerance_px: float = 0.1, margin_px: float = 0.0
 ) -> dict[str, np.ndarray]:
     """Per mirror, the outline (K, 2) of its largest region (u, v through the boundary pixels'
-    centres), simplified to within tolerance_px (cv2.approxPolyDP)."""
+    centres), simplified to within tolerance_px (cv2.approxPolyDP). `margin_px`: the edge
+    margin the labels were eroded by, grown back first (`grow_labels`), so that
+    `labels_from_polygons` with the same margin draws the same masks again."""
+    labels = grow_labels(labels, margin_px)
     out: dict[str, np.ndarray] = {}
     for index, name in enumerate(names):
-        region = (np.asarray(labels) == index).astype(np.uint8)
+        region = (labels == index).astype(np.uint8)
         if not region.any():
             continue
         contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
