@@ -6,14 +6,17 @@ fit never saw comes out nearer the exact distance with it than without it."""
 from __future__ import annotations
 
 import math
+import warnings
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from omnitof.calibration import Calibration
 from omnitof.calibration.simulated import calibrate_from_simulation
 from omnitof.calibration.targets import PlainBoard, Room, render_target_frames
 from omnitof.calibration.walls import average_frames, view_axes, wall_pose
+from omnitof.errors import OmnitofWarning
 from omnitof.scan import ScanExtractor
 from omnitof.sensor.design import default_rig
 from omnitof.sensor.mirrors import assign_pixels
@@ -105,8 +108,10 @@ def test_calibrate_distance_fits_the_correction_from_recorded_walls(tmp_path, ca
     listing = write_wall_recordings(tmp_path / "walls", recordings, [m.name for m in rig.mirrors])
     truth = Calibration.from_rig(rig)
     save_calibration(truth, tmp_path / "cal.yaml")
-    assert main(["calibrate", "distance", str(listing), "--calibration", str(tmp_path / "cal.yaml"),
-                 "--out", str(tmp_path / "corrected.yaml")]) == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", OmnitofWarning)  # walls out to 6.5 m: no warning of a narrow span
+        assert main(["calibrate", "distance", str(listing), "--calibration", str(tmp_path / "cal.yaml"),
+                     "--out", str(tmp_path / "corrected.yaml")]) == 0
     assert "fitted the distance correction" in capsys.readouterr().out
     dc = load_calibration(tmp_path / "corrected.yaml").distance_correction
     assert dc is not None
@@ -130,6 +135,26 @@ def test_calibrate_distance_fits_the_correction_from_recorded_walls(tmp_path, ca
     assert max(np.abs(before)) > 20.0  # the errors were there to correct
     assert max(np.abs(after)) <= 5.0 and np.mean(np.abs(after)) < 0.25 * np.mean(np.abs(before))
     assert max(np.abs(as_square)) > max(np.abs(after))
+
+
+def test_calibrate_distance_from_walls_at_one_distance_warns(tmp_path, capsys):
+    # It fitted a correction over 0.58–0.77 m of measured distance and said nothing, though
+    # beyond that span the correction holds its end values: no correction of the wiggling.
+    from omnitof.calibration import load_calibration, save_calibration
+    from omnitof.calibration.walls import MIN_FITTED_SPAN, render_wall_recordings, write_wall_recordings
+    from omnitof.cli import main
+
+    rig = default_rig()
+    sensor = SensorNoise(errors=ToFErrors().only("wiggling"))
+    rendered = render_wall_recordings(rig.camera, rig.mirrors, 3, sensor=sensor, distances=[1.0], frames=1)
+    listing = write_wall_recordings(tmp_path / "walls", [r for r, _ in rendered], [m.name for m in rig.mirrors])
+    save_calibration(Calibration.from_rig(rig), tmp_path / "cal.yaml")
+    with pytest.warns(OmnitofWarning, match="fitted to measured distances") as caught:
+        assert main(["calibrate", "distance", str(listing), "--calibration", str(tmp_path / "cal.yaml"),
+                     "--out", str(tmp_path / "corrected.yaml")]) == 0
+    lo, hi = load_calibration(tmp_path / "corrected.yaml").distance_correction.fitted_span
+    assert 0.9 < lo < hi < 1.0 + MIN_FITTED_SPAN  # one wall's readings: about a metre
+    assert f"fitted to measured distances {lo:.2f}–{hi:.2f} m only" in str(caught[0].message)
 
 
 def test_calibrate_distance_refuses_a_walls_file_that_lacks_what_it_needs(tmp_path, capsys):

@@ -95,6 +95,12 @@ class DistanceCorrection:
     rms_after: float = math.nan
     curve: dict[str, list[float]] | None = None
 
+    @property
+    def fitted_span(self) -> tuple[float, float]:
+        """The measured distances (metres) the wiggling curve was fitted over; outside them it
+        holds its end values."""
+        return float(self.distance_knots[DEGREE]), float(self.distance_knots[-DEGREE - 1])
+
     # --- use --------------------------------------------------------------------------------
 
     def error(self, distance: np.ndarray, amplitude: np.ndarray, pixels: np.ndarray | None = None) -> np.ndarray:

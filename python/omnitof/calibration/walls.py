@@ -23,6 +23,7 @@ design, rendered with the sensor's noise and systematic errors (`sensor.tof_erro
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,7 +33,7 @@ import numpy as np
 import yaml
 
 from omnitof.calibration.distance import DistanceCorrection, samples_from_plane
-from omnitof.errors import dump_yaml, load_yaml, yaml_problem
+from omnitof.errors import OmnitofWarning, dump_yaml, load_yaml, yaml_problem
 
 # Wall distances (metres, horizontal, from the centre of the mirror's view): the scans' range
 # (ScanSettings.max_range 7 m; oblique rays reach the 7.49 m unambiguous range beyond 5 m).
@@ -49,6 +50,10 @@ MIN_TURN_PIXELS = 2000
 # Pixels darker than this (sample units) are left out, as the scan extraction leaves them out
 # (`ScanSettings.min_amplitude`).
 MIN_AMPLITUDE = 40.0
+# The measured distances a correction must span not to warn (metres): one period of the
+# wiggling (a quarter of the 5 m unambiguous range, `distance.DISTANCE_KNOT_SPACING`). Beyond
+# the fitted span the correction holds its end values, which is no correction of a wiggle.
+MIN_FITTED_SPAN = 1.25
 
 
 @dataclass
@@ -230,6 +235,12 @@ def fit_from_recordings(calibration: Any, recordings: Sequence[WallRecording],
     for _ in range(rounds):
         views = [recorded_view(calibration, r, correction=correction, rays=rays) for r in recordings]
         correction = fit_from_walls(calibration, views)
+    lo, hi = correction.fitted_span
+    if hi - lo < MIN_FITTED_SPAN:
+        warnings.warn(OmnitofWarning(
+            f"the distance correction is fitted to measured distances {lo:.2f}–{hi:.2f} m only and holds its end "
+            f"values beyond them: record walls spread over at least {MIN_FITTED_SPAN:g} m (the wiggling repeats "
+            f"every {MIN_FITTED_SPAN:g} m), out to the range the scans use"), stacklevel=2)
     return correction, views
 
 
