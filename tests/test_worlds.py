@@ -187,6 +187,17 @@ def test_extends_takes_over_and_replaces_keys(tmp_path):
     assert (world.name, world.ceiling_height, len(world.quads)) == ("child", 3.0, 1)
 
 
+def test_extends_a_bundled_world(tmp_path):
+    # `extends: office` beside no office.yaml was refused, though a user's variant of a bundled
+    # world is what the key is for; a file of that name beside it still comes first.
+    bundled = load_world("office")
+    variant = load_world(write(tmp_path, "extends: office\nname: my office\nceiling_height: 3.1\n", "mine.yaml"))
+    assert (variant.name, variant.ceiling_height) == ("my office", 3.1)
+    assert len(variant.quads) == len(bundled.quads) and variant.landmarks == bundled.landmarks
+    write(tmp_path, "name: base\nceiling_height: 2.5\nwalls:\n  - points: [[0, 0], [4, 0]]\n", "office.yaml")
+    assert len(load_world(tmp_path / "mine.yaml").quads) == 1
+
+
 # --- the loader refuses bad files -------------------------------------------------------------
 
 BAD_FILES = [
@@ -285,7 +296,8 @@ def test_extends_cycles_and_missing_bases_are_refused(tmp_path):
     with pytest.raises(WorldError, match="cycle"):
         load_world(tmp_path / "a.yaml")
     lonely = write(tmp_path, "extends: nowhere\nname: c\n", "c.yaml")
-    with pytest.raises(WorldError, match="extends: no world file 'nowhere.yaml'"):
+    with pytest.raises(WorldError, match="extends: no world file 'nowhere.yaml' beside this one, nor a bundled world "
+                                         r"of that name \(corridor1, corridor2, office, room\)"):
         load_world(lonely)
 
 

@@ -19,8 +19,9 @@ A world file (`omnitof/worlds/<name>.yaml`, package data) describes one floor of
   Table I): `position`, `direction_deg` of the measurement, true `distance`, `height`;
 - `path`: the robot's loop as `waypoints` (closed unless `closed: false`), driven `laps` times (1 to 10 000; an open path once);
   each waypoint within the walls' and boxes' extent and outside the boxes the robot cannot pass;
-- `extends`: another world file (name in the same folder, without .yaml) whose keys this one
-  takes over and may replace, key by key; a name starting with "_" is a shared part, not a world.
+- `extends`: another world file (name in the same folder, without .yaml; else a bundled world
+  of that name) whose keys this one takes over and may replace, key by key; a name starting with
+  "_" is a shared part, not a world.
 
 Frames and units: world x, y on the floor, z up, metres; angles in the file in degrees
 (`*_deg`), in radians everywhere in code. A bearing is counter-clockwise from +x.
@@ -551,9 +552,14 @@ def _read_merged(path: Path, chain: tuple[Path, ...]) -> dict:
         return data
     if not isinstance(base_name, str):
         raise WorldError("extends: must be the name of another world file", path)
-    base_path = path.parent / (base_name if base_name.endswith(".yaml") else f"{base_name}.yaml")
+    file_name = base_name if base_name.endswith(".yaml") else f"{base_name}.yaml"
+    base_path = path.parent / file_name
     if not base_path.is_file():
-        raise WorldError(f"extends: no world file {base_path.name!r} beside this one", path)
+        # A user's variant of a bundled world (`extends: office`) takes the bundled file.
+        base_path = worlds_folder() / file_name
+        if "/" in base_name or "\\" in base_name or not base_path.is_file():
+            raise WorldError(f"extends: no world file {file_name!r} beside this one, nor a bundled world of that "
+                             f"name ({', '.join(world_names())})", path)
     merged = _read_merged(base_path, chain + (resolved,))
     merged.update(data)
     return merged
