@@ -286,6 +286,30 @@ def cmd_eval_relations(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_eval_ate(args: argparse.Namespace) -> int:
+    from omnitof.errors import dump_yaml
+    from omnitof.eval.ate import evaluate_ate
+    from omnitof.io.atomic import atomic_write
+    from omnitof.io.tum import read_tum
+
+    result, estimate, truth = evaluate_ate(
+        read_tum(args.estimate), read_tum(args.truth), align=args.align, max_diff=args.max_diff,
+        sources=(args.estimate, args.truth),
+    )
+    print(result.format())
+    if args.figure is not None:
+        from omnitof.viz.maps import plot_trajectory_errors
+
+        plot_trajectory_errors(args.figure, estimate, truth,
+                               title=f"{Path(args.estimate).name} against {Path(args.truth).name} ({args.align})")
+        print(f"wrote {args.figure}")
+    if args.out is not None:
+        with atomic_write(args.out) as f:
+            dump_yaml(result.to_dict(), f, sort_keys=False)
+        print(f"wrote {args.out}")
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "report":
         if args.folder is None or args.out is not None:
@@ -522,6 +546,21 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("relations", type=Path, help="relations file: t1 t2 x y z roll pitch yaw")
     e.add_argument("--tolerance", type=_number(at_least=0), default=1e-3, help="timestamp match tolerance (s)")
     e.set_defaults(func=cmd_eval_relations)
+    e = esub.add_parser("ate", help="absolute trajectory error of a TUM trajectory against a TUM ground truth, "
+                        "after aligning their frames",
+                        description="Pairs each estimate pose with the truth's nearest in time (within --max-diff), "
+                        "aligns the estimate to the truth (rigid by default: a SLAM map's frame is its own) and "
+                        "prints the position and heading errors. docs/guide/evaluation.md.")
+    e.add_argument("estimate", type=Path, help="the estimated trajectory (TUM), e.g. a run's trajectory.tum")
+    e.add_argument("truth", type=Path, help="the ground truth (TUM) on the same clock")
+    e.add_argument("--align", choices=("none", "rigid", "similarity"), default="rigid",
+                   help="fit a rotation and translation (rigid, default), and a scale (similarity), or none "
+                   "(the frames are the same, as in omnitof's simulated runs)")
+    e.add_argument("--max-diff", type=_number(at_least=0), default=0.01,
+                   help="largest time difference of a pair of poses (s; default 0.01)")
+    e.add_argument("--figure", type=Path, help="draw the truth and the aligned estimate, coloured by error (PNG)")
+    e.add_argument("--out", type=Path, help="write the result as YAML")
+    e.set_defaults(func=cmd_eval_ate)
 
     p = sub.add_parser("bench", help="run an experiment (inputs × presets × settings × seeds) on Dask; "
                        "`bench report DIR` rebuilds its table and figures",

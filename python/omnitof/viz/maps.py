@@ -177,3 +177,40 @@ def _draw_trajectory(ax: Axes, name: str, xy: np.ndarray, *, color: str) -> None
     ax.plot(xy[:, 0], xy[:, 1], color=color, linewidth=1.5, label=name)
     if len(xy):
         ax.plot(xy[0, 0], xy[0, 1], marker="o", color=color, markersize=6, linestyle="none")
+
+
+def plot_trajectory_errors(
+    path: str | Path,
+    estimate: np.ndarray,
+    truth: np.ndarray,
+    *,
+    title: str = "",
+    dpi: int = 150,
+    figsize: tuple[float, float] = DEFAULT_FIGSIZE,
+) -> Figure:
+    """Draw a ground truth and an estimate paired with it pose by pose ((N, 3) each, the
+    estimate already aligned, `omnitof.eval.ate`) as a PNG at `path`: the truth grey, the
+    estimate coloured by its position error (metres, colour bar)."""
+    estimate = _poses("estimate", estimate)
+    truth = _poses("truth", truth)
+    if estimate.shape != truth.shape:
+        raise ValueError(f"the estimate's {len(estimate)} poses must pair with as many of the truth, got {len(truth)}")
+    fig = Figure(figsize=figsize, dpi=dpi)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    ax.plot(truth[:, 0], truth[:, 1], color="0.6", linewidth=2.0, label="truth")
+    error = np.hypot(estimate[:, 0] - truth[:, 0], estimate[:, 1] - truth[:, 1])
+    if len(estimate) > 1:
+        segments = np.stack([estimate[:-1, :2], estimate[1:, :2]], axis=1)
+        lines = LineCollection(segments, cmap="viridis", linewidths=1.5, label="estimate")
+        lines.set_array(0.5 * (error[:-1] + error[1:]))
+        ax.add_collection(lines)
+        fig.colorbar(lines, ax=ax, label="position error [m]", shrink=0.8)
+    ax.plot(estimate[:1, 0], estimate[:1, 1], "o", color="C0", markersize=6, label="start")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.autoscale_view()
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(title or "trajectory error")
+    ax.legend(loc="best")
+    return save_figure(fig, path, dpi=dpi)
