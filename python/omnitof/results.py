@@ -8,6 +8,8 @@
     config.yaml           the configuration actually used
     map.png               the map with the SLAM and odometry trajectories drawn over it
     pose_graph.png        with the back end: its nodes and loop closures over the map
+    pose_graph.g2o        with the back end: its last optimisation's graph (the optimised nodes, the
+                          front end's edges and the kept closures) in g2o's text format
     summary.yaml          counts, timings and any evaluation
     map3d.ply, map3d.png  the 3D voxel map of a ToF run, when asked (`write_voxel_outputs`); with
                           the 3D filter, its best particle's (map.pgm is then its projection)
@@ -37,6 +39,7 @@ from omnitof.errors import OmnitofWarning, OutputError, dump_yaml
 from omnitof.interrupts import pause_point
 from omnitof.slam.config import SlamConfig
 from omnitof.io.atomic import atomic_folder, atomic_write
+from omnitof.io.g2o import write_g2o
 from omnitof.io.rosmap import write_ros_map
 from omnitof.io.tum import write_tum
 from omnitof.slam import SlamResult
@@ -50,7 +53,7 @@ from omnitof.io.ply import write_ply
 # holding anything else is not replaced: it is not (only) a results folder.
 RESULT_FILES = frozenset({
     "map.pgm", "map.yaml", "map.png", "trajectory.tum", "odometry.tum", "ground_truth.tum",
-    "config.yaml", "summary.yaml", "pose_graph.png", "map3d.ply", "map3d.png", "trajectory_2d.tum",
+    "config.yaml", "summary.yaml", "pose_graph.png", "pose_graph.g2o", "map3d.ply", "map3d.png", "trajectory_2d.tum",
     # omnitof demo
     "report.md", "overlay.png", "table1.txt", "calibration.yaml", "fig3_amplitude.png",
     "fig3_depth.png", "scan.png", "slice.png",
@@ -147,6 +150,10 @@ def write_results(
         plot_pose_graph(paths["pose_graph"], result.map, result.graph["nodes"], result.graph["closures"],
                         result.graph["rejected"], relocalised=result.graph.get("relocalised"),
                         title=f"pose graph: {title}" if title else "")
+        if "edges" in result.graph:
+            paths["pose_graph_g2o"] = out / "pose_graph.g2o"
+            write_g2o(paths["pose_graph_g2o"], result.graph["nodes"], result.graph["edges"],
+                      result.graph["measured"], result.graph["information"])
     summary = {"run": result.stats, **(extra or {}), "tum_poses_merged": merged}
     with atomic_write(paths["summary"]) as f:
         dump_yaml(summary, f, sort_keys=False)

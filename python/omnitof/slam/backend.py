@@ -767,12 +767,24 @@ class PoseGraphBackend:
 
     def graph(self, nodes: np.ndarray) -> dict:
         """SlamResult.graph: the nodes' poses `nodes` (K, 3), the closures kept and rejected as
-        (anchor, node) pairs, and the relocalised nodes."""
+        (anchor, node) pairs, the relocalised nodes, and the edges of the last optimisation
+        (`edges` (E, 2) node pairs, `measured` (E, 3) relative poses, `information` (E, 3, 3)):
+        the front end's (the wheels' into the relocalisations it spread) and the kept closures,
+        whose robust kernel is left out (it has done its work: the rejected ones are not there)."""
         def pairs(kept: bool) -> np.ndarray:
             edges = [[c.anchor, c.node] for c in self.closures if bool(c.accepted) == kept]
             return np.array(edges, dtype=np.int64).reshape(-1, 2)
+        front = self._edges(self.spread)
+        kept = [c for c in self.closures if c.accepted]
+        edges = [[j, j + 1] for j in range(len(front))] + [[c.anchor, c.node] for c in kept]
+        measured = [np.asarray(e, dtype=np.float64) for e in front] + [np.asarray(c.measured, dtype=np.float64) for c in kept]
+        information = ([np.diag(1.0 / self._odometry_sigmas(e) ** 2) for e in front]
+                       + [np.linalg.inv(self._closure_covariance(c)) for c in kept])
         return {"nodes": nodes, "closures": pairs(True), "rejected": pairs(False),
-                "relocalised": np.array(sorted(self.relocalisations), dtype=np.int64)}
+                "relocalised": np.array(sorted(self.relocalisations), dtype=np.int64),
+                "edges": np.array(edges, dtype=np.int64).reshape(-1, 2),
+                "measured": np.array(measured, dtype=np.float64).reshape(-1, 3),
+                "information": np.array(information, dtype=np.float64).reshape(-1, 3, 3)}
 
     def correction_table(self) -> list[dict]:
         """Every correction of the odometry check, for summary.yaml: its scan, the recent map's
