@@ -124,3 +124,42 @@ def test_eval_ate_command(tmp_path: Path, capsys):
     assert main(["eval", "ate", str(tmp_path / "est.tum"), str(tmp_path / "other.tum")]) == 2
     err = capsys.readouterr().err
     assert "est.tum: no pose lies within 0.01 s" in err and "other.tum" in err and "Traceback" not in err
+
+
+# --- relative pose error (`eval rpe`: relations made from the truth) ---------------------------
+
+
+def test_relations_along_the_truth_pair_poses_delta_apart():
+    from omnitof.eval.relations import relations_along
+
+    # A straight drive at 0.5 m per pose, 0.2 s apart: 1 m of path is two poses, 1 s five.
+    truth = Trajectory(T0 + 0.2 * np.arange(11), np.column_stack([0.5 * np.arange(11), np.zeros(11), np.zeros(11)]))
+    by_metre = relations_along(truth, 1.0, "m")
+    assert len(by_metre) == 9
+    np.testing.assert_allclose(by_metre.t2 - by_metre.t1, 0.4, atol=1e-6)
+    np.testing.assert_allclose(by_metre.delta, [[1.0, 0.0, 0.0]] * 9)
+    by_second = relations_along(truth, 1.0, "s")
+    assert len(by_second) == 6 and np.allclose(by_second.delta[:, 0], 2.5)
+    assert len(relations_along(truth, 3, "f")) == 8
+    assert len(relations_along(truth, 100.0, "m")) == 0
+    with pytest.raises(ValueError, match="unit"):
+        relations_along(truth, 1.0, "km")
+
+
+def test_rpe_of_a_trajectory_that_reads_every_step_long(tmp_path: Path, capsys):
+    # The estimate drives the truth's straight line 2 % long: every 1 m of truth is 1.02 m of
+    # estimate, a translational error of exactly 0.02 m and none in rotation.
+    truth = Trajectory(T0 + 0.1 * np.arange(101), np.column_stack([0.1 * np.arange(101), np.zeros(101), np.zeros(101)]))
+    long = Trajectory(truth.timestamps, truth.poses * [1.02, 1.0, 1.0])
+    write_tum(tmp_path / "est.tum", long)
+    write_tum(tmp_path / "gt.tum", truth)
+    assert main(["eval", "rpe", str(tmp_path / "est.tum"), str(tmp_path / "gt.tum"), "--out", str(tmp_path / "rpe.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert "per metre of path: 2.00 % of the distance, 0.000 deg/m" in out
+    saved = yaml.safe_load((tmp_path / "rpe.yaml").read_text())
+    assert saved["matched"] == 91 and saved["trans_mean"] == pytest.approx(0.02) and saved["rot_mean_deg"] == pytest.approx(0.0)
+    # Too long a delta, or a fraction of a pose: one line, exit 2.
+    assert main(["eval", "rpe", str(tmp_path / "est.tum"), str(tmp_path / "gt.tum"), "--delta", "50"]) == 2
+    assert "gt.tum: the truth is shorter than --delta 50" in capsys.readouterr().err
+    assert main(["eval", "rpe", str(tmp_path / "est.tum"), str(tmp_path / "gt.tum"), "--delta", "1.5", "--unit", "f"]) == 2
+    assert "whole number" in capsys.readouterr().err

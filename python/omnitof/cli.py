@@ -310,6 +310,43 @@ def cmd_eval_ate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_eval_rpe(args: argparse.Namespace) -> int:
+    from omnitof.errors import InputError, dump_yaml
+    from omnitof.eval.relations import RELATION_UNITS, evaluate_relations, relations_along
+    from omnitof.io.atomic import atomic_write
+    from omnitof.io.tum import read_tum
+
+    if args.unit == "f" and args.delta != int(args.delta):
+        raise InputError(f"--delta {args.delta:g} --unit f: a number of poses must be a whole number")
+    truth = read_tum(args.truth)
+    relations = relations_along(truth, args.delta, args.unit)
+    if not len(relations):
+        raise InputError(f"the truth is shorter than --delta {args.delta:g} {RELATION_UNITS[args.unit]}: no pair of its "
+                         "poses lies that far apart", args.truth)
+    result = evaluate_relations(read_tum(args.estimate), relations, time_tolerance=args.max_diff,
+                                source=args.estimate)
+    trans_rmse, rot_rmse = math.sqrt(result.trans2_mean), math.sqrt(result.rot2_mean)
+    print(f"relative pose error over {args.delta:g} {RELATION_UNITS[args.unit]}: {result.n_matched} of "
+          f"{result.n_relations} pairs matched (within {args.max_diff:g} s)")
+    print(f"{'error':<18}{'mean':>10}{'std':>10}{'rmse':>10}")
+    for name, mean, std, rmse in (("translation [m]", result.trans_mean, result.trans_std, trans_rmse),
+                                  ("rotation [deg]", result.rot_mean, result.rot_std, rot_rmse)):
+        print(f"{name:<18}{mean:>10.4f}{std:>10.4f}{rmse:>10.4f}")
+    if args.unit == "m":
+        print(f"per metre of path: {100 * result.trans_mean / args.delta:.2f} % of the distance, "
+              f"{result.rot_mean / args.delta:.3f} deg/m")
+    if args.out is not None:
+        summary = {"delta": args.delta, "unit": args.unit, "max_diff_s": args.max_diff, "pairs": result.n_relations,
+                   "matched": result.n_matched, "trans_mean": result.trans_mean, "trans_std": result.trans_std,
+                   "trans_rmse": trans_rmse, "rot_mean_deg": result.rot_mean, "rot_std_deg": result.rot_std,
+                   "rot_rmse_deg": rot_rmse}
+        with atomic_write(args.out) as f:
+            dump_yaml({k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in summary.items()}, f,
+                      sort_keys=False)
+        print(f"wrote {args.out}")
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "report":
         if args.folder is None or args.out is not None:
@@ -561,6 +598,20 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--figure", type=Path, help="draw the truth and the aligned estimate, coloured by error (PNG)")
     e.add_argument("--out", type=Path, help="write the result as YAML")
     e.set_defaults(func=cmd_eval_ate)
+    e = esub.add_parser("rpe", help="relative pose error of a TUM trajectory against a TUM ground truth, over a "
+                        "fixed distance, time or number of poses",
+                        description="Pairs each truth pose with the first one --delta further along it and scores the "
+                        "estimate's relative motion between the same times against the truth's (no alignment "
+                        "needed). docs/guide/evaluation.md.")
+    e.add_argument("estimate", type=Path, help="the estimated trajectory (TUM)")
+    e.add_argument("truth", type=Path, help="the ground truth (TUM) on the same clock")
+    e.add_argument("--delta", type=_number(above=0), default=1.0, help="how far apart the paired poses are (default 1)")
+    e.add_argument("--unit", choices=("m", "s", "f"), default="m",
+                   help="of --delta: metres of the truth's path (default), seconds, or poses")
+    e.add_argument("--max-diff", type=_number(at_least=0), default=0.01,
+                   help="largest time difference between a truth pose and the estimate's (s; default 0.01)")
+    e.add_argument("--out", type=Path, help="write the result as YAML")
+    e.set_defaults(func=cmd_eval_rpe)
 
     p = sub.add_parser("bench", help="run an experiment (inputs × presets × settings × seeds) on Dask; "
                        "`bench report DIR` rebuilds its table and figures",

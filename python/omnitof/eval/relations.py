@@ -118,6 +118,37 @@ def read_relations(path: str | Path) -> Relations:
     return Relations(t1=data[:, 0], t2=data[:, 1], delta=data[:, [2, 3, 7]], source=str(path))
 
 
+RELATION_UNITS = {"m": "m of the truth's path", "s": "s", "f": "poses"}
+
+
+def relations_along(truth: Trajectory, delta: float, unit: str = "m") -> Relations:
+    """Relations made from a ground truth: from each of its poses to the first one at least
+    `delta` further along it, in metres of path ("m"), seconds ("s") or poses ("f"). Scored with
+    `evaluate_relations`, they give the relative pose error (RPE) of a trajectory, as evo_rpe
+    and the TUM RGB-D benchmark define it, over the same distance everywhere.
+
+    Raises:
+        ValueError: for a unit other than m, s, f or a `delta` that is not positive (a whole
+            number of poses for "f").
+    """
+    if unit not in RELATION_UNITS:
+        raise ValueError(f"unit must be one of {', '.join(RELATION_UNITS)}, got {unit!r}")
+    if not (math.isfinite(delta) and delta > 0) or (unit == "f" and delta != int(delta)):
+        raise ValueError(f"delta must be a positive {'whole number' if unit == 'f' else 'number'}, got {delta!r}")
+    poses, stamps = truth.poses, truth.timestamps
+    n = len(truth)
+    if unit == "f":
+        first = np.arange(n) + int(delta)
+    else:
+        along = stamps - stamps[0] if unit == "s" else np.r_[0.0, np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))]
+        # A small tolerance: a pose that a rounding error puts a hair short of delta still counts.
+        first = np.searchsorted(along, along + delta - 1e-9 * max(1.0, delta), side="left")
+    i = np.flatnonzero(first < n)
+    j = first[i]
+    return Relations(stamps[i], stamps[j], relative(poses[i], poses[j]),
+                     source=f"pairs of truth poses {delta:g} {RELATION_UNITS[unit]} apart")
+
+
 def _parse_relation(text: str, path: str | Path, number: int) -> list[float]:
     row = parse_float_row(text, 8, ROW_MESSAGE, path, number, names=_FIELDS, limits=_LIMITS)
     for name, t in zip(("t1", "t2"), row[:2]):
