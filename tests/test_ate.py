@@ -4,6 +4,7 @@ alignment, against transforms applied by hand and against a numerical least squa
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -157,9 +158,71 @@ def test_rpe_of_a_trajectory_that_reads_every_step_long(tmp_path: Path, capsys):
     out = capsys.readouterr().out
     assert "per metre of path: 2.00 % of the distance, 0.000 deg/m" in out
     saved = yaml.safe_load((tmp_path / "rpe.yaml").read_text())
-    assert saved["matched"] == 91 and saved["trans_mean"] == pytest.approx(0.02) and saved["rot_mean_deg"] == pytest.approx(0.0)
+    assert saved["pairs"] == 91 and saved["trans_mean"] == pytest.approx(0.02) and saved["rot_mean_deg"] == pytest.approx(0.0)
     # Too long a delta, or a fraction of a pose: one line, exit 2.
     assert main(["eval", "rpe", str(tmp_path / "est.tum"), str(tmp_path / "gt.tum"), "--delta", "50"]) == 2
-    assert "gt.tum: the truth is shorter than --delta 50" in capsys.readouterr().err
+    assert "gt.tum: no two poses paired with the estimate lie 50 m of the truth's path apart" in capsys.readouterr().err
     assert main(["eval", "rpe", str(tmp_path / "est.tum"), str(tmp_path / "gt.tum"), "--delta", "1.5", "--unit", "f"]) == 2
     assert "whole number" in capsys.readouterr().err
+
+
+def test_rpe_of_an_exact_estimate_is_zero_whichever_is_recorded_faster():
+    # Motion capture at 120 Hz, SLAM at 10 Hz 3 ms late, exactly on the truth's path: relations
+    # between truth poses that no estimate pose stands at put time offsets into the error
+    # (0.52 % per metre before pairing first).
+    from omnitof.eval.rpe import evaluate_rpe
+
+    def line(stamps):
+        return Trajectory(stamps, np.column_stack([stamps - T0, np.zeros(len(stamps)), np.zeros(len(stamps))]))
+
+    mocap = line(T0 + np.arange(0, 30, 1 / 120))
+    slam = line(T0 + 0.003 + np.arange(0, 30, 0.1))
+    slam.poses[:, 0] -= 0.003  # on the truth's path at its own time: 1 m/s
+    for estimate, truth in ((slam, mocap), (mocap, slam)):
+        result = evaluate_rpe(estimate, truth, delta=1.0)
+        assert result.n_paired == 300 and result.relations.trans_mean < 1e-9
+
+
+def test_rpe_never_pairs_a_pose_with_itself_and_warns_of_gaps():
+    from omnitof.errors import OmnitofWarning
+    from omnitof.eval.relations import relations_along
+    from omnitof.eval.rpe import evaluate_rpe
+
+    truth = _walk(40, 4)
+    for unit in ("m", "s"):
+        tiny = relations_along(truth, 1e-12, unit)
+        assert len(tiny) == 39 and np.all(tiny.t2 > tiny.t1)
+    assert len(relations_along(truth, 1e30, "f")) == 0  # no integer overflow
+    still = Trajectory(truth.timestamps, np.tile(truth.poses[:1], (40, 1)))
+    with pytest.warns(OmnitofWarning, match="poses further apart than --delta"):
+        assert evaluate_rpe(still, truth, delta=1e-9).relations.trans_mean > 0.1  # a robot that stood still is wrong
+    # A truth with a 7 s gap: the pairs across it are named.
+    gap = Trajectory(np.r_[truth.timestamps[:20], truth.timestamps[20:] + 7.0], truth.poses)
+    with pytest.warns(OmnitofWarning, match=r"1 of 39 pairs 0\.1 s apart span up to 7\.1 s"):
+        evaluate_rpe(gap, gap, delta=0.1, unit="s")
+    with pytest.warns(OmnitofWarning, match=r"1 of 39 pairs 1 poses apart span up to 7\.1 s"):
+        evaluate_rpe(gap, gap, delta=1, unit="f")
+    with warnings.catch_warnings():  # a robot that stands still for a minute bridges no gap in metres
+        warnings.simplefilter("error", OmnitofWarning)
+        line = np.column_stack([0.1 * np.arange(40), np.zeros(40), np.zeros(40)])
+        stop = Trajectory(np.r_[truth.timestamps[:20], truth.timestamps[20:] + 60.0], line)
+        assert evaluate_rpe(stop, stop, delta=1.0).relations.trans_mean < 1e-9
+
+
+def test_eval_outputs_are_checked_before_any_work(tmp_path: Path, capsys):
+    estimate = _walk(20, 8)
+    write_tum(tmp_path / "est.tum", estimate)
+    write_tum(tmp_path / "gt.tum", estimate)
+    before = (tmp_path / "est.tum").read_bytes()
+    # --out into a missing folder: the figure is not drawn first.
+    assert main(["eval", "ate", str(tmp_path / "est.tum"), str(tmp_path / "gt.tum"), "--figure",
+                 str(tmp_path / "ate.png"), "--out", str(tmp_path / "no" / "ate.yaml")]) == 2
+    assert "its folder does not exist" in capsys.readouterr().err and not (tmp_path / "ate.png").exists()
+    # An output that is an input is refused, the input kept.
+    for command in ("ate", "rpe"):
+        assert main(["eval", command, str(tmp_path / "est.tum"), str(tmp_path / "gt.tum"), "--out",
+                     str(tmp_path / "est.tum")]) == 2
+        assert "is one of the inputs" in capsys.readouterr().err
+    assert (tmp_path / "est.tum").read_bytes() == before
+    assert main(["eval", "rpe", str(tmp_path / "est.tum"), str(tmp_path / "gt.tum"), "--unit", "f", "--delta", "1e19"]) == 2
+    assert "gt.tum: no two poses paired with the estimate lie 1e+19 poses apart" in capsys.readouterr().err

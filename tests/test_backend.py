@@ -47,18 +47,21 @@ def test_backend_repairs_a_loop_the_front_end_got_wrong(wrong_turn):
     assert len(repaired.graph["nodes"]) == len(repaired.integrated)
 
 
-def test_the_pose_graph_written_as_g2o_is_the_one_optimised(wrong_turn, tmp_path):
+@pytest.mark.parametrize("kernel, within", [("none", 1e-5), ("cauchy", 0.005)])
+def test_the_pose_graph_written_as_g2o_is_the_one_optimised(wrong_turn, tmp_path, kernel, within):
     # pose_graph.g2o read back by GTSAM's own reader: the vertices are the run's nodes, every
-    # front-end edge and kept closure is there, and the graph's optimum is where the run put its
-    # nodes. The format has no robust kernel, so the run's is off here (with the default Cauchy
-    # kernel the file's Gaussian optimum lies 2.5 cm from the run's nodes at most, on this loop).
+    # front-end edge and kept closure is there, and the plain least squares of its edges puts the
+    # nodes where the run did. The format has no robust kernel: each closure's information is
+    # written times the kernel's weight at the run's optimum (without it, the file's optimum lay
+    # up to 2.5 cm from the run's nodes here, 9.8 cm on Intel). Without a kernel the two are the
+    # same optimum; with the default Cauchy kernel, within the run's convergence (measured 0.9 mm).
     import gtsam
 
     from omnitof.results import write_results
 
     cfg = load_config(preset="sim2d", overrides={
         "filter": {"proposal": "scanmatch", "particles": 10}, "scan_matcher": {"odometry_prior": True},
-        "backend": {"enabled": True, "robust_kernel": "none"},
+        "backend": {"enabled": True, "robust_kernel": kernel},
     })
     result = run_slam(wrong_turn, cfg)
     write_results(tmp_path, result, cfg)
@@ -73,7 +76,7 @@ def test_the_pose_graph_written_as_g2o_is_the_one_optimised(wrong_turn, tmp_path
     optimum = gtsam.LevenbergMarquardtOptimizer(graph, initial).optimize()
     moved = [np.hypot(optimum.atPose2(k).x() - nodes[k, 0], optimum.atPose2(k).y() - nodes[k, 1])
              for k in range(len(nodes))]
-    assert max(moved) < 1e-5, max(moved)
+    assert max(moved) < within, max(moved)
 
 
 def _run_capturing_backend(monkeypatch, scans, cfg):

@@ -292,6 +292,7 @@ def cmd_eval_ate(args: argparse.Namespace) -> int:
     from omnitof.io.atomic import atomic_write
     from omnitof.io.tum import read_tum
 
+    _checked_eval_outputs(args, [args.figure])
     result, estimate, truth = evaluate_ate(
         read_tum(args.estimate), read_tum(args.truth), align=args.align, max_diff=args.max_diff,
         sources=(args.estimate, args.truth),
@@ -311,40 +312,33 @@ def cmd_eval_ate(args: argparse.Namespace) -> int:
 
 
 def cmd_eval_rpe(args: argparse.Namespace) -> int:
-    from omnitof.errors import InputError, dump_yaml
-    from omnitof.eval.relations import RELATION_UNITS, evaluate_relations, relations_along
+    from omnitof.errors import dump_yaml
+    from omnitof.eval.rpe import evaluate_rpe
     from omnitof.io.atomic import atomic_write
     from omnitof.io.tum import read_tum
 
     if args.unit == "f" and args.delta != int(args.delta):
-        raise InputError(f"--delta {args.delta:g} --unit f: a number of poses must be a whole number")
-    truth = read_tum(args.truth)
-    relations = relations_along(truth, args.delta, args.unit)
-    if not len(relations):
-        raise InputError(f"the truth is shorter than --delta {args.delta:g} {RELATION_UNITS[args.unit]}: no pair of its "
-                         "poses lies that far apart", args.truth)
-    result = evaluate_relations(read_tum(args.estimate), relations, time_tolerance=args.max_diff,
-                                source=args.estimate)
-    trans_rmse, rot_rmse = math.sqrt(result.trans2_mean), math.sqrt(result.rot2_mean)
-    print(f"relative pose error over {args.delta:g} {RELATION_UNITS[args.unit]}: {result.n_matched} of "
-          f"{result.n_relations} pairs matched (within {args.max_diff:g} s)")
-    print(f"{'error':<18}{'mean':>10}{'std':>10}{'rmse':>10}")
-    for name, mean, std, rmse in (("translation [m]", result.trans_mean, result.trans_std, trans_rmse),
-                                  ("rotation [deg]", result.rot_mean, result.rot_std, rot_rmse)):
-        print(f"{name:<18}{mean:>10.4f}{std:>10.4f}{rmse:>10.4f}")
-    if args.unit == "m":
-        print(f"per metre of path: {100 * result.trans_mean / args.delta:.2f} % of the distance, "
-              f"{result.rot_mean / args.delta:.3f} deg/m")
+        raise OmnitofError(f"--delta {args.delta:g} --unit f: a number of poses must be a whole number")
+    _checked_eval_outputs(args, [])
+    result = evaluate_rpe(read_tum(args.estimate), read_tum(args.truth), delta=args.delta, unit=args.unit,
+                          max_diff=args.max_diff, sources=(args.estimate, args.truth))
+    print(result.format())
     if args.out is not None:
-        summary = {"delta": args.delta, "unit": args.unit, "max_diff_s": args.max_diff, "pairs": result.n_relations,
-                   "matched": result.n_matched, "trans_mean": result.trans_mean, "trans_std": result.trans_std,
-                   "trans_rmse": trans_rmse, "rot_mean_deg": result.rot_mean, "rot_std_deg": result.rot_std,
-                   "rot_rmse_deg": rot_rmse}
         with atomic_write(args.out) as f:
-            dump_yaml({k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in summary.items()}, f,
-                      sort_keys=False)
+            dump_yaml(result.to_dict(), f, sort_keys=False)
         print(f"wrote {args.out}")
     return 0
+
+
+def _checked_eval_outputs(args: argparse.Namespace, others: list[Path | None]) -> None:
+    """`eval`'s --out (and the `others`) checked before any work, and none of them an input."""
+    inputs = {Path(os.path.abspath(p)).resolve() for p in (args.estimate, args.truth)}
+    for path, what in [(args.out, "the result (YAML)"), *((p, "the figure") for p in others)]:
+        if path is None:
+            continue
+        if Path(os.path.abspath(path)).resolve() in inputs:
+            raise OutputError(f"{path}: is one of the inputs; give the output a new name")
+        _checked_output_file(Path(path), None, what)
 
 
 def cmd_bench(args: argparse.Namespace) -> int:

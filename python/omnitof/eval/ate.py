@@ -6,13 +6,18 @@ a survey) lives in another frame, and the error of every pose is only meaningful
 estimate is moved into it. This module does what the TUM RGB-D benchmark's ATE and evo's
 `evo_ape -a` / `-as` do for planar poses (written here from the papers, not from their code):
 
-1. **Pairing**: each estimate pose with the truth pose nearest in time, if within `max_diff`
-   seconds (`relations.match_times`, the same nearest-stamp rule as the relations metric).
+1. **Pairing** (`pair_poses`): at most one estimate pose per truth pose, the nearest in time
+   within `max_diff` seconds (`relations.match_times`, the relations metric's nearest-stamp rule),
+   whichever of the two is recorded faster. Both trajectories are planar: a TUM file's z, roll
+   and pitch are not read (`io.tum.read_tum`).
 2. **Alignment** (`align`), fitted to the paired positions:
    - "none": the frames are the same (the simulator's runs, which start at the true pose);
    - "rigid": the rotation and translation minimising the sum of squared position errors;
-   - "similarity": the same with a scale, which then says how far the estimate's lengths are
-     off (a wheel-radius error that a loop closure cannot see, or a monocular scale).
+   - "similarity": the same with a scale, the factor that brings the estimate's lengths to the
+     truth's (0.909 for an estimate 1.1 times too long: a wheel-radius error that a loop
+     closure cannot see, or a monocular scale).
+   An estimate in a mirrored (left-handed) frame is not aligned by either: no rotation undoes a
+   reflection.
    Closed form of Umeyama (IEEE PAMI 13(4), 1991), eqs. 38–42, in 2D. Written by hand: scipy's
    `Rotation.align_vectors` finds a 3D rotation only (no translation, no scale), and the
    libraries that do it all (evo) are GPL.
@@ -148,6 +153,38 @@ def evaluate_ate(
     """
     if align not in ALIGNMENTS:
         raise ValueError(f"align must be one of {', '.join(ALIGNMENTS)}, got {align!r}")
+    est_index, truth_index = pair_poses(estimate, truth, max_diff, sources)
+    est, ref = estimate.poses[est_index], truth.poses[truth_index]
+    if align == "none":
+        alignment = Alignment()
+    else:
+        try:
+            alignment = fit_alignment(est, ref, scale=align == "similarity")
+        except ValueError as err:
+            raise InputError(f"{err} ({len(est)} paired poses), so no {align} alignment: use --align none",
+                             sources[0]) from None
+    moved = alignment.apply(est)
+    error = absolute_trajectory_error(moved, ref)
+    median = float(np.median(np.hypot(moved[:, 0] - ref[:, 0], moved[:, 1] - ref[:, 1])))
+    result = AteResult(align=align, n_estimate=len(estimate), n_truth=len(truth), n_paired=len(est),
+                       max_diff=max_diff, alignment=alignment, error=error, median=median)
+    return result, moved, ref
+
+
+def pair_poses(
+    estimate: Trajectory,
+    truth: Trajectory,
+    max_diff: float,
+    sources: tuple[str | Path | None, str | Path | None] = (None, None),
+) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (estimate's, truth's) of the pose pairs, in time order: each truth pose with the
+    estimate pose nearest to it among those whose nearest truth pose it is, if within `max_diff`
+    seconds (so one pair per truth pose at most, whichever trajectory is recorded faster).
+
+    Raises:
+        ValueError: for a negative or NaN `max_diff`.
+        InputError: naming the file (`sources`) where a pose is not finite or no pose pairs.
+    """
     if not max_diff >= 0:  # NaN too
         raise ValueError(f"max_diff must be >= 0 seconds, got {max_diff}")
     for traj, source, name in ((estimate, sources[0], "estimate"), (truth, sources[1], "truth")):
@@ -161,23 +198,13 @@ def evaluate_ate(
         raise InputError(
             f"no pose lies within {max_diff:g} s of a pose of the truth{truth_name} (estimate {_span(estimate)}, "
             f"truth {_span(truth)}): are both on the same clock? (--max-diff widens the pairing)", sources[0])
-    order = np.argsort(estimate.timestamps[ok], kind="stable")
-    est = estimate.poses[ok][order]
-    ref = truth.poses[nearest[ok]][order]
-    if align == "none":
-        alignment = Alignment()
-    else:
-        try:
-            alignment = fit_alignment(est, ref, scale=align == "similarity")
-        except ValueError as err:
-            raise InputError(f"{err} ({int(ok.sum())} paired poses), so no {align} alignment: use --align none",
-                             sources[0]) from None
-    moved = alignment.apply(est)
-    error = absolute_trajectory_error(moved, ref)
-    median = float(np.median(np.hypot(moved[:, 0] - ref[:, 0], moved[:, 1] - ref[:, 1])))
-    result = AteResult(align=align, n_estimate=len(estimate), n_truth=len(truth), n_paired=int(ok.sum()),
-                       max_diff=max_diff, alignment=alignment, error=error, median=median)
-    return result, moved, ref
+    candidates = np.flatnonzero(ok)
+    offset = np.abs(estimate.timestamps[candidates] - truth.timestamps[nearest[candidates]])
+    order = np.lexsort((offset, nearest[candidates]))  # by truth pose, then nearest first
+    truth_index, first = np.unique(nearest[candidates][order], return_index=True)
+    est_index = candidates[order][first]
+    by_time = np.argsort(truth.timestamps[truth_index], kind="stable")
+    return est_index[by_time], truth_index[by_time]
 
 
 def _span(traj: Trajectory) -> str:

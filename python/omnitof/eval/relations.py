@@ -138,11 +138,13 @@ def relations_along(truth: Trajectory, delta: float, unit: str = "m") -> Relatio
     poses, stamps = truth.poses, truth.timestamps
     n = len(truth)
     if unit == "f":
-        first = np.arange(n) + int(delta)
+        first = np.arange(n) + int(min(delta, n))  # min: a delta beyond any integer type's range
     else:
         along = stamps - stamps[0] if unit == "s" else np.r_[0.0, np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))]
-        # A small tolerance: a pose that a rounding error puts a hair short of delta still counts.
+        # A small tolerance: a pose that a rounding error puts a hair short of delta still counts;
+        # never the pose itself, however small delta is.
         first = np.searchsorted(along, along + delta - 1e-9 * max(1.0, delta), side="left")
+        first = np.maximum(first, np.arange(n) + 1)
     i = np.flatnonzero(first < n)
     j = first[i]
     return Relations(stamps[i], stamps[j], relative(poses[i], poses[j]),

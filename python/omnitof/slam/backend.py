@@ -770,7 +770,9 @@ class PoseGraphBackend:
         (anchor, node) pairs, the relocalised nodes, and the edges of the last optimisation
         (`edges` (E, 2) node pairs, `measured` (E, 3) relative poses, `information` (E, 3, 3)):
         the front end's (the wheels' into the relocalisations it spread) and the kept closures,
-        whose robust kernel is left out (it has done its work: the rejected ones are not there)."""
+        each closure's information scaled by its robust kernel's weight at the optimum (the
+        weights of iteratively reweighted least squares, at their fixed point), so that the
+        plain least squares of these edges has the robust optimum's poses."""
         def pairs(kept: bool) -> np.ndarray:
             edges = [[c.anchor, c.node] for c in self.closures if bool(c.accepted) == kept]
             return np.array(edges, dtype=np.int64).reshape(-1, 2)
@@ -779,12 +781,24 @@ class PoseGraphBackend:
         edges = [[j, j + 1] for j in range(len(front))] + [[c.anchor, c.node] for c in kept]
         measured = [np.asarray(e, dtype=np.float64) for e in front] + [np.asarray(c.measured, dtype=np.float64) for c in kept]
         information = ([np.diag(1.0 / self._odometry_sigmas(e) ** 2) for e in front]
-                       + [np.linalg.inv(self._closure_covariance(c)) for c in kept])
+                       + [self._closure_weight(c) * np.linalg.inv(self._closure_covariance(c)) for c in kept])
         return {"nodes": nodes, "closures": pairs(True), "rejected": pairs(False),
                 "relocalised": np.array(sorted(self.relocalisations), dtype=np.int64),
                 "edges": np.array(edges, dtype=np.int64).reshape(-1, 2),
                 "measured": np.array(measured, dtype=np.float64).reshape(-1, 3),
                 "information": np.array(information, dtype=np.float64).reshape(-1, 3, 3)}
+
+    def _closure_weight(self, c: Closure) -> float:
+        """The robust kernel's weight of closure `c` at the current estimate (1 without a kernel):
+        the kernel's weight function of its whitened error's norm, as GTSAM's Robust noise
+        model weighs it."""
+        noise = self._closure_noise(c)
+        if not isinstance(noise, gtsam.noiseModel.Robust):
+            return 1.0
+        predicted = gtsam.Pose2(*self.estimate[c.anchor]).between(gtsam.Pose2(*self.estimate[c.node]))
+        error = gtsam.Pose2.Logmap(gtsam.Pose2(*c.measured).between(predicted))
+        whitened = math.sqrt(float(error @ np.linalg.solve(self._closure_covariance(c), error)))
+        return float(noise.robust().weight(whitened))
 
     def correction_table(self) -> list[dict]:
         """Every correction of the odometry check, for summary.yaml: its scan, the recent map's
