@@ -133,6 +133,12 @@ def test_a_2x2x2_grid_gives_the_table_of_the_slam_api(grid_run):
             result = run_slam(room_scans, cfg)
             ate = absolute_trajectory_error(result.trajectory.poses, room_scans.ground_truth)
             assert float(r["ate_mean_m"]) == ate.mean and float(r["ate_final_m"]) == ate.final
+            from omnitof.eval.ate import evaluate_ate
+            from omnitof.types import Trajectory
+
+            rigid = evaluate_ate(result.trajectory, Trajectory(result.trajectory.timestamps, room_scans.ground_truth))[0]
+            assert float(r["ate_rigid_mean_m"]) == pytest.approx(rigid.error.mean, rel=1e-12)
+            assert rigid.error.rmse <= ate.rmse + 1e-12  # the least-squares alignment is at least as good as none
             assert 0 < float(r["occupied_5cm_pct"]) <= 100 and r["rel_trans_m"] == ""
         assert int(r["integrated"]) == len(result.integrated) and int(r["resamplings"]) == result.stats["resamplings"]
         assert float(r["wall_s"]) > 0 and float(r["peak_mib"]) > 50

@@ -23,10 +23,10 @@ from typing import Any
 
 import numpy as np
 
-from omnitof.errors import OmnitofError
+from omnitof.errors import InputError, OmnitofError
 from omnitof.scan.extract import ScanSettings
 from omnitof.slam.config import SlamConfig
-from omnitof.types import ScanSequence
+from omnitof.types import ScanSequence, Trajectory
 
 # Without --preset: the scan-matching filter with the pose-graph back end, for either kind of
 # input (the paper's filter is `--preset paper` / `--preset tof`).
@@ -283,8 +283,18 @@ def _run_into(request: SlamRequest, cfg: SlamConfig, out: Path, log: Path, label
     if scans.ground_truth is not None:
         from omnitof.eval.trajectory import absolute_trajectory_error
 
+        from omnitof.eval.ate import evaluate_ate
+
+        truth = Trajectory(result.trajectory.timestamps, scans.ground_truth)
+        try:  # the error after a rigid alignment: the map's shape, not its placement
+            rigid = evaluate_ate(result.trajectory, truth, align="rigid")[0]
+            shape = {**rigid.error.to_dict(), "rotation_deg": float(np.degrees(rigid.alignment.rotation)),
+                     "translation_m": list(rigid.alignment.translation)}
+        except InputError:  # a robot that never moved: no alignment to fit
+            shape = None
         extra["trajectory_error"] = {
             "slam": absolute_trajectory_error(result.trajectory.poses, scans.ground_truth).to_dict(),
+            "slam_rigid": shape,
             "odometry": absolute_trajectory_error(scans.odometry, scans.ground_truth).to_dict(),
         }
     if tof and request.map3d and not three_d:

@@ -53,6 +53,7 @@ COLUMNS: list[tuple[str, str, str, str]] = [
     ("ate_mean_m", "trajectory", "absolute trajectory error: mean (m)", ".3f"),
     ("ate_rmse_m", "trajectory", "absolute trajectory error: RMSE (m)", ".3f"),
     ("ate_final_m", "trajectory", "absolute trajectory error at the last scan (m)", ".3f"),
+    ("ate_rigid_mean_m", "trajectory", "absolute trajectory error after a rigid alignment to the truth: mean (m)", ".3f"),
     ("odom_ate_mean_m", "trajectory", "raw odometry: mean error (m)", ".3f"),
     ("odom_ate_final_m", "trajectory", "raw odometry: error at the last scan (m)", ".3f"),
     ("occupied_5cm_pct", "floorplan", "occupied cells within 5 cm of a true wall (%)", ".1f"),
@@ -131,6 +132,8 @@ def _row(record: dict[str, Any], summary: dict[str, Any] | None) -> dict[str, An
         row.update({"ate_mean_m": te["slam"]["mean"], "ate_rmse_m": te["slam"]["rmse"],
                     "ate_final_m": te["slam"]["final"], "odom_ate_mean_m": te["odometry"]["mean"],
                     "odom_ate_final_m": te["odometry"]["final"]})
+        if te.get("slam_rigid"):  # summaries written before it have none
+            row["ate_rigid_mean_m"] = te["slam_rigid"]["mean"]
     if "floorplan" in metrics:
         fp = metrics["floorplan"]
         row["occupied_5cm_pct"] = 100.0 * fp["occupied_within_5cm"]
