@@ -579,8 +579,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(func=cmd_eval_relations)
     e = esub.add_parser("ate", help="absolute trajectory error of a TUM trajectory against a TUM ground truth, "
                         "after aligning their frames",
-                        description="Pairs each estimate pose with the truth's nearest in time (within --max-diff), "
-                        "aligns the estimate to the truth (rigid by default: a SLAM map's frame is its own) and "
+                        description="Pairs at most one estimate pose with each truth pose, the nearest in time (within "
+                        "--max-diff), aligns the estimate to the truth (rigid by default: a SLAM map's frame is its own) and "
                         "prints the position and heading errors. docs/guide/evaluation.md.")
     e.add_argument("estimate", type=Path, help="the estimated trajectory (TUM), e.g. a run's trajectory.tum")
     e.add_argument("truth", type=Path, help="the ground truth (TUM) on the same clock")
