@@ -29,19 +29,23 @@ estimate is moved into it. This module does what the TUM RGB-D benchmark's ATE a
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from omnitof.errors import InputError
+from omnitof.errors import InputError, OmnitofWarning
 from omnitof.eval.relations import match_times
 from omnitof.eval.trajectory import TrajectoryError, absolute_trajectory_error
 from omnitof.geometry import wrap_angle
 from omnitof.types import Trajectory, first_non_finite
 
 ALIGNMENTS = ("none", "rigid", "similarity")
+# Where the truth moves more than this (metres) between the stamps of a pair, the pairing itself
+# puts that much error in: warned of.
+PAIRING_MOTION = 0.01
 # Paired positions must spread more than this (metres, RMS about their centroid) to fix a
 # rotation: a robot that stood still determines no frame.
 MIN_SPREAD = 1e-6
@@ -204,7 +208,31 @@ def pair_poses(
     truth_index, first = np.unique(nearest[candidates][order], return_index=True)
     est_index = candidates[order][first]
     by_time = np.argsort(truth.timestamps[truth_index], kind="stable")
-    return est_index[by_time], truth_index[by_time]
+    est_index, truth_index = est_index[by_time], truth_index[by_time]
+    _warn_of_time_offsets(estimate, truth, est_index, truth_index, sources[0])
+    return est_index, truth_index
+
+
+def _warn_of_time_offsets(estimate: Trajectory, truth: Trajectory, est_index: np.ndarray, truth_index: np.ndarray,
+                          source: str | Path | None) -> None:
+    """Warn where the truth moves more than PAIRING_MOTION between a pair's two stamps (its
+    speed there, from its neighbouring poses, times the stamps' difference): that motion is
+    counted as error."""
+    if len(truth) < 2:
+        return
+    t, xy = truth.timestamps, truth.poses[:, :2]
+    lo, hi = np.maximum(truth_index - 1, 0), np.minimum(truth_index + 1, len(truth) - 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        speed = np.hypot(*(xy[hi] - xy[lo]).T) / (t[hi] - t[lo])
+    motion = np.nan_to_num(speed) * np.abs(estimate.timestamps[est_index] - t[truth_index])
+    far = motion > PAIRING_MOTION
+    if far.any():
+        where = f"{source}: " if source else ""
+        warnings.warn(OmnitofWarning(
+            f"{where}{int(far.sum())} of {len(motion)} pairs of poses lie up to "
+            f"{np.max(np.abs(estimate.timestamps[est_index] - t[truth_index])):.3g} s apart, in which the truth moves up "
+            f"to {motion.max():.3g} m: an offset in time that large becomes error in position (stamps on two clocks, "
+            "or a --max-diff too loose)"), stacklevel=3)
 
 
 def _span(traj: Trajectory) -> str:
