@@ -238,9 +238,14 @@ def test_slam_reads_a_laserscan_ros2_bag(tmp_path, corridor_loop, capsys):
     write_laserscan_bag(bag, corridor_loop.slice(0, 300))
     out = tmp_path / "run"
     assert main(["slam", str(bag), "--out", str(out), "--preset", "sim2d", "--particles", "5", "--quiet"]) == 0
-    assert "scans 300" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "scans 300" in printed
     summary = yaml.safe_load((out / "summary.yaml").read_text())
     assert summary["input"]["kind"] == "rosbag"
+    # With the bag's ground truth: the error after a rigid alignment too, no larger (least squares).
+    te = summary["trajectory_error"]
+    assert te["slam_rigid"]["rmse"] <= te["slam"]["rmse"] + 1e-12
+    assert f"after a rigid alignment to the truth (the map's shape, not its placement): SLAM mean {te['slam_rigid']['mean']:.3f} m" in printed
     traj = read_tum(out / "trajectory.tum")
     assert len(traj) == 300
 

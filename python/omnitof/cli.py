@@ -91,6 +91,9 @@ def cmd_slam(args: argparse.Namespace) -> int:
         te = run.extra["trajectory_error"]
         print(f"trajectory error (mean, final): SLAM {te['slam']['mean']:.3f} m, {te['slam']['final']:.3f} m; "
               f"odometry {te['odometry']['mean']:.3f} m, {te['odometry']['final']:.3f} m")
+        if te.get("slam_rigid"):
+            print(f"  after a rigid alignment to the truth (the map's shape, not its placement): SLAM mean "
+                  f"{te['slam_rigid']['mean']:.3f} m ({te['slam_rigid']['rotation_deg']:+.2f} deg)")
     if "filter2d" in run.extra:
         d = run.extra["filter2d"]["difference_3d_to_2d"]
         print(f"3D filter vs 2D filter: mean {d['mean']:.3f} m, max {d['max']:.3f} m apart")
