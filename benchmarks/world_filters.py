@@ -13,7 +13,7 @@ a few seeds' numbers in the last digits.)
         [--tof-errors default|all|none|LIST] [--ideal-scans [seen]] [--odometry-scale F]
         [--odometry-jump AT DX DY DEG] [--off-plan M] [--ignore-odometry]
         [--max-incidence DEG] [--true-rig] [--multipath-compensation auto|on|off]
-        [--multipath-max-ratio R] [--bands HEIGHT:BAND ...] [--cache DIR]
+        [--multipath-max-ratio R] [--bands HEIGHT:BAND ...] [--amplitudes MIN MIN_1M] [--cache DIR]
 
 The camera's systematic errors (issue 15) are those of the demo, `default` unless told; the
 cache is kept per setting. `--ideal-scans` replaces every range by the exact distance to the
@@ -37,9 +37,11 @@ the compensation of omnitof.scan.multipath set up for the simulated camera (cach
 `--multipath-max-ratio R` gives it that `max_ratio` (cached apart). `--bands 0.6:0.1 1.35:0.55`
 extracts one scan per height band (`ScanSettings.height`, `band`) from the same rendered frames
 and keeps, per bin, the nearest band's reading (cached apart): what a scan of more of the image
-than the slice gives the 2D filter.
+than the slice gives the 2D filter. `--amplitudes 25 150` extracts with those amplitude thresholds
+(`ScanSettings.min_amplitude`, `min_amplitude_1m`; cached apart).
 
-Prints one JSON line per run, then a Markdown table.
+Prints one JSON line per run (with the error after a rigid alignment to the truth and the best
+similarity scale, `omnitof.eval.ate`), then a Markdown table.
 """
 
 from __future__ import annotations
@@ -76,18 +78,22 @@ from omnitof.types import Trajectory
 
 def extracted_scans(name: str, drive: int, cache: Path, tof_errors: str = "default", *, true_rig: bool = False,
                     compensation: str = "auto", max_ratio: float | None = None,
-                    bands: list[tuple[float, float]] | None = None):
+                    bands: list[tuple[float, float]] | None = None,
+                    amplitudes: tuple[float, float] | None = None):
     """The scans of world `name`, drive seed `drive`, with the estimated calibration, or with
     `true_rig` the true rig given the same wall-fitted distance correction (cached); with the
     multipath compensation set up for the camera where `compensation` is "on", or "auto" and the
     camera has multipath (as `omnitof demo` does), with `max_ratio` if given. `bands`: (height,
-    half-thickness) pairs, one scan each, the nearest band's reading per bin."""
+    half-thickness) pairs, one scan each, the nearest band's reading per bin. `amplitudes`: the
+    extraction's (min_amplitude, min_amplitude_1m) instead of ScanSettings' (cached apart)."""
     errors = ToFErrors.parse(tof_errors)
     tag = ("" if tof_errors == "none" else "_" + tof_errors.replace(",", "+")) + ("_truerig" if true_rig else "")
     compensate = compensation == "on" or (compensation == "auto" and errors.multipath)
     tag += "_mpcomp" if compensate else ""
     tag += f"_ratio{max_ratio:g}" if compensate and max_ratio is not None else ""
     tag += "_bands" + "+".join(f"{h:g}:{b:g}" for h, b in bands) if bands else ""
+    tag += f"_amp{amplitudes[0]:g}_{amplitudes[1]:g}" if amplitudes else ""
+    thresholds = {"min_amplitude": amplitudes[0], "min_amplitude_1m": amplitudes[1]} if amplitudes else {}
     stem = Path(name).stem if name.endswith((".yaml", ".yml")) else name  # a world YAML by path
     path = cache / f"{stem}_{drive}{tag}.pkl"
     if path.exists():
@@ -105,14 +111,14 @@ def extracted_scans(name: str, drive: int, cache: Path, tof_errors: str = "defau
                                              enabled=compensate,
                                              **({} if max_ratio is None else {"max_ratio": max_ratio}))
     if not bands:
-        extractor = ScanExtractor.from_calibration(calibration, multipath=multipath.model_dump())
+        extractor = ScanExtractor.from_calibration(calibration, multipath=multipath.model_dump(), **thresholds)
         scans = tof_scans(render_sequence(sequence, renderer), extractor, cloud_every=0, source=name).scans
     else:
         frames = list(render_sequence(sequence, renderer))
         scans = None
         for height, band in bands:
             extractor = ScanExtractor.from_calibration(calibration, multipath=multipath.model_dump(),
-                                                       height=height, band=band)
+                                                       height=height, band=band, **thresholds)
             layer = tof_scans(iter(frames), extractor, cloud_every=0, source=name).scans
             scans = layer if scans is None else dataclasses.replace(scans, ranges=np.fmin(scans.ranges, layer.ranges))
     path.write_bytes(pickle.dumps({"world": name, "scans": scans}))
@@ -214,6 +220,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bands", nargs="+", default=None, metavar="HEIGHT:BAND",
                         help="one scan per height band (m, the slice's height and half-thickness), the nearest "
                              "band's reading per bin (default: the extraction's one slice)")
+    parser.add_argument("--amplitudes", nargs=2, type=float, default=None, metavar=("MIN", "MIN_1M"),
+                        help="the extraction's min_amplitude and min_amplitude_1m (default: ScanSettings' 40, 300)")
     parser.add_argument("--cache", type=Path, default=Path("results/world_scans"))
     args = parser.parse_args(argv)
     try:
@@ -229,7 +237,7 @@ def main(argv: list[str] | None = None) -> int:
         for drive in args.drives:
             scans = extracted_scans(name, drive, args.cache, args.tof_errors, true_rig=args.true_rig,
                                     compensation=args.multipath_compensation, max_ratio=args.multipath_max_ratio,
-                                    bands=bands)
+                                    bands=bands, amplitudes=tuple(args.amplitudes) if args.amplitudes else None)
             if args.ideal_scans:
                 scans = ideal_scans(world, scans, only_seen=args.ideal_scans == "seen")
             if args.off_plan is not None:
