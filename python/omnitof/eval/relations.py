@@ -121,6 +121,11 @@ def read_relations(path: str | Path) -> Relations:
 RELATION_UNITS = {"m": "m of the truth's path", "s": "s", "f": "poses"}
 
 
+def path_along(poses: np.ndarray) -> np.ndarray:
+    """(N,) metres driven from the first of (N, 3) poses to each, along the straight steps between them."""
+    return np.r_[0.0, np.cumsum(np.hypot(*np.diff(np.asarray(poses)[:, :2], axis=0).T))]
+
+
 def relations_along(truth: Trajectory, delta: float, unit: str = "m") -> Relations:
     """Relations made from a ground truth: from each of its poses to the first one at least
     `delta` further along it, in metres of path ("m"), seconds ("s") or poses ("f"). Scored with
@@ -140,7 +145,7 @@ def relations_along(truth: Trajectory, delta: float, unit: str = "m") -> Relatio
     if unit == "f":
         first = np.arange(n) + int(min(delta, n))  # min: a delta beyond any integer type's range
     else:
-        along = stamps - stamps[0] if unit == "s" else np.r_[0.0, np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))]
+        along = stamps - stamps[0] if unit == "s" else path_along(poses)
         # A small tolerance: a pose that a rounding error puts a hair short of delta still counts;
         # never the pose itself, however small delta is.
         first = np.searchsorted(along, along + delta - 1e-9 * max(1.0, delta), side="left")

@@ -29,8 +29,10 @@ from omnitof.errors import InputError, OmnitofWarning
 from omnitof.eval.ate import pair_poses
 from omnitof.eval.relations import (
     RELATION_UNITS,
+    Relations,
     RelationsResult,
     evaluate_relations,
+    path_along,
     relations_along,
 )
 from omnitof.types import Trajectory
@@ -112,13 +114,13 @@ def evaluate_rpe(
     return RpeResult(delta=delta, unit=unit, max_diff=max_diff, n_paired=len(stamps), relations=result)
 
 
-def _warn_of_gaps(truth: Trajectory, relations: Any, delta: float, unit: str, source: str | Path | None) -> None:
+def _warn_of_gaps(truth: Trajectory, relations: Relations, delta: float, unit: str, source: str | Path | None) -> None:
     """Warn of the relations that span more than GAP_FACTOR times what they should: `delta` of
     path ("m") or of time ("s"), or the relations' median time ("f")."""
     i = np.searchsorted(truth.timestamps, relations.t1)
     j = np.searchsorted(truth.timestamps, relations.t2)
     if unit == "m":
-        path = np.r_[0.0, np.cumsum(np.hypot(*np.diff(truth.poses[:, :2], axis=0).T))]
+        path = path_along(truth.poses)
         spans, limit, what = path[j] - path[i], GAP_FACTOR * delta, "m of path"
     else:
         spans = relations.t2 - relations.t1
