@@ -333,9 +333,48 @@ def cmd_eval_rpe(args: argparse.Namespace) -> int:
     return 0
 
 
-def _checked_eval_outputs(args: argparse.Namespace, others: list[Path | None]) -> None:
-    """`eval`'s --out (and the `others`) checked before any work, and none of them an input."""
-    inputs = {Path(os.path.abspath(p)).resolve() for p in (args.estimate, args.truth)}
+def cmd_eval_map(args: argparse.Namespace) -> int:
+    from omnitof.errors import dump_yaml
+    from omnitof.eval.map_agreement import MapAgreementError, compare_maps
+    from omnitof.io.atomic import atomic_write
+    from omnitof.io.rosmap import read_ros_map
+
+    if args.initial is not None and args.align == "none":
+        raise OmnitofError("--initial is the pose ICP starts from: it goes with --align initial, not none")
+    align = "initial" if args.initial is not None and args.align == "search" else args.align
+    _checked_eval_outputs(args, [args.figure], inputs=(args.estimate, args.reference))
+    estimate, reference = read_ros_map(args.estimate), read_ros_map(args.reference)
+    initial = (0.0, 0.0, 0.0) if args.initial is None else \
+        (args.initial[0], args.initial[1], math.radians(args.initial[2]))
+    try:
+        result, moved, distance = compare_maps(estimate, reference, align=align, initial=initial,
+                                               tolerance=args.tolerance)
+    except MapAgreementError as e:
+        raise OmnitofError(f"{args.estimate} against {args.reference}: {e}") from None
+    print(result.format())
+    if args.figure is not None:
+        from omnitof.viz.maps import plot_map_agreement
+
+        est, ref = Path(args.estimate), Path(args.reference)
+        # Two runs' maps are both map.yaml: then their folders tell them apart.
+        names = (est.name, ref.name) if est.name != ref.name else (f"{est.parent.name}/{est.name}",
+                                                                   f"{ref.parent.name}/{ref.name}")
+        plot_map_agreement(args.figure, reference, moved, distance, args.tolerance,
+                           title=f"{names[0]} on {names[1]}")
+        print(f"wrote {args.figure}")
+    if args.out is not None:
+        with atomic_write(args.out) as f:
+            dump_yaml({"estimate": str(args.estimate), "reference": str(args.reference), **result.to_dict()},
+                      f, sort_keys=False)
+        print(f"wrote {args.out}")
+    return 0
+
+
+def _checked_eval_outputs(args: argparse.Namespace, others: list[Path | None], *,
+                          inputs: tuple[Path, ...] | None = None) -> None:
+    """`eval`'s --out (and the `others`) checked before any work, and none of them an input
+    (`inputs`, default the estimate and the truth)."""
+    inputs = {Path(os.path.abspath(p)).resolve() for p in (inputs or (args.estimate, args.truth))}
     for path, what in [(args.out, "the result (YAML)"), *((p, "the figure") for p in others)]:
         if path is None:
             continue
@@ -609,6 +648,26 @@ def build_parser() -> argparse.ArgumentParser:
                    help="largest time difference between a truth pose and the estimate's (s; default 0.01)")
     e.add_argument("--out", type=Path, help="write the result as YAML")
     e.set_defaults(func=cmd_eval_rpe)
+    e = esub.add_parser("map", help="an occupancy map against a reference map of the same place (map_server "
+                        "YAML + PGM), after aligning their frames",
+                        description="Moves the estimate's occupied cells into the reference's frame (a global search "
+                        "and ICP by default) and prints the share within --tolerance of the reference's walls and the "
+                        "share of the reference's walls next to the estimate's free space that it mapped. "
+                        "docs/guide/evaluation.md.")
+    e.add_argument("estimate", type=Path, help="the map to score (map_server YAML), e.g. a run's map.yaml")
+    e.add_argument("reference", type=Path, help="the reference map (map_server YAML): a floor plan, a surveyed map")
+    e.add_argument("--align", choices=("search", "initial", "none"), default="search",
+                   help="search: a global search over rotation and translation, then ICP (default); initial: ICP "
+                   "from --initial; none: the maps share a frame")
+    e.add_argument("--initial", nargs=3, type=_number(), metavar=("X", "Y", "DEG"),
+                   help="where the estimate's origin lies in the reference (m, m, degrees): ICP starts there "
+                   "(implies --align initial)")
+    e.add_argument("--tolerance", type=_number(above=0), default=0.05,
+                   help="how close to a wall counts (m; default 0.05, the demo's)")
+    e.add_argument("--figure", type=Path, help="draw the reference and the aligned estimate's walls, coloured by "
+                   "their distance (PNG)")
+    e.add_argument("--out", type=Path, help="write the result as YAML")
+    e.set_defaults(func=cmd_eval_map)
 
     p = sub.add_parser("bench", help="run an experiment (inputs × presets × settings × seeds) on Dask; "
                        "`bench report DIR` rebuilds its table and figures",

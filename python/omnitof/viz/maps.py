@@ -179,6 +179,49 @@ def _draw_trajectory(ax: Axes, name: str, xy: np.ndarray, *, color: str) -> None
         ax.plot(xy[0, 0], xy[0, 1], marker="o", color=color, markersize=6, linestyle="none")
 
 
+def plot_map_agreement(
+    path: str | Path,
+    reference: OccupancyMap,
+    cells: np.ndarray,
+    distance: np.ndarray,
+    tolerance: float,
+    *,
+    title: str = "",
+    dpi: int = 150,
+    figsize: tuple[float, float] = DEFAULT_FIGSIZE,
+) -> Figure:
+    """Draw a reference map (grey) and an estimate's occupied cells moved into its frame ((K, 2)
+    metres, `omnitof.eval.map_agreement`), each coloured by its distance to the reference's
+    nearest occupied cell (K,) up to 4·tolerance, as a PNG at `path`."""
+    cells = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
+    distance = np.asarray(distance, dtype=np.float64).reshape(-1)
+    if len(cells) != len(distance):
+        raise ValueError(f"{len(cells)} cells need as many distances, got {len(distance)}")
+    fig = Figure(figsize=figsize, dpi=dpi)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    _draw_map(ax, reference)
+    # Nearest last, so that the walls that agree are not hidden under the ones that do not.
+    order = np.argsort(-distance, kind="stable")
+    dots = ax.scatter(cells[order, 0], cells[order, 1], c=distance[order], s=1.5, marker="s", linewidths=0,
+                      cmap="plasma", vmin=0.0, vmax=4.0 * tolerance)
+    fig.colorbar(dots, ax=ax, label="distance to the reference's walls [m]", fraction=0.046, pad=0.04, extend="max")
+    x0, x1, y0, y1 = reference.extent
+    if len(cells):
+        x0, x1 = min(x0, cells[:, 0].min()), max(x1, cells[:, 0].max())
+        y0, y1 = min(y0, cells[:, 1].min()), max(y1, cells[:, 1].max())
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    share = float(np.mean(distance <= tolerance)) if len(distance) else float("nan")
+    ax.set_title(title or "map against reference")
+    ax.text(0.01, 0.01, f"{100 * share:.1f} % of {len(cells)} occupied cells within {100 * tolerance:g} cm",
+            transform=ax.transAxes, fontsize=8, va="bottom")
+    return save_figure(fig, path, dpi=dpi)
+
+
 def plot_trajectory_errors(
     path: str | Path,
     estimate: np.ndarray,
