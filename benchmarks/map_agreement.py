@@ -9,7 +9,8 @@ Printed per run, all at 5 cm:
 - "true walls": the demo's own metric, each occupied cell's distance to the floor plan's segments
   (`eval.floorplan.wall_agreement`): the independent answer;
 - "none": `compare_maps` with the frames taken as one (the simulator's map frame is the world's);
-- "search": with the global search and ICP, and how far the pose it found lies from the identity
+- "search": with the global search and ICP (its conditioning and its runner-up's share, the
+  two checks of `compare_maps`), and how far the pose it found lies from the identity
   (the right answer here), as the mean distance by which it moves the map's occupied cells from
   where the identity puts them, and in heading (a pose's own translation says little: a turn
   about a far origin moves it a lot);
@@ -37,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from omnitof.eval.floorplan import plan_map, wall_agreement
-from omnitof.eval.map_agreement import cell_centres, compare_maps, transform
+from omnitof.eval.map_agreement import cell_centres, compare_maps, moved_by, transform
 from omnitof.geometry import inverse
 from omnitof.sim.laser2d import World2D
 from omnitof.sim.worlds import load_world
@@ -64,11 +65,6 @@ def redrawn(occ: OccupancyMap, pose: np.ndarray) -> OccupancyMap:
         ij = np.floor((pts - lo) / res).astype(int)
         log_odds[ij[:, 1], ij[:, 0]] = value
     return OccupancyMap(log_odds=log_odds, known=log_odds != 0.0, resolution=res, origin=(float(lo[0]), float(lo[1])))
-
-
-def moved_by(cells: np.ndarray, found: np.ndarray, true: np.ndarray) -> float:
-    """Mean distance (m) between the cells (K, 2) moved by the pose found and by the true one."""
-    return float(np.mean(np.linalg.norm(transform(cells, found) - transform(cells, true), axis=1)))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -110,17 +106,20 @@ def main(argv: list[str] | None = None) -> int:
                 "turned_off_m": round(moved_by(in_f, np.array(turned.pose), applied), 4),
                 "turned_off_deg": round(math.degrees(abs(math.remainder(turned.pose[2] - applied[2], math.tau))), 3),
                 "turned_search_s": round(seconds, 2),
+                "constraint": round(searched.constraint, 3),
+                "runner_up_pct": None if searched.runner_up_near is None else round(100 * searched.runner_up_near, 1),
+                "warnings": searched.warnings() + turned.warnings(),
             }
             rows.append(row)
             print(json.dumps(row), flush=True)
     print("\n| world | seed | occupied cells | within 5 cm: true walls % | none % | search % (cells moved m, °) | "
-          "turned and moved % (cells moved m, °; s) | seen walls mapped % |")
-    print("|---|---|---|---|---|---|---|---|")
+          "turned and moved % (cells moved m, °; s) | seen walls mapped % | conditioning | runner-up % |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['world']} | {r['seed']} | {r['cells']} | {r['true_walls_pct']:.1f} | {r['none_pct']:.1f} | "
               f"{r['search_pct']:.1f} ({r['search_off_m']:.3f}, {r['search_off_deg']:.2f}) | "
               f"{r['turned_pct']:.1f} ({r['turned_off_m']:.3f}, {r['turned_off_deg']:.2f}; {r['turned_search_s']:.1f}) | "
-              f"{r['covered_pct']:.1f} |")
+              f"{r['covered_pct']:.1f} | {r['constraint']:.2f} | {r['runner_up_pct']} |")
     return 0
 
 

@@ -1,7 +1,9 @@
 """Filters on the simulated worlds' ToF scans, many runs from one extraction per drive.
 
 Each (world, drive) is simulated, calibrated from rendered targets and extracted once, as
-`omnitof demo` does it (in memory, float64 beam angles), and cached under `--cache`; every
+`omnitof demo` does it (in memory, float64 beam angles), and cached under `--cache` (with the
+commit that extracted it: a run on other code says so on stderr, since the cache is keyed by
+world and settings only; delete the file to extract anew); every
 (preset, particles, seed) then runs `run_slam` on those scans and is scored as the demo scores
 it: the trajectory's error to the truth and the map's share of occupied cells within 5 cm of a
 wall. This is what the issue-13 tables of BENCHMARKS.md were made with. (`omnitof bench
@@ -97,7 +99,13 @@ def extracted_scans(name: str, drive: int, cache: Path, tof_errors: str = "defau
     stem = Path(name).stem if name.endswith((".yaml", ".yml")) else name  # a world YAML by path
     path = cache / f"{stem}_{drive}{tag}.pkl"
     if path.exists():
-        return pickle.loads(path.read_bytes())["scans"]
+        cached = pickle.loads(path.read_bytes())
+        # The cache is keyed by world and settings, not by the code: say when other code made it.
+        made_by, now = cached.get("made_by", "an unrecorded commit"), code_version()
+        if made_by != now:
+            print(f"note: {path} was extracted by {made_by}, this is {now}; delete it to extract anew",
+                  file=sys.stderr)
+        return cached["scans"]
     settings = DemoSettings(world=name, seed=drive, calibrate=not true_rig, true_rig_correction=true_rig)
     world = load_world(name)
     sequence = make_sequence(world, seed=drive, motion=MotionSettings(speed=settings.speed))
@@ -121,8 +129,26 @@ def extracted_scans(name: str, drive: int, cache: Path, tof_errors: str = "defau
                                                        height=height, band=band, **thresholds)
             layer = tof_scans(iter(frames), extractor, cloud_every=0, source=name).scans
             scans = layer if scans is None else dataclasses.replace(scans, ranges=np.fmin(scans.ranges, layer.ranges))
-    path.write_bytes(pickle.dumps({"world": name, "scans": scans}))
+    path.write_bytes(pickle.dumps({"world": name, "scans": scans, "made_by": code_version()}))
     return scans
+
+
+def code_version() -> str:
+    """The commit of the checkout that runs this (with "+changes" for a modified tree), or the
+    package's version outside a git checkout."""
+    import subprocess
+
+    import omnitof
+
+    here = Path(__file__).resolve().parent
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True, text=True,
+                                check=True).stdout.strip()
+        changed = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                                 capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return f"omnitof {omnitof.__version__}"
+    return commit + ("+changes" if changed else "")
 
 
 def ideal_scans(world, scans, only_seen: bool = False):

@@ -337,13 +337,22 @@ def cmd_eval_map(args: argparse.Namespace) -> int:
     from omnitof.errors import dump_yaml
     from omnitof.eval.map_agreement import MapAgreementError, compare_maps
     from omnitof.io.atomic import atomic_write
-    from omnitof.io.rosmap import read_ros_map
+    from omnitof.io.rosmap import map_image, read_ros_map
 
-    if args.initial is not None and args.align == "none":
-        raise OmnitofError("--initial is the pose ICP starts from: it goes with --align initial, not none")
-    align = "initial" if args.initial is not None and args.align == "search" else args.align
-    _checked_eval_outputs(args, [args.figure], inputs=(args.estimate, args.reference))
+    if args.initial is not None and args.align in ("none", "search"):
+        raise OmnitofError(f"--initial is the pose ICP starts from: it goes with --align initial (or no --align), "
+                           f"not --align {args.align}")
+    align = args.align or ("initial" if args.initial is not None else "search")
+    # The outputs may name neither a map description nor the image it names.
+    inputs = (args.estimate, args.reference, map_image(args.estimate), map_image(args.reference))
+    _checked_eval_outputs(args, [args.figure], inputs=inputs)
     estimate, reference = read_ros_map(args.estimate), read_ros_map(args.reference)
+    for name, occ in (("estimate", estimate), ("reference", reference)):
+        if occ.resolution > args.tolerance:
+            warnings.warn(f"the {name}'s cells ({100 * occ.resolution:g} cm) are coarser than --tolerance "
+                          f"({100 * args.tolerance:g} cm): where a wall lies in them is blurred by up to half a cell, "
+                          "so the shares depend on where the walls fall on the grid; give a --tolerance of at least "
+                          "a cell", OmnitofWarning, stacklevel=1)
     initial = (0.0, 0.0, 0.0) if args.initial is None else \
         (args.initial[0], args.initial[1], math.radians(args.initial[2]))
     try:
@@ -352,6 +361,8 @@ def cmd_eval_map(args: argparse.Namespace) -> int:
     except MapAgreementError as e:
         raise OmnitofError(f"{args.estimate} against {args.reference}: {e}") from None
     print(result.format())
+    for text in result.warnings():
+        warnings.warn(text, OmnitofWarning, stacklevel=1)
     if args.figure is not None:
         from omnitof.viz.maps import plot_map_agreement
 
@@ -375,9 +386,15 @@ def _checked_eval_outputs(args: argparse.Namespace, others: list[Path | None], *
     """`eval`'s --out (and the `others`) checked before any work, and none of them an input
     (`inputs`, default the estimate and the truth)."""
     inputs = {Path(os.path.abspath(p)).resolve() for p in (inputs or (args.estimate, args.truth))}
+    outputs: set[Path] = set()
     for path, what in [(args.out, "the result (YAML)"), *((p, "the figure") for p in others)]:
         if path is None:
             continue
+        if what == "the figure" and Path(path).suffix.lower() != ".png":
+            raise OutputError(f"{path}: the figure is written as PNG; give it a name ending in .png")
+        if Path(os.path.abspath(path)).resolve() in outputs:
+            raise OutputError(f"{path}: named for two outputs (--out and --figure); give each its own")
+        outputs.add(Path(os.path.abspath(path)).resolve())
         if Path(os.path.abspath(path)).resolve() in inputs:
             raise OutputError(f"{path}: is one of the inputs; give the output a new name")
         _checked_output_file(Path(path), None, what)
@@ -656,9 +673,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "docs/guide/evaluation.md.")
     e.add_argument("estimate", type=Path, help="the map to score (map_server YAML), e.g. a run's map.yaml")
     e.add_argument("reference", type=Path, help="the reference map (map_server YAML): a floor plan, a surveyed map")
-    e.add_argument("--align", choices=("search", "initial", "none"), default="search",
-                   help="search: a global search over rotation and translation, then ICP (default); initial: ICP "
-                   "from --initial; none: the maps share a frame")
+    e.add_argument("--align", choices=("search", "initial", "none"), default=None,
+                   help="search: a global search over rotation and translation, then ICP (the default without "
+                   "--initial); initial: ICP from --initial; none: the maps share a frame")
     e.add_argument("--initial", nargs=3, type=_number(), metavar=("X", "Y", "DEG"),
                    help="where the estimate's origin lies in the reference (m, m, degrees): ICP starts there "
                    "(implies --align initial)")

@@ -31,6 +31,10 @@ OCCUPIED, FREE, UNKNOWN = 0, 254, 205
 # The probability 205 stands for; thresholds must keep it unknown (see _check_thresholds).
 _UNKNOWN_P = (255 - UNKNOWN) / 255.0
 
+# map_server's usual thresholds, which write_ros_map writes into the YAML by default.
+DEFAULT_OCCUPIED_THRESH = 0.65
+DEFAULT_FREE_THRESH = 0.196
+
 # Log-odds given to cells read from a map: trinary maps carry no confidence, so every occupied or
 # free cell gets the same magnitude (2.0 <=> p = 0.88), well clear of the usual thresholds.
 DEFAULT_LOG_ODDS = 2.0
@@ -44,8 +48,8 @@ def write_ros_map(
     yaml_path: str | Path,
     occ: OccupancyMap,
     *,
-    occupied_thresh: float = 0.65,
-    free_thresh: float = 0.196,
+    occupied_thresh: float = DEFAULT_OCCUPIED_THRESH,
+    free_thresh: float = DEFAULT_FREE_THRESH,
 ) -> Path:
     """Write `occ` as `<stem>.pgm` (binary P5, 8 bit) and the YAML at `yaml_path`, atomically.
 
@@ -176,7 +180,10 @@ def read_ros_map(yaml_path: str | Path, *, log_odds: float = DEFAULT_LOG_ODDS) -
         )
     _check_mode(meta, yaml_path)
     image_path = _image_path(meta, yaml_path)
-    image, maxval = _decode_pgm(image_path)
+    try:
+        image, maxval = _decode_pgm(image_path)
+    except InputError as exc:  # the image's own problem, and which map description names it
+        raise InputError(f"{exc.reason} (the image that {yaml_path} names)", image_path) from None
 
     p = image.astype(np.float64) / maxval
     if not negate:
@@ -191,6 +198,13 @@ def read_ros_map(yaml_path: str | Path, *, log_odds: float = DEFAULT_LOG_ODDS) -
     return OccupancyMap(
         log_odds=values, known=occupied | free, resolution=resolution, origin=origin
     )
+
+
+def map_image(yaml_path: str | Path) -> Path:
+    """The image file a map description names (relative to the YAML's folder, as map_server
+    reads it); InputError naming the YAML where it names none."""
+    yaml_path = Path(yaml_path)
+    return _image_path(_load_yaml(yaml_path), yaml_path)
 
 
 def _load_yaml(path: Path) -> dict[str, Any]:
