@@ -290,9 +290,7 @@ def cmd_eval_relations(args: argparse.Namespace) -> int:
 
 
 def cmd_eval_ate(args: argparse.Namespace) -> int:
-    from omnitof.errors import dump_yaml
     from omnitof.eval.ate import evaluate_ate
-    from omnitof.io.atomic import atomic_write
     from omnitof.io.tum import read_tum
 
     _checked_eval_outputs(args, [args.figure])
@@ -307,17 +305,12 @@ def cmd_eval_ate(args: argparse.Namespace) -> int:
         plot_trajectory_errors(args.figure, estimate, truth,
                                title=f"{Path(args.estimate).name} against {Path(args.truth).name} ({args.align})")
         print(f"wrote {args.figure}")
-    if args.out is not None:
-        with atomic_write(args.out) as f:
-            dump_yaml(result.to_dict(), f, sort_keys=False)
-        print(f"wrote {args.out}")
+    _write_eval_result(args.out, result.to_dict())
     return 0
 
 
 def cmd_eval_rpe(args: argparse.Namespace) -> int:
-    from omnitof.errors import dump_yaml
     from omnitof.eval.rpe import evaluate_rpe
-    from omnitof.io.atomic import atomic_write
     from omnitof.io.tum import read_tum
 
     if args.unit == "f" and args.delta != int(args.delta):
@@ -326,17 +319,12 @@ def cmd_eval_rpe(args: argparse.Namespace) -> int:
     result = evaluate_rpe(read_tum(args.estimate), read_tum(args.truth), delta=args.delta, unit=args.unit,
                           max_diff=args.max_diff, sources=(args.estimate, args.truth))
     print(result.format())
-    if args.out is not None:
-        with atomic_write(args.out) as f:
-            dump_yaml(result.to_dict(), f, sort_keys=False)
-        print(f"wrote {args.out}")
+    _write_eval_result(args.out, result.to_dict())
     return 0
 
 
 def cmd_eval_map(args: argparse.Namespace) -> int:
-    from omnitof.errors import dump_yaml
     from omnitof.eval.map_agreement import MapAgreementError, compare_maps
-    from omnitof.io.atomic import atomic_write
     from omnitof.io.rosmap import map_image, read_ros_map
 
     if args.initial is not None and args.align in ("none", "search"):
@@ -373,12 +361,21 @@ def cmd_eval_map(args: argparse.Namespace) -> int:
         plot_map_agreement(args.figure, reference, moved, distance, args.tolerance,
                            title=f"{names[0]} on {names[1]}")
         print(f"wrote {args.figure}")
-    if args.out is not None:
-        with atomic_write(args.out) as f:
-            dump_yaml({"estimate": str(args.estimate), "reference": str(args.reference), **result.to_dict()},
-                      f, sort_keys=False)
-        print(f"wrote {args.out}")
+    _write_eval_result(args.out, {"estimate": str(args.estimate), "reference": str(args.reference),
+                                  **result.to_dict()})
     return 0
+
+
+def _write_eval_result(path: Path | None, data: dict) -> None:
+    """`eval`'s --out: the result as YAML, written whole or not at all."""
+    from omnitof.errors import dump_yaml
+    from omnitof.io.atomic import atomic_write
+
+    if path is None:
+        return
+    with atomic_write(path) as f:
+        dump_yaml(data, f, sort_keys=False)
+    print(f"wrote {path}")
 
 
 def _checked_eval_outputs(args: argparse.Namespace, others: list[Path | None], *,
