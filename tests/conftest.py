@@ -52,3 +52,36 @@ def unreplaceable(monkeypatch):
         monkeypatch.setattr(os, "rename", refused)
 
     return make
+
+
+# The files whose tests take a minute or more on a 2-core machine (serial seconds, measured
+# 2026-12-08), run first. The README's test command runs two workers that take tests from a
+# shared queue and steal from each other's (`-n 2 --dist worksteal`); a long test that starts
+# last leaves one worker running it alone while the other idles.
+_LONGEST_FIRST = (
+    "test_pipeline.py",  # the corridor2 sequence in full, 165
+    "test_cli.py",  # the demo on the room world, 116
+    "test_real_logs.py",  # Intel and Freiburg 079 mapped, 195
+    "test_walls.py",  # two distance corrections fitted, 87
+    "test_refine.py",  # joint calibration refinements, 90
+    "test_filter3d.py",  # the 3D filter and its back end, 75
+    "test_bench.py",  # experiments on Dask workers, 75
+    "test_calibration.py",  # the calibration chain, 45
+)
+
+
+def pytest_configure(config):
+    # Each of the README's two test workers gets one core's worth of threads (the Rust core's
+    # pools and BLAS): two workers with two threads each on a 2-core machine only wait for each
+    # other. Results do not depend on the thread count (docs/conventions.md); the tests that
+    # check so set their counts themselves.
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        os.environ.setdefault("RAYON_NUM_THREADS", "1")
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(limits=1, user_api="blas")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(_LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: the rest keep their order

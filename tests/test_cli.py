@@ -70,8 +70,10 @@ def test_slam_writes_the_results_folder(tmp_path, loop_log, loop_relations, corr
 def test_slam_of_a_file_whose_name_is_not_utf8_writes_every_output(tmp_path, corridor_loop, capsys):
     # A Latin-1 "café" reaches Python with a surrogate escape (PEP 383), which fonts and UTF-8
     # files do not take: the titles and summary.yaml show the byte as \xe9, and nothing is lost.
-    folder = tmp_path / "données ñ"
-    folder.mkdir()
+    # The folder is deep enough that its path is longer than the 80 characters at which PyYAML
+    # folds a line (the path was split over two lines of summary.yaml).
+    folder = tmp_path / ("a folder with a long name " * 3).strip() / "données ñ"
+    folder.mkdir(parents=True)
     log = folder / os.fsdecode(b"caf\xe9.log")
     write_carmen(log, corridor_loop.slice(0, 300))
     out = tmp_path / "r\u00e9sultats 結果"
@@ -81,6 +83,7 @@ def test_slam_of_a_file_whose_name_is_not_utf8_writes_every_output(tmp_path, cor
         assert (out / name).stat().st_size > 0
     text = (out / "summary.yaml").read_text(encoding="utf-8")
     assert "données ñ/caf\\xe9.log" in text  # other alphabets as they are, the stray byte escaped
+    assert str(folder) + "/caf\\xe9.log" in text  # the whole path, on one line
     assert yaml.safe_load(text)["run"]["scans"] == 300
 
 

@@ -121,8 +121,11 @@ YamlDumper.add_representer(str, _represent_text)
 
 def dump_yaml(data: Any, stream: Any = None, **options: Any) -> Any:
     """`yaml.safe_dump` with `YamlDumper` (the text, or None when written to `stream`); other
-    alphabets than Latin written as they are (a user's file names), not as escapes."""
+    alphabets than Latin written as they are (a user's file names), not as escapes, and a long
+    text (a path under a deep folder) on one line, which PyYAML folds at 80 characters: a user
+    searching summary.yaml for their file's path finds it."""
     options.setdefault("allow_unicode", True)
+    options.setdefault("width", 1 << 16)
     return yaml.dump(data, stream, Dumper=YamlDumper, **options)
 
 
