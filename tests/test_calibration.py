@@ -625,3 +625,37 @@ def test_cli_render_calibrate_check(tmp_path, capsys):
     (tmp_path / "junk.png").write_bytes(b"not a png")
     assert main(["calibrate", "mirrors", str(tmp_path / "junk.png"), "--calibration", str(cal)]) == 2
     assert "junk.png" in capsys.readouterr().err
+
+
+def test_card_hits_against_the_ray_plane_intersection_worked_by_hand():
+    # A 1.2 × 0.8 m board 2 m ahead, turned 30° about its vertical axis: rays from the optical
+    # centre and from points beside it (as the mirrors' reflected rays start), checked against
+    # the intersection written out per ray (t = (c − o)·n / d·n, the hit inside the extent).
+    from omnitof.calibration.targets import PlainBoard, _card_hits, look_at_pose
+
+    board = PlainBoard()
+    turn = np.radians(30.0)
+    pose = look_at_pose(np.array([0.1, -0.05, 2.0]), np.array([np.sin(turn), 0.0, -np.cos(turn)]), 0.2)
+    rng = np.random.default_rng(5)
+    dirs = rng.normal([0.0, 0.0, 1.0], 0.35, size=(4000, 3))
+    dirs[:50] = -dirs[:50]  # away from the board: behind their start
+    dirs[50] = np.cross(pose[:3, 2], [1.0, 0.0, 0.0])  # along the board's plane
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    origins = rng.uniform(-0.3, 0.3, size=(4000, 3))
+    rotation, centre, normal = pose[:3, :3], pose[:3, 3], pose[:3, 2]
+    for start in (None, origins):
+        o = np.zeros_like(dirs) if start is None else start
+        t, albedo, cosine = _card_hits(board, pose, start, dirs)
+        hits = 0
+        for k in range(len(dirs)):
+            approach = dirs[k] @ normal
+            assert cosine[k] == pytest.approx(abs(approach), abs=1e-15)
+            tk = (centre - o[k]) @ normal / approach if approach != 0 else np.inf
+            x, y = (o[k] + tk * dirs[k] - centre) @ rotation[:, :2] if np.isfinite(tk) else (np.inf, np.inf)
+            inside = 1e-9 < tk < np.inf and abs(x) <= 0.6 and abs(y) <= 0.4
+            if inside:
+                hits += 1
+                assert t[k] == pytest.approx(tk, abs=1e-12) and albedo[k] == board.reflectance
+            else:
+                assert t[k] == np.inf and albedo[k] == 0.0
+        assert 500 < hits < 3500  # both cases met many times
