@@ -54,8 +54,8 @@ def unreplaceable(monkeypatch):
     return make
 
 
-# The files whose tests take a minute or more on a 2-core machine (serial seconds, measured
-# 2026-12-08), run first. The README's test command runs two workers that take tests from a
+# The files whose tests take a minute or more on a 2-core machine (about so many seconds in one
+# process, measured 2026-12-08), run first. The README's test command runs two workers that take tests from a
 # shared queue and steal from each other's (`-n 2 --dist worksteal`); a long test that starts
 # last leaves one worker running it alone while the other idles.
 _LONGEST_FIRST = (
@@ -71,12 +71,13 @@ _LONGEST_FIRST = (
 
 
 def pytest_configure(config):
-    # Each of the README's two test workers gets one core's worth of threads (the Rust core's
-    # pools and BLAS): two workers with two threads each on a 2-core machine only wait for each
-    # other. Results do not depend on the thread count (docs/conventions.md); the tests that
-    # check so set their counts themselves.
+    # Each of the README's two test workers keeps BLAS and the Rust core's global thread pool to
+    # one thread (the filter sizes its own pools by the cores): two workers with two threads each
+    # on a 2-core machine only wait for each other. Results do not depend on the thread count
+    # (docs/conventions.md); the tests that check so set their counts themselves.
     if os.environ.get("PYTEST_XDIST_WORKER"):
         os.environ.setdefault("RAYON_NUM_THREADS", "1")
+        import numpy  # noqa: F401  (threadpoolctl limits only a BLAS already loaded)
         from threadpoolctl import threadpool_limits
 
         threadpool_limits(limits=1, user_api="blas")

@@ -140,3 +140,18 @@ def test_the_scan_extraction_applies_the_correction():
     uncorrected = ScanExtractor.from_calibration(Calibration.from_rig(rig), **off).extract(
         distance + np.float32(0.1), amplitude)
     assert np.median(uncorrected[ok] - plain[ok]) > 0.05
+
+
+def test_the_correction_evaluates_its_splines_as_their_basis_does():
+    # error() evaluates the two splines directly; the fit builds their basis. Both must give one
+    # curve, inside the knots and held at the end values outside them.
+    from omnitof.calibration.distance import DEGREE, _clamped_knots, _design, _spline
+
+    rng = np.random.default_rng(7)
+    knots = _clamped_knots(0.4, 6.9, 23)
+    coefficients = rng.normal(0.0, 0.02, len(knots) - DEGREE - 1)
+    x = np.concatenate([rng.uniform(-1.0, 9.0, 5000), [0.4, 6.9, -50.0, 1e6]])
+    basis = _design(knots, x) @ coefficients
+    np.testing.assert_allclose(_spline(knots, coefficients, x), basis, rtol=0, atol=1e-15)
+    assert _spline(knots, coefficients, np.array([-50.0]))[0] == pytest.approx(coefficients[0], abs=1e-15)
+    assert _spline(knots, coefficients, np.array([1e6]))[0] == pytest.approx(coefficients[-1], abs=1e-12)

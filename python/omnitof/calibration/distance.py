@@ -66,11 +66,22 @@ def _clamped_knots(lo: float, hi: float, count: int) -> np.ndarray:
     return np.concatenate([[lo] * DEGREE, inner, [hi] * DEGREE])
 
 
+def _held(knots: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """x clipped into the knots' span: the spline holds its end values outside it."""
+    lo, hi = knots[DEGREE], knots[-DEGREE - 1]
+    return np.clip(x, lo, hi - 1e-12 * max(1.0, abs(hi)))
+
+
 def _design(knots: np.ndarray, x: np.ndarray) -> csr_matrix:
     """B-spline basis (N, n_coefficients) at x, held at the end values outside the knots."""
-    lo, hi = knots[DEGREE], knots[-DEGREE - 1]
-    xc = np.clip(x, lo, hi - 1e-12 * max(1.0, abs(hi)))
-    return BSpline.design_matrix(xc, knots, DEGREE).tocsr()
+    return BSpline.design_matrix(_held(knots, x), knots, DEGREE).tocsr()
+
+
+def _spline(knots: np.ndarray, coefficients: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """The B-spline's values at x, held at the end values outside the knots: `_design(knots,
+    x) @ coefficients` without building the basis (a quarter of its time; every pixel of every
+    frame is corrected with it)."""
+    return BSpline(knots, coefficients, DEGREE, extrapolate=False)(_held(knots, x))
 
 
 @dataclass
@@ -113,8 +124,8 @@ class DistanceCorrection:
         ok = np.isfinite(flat_d) & np.isfinite(flat_a) & (flat_a > 0)
         out = np.zeros(flat_d.shape)
         if ok.any():
-            w = _design(self.distance_knots, flat_d[ok]) @ self.distance_coefficients
-            g = _design(self.amplitude_knots, np.log(flat_a[ok])) @ self.amplitude_coefficients
+            w = _spline(self.distance_knots, self.distance_coefficients, flat_d[ok])
+            g = _spline(self.amplitude_knots, self.amplitude_coefficients, np.log(flat_a[ok]))
             out[ok] = w + g
         if self.pixel_offsets is not None:
             offsets = self.pixel_offsets.ravel()

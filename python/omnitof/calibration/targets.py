@@ -389,7 +389,7 @@ def _card_hits(
 
     The rays are taken into the card's frame with one product each (x, y across the card, z
     along its normal), so that no array of hit points is built: this runs on every sub-ray of
-    every target image, the calibration's largest cost (half the demo's calibration before)."""
+    every target image (BENCHMARKS.md, "The target images traced in the card's frame")."""
     rotation, centre = pose[:3, :3], pose[:3, 3]
     along = dirs @ rotation
     start = -(centre @ rotation) if origins is None else (origins - centre) @ rotation
