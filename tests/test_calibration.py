@@ -628,12 +628,12 @@ def test_cli_render_calibrate_check(tmp_path, capsys):
 
 
 def test_card_hits_against_the_ray_plane_intersection_worked_by_hand():
-    # A 1.2 × 0.8 m board 2 m ahead, turned 30° about its vertical axis: rays from the optical
-    # centre and from points beside it (as the mirrors' reflected rays start), checked against
-    # the intersection written out per ray (t = (c − o)·n / d·n, the hit inside the extent).
-    from omnitof.calibration.targets import PlainBoard, _card_hits, look_at_pose
+    # A plain board and a checkerboard about 2 m ahead, turned 30° about the vertical: rays from
+    # the optical centre and from points beside it (as the mirrors' reflected rays start),
+    # checked against the intersection written out per ray (t = (c − o)·n / d·n, the hit inside
+    # the extent) and the target's albedo at the hit's own coordinates (the checker squares).
+    from omnitof.calibration.targets import Checkerboard, PlainBoard, _card_hits, look_at_pose
 
-    board = PlainBoard()
     turn = np.radians(30.0)
     pose = look_at_pose(np.array([0.1, -0.05, 2.0]), np.array([np.sin(turn), 0.0, -np.cos(turn)]), 0.2)
     rng = np.random.default_rng(5)
@@ -643,19 +643,23 @@ def test_card_hits_against_the_ray_plane_intersection_worked_by_hand():
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     origins = rng.uniform(-0.3, 0.3, size=(4000, 3))
     rotation, centre, normal = pose[:3, :3], pose[:3, 3], pose[:3, 2]
-    for start in (None, origins):
-        o = np.zeros_like(dirs) if start is None else start
-        t, albedo, cosine = _card_hits(board, pose, start, dirs)
-        hits = 0
-        for k in range(len(dirs)):
-            approach = dirs[k] @ normal
-            assert cosine[k] == pytest.approx(abs(approach), abs=1e-15)
-            tk = (centre - o[k]) @ normal / approach if approach != 0 else np.inf
-            x, y = (o[k] + tk * dirs[k] - centre) @ rotation[:, :2] if np.isfinite(tk) else (np.inf, np.inf)
-            inside = 1e-9 < tk < np.inf and abs(x) <= 0.6 and abs(y) <= 0.4
-            if inside:
-                hits += 1
-                assert t[k] == pytest.approx(tk, abs=1e-12) and albedo[k] == board.reflectance
-            else:
-                assert t[k] == np.inf and albedo[k] == 0.0
-        assert 500 < hits < 3500  # both cases met many times
+    for target in (PlainBoard(), Checkerboard()):
+        x0, x1, y0, y1 = target.extent()
+        for start in (None, origins):
+            o = np.zeros_like(dirs) if start is None else start
+            t, albedo, cosine = _card_hits(target, pose, start, dirs)
+            hits, albedos = 0, set()
+            for k in range(len(dirs)):
+                approach = dirs[k] @ normal
+                assert cosine[k] == pytest.approx(abs(approach), abs=1e-15)
+                tk = (centre - o[k]) @ normal / approach if approach != 0 else np.inf
+                x, y = (o[k] + tk * dirs[k] - centre) @ rotation[:, :2] if np.isfinite(tk) else (np.inf, np.inf)
+                if 1e-9 < tk < np.inf and x0 <= x <= x1 and y0 <= y <= y1:
+                    hits += 1
+                    want = float(target.albedo(np.array([x]), np.array([y]))[0])
+                    assert t[k] == pytest.approx(tk, abs=1e-12) and albedo[k] == want
+                    albedos.add(want)
+                else:
+                    assert t[k] == np.inf and albedo[k] == 0.0
+            assert 50 < hits < len(dirs) - 50  # both cases met many times
+            assert len(albedos) == (1 if isinstance(target, PlainBoard) else 2)  # black and white squares hit
